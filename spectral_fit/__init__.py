@@ -1,0 +1,49 @@
+"""spectral_fit: a differentiable spectral renderer in JAX.
+
+Fits the reflection model of plastic objects (Lambert + Torrance–Sparrow gloss + mirror, after
+Mochizuki & Tanaka) to spectroradiometer readings, and renders mixed-reality frames with the same
+renderer. The public names below are imported lazily, so ``import spectral_fit`` stays fast and
+does not start JAX until a JAX-based function is used.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+# public name -> submodule that defines it (DESIGN §7 stable API, plus data-layer helpers)
+_EXPORTS: dict[str, str] = {
+    "SpectralFitError": "errors",
+    "InputError": "errors",
+    "default_wavelengths": "spectra",
+    "wavelength_grid": "spectra",
+    "resample": "spectra",
+    "read_spectrum_csv": "spectra",
+    "radiance_to_xyz": "colorimetry",
+    "reflectance_to_xyz": "colorimetry",
+    "xyz_weights": "colorimetry",
+    "xyz_to_lab": "colorimetry",
+    "delta_e00": "colorimetry",
+    "SpectralBasis": "basis",
+    "pca_basis": "basis",
+    "Display": "display",
+    "to_display": "display",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'spectral_fit' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])
+
+
+__all__ = sorted(_EXPORTS)

@@ -1,0 +1,148 @@
+"""Linear spectral bases (PCA) and products of spectra in basis space.
+
+A basis is K orthonormal spectra ``B (K, L)`` (rows orthonormal in the plain dot product over
+the grid). A spectrum ``s (..., L)`` is represented by coefficients ``c = s @ B.T (..., K)`` and
+reconstructed as ``c @ B``. The basis is NOT mean-centred, so the representation is linear:
+sums, scalings and filtering of spectra commute with projection, which is what lets the renderer
+integrate lighting coefficient by coefficient (DESIGN §4).
+
+Only the product ``S(λ)·E(λ)`` of two spectra needs more: its coefficients are
+``c_k = Σ_ij a_i b_j T[i, j, k]`` with ``T = product_tensor()`` (K×K×K), and its XYZ is
+``Σ_ij a_i b_j Q[i, j, :]`` with ``Q = product_xyz_tensor()`` (K×K×3): the projection skipped.
+
+Training data (colour-science): reflectances of the CIE 2017 colour-fidelity-index 99 colour
+evaluation samples (CIE 224:2017) and the 190 patches of the rawtoaces training set; emitters from
+colour's CIE illuminants and measured light sources (each normalised to unit norm).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+
+from .colorimetry import xyz_weights
+from .errors import InputError
+from .spectra import default_wavelengths, validate_wavelengths
+
+__all__ = ["SpectralBasis", "training_spectra", "pca_basis"]
+
+TRAINING_SETS = ("reflectances", "illuminants", "reflectances+illuminants")
+
+
+@functools.lru_cache(maxsize=4)
+def _reflectances_5nm() -> tuple[np.ndarray, np.ndarray]:
+    import colour
+    from colour.characterisation import read_training_data_rawtoaces_v1
+    from colour.quality.cfi2017 import load_TCS_CIE2017
+
+    wl = np.arange(380.0, 781.0, 5.0)
+    ces = np.asarray(load_TCS_CIE2017(colour.SpectralShape(380, 780, 5))[wl]).T
+    raw = np.asarray(read_training_data_rawtoaces_v1()[wl]).T
+    return wl, np.concatenate([ces, raw])
+
+
+@functools.lru_cache(maxsize=4)
+def _emitters_5nm() -> tuple[np.ndarray, np.ndarray]:
+    import colour
+
+    wl = np.arange(380.0, 781.0, 5.0)
+    rows = []
+    for table in (colour.SDS_ILLUMINANTS, colour.SDS_LIGHT_SOURCES):
+        for sd in table.values():
+            if sd.wavelengths[0] > 380.0 or sd.wavelengths[-1] < 780.0:
+                continue  # partial measurements would need invented values
+            v = np.asarray(sd[wl], dtype=np.float64)
+            if np.all(np.isfinite(v)) and v.max() > 0:
+                rows.append(v / np.linalg.norm(v))
+    return wl, np.stack(rows)
+
+
+def training_spectra(kind: str = "reflectances", wavelengths: object | None = None) -> np.ndarray:
+    """Training spectra (M, L) on ``wavelengths`` (default grid; must lie within 380–780 nm)."""
+    wl = default_wavelengths() if wavelengths is None else validate_wavelengths(wavelengths)
+    if wl[0] < 380.0 - 1e-9 or wl[-1] > 780.0 + 1e-9:
+        raise InputError(f"training data cover 380–780 nm, grid is {wl[0]:g}–{wl[-1]:g} nm",
+                         field="wavelengths")
+    if kind not in TRAINING_SETS:
+        raise InputError(f"unknown training set {kind!r}; choose one of {TRAINING_SETS}",
+                         field="training")
+    parts = []
+    if "reflectances" in kind:
+        parts.append(_reflectances_5nm())
+    if "illuminants" in kind:
+        parts.append(_emitters_5nm())
+    rows = [np.stack([np.interp(wl, w5, r) for r in data]) for w5, data in parts]
+    return np.concatenate(rows)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SpectralBasis:
+    """K orthonormal basis spectra on a wavelength grid.
+
+    Attributes:
+        wavelengths: (L,) nm.
+        components: (K, L), rows orthonormal: ``components @ components.T == I``.
+        singular_values: (K,) of the training matrix (for reporting explained energy).
+    """
+
+    wavelengths: np.ndarray
+    components: np.ndarray
+    singular_values: np.ndarray
+
+    @property
+    def k(self) -> int:
+        return int(self.components.shape[0])
+
+    def project(self, spectra: object) -> np.ndarray:
+        """Coefficients (..., K) of spectra (..., L) (orthogonal projection). Works on JAX arrays
+        too (the components are a constant)."""
+        return spectra @ self.components.T  # type: ignore[operator]
+
+    def reconstruct(self, coefficients: object) -> np.ndarray:
+        """Spectra (..., L) from coefficients (..., K)."""
+        return coefficients @ self.components  # type: ignore[operator]
+
+    @functools.cached_property
+    def product_tensor(self) -> np.ndarray:
+        """T (K, K, K): coefficients of the band-wise product of two spectra,
+        ``c = einsum('...i,...j,ijk->...k', a, b, T)`` (the projection of B_i·B_j onto B_k)."""
+        B = self.components
+        return np.einsum("il,jl,kl->ijk", B, B, B)
+
+    def product_xyz_tensor(self, *, scale: float = 683.0, observer: str | None = None
+                           ) -> np.ndarray:
+        """Q (K, K, 3): XYZ of the band-wise product straight from the two coefficient vectors,
+        ``XYZ = einsum('...i,...j,ijc->...c', a, b, Q)``, with :func:`xyz_weights` scaling."""
+        kw = {} if observer is None else {"observer": observer}
+        W = xyz_weights(self.wavelengths, scale=scale, **kw)
+        B = self.components
+        return np.einsum("il,jl,lc->ijc", B, B, W)
+
+    def multiply(self, a: object, b: object) -> np.ndarray:
+        """Coefficients (..., K) of the product of two spectra given by coefficients (..., K)."""
+        return np.einsum("...i,...j,ijk->...k", a, b, self.product_tensor)
+
+
+def pca_basis(
+    k: int,
+    wavelengths: object | None = None,
+    *,
+    training: str = "reflectances+illuminants",
+) -> SpectralBasis:
+    """Uncentred PCA basis of size ``k`` from colour-science's bundled spectra.
+
+    ``training``: ``"reflectances"`` (CIE 2017 CES 99 + rawtoaces 190), ``"illuminants"`` (CIE
+    illuminants and measured light sources, unit-normalised), or both (default: the renderer
+    projects both reflectances and environment spectra).
+    """
+    wl = default_wavelengths() if wavelengths is None else validate_wavelengths(wavelengths)
+    if not isinstance(k, int | np.integer) or k < 1 or k > wl.size:
+        raise InputError(f"basis size must be an integer in 1..{wl.size}, got {k!r}", field="k")
+    X = training_spectra(training, wl)
+    _, s, vt = np.linalg.svd(X, full_matrices=False)
+    comps = vt[: int(k)]
+    # sign convention: each component has a positive sum, so bases are reproducible
+    comps = comps * np.where(comps.sum(axis=1, keepdims=True) < 0, -1.0, 1.0)
+    return SpectralBasis(wavelengths=wl, components=comps, singular_values=s[: int(k)])
