@@ -191,8 +191,8 @@ class GlossQuadrature:
 
     radial: int = 6
     azimuthal: int = 8
-    albedo_radial: int = 12
-    albedo_azimuthal: int = 12
+    albedo_radial: int = 16
+    albedo_azimuthal: int = 16
     prefilter_ratio: float = 0.35
     levels: int = 7
     max_sources: int = 128
@@ -466,10 +466,26 @@ def _sh_basis(d: np.ndarray) -> np.ndarray:
 
 
 def sh_coefficients(texels: np.ndarray) -> np.ndarray:
-    """SH coefficients L_lm (9, C) of an (H, W, C) map by texel quadrature (exact solid
-    angles), NumPy float64."""
+    """SH coefficients L_lm (9, C) of an (H, W, C) map, NumPy float64.
+
+    Each texel is a box of constant radiance; the basis functions are integrated over it with
+    3 × 3 Gauss–Legendre points in (cosθ, φ) (area-uniform coordinates), so a uniform map gives
+    exactly L_00 = √(4π) and zero higher coefficients."""
     h, w = texels.shape[:2]
-    Y = _sh_basis(texel_directions(h, w)) * texel_solid_angles(h, w)[..., None]
+    x, wx = np.polynomial.legendre.leggauss(3)
+    x, wx = 0.5 * (x + 1.0), 0.5 * wx
+    edges = np.cos(np.pi * np.arange(h + 1) / h)  # cosθ at row edges, decreasing
+    Y = np.zeros((h, w, 9))
+    for xi, wi in zip(x, wx, strict=True):
+        cos_t = edges[:-1] + (edges[1:] - edges[:-1]) * xi  # (H,)
+        sin_t = np.sqrt(np.maximum(1.0 - cos_t**2, 0.0))
+        for xj, wj in zip(x, wx, strict=True):
+            phi = 2.0 * np.pi * (np.arange(w) + xj) / w
+            d = np.stack(np.broadcast_arrays(
+                np.sin(phi)[None, :] * sin_t[:, None], cos_t[:, None],
+                -np.cos(phi)[None, :] * sin_t[:, None]), axis=-1)
+            Y += wi * wj * _sh_basis(d)
+    Y *= texel_solid_angles(h, w)[..., None]
     return np.einsum("hwi,hwc->ic", Y, np.asarray(texels, np.float64))
 
 
