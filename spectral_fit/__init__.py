@@ -28,6 +28,11 @@ _EXPORTS: dict[str, str] = {
     "delta_e00": "colorimetry",
     "SpectralBasis": "basis",
     "pca_basis": "basis",
+    "fresnel_dielectric": "reflectance",
+    "Material": "reflectance",
+    "make_material": "reflectance",
+    "EnvironmentMap": "environment",
+    "shade": "environment",
     "Display": "display",
     "to_display": "display",
 }

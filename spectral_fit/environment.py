@@ -66,6 +66,7 @@ __all__ = [
     "gloss_integral",
     "mirror_radiance",
     "shade",
+    "shade_points",
     "synthetic_environment",
 ]
 
@@ -178,7 +179,8 @@ class GlossQuadrature:
         radial, azimuthal: nodes (Gauss–Legendre) of the radiance quadrature: rings in
             s = θh/μ' (Gaussian) or tanθh/m' (Beckmann), and azimuths over each ring's visible arc.
             Each node costs two bilinear lookups of C channels.
-        albedo_radial, albedo_azimuthal: nodes of the scalar lobe-albedo quadrature (no lookups).
+        albedo_radial, albedo_azimuthal: nodes of the scalar lobe-albedo quadrature (no lookups;
+            the azimuthal nodes cover half of the symmetric visible arc).
         prefilter_ratio: r, the prefilter std in reflected directions as a fraction of the lobe's
             (√2 μ per axis at normal incidence); the lobe is narrowed to μ' = √(μ² − σ²/2) so
             that lobe ⊛ prefilter ≈ the true lobe.
@@ -192,7 +194,7 @@ class GlossQuadrature:
     radial: int = 6
     azimuthal: int = 8
     albedo_radial: int = 16
-    albedo_azimuthal: int = 16
+    albedo_azimuthal: int = 8
     prefilter_ratio: float = 0.35
     levels: int = 7
     max_sources: int = 128
@@ -210,10 +212,14 @@ class EnvironmentMap(eqx.Module):
         rotation: (3, 3) world-from-map rotation.
         poles: (2, C) means of the first and last rows of ``texels``.
         sh: (9, C) SH coefficients of the radiance (map frame; R&H order).
-        atlas: (T, C) all prefiltered levels of the residual map (bright sources replaced by
-            their surroundings) flattened, each followed by its two pole means.
+        atlas: (T, r) all prefiltered levels of the residual map (bright sources replaced by
+            their surroundings) flattened, each followed by its two pole means, in r <= C
+            channels: coefficients in ``spectral_basis``.
+        spectral_basis: (r, C) orthonormal rows: the map's own principal spectra, as many as
+            needed for a relative error <= ``compress_tol`` on every texel (r = C, the
+            identity, when ``compress_tol`` = 0). The gloss lookups run in these r channels.
         source_dirs: (S, 4, 3) map-frame directions of 4 sub-points of each source texel.
-        source_flux: (S, C) excess radiance × solid angle / 4 of each source texel (per
+        source_flux: (S, r) excess radiance × solid angle / 4 of each source texel (per
             sub-point); residual + sources = the map exactly.
         level_sigma: (M,) prefilter std (radians) per level, level 0 = unfiltered (0).
         product_tensor: (K, K, K) basis product tensor in coefficient mode, else None.
@@ -227,6 +233,7 @@ class EnvironmentMap(eqx.Module):
     sh: jax.Array
     poles: jax.Array
     atlas: jax.Array
+    spectral_basis: jax.Array
     source_dirs: jax.Array
     source_flux: jax.Array
     level_sigma: jax.Array
@@ -250,6 +257,7 @@ class EnvironmentMap(eqx.Module):
         product_tensor: Any = None,
         quadrature: GlossQuadrature | None = None,
         diffuse: str = "sh",
+        compress_tol: float = 1e-4,
         allow_negative: bool | None = None,
         dtype: Any = jnp.float32,
         path: str | None = None,
@@ -263,6 +271,10 @@ class EnvironmentMap(eqx.Module):
             rotation_y_deg: rotation about +Y (180 for maps with −Z at the image centre).
             product_tensor: (K, K, K) from :attr:`SpectralBasis.product_tensor` when the
                 channels are basis coefficients (needed for the diffuse S·E product).
+            compress_tol: largest relative error (per texel, Euclidean over channels) allowed
+                when the prefiltered maps are stored in the map's own principal spectra (the
+                gloss integral is linear in the map, so this bounds its relative error too,
+                per texel contribution); 0 keeps all channels.
             allow_negative: accept negative texels (default: only in coefficient mode).
             path: named in error messages (the map's file).
         """
@@ -302,6 +314,9 @@ class EnvironmentMap(eqx.Module):
         residual, sdirs, sflux = _extract_sources(img, quad.max_sources,
                                                   quad.source_threshold)
         levels, sigmas = _build_levels(residual, quad.levels)
+        if not (compress_tol >= 0 and math.isfinite(compress_tol)):
+            raise InputError(f"must be finite and >= 0, got {compress_tol!r}",
+                             field="compress_tol")
         flat, shapes, offsets = [], [], []
         off = 0
         for lev in levels:
@@ -311,14 +326,18 @@ class EnvironmentMap(eqx.Module):
             shapes.append((h, w))
             offsets.append(off)
             off += h * w + 2
+        atlas = np.concatenate(flat)
+        pbasis = _spectral_basis(np.concatenate([atlas, sflux]), compress_tol)
+        atlas_r = atlas @ pbasis.T
         return cls(
             texels=jnp.asarray(img, dtype),
             rotation=jnp.asarray(R, dtype),
             sh=jnp.asarray(sh_coefficients(img), dtype),
             poles=jnp.asarray(np.stack([img[0].mean(axis=0), img[-1].mean(axis=0)]), dtype),
-            atlas=jnp.asarray(np.concatenate(flat), dtype),
+            atlas=jnp.asarray(atlas_r, dtype),
+            spectral_basis=jnp.asarray(pbasis, dtype),
             source_dirs=jnp.asarray(sdirs, dtype),
-            source_flux=jnp.asarray(sflux, dtype),
+            source_flux=jnp.asarray(sflux @ pbasis.T, dtype),
             level_sigma=jnp.asarray(sigmas, dtype),
             product_tensor=None if pt is None else jnp.asarray(pt, dtype),
             level_shapes=tuple(shapes),
@@ -326,6 +345,27 @@ class EnvironmentMap(eqx.Module):
             quadrature=quad,
             diffuse=diffuse,
         )
+
+
+def _spectral_basis(x: np.ndarray, tol: float) -> np.ndarray:
+    """Orthonormal principal spectra (r, C) of the rows of ``x`` (uncentred), with r the least
+    for which every row's relative reconstruction error is <= ``tol`` (rows below 1e-9 of the
+    largest norm ignored). ``tol`` = 0 returns the identity."""
+    c = x.shape[1]
+    if tol <= 0:
+        return np.eye(c)
+    _, _, vt = np.linalg.svd(x.T @ x)
+    vt = vt * np.where(vt.sum(axis=1, keepdims=True) < 0, -1.0, 1.0)
+    coef2 = (x @ vt.T) ** 2  # (T, C)
+    norm2 = np.sum(x * x, axis=1)
+    keep = norm2 > 1e-18 * norm2.max() if norm2.max() > 0 else np.zeros_like(norm2, bool)
+    if not keep.any():
+        return vt[:1]
+    resid = norm2[keep, None] - np.cumsum(coef2[keep], axis=1)  # error² after r components
+    worst = np.max(resid / norm2[keep, None], axis=0)
+    ok = np.nonzero(worst <= tol * tol)[0]
+    r = int(ok[0]) + 1 if ok.size else c
+    return vt[:r]
 
 
 def _extract_sources(img: np.ndarray, max_sources: int, threshold: float
@@ -391,24 +431,26 @@ def _build_levels(img: np.ndarray, n_levels: int) -> tuple[list[np.ndarray], np.
 # Lookup (JAX)
 
 
-def lookup_level(env: EnvironmentMap, level: Any, d_map: jax.Array) -> jax.Array:
-    """Bilinear lookup (C,) of prefiltered level ``level`` (traced int) of the residual map
-    along map-frame unit direction ``d_map`` (3,)."""
+def lookup_level(env: EnvironmentMap, level: Any, d_map: Any,
+                 uv: tuple[jax.Array, jax.Array] | None = None) -> jax.Array:
+    """Bilinear lookup (r,) of prefiltered level ``level`` (traced int) of the residual map
+    along map-frame unit direction ``d_map`` (3,), in the channels of ``env.spectral_basis``."""
     shapes = np.asarray(env.level_shapes, dtype=np.int32)
     hk = jnp.asarray(shapes[:, 0])[level]
     wk = jnp.asarray(shapes[:, 1])[level]
     off = jnp.asarray(np.asarray(env.level_offsets, dtype=np.int32))[level]
-    return _bilinear(env.atlas, off, hk, wk, d_map)
+    return _bilinear(env.atlas, off, hk, wk, d_map, uv)
 
 
-def _bilinear(flat: jax.Array, off: Any, hk: Any, wk: Any, d_map: jax.Array) -> jax.Array:
+def _bilinear(flat: jax.Array, off: Any, hk: Any, wk: Any, d_map: Any,
+              uv: tuple[jax.Array, jax.Array] | None = None) -> jax.Array:
     """Bilinear lookup in an (hk, wk) map stored row-major at ``flat[off:]`` and followed by its
-    north and south pole means. Wraps in u; between the first (last) row centre and the pole it
-    blends linearly towards the row's mean, placed at the pole, so the lookup is continuous on
-    the whole sphere."""
+    north and south pole means (``uv``: the direction's (u, v) if already known). Wraps in u;
+    between the first (last) row centre and the pole it blends linearly towards the row's mean,
+    placed at the pole, so the lookup is continuous on the whole sphere."""
     hk = jnp.asarray(hk, jnp.int32)
     wk = jnp.asarray(wk, jnp.int32)
-    u, v = direction_to_uv(d_map)
+    u, v = direction_to_uv(d_map) if uv is None else uv
     dtype = flat.dtype
     tx = u.astype(dtype) * wk.astype(dtype) - 0.5
     ty = v.astype(dtype) * hk.astype(dtype) - 0.5
@@ -434,7 +476,7 @@ def _bilinear(flat: jax.Array, off: Any, hk: Any, wk: Any, d_map: jax.Array) -> 
     i11 = jnp.where(south, pole_s, off + r1 * wk + x1)
     idx = jnp.stack([i00, i01, i10, i11])
     w = jnp.stack([(1 - wy1) * (1 - fx), (1 - wy1) * fx, wy1 * (1 - fx), wy1 * fx])
-    return jnp.einsum("i,ic->c", w, flat[idx])
+    return jnp.einsum("i,ic->c", w, flat.at[idx].get(mode="promise_in_bounds"))
 
 
 def _to_map(env: EnvironmentMap, direction: jax.Array) -> jax.Array:
@@ -568,24 +610,27 @@ def _levels_for(env: EnvironmentMap, target: jax.Array
 _S_MAX = 4.5  # lobe truncation in s = θh/μ (Gaussian) or tanθh/m (Beckmann): e^-20 of the peak
 
 
-def _lobe_nodes(
-    N: jax.Array, V: jax.Array, width: jax.Array, *, distribution: str, radial: int,
-    azimuthal: int,
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Quadrature of ∫ D(width) (·) dω_H over the half vectors whose reflected direction is
-    above the surface: rings θh(s) with Gauss–Legendre in s on [0, s_max], s_max from the
-    horizon (θh <= π/4 + θr/2) and the truncation s <= 4.5; on each ring Gauss–Legendre in the
-    azimuth over the visible arc |φ'| <= φ_max (φ' from V's azimuth; N·L > 0 ⟺
-    cosφ' > −cotθr cos2θh / sin2θh · ...). The integrand vanishes or jumps only at the domain
-    boundary, so the rule converges fast; nodes move smoothly with μ, N, V.
+def _lobe_albedo(
+    nv: jax.Array, width: jax.Array, n: jax.Array, mu: jax.Array, *, distribution: str,
+    geometry: str, fresnel: bool, radial: int, azimuthal: int,
+) -> jax.Array:
+    """A = ∫ D(width) F G (V·H)/(N·V) dω_H over the half vectors whose reflection is above the
+    surface (the gloss lobe's directional albedo), a function of cosθr = ``nv`` only.
 
-    Returns H (M, 3) unit half vectors, D·dω weights (M,), cosθh (M,)."""
-    dtype = N.dtype
+    Rings θh(s) with Gauss–Legendre in s on [0, s_max] (weight s e^{−s²} of the distribution),
+    s_max from the horizon (θh <= π/4 + θr/2) and the truncation s <= 4.5; on each ring
+    Gauss–Legendre in the azimuth φ' (from V's azimuth) over the visible arc 0 <= φ' <= φ_max,
+    where N·L > 0 ⟺ sin2θh sinθr cosφ' > −cosθr cos2θh (the integrand is even in φ', so half
+    the arc is integrated and doubled). The integrand vanishes or jumps only at the domain
+    boundary, so the rule converges fast, and the nodes move smoothly with μ and θr. Only
+    scalars: V·H = cosθh cosθr + sinθh sinθr cosφ', N·L = 2 (V·H) cosθh − cosθr."""
+    dtype = nv.dtype
     xr, wr = np.polynomial.legendre.leggauss(radial)
     xa, wa = np.polynomial.legendre.leggauss(azimuthal)
     xr, wr = 0.5 * (xr + 1.0), 0.5 * wr
-    nv = jnp.clip(jnp.dot(N, V), -1.0, 1.0)
-    theta_r = jnp.arccos(jnp.clip(nv, -1.0 + 1e-7, 1.0 - 1e-7))
+    xa = 0.5 * (xa + 1.0)  # [0, 1]; the weights (sum 2) double the half arc
+    nv = jnp.clip(nv, 0.0, 1.0)
+    theta_r = jnp.arccos(jnp.clip(nv, 1e-7, 1.0 - 1e-7))
     theta_max = jnp.minimum(0.25 * math.pi + 0.5 * theta_r, 0.5 * math.pi - 1e-4)
     if distribution == "gaussian":
         s_max = jnp.minimum(theta_max / width, _S_MAX)
@@ -598,8 +643,7 @@ def _lobe_nodes(
     if distribution == "gaussian":
         th = width * s
         cos_h, sin_h = jnp.cos(th), jnp.sin(th)
-        x = th
-        sinc = jnp.where(x > 1e-4, jnp.sin(x) / jnp.where(x > 1e-4, x, 1.0), 1.0 - x * x / 6.0)
+        sinc = jnp.where(th > 1e-4, sin_h / jnp.where(th > 1e-4, th, 1.0), 1.0 - th * th / 6.0)
         # D dω_H = K(μ) e^{−s²} sinθh dθh dφ = K μ² e^{−s²} s ds dφ · sinθh/θh
         ws = ws * gaussian_normalisation(width) * width * width * sinc
     else:
@@ -608,7 +652,6 @@ def _lobe_nodes(
         sin_h = tan_h * cos_h
         # D dω_H = e^{−s²} s ds dφ / (π cosθh)
         ws = ws / (math.pi * cos_h)
-    # visible arc: N·L > 0 ⟺ sin2θh sinθr cosφ' > −cosθr cos2θh
     sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
     a = 2.0 * sin_h * cos_h * sin_r
     bnum = -nv * (cos_h * cos_h - sin_h * sin_h)
@@ -616,14 +659,30 @@ def _lobe_nodes(
     empty = bnum > jnp.abs(a) * (1.0 - 1e-6)
     c = jnp.where(full | empty, 0.0, bnum / jnp.where(full | empty, 1.0, a))
     phi_max = jnp.where(full, math.pi, jnp.where(empty, 0.0, jnp.arccos(c)))  # (R,)
-    phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A)
-    wphi = phi_max[:, None] * jnp.asarray(wa, dtype)[None, :]
-    T, B = _view_frame(N, V)
-    tang = jnp.cos(phi)[..., None] * T + jnp.sin(phi)[..., None] * B  # (R, A, 3)
-    H = cos_h[:, None, None] * N + sin_h[:, None, None] * tang
-    w = ws[:, None] * wphi
-    ch = jnp.broadcast_to(cos_h[:, None], w.shape)
-    return H.reshape(-1, 3), w.reshape(-1), ch.reshape(-1)
+    cphi = jnp.cos(phi_max[:, None] * jnp.asarray(xa, dtype)[None, :])  # (R, A)
+    w = (ws * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
+    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * cphi
+    nl = 2.0 * vh * cos_h[:, None] - nv
+    ch = jnp.broadcast_to(cos_h[:, None], vh.shape)
+    g = _microfacet_factor(nv, nl, vh, ch, mu, n, geometry=geometry, fresnel=fresnel)
+    return jnp.sum(w * g)
+
+
+def _microfacet_factor(nv: jax.Array, nl: jax.Array, vh: jax.Array, nh: jax.Array,
+                       mu: jax.Array, n: jax.Array, *, geometry: str, fresnel: bool
+                       ) -> jax.Array:
+    """F G (V·H)/(N·V) from the cosines (broadcasting)."""
+    if geometry == "vcavity":
+        G = vcavity_g(nh, nv, nl, vh)
+    elif geometry == "smith":
+        G = smith_g(nv, nl, vh, vh, mu)
+    elif geometry == "none":
+        G = jnp.where((vh > 0.0) & (nl > 0.0), 1.0, 0.0)
+    else:
+        raise InputError(f"unknown geometry term {geometry!r}", field="geometry")
+    F = fresnel_dielectric(vh, n) if fresnel else 1.0
+    nv_safe = jnp.where(nv > 0.0, nv, 1.0)
+    return F * G * jnp.maximum(vh, 0.0) / nv_safe
 
 
 def _lobe_factor(
@@ -636,17 +695,7 @@ def _lobe_factor(
     vh = H @ V
     L = 2.0 * vh[:, None] * H - V
     nl = L @ N
-    if geometry == "vcavity":
-        G = vcavity_g(cos_h, nv, nl, vh)
-    elif geometry == "smith":
-        G = smith_g(nv, nl, vh, vh, mu)
-    elif geometry == "none":
-        G = jnp.where((vh > 0.0) & (nl > 0.0), 1.0, 0.0)
-    else:
-        raise InputError(f"unknown geometry term {geometry!r}", field="geometry")
-    F = fresnel_dielectric(vh, n) if fresnel else 1.0
-    nv_safe = jnp.where(nv > 0.0, nv, 1.0)
-    return F * G * jnp.maximum(vh, 0.0) / nv_safe, L
+    return _microfacet_factor(nv, nl, vh, cos_h, mu, n, geometry=geometry, fresnel=fresnel), L
 
 
 def _narrowed_nodes(
@@ -716,7 +765,7 @@ def gloss_integral(
       prefilter has the true lobe's width (exact for a Gaussian lobe at normal incidence).
 
     Both quadratures place nodes on the visible part of the lobe only (see
-    :func:`_lobe_nodes`), so they move smoothly with μ, n, N, V: the result is smooth in μ and
+    :func:`_lobe_albedo`), so they move smoothly with μ, n, N, V: the result is smooth in μ and
     n (no tables in μ). Zero if N·V <= 0.
 
     Args:
@@ -736,10 +785,8 @@ def gloss_integral(
     quad = env.quadrature
     kw = dict(geometry=geometry, fresnel=fresnel)
     # A: directional albedo of the lobe (true width)
-    Ha, wa, cha = _lobe_nodes(N, V, mu, distribution=distribution, radial=quad.albedo_radial,
-                              azimuthal=quad.albedo_azimuthal)
-    ga, _ = _lobe_factor(N, V, Ha, cha, mu, n, **kw)
-    albedo = jnp.sum(wa * ga)
+    albedo = _lobe_albedo(jnp.dot(N, V), mu, n, mu, distribution=distribution,
+                          radial=quad.albedo_radial, azimuthal=quad.albedo_azimuthal, **kw)
     # <L>: mean prefiltered radiance over the narrowed lobe
     nv = jnp.clip(jnp.dot(N, V), 0.0, 1.0)
     lo, hi, w_hi, var = _levels_for(
@@ -748,16 +795,17 @@ def gloss_integral(
                                   radial=quad.radial, azimuthal=quad.azimuthal)
     gb, L = _lobe_factor(N, V, Hb, chb, mu, n, **kw)
     f = wb * gb
-    d_map = _to_map(env, L)
-    look = jax.vmap(lambda d, lev: lookup_level(env, lev, d), in_axes=(0, None))
-    radiance = (1.0 - w_hi) * look(d_map, lo) + w_hi * look(d_map, hi)  # (M, C)
+    u, v = direction_to_uv(_to_map(env, L))
+    look = jax.vmap(lambda uu, vv, lev: lookup_level(env, lev, None, (uu, vv)),
+                    in_axes=(0, 0, None))
+    radiance = (1.0 - w_hi) * look(u, v, lo) + w_hi * look(u, v, hi)  # (M, r)
     total = jnp.sum(f)
     ok = (jnp.dot(N, V) > 0.0) & (total > 0.0)
     mean = (f @ radiance) / jnp.where(ok, total, 1.0)
     out = albedo * mean
     if env.source_flux.shape[0]:
         out = out + _source_gloss(env, N, V, mu, n, distribution=distribution, **kw)
-    return jnp.where(ok, out, 0.0)
+    return jnp.where(ok, out @ env.spectral_basis, 0.0)
 
 
 def _source_gloss(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.Array,
@@ -827,6 +875,18 @@ def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any) -> ja
     mirror = mirror_radiance(env, N, V, material.n)
     out = diffuse + material.beta * gloss + material.chi * mirror
     return jnp.where(jnp.dot(N, V) > 0.0, out, 0.0)
+
+
+def shade_points(material: Material, env: EnvironmentMap, normals: Any, views: Any, *,
+                 batch_size: int = 4096) -> jax.Array:
+    """:func:`shade` over many points, (P, 3) normals and views → (P, C), evaluated in batches
+    of ``batch_size`` points (``jax.lax.map``) so that the per-node lookups of the gloss
+    quadrature never hold more than ``batch_size`` × nodes × channels values at once.
+    jit/grad-able; the same numbers as ``jax.vmap(shade)``."""
+    normals = jnp.asarray(normals)
+    views = jnp.asarray(views)
+    return jax.lax.map(lambda nv: shade(material, env, nv[0], nv[1]),
+                       jnp.stack([normals, views], axis=1), batch_size=batch_size)
 
 
 # --------------------------------------------------------------------------------------------
