@@ -37,7 +37,7 @@ def _de_stats(wl, refl, recon, ill_name):
 def test_pca_oracle_design_5(k, ill, mean, worst):
     """DESIGN §5: 400–700 nm / 10 nm, CES 99 + rawtoaces 190, tested on the 24 BabelColor
     patches; margins 0.01 (mean) and 0.02 (max)."""
-    B = pca_basis(k, WL10, training="reflectances")
+    B = pca_basis(k, WL10, training="reflectances", weighting="none")
     T = _checker(WL10)
     m, w = _de_stats(WL10, T, B.reconstruct(B.project(T)), ill)
     assert m == pytest.approx(mean, abs=0.01)
@@ -49,14 +49,15 @@ def test_training_set_sizes():
     assert training_spectra("illuminants").shape[0] > 40
 
 
-def test_orthonormal_and_projection_idempotent():
-    B = pca_basis(8)
-    np.testing.assert_allclose(B.components @ B.components.T, np.eye(8), atol=1e-12)
+@pytest.mark.parametrize("weighting", ["visual", "none"])
+def test_orthonormal_and_projection_idempotent(weighting):
+    B = pca_basis(8, weighting=weighting)
+    np.testing.assert_allclose(B.components * B.weights @ B.components.T, np.eye(8), atol=1e-12)
     s = _checker(default_wavelengths())
     c = B.project(s)
     np.testing.assert_allclose(B.project(B.reconstruct(c)), c, atol=1e-12)
     # a full basis reproduces any spectrum exactly
-    full = pca_basis(81, training="reflectances")
+    full = pca_basis(81, weighting=weighting)
     np.testing.assert_allclose(full.reconstruct(full.project(s)), s, atol=1e-10)
 
 
@@ -75,13 +76,17 @@ def test_product_tensors_match_bandwise_product():
                                radiance_to_xyz(prod, wl), rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize("k, bound_mean, bound_max", [(4, 6.5, 21.0), (8, 1.6, 6.5),
-                                                      (12, 0.45, 1.2), (16, 0.15, 0.6)])
-def test_basis_product_colour_error_bound(k, bound_mean, bound_max):
-    """Stated bound (README table): ΔE00 of S·E computed in basis space (K×K×3 contraction) vs the band-wise
-    product, 24 ColorChecker patches under D65, A and FL2 (each against its own white)."""
+@pytest.mark.parametrize(
+    "k, weighting, bound_mean, bound_max",
+    [(4, "visual", 1.0, 4.5), (8, "visual", 0.2, 0.7), (12, "visual", 0.07, 0.3),
+     (8, "none", 0.6, 2.0)],
+)
+def test_basis_product_colour_error_bound(k, weighting, bound_mean, bound_max):
+    """Stated bound (README table): ΔE00 of S·E computed in basis space (K×K×3 contraction)
+    vs the band-wise product, 24 ColorChecker patches under D65, A and FL2 (each against its
+    own white)."""
     wl = default_wavelengths()
-    B = pca_basis(k)
+    B = pca_basis(k, weighting=weighting)
     Q = B.product_xyz_tensor()
     des = []
     for n in ("D65", "A", "FL2"):
@@ -101,5 +106,7 @@ def test_bad_arguments():
         pca_basis(0)
     with pytest.raises(InputError, match="training"):
         pca_basis(4, training="nonsense")
+    with pytest.raises(InputError, match="weighting"):
+        pca_basis(4, weighting="nonsense")
     with pytest.raises(InputError, match="380–780"):
         pca_basis(4, wavelength_grid(360, 800, 10))
