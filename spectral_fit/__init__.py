@@ -28,6 +28,8 @@ _EXPORTS: dict[str, str] = {
     "delta_e00": "colorimetry",
     "SpectralBasis": "basis",
     "pca_basis": "basis",
+    "Scene": "scene",
+    "load_scene": "scene",
     "Display": "display",
     "to_display": "display",
 }
