@@ -110,3 +110,19 @@ def test_bad_arguments():
         pca_basis(4, weighting="nonsense")
     with pytest.raises(InputError, match="380–780"):
         pca_basis(4, wavelength_grid(360, 800, 10))
+
+
+@pytest.mark.parametrize(
+    "k, weighting, ill, mean, worst",
+    [(4, "none", "D65", 3.10, 8.35), (8, "none", "D65", 0.33, 0.72),
+     (4, "visual", "D65", 0.48, 1.28), (8, "visual", "D65", 0.09, 0.22),
+     (8, "visual", "A", 0.06, 0.19), (8, "visual", "FL2", 0.10, 0.20)],
+)
+def test_readme_table_on_default_grid(k, weighting, ill, mean, worst):
+    """The README's reconstruction table on the 81-band grid (margins 0.01 / 0.02)."""
+    wl = default_wavelengths()
+    B = pca_basis(k, weighting=weighting)
+    T = _checker(wl)
+    m, w = _de_stats(wl, T, B.reconstruct(B.project(T)), ill)
+    assert m == pytest.approx(mean, abs=0.01)
+    assert w == pytest.approx(worst, abs=0.02)
