@@ -35,9 +35,9 @@ shadows (nothing occludes inside the box), plus an indirect term standing in for
 interreflection: the uniform irradiance of the integrating-sphere approximation,
 E_ind = Φ ρ̄ / (A (1 − ρ̄)), with Φ the lamp's and panel's total flux (4π I and π L A), A the
 room's surface area and ρ̄ = 0.4. The window admits no daylight into the room in this model
-(it is only seen through). Typical wall luminances are then 10–60 cd/m², the floor below the
-panel ~70 cd/m² (a dimly lit room), the window 1000–3000 cd/m², the panel 5000 cd/m² and the
-lamp 20 000 cd/m².
+(it is only seen through). The painted surfaces then range over 6–82 cd/m² (median 37 cd/m²:
+a dimly lit interior), the window shows 1000–3000 cd/m² of sky and ~310 cd/m² of ground, the
+panel is 5000 cd/m² and the lamp 20 000 cd/m².
 
 Units: spectral radiance W·sr⁻¹·m⁻²·nm⁻¹; luminances use 683 lm/W and the CIE 1931 2° observer
 on the output wavelength grid (so the stated luminances hold exactly on that grid).
@@ -200,7 +200,7 @@ def _weights(d: np.ndarray) -> np.ndarray:
                        (PANEL_MIN_XZ[1] + PANEL_MAX_XZ[1]) / 2])
     to_panel = centre - x
     d_p = np.maximum(np.linalg.norm(to_panel, axis=-1), 1e-9)
-    cos_s = np.maximum(0.0, -to_panel[..., 1] / d_p)  # panel normal is -Y
+    cos_s = np.maximum(0.0, to_panel[..., 1] / d_p)  # panel normal -Y: cos = -Y . (x - c)/d
     g_panel = cos_s * np.maximum(0.0, np.sum(normal * to_panel, -1) / d_p) / d_p**2
     painted = ~(in_panel | in_window | in_lamp)
     for i in range(len(_SURF)):

@@ -107,7 +107,7 @@ def _jakob(rgb: np.ndarray, wl: np.ndarray, emission: bool) -> np.ndarray:
     flat = rgb.reshape(-1, 3)
     uniq, inverse = np.unique(flat, axis=0, return_inverse=True)
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
-    d65 = colour.SDS_ILLUMINANTS["D65"]
+    d65 = colour.SDS_ILLUMINANTS["D65"].copy().align(cmfs.shape)
     shape = colour.SpectralShape(360.0, 830.0, 1.0)
     out = np.empty((uniq.shape[0], wl.size))
     for i, c in enumerate(uniq):
