@@ -32,6 +32,12 @@ _EXPORTS: dict[str, str] = {
     "load_scene": "scene",
     "Display": "display",
     "to_display": "display",
+    "read_spectral_exr": "exr",
+    "write_spectral_exr": "exr",
+    "read_rgb_exr": "exr",
+    "rgb_to_spectra": "upsampling",
+    "read_rgb_environment": "upsampling",
+    "make_environment": "synthetic_environment",
 }
 
 

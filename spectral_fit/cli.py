@@ -16,6 +16,8 @@ from .errors import SpectralFitError
 #: subcommand name -> module under spectral_fit.commands
 COMMANDS: dict[str, str] = {
     "bench": "bench",
+    "make-env": "make_env",
+    "view": "view",
 }
 
 
