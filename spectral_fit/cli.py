@@ -15,6 +15,7 @@ from .errors import SpectralFitError
 
 #: subcommand name -> module under spectral_fit.commands
 COMMANDS: dict[str, str] = {
+    "demo": "demo",
     "bench": "bench",
     "make-env": "make_env",
     "view": "view",
