@@ -29,7 +29,7 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
                        marker (optional int id), marker_offset [[0,0,0]]
       [objects.material] reflectance (number, CSV file, or "colourchecker:<set>/<patch>"),
                        alpha [1], beta [1], chi [0], mu [0.1], n [1.5], gamma [1],
-                       distribution ["gaussian" | "beckmann"], geometry ["v-cavity" | "smith"]
+                       distribution ["gaussian" | "beckmann"], geometry ["vcavity" | "smith"]
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ class MaterialSpec:
     n: float = 1.5
     gamma: float = 1.0
     distribution: str = "gaussian"
-    geometry: str = "v-cavity"
+    geometry: str = "vcavity"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -335,7 +335,7 @@ def _material(r: _Reader, wl: np.ndarray) -> MaterialSpec:
         n=r.number("n", 1.5, lo=1.0, lo_open=True, hi=4.0),
         gamma=r.number("gamma", 1.0, lo=0.0),
         distribution=r.choice("distribution", ("gaussian", "beckmann"), "gaussian"),
-        geometry=r.choice("geometry", ("v-cavity", "smith"), "v-cavity"),
+        geometry=r.choice("geometry", ("vcavity", "smith"), "vcavity"),
     )
     r.finish()
     return m
