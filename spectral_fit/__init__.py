@@ -33,8 +33,16 @@ _EXPORTS: dict[str, str] = {
     "make_material": "reflectance",
     "EnvironmentMap": "environment",
     "shade": "environment",
+    "Scene": "scene",
+    "load_scene": "scene",
     "Display": "display",
     "to_display": "display",
+    "read_spectral_exr": "exr",
+    "write_spectral_exr": "exr",
+    "read_rgb_exr": "exr",
+    "rgb_to_spectra": "upsampling",
+    "read_rgb_environment": "upsampling",
+    "make_environment": "synthetic_environment",
 }
 
 

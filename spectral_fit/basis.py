@@ -1,8 +1,14 @@
 """Linear spectral bases (PCA) and products of spectra in basis space.
 
-A basis is K orthonormal spectra ``B (K, L)`` (rows orthonormal in the plain dot product over
-the grid). A spectrum ``s (..., L)`` is represented by coefficients ``c = s @ B.T (..., K)`` and
-reconstructed as ``c @ B``. The basis is NOT mean-centred, so the representation is linear:
+A basis is K spectra ``B (K, L)``, orthonormal under a weighted inner product
+``<f, g> = Σ_l w_l f_l g_l`` (``B diag(w) Bᵀ = I``). A spectrum ``s (..., L)`` is represented by
+coefficients ``c = (s·w) @ Bᵀ (..., K)`` (the weighted least-squares projection) and reconstructed
+as ``c @ B``. With ``weighting="none"`` (w = 1) this is plain PCA. The default ``"visual"``
+weighting, w = (x̄ + ȳ + z̄)/max + 0.01 from the CIE 1931 CMFs, spends the K components where the
+eye looks: on the 81-band grid it cuts the ΔE00 of 8-coefficient products roughly fourfold
+(README table), while the 0.01 floor keeps the spectra sane outside the visible range.
+
+The basis is NOT mean-centred, so the representation is linear:
 sums, scalings and filtering of spectra commute with projection, which is what lets the renderer
 integrate lighting coefficient by coefficient (DESIGN §4).
 
@@ -26,7 +32,7 @@ from .colorimetry import xyz_weights
 from .errors import InputError
 from .spectra import default_wavelengths, validate_wavelengths
 
-__all__ = ["SpectralBasis", "training_spectra", "pca_basis"]
+__all__ = ["SpectralBasis", "training_spectra", "pca_basis", "visual_weights"]
 
 TRAINING_SETS = ("reflectances", "illuminants", "reflectances+illuminants")
 
@@ -83,13 +89,16 @@ class SpectralBasis:
 
     Attributes:
         wavelengths: (L,) nm.
-        components: (K, L), rows orthonormal: ``components @ components.T == I``.
-        singular_values: (K,) of the training matrix (for reporting explained energy).
+        components: (K, L), rows orthonormal under the weights:
+            ``components @ diag(weights) @ components.T == I``.
+        singular_values: (K,) of the weighted training matrix (for reporting explained energy).
+        weights: (L,) inner-product weights (ones for plain PCA).
     """
 
     wavelengths: np.ndarray
     components: np.ndarray
     singular_values: np.ndarray
+    weights: np.ndarray
 
     @property
     def k(self) -> int:
@@ -98,7 +107,7 @@ class SpectralBasis:
     def project(self, spectra: object) -> np.ndarray:
         """Coefficients (..., K) of spectra (..., L) (orthogonal projection). Works on JAX arrays
         too (the components are a constant)."""
-        return spectra @ self.components.T  # type: ignore[operator]
+        return (spectra * self.weights) @ self.components.T  # type: ignore[operator]
 
     def reconstruct(self, coefficients: object) -> np.ndarray:
         """Spectra (..., L) from coefficients (..., K)."""
@@ -109,7 +118,7 @@ class SpectralBasis:
         """T (K, K, K): coefficients of the band-wise product of two spectra,
         ``c = einsum('...i,...j,ijk->...k', a, b, T)`` (the projection of B_i·B_j onto B_k)."""
         B = self.components
-        return np.einsum("il,jl,kl->ijk", B, B, B)
+        return np.einsum("il,jl,kl,l->ijk", B, B, B, self.weights)
 
     def product_xyz_tensor(self, *, scale: float = 683.0, observer: str | None = None
                            ) -> np.ndarray:
@@ -125,24 +134,46 @@ class SpectralBasis:
         return np.einsum("...i,...j,ijk->...k", a, b, self.product_tensor)
 
 
+def visual_weights(wavelengths: object | None = None, *, floor: float = 0.01) -> np.ndarray:
+    """Inner-product weights (L,): (x̄ + ȳ + z̄) / max + ``floor`` (CIE 1931 2° CMFs)."""
+    from .colorimetry import cmfs
+
+    c = cmfs(wavelengths).sum(axis=1)
+    return c / c.max() + floor
+
+
 def pca_basis(
     k: int,
     wavelengths: object | None = None,
     *,
-    training: str = "reflectances+illuminants",
+    training: str = "reflectances",
+    weighting: str = "visual",
 ) -> SpectralBasis:
-    """Uncentred PCA basis of size ``k`` from colour-science's bundled spectra.
+    """Uncentred (weighted) PCA basis of size ``k`` from colour-science's bundled spectra.
 
-    ``training``: ``"reflectances"`` (CIE 2017 CES 99 + rawtoaces 190), ``"illuminants"`` (CIE
-    illuminants and measured light sources, unit-normalised), or both (default: the renderer
-    projects both reflectances and environment spectra).
+    Args:
+        k: number of components, 1..L.
+        wavelengths: grid (default 380–780 nm / 5 nm); must lie within 380–780 nm.
+        training: ``"reflectances"`` (CIE 2017 CES 99 + rawtoaces 190; the default: with visual
+            weighting it also represents products with light sources best), ``"illuminants"``
+            (CIE illuminants and measured light sources, unit-normalised), or both.
+        weighting: ``"visual"`` (see module docstring) or ``"none"`` (plain PCA, as in DESIGN §5).
     """
     wl = default_wavelengths() if wavelengths is None else validate_wavelengths(wavelengths)
     if not isinstance(k, int | np.integer) or k < 1 or k > wl.size:
         raise InputError(f"basis size must be an integer in 1..{wl.size}, got {k!r}", field="k")
+    if weighting == "visual":
+        w = visual_weights(wl)
+    elif weighting == "none":
+        w = np.ones_like(wl)
+    else:
+        raise InputError(f"unknown weighting {weighting!r}; use 'visual' or 'none'",
+                         field="weighting")
     X = training_spectra(training, wl)
-    _, s, vt = np.linalg.svd(X, full_matrices=False)
-    comps = vt[: int(k)]
+    sw = np.sqrt(w)
+    _, s, vt = np.linalg.svd(X * sw, full_matrices=False)
+    comps = vt[: int(k)] / sw
     # sign convention: each component has a positive sum, so bases are reproducible
     comps = comps * np.where(comps.sum(axis=1, keepdims=True) < 0, -1.0, 1.0)
-    return SpectralBasis(wavelengths=wl, components=comps, singular_values=s[: int(k)])
+    return SpectralBasis(wavelengths=wl, components=comps, singular_values=s[: int(k)],
+                         weights=w)

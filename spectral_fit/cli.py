@@ -15,7 +15,10 @@ from .errors import SpectralFitError
 
 #: subcommand name -> module under spectral_fit.commands
 COMMANDS: dict[str, str] = {
+    "demo": "demo",
     "bench": "bench",
+    "make-env": "make_env",
+    "view": "view",
 }
 
 

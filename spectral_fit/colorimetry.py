@@ -197,7 +197,7 @@ def daylight_coefficients(spd: object, wavelengths: object | None = None) -> tup
     import colour
 
     wl = _wl(wavelengths)
-    basis = colour.SDS_BASIS_FUNCTIONS_CIE_ILLUMINANT_D_SERIES
+    basis = colour.colorimetry.SDS_BASIS_FUNCTIONS_CIE_ILLUMINANT_D_SERIES
     inside = (wl >= 300.0) & (wl <= 830.0)
     S = np.stack([np.asarray(basis[n][wl[inside]], np.float64) for n in ("S0", "S1", "S2")], -1)
     s = np.asarray(spd, dtype=np.float64)[inside]
