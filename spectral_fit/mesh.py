@@ -454,7 +454,7 @@ def load_ply(path: str | os.PathLike[str]) -> Mesh:
                 row: list = []
                 i = 0
                 try:
-                    for name, t, item in el["props"]:
+                    for _name, t, item in el["props"]:
                         if item is None:
                             row.append(float(tok[i]) if t[0] == "f" else int(tok[i]))
                             i += 1
