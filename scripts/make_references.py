@@ -32,6 +32,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="override the spectral grid (smoke runs)")
     ap.add_argument("--threshold", type=float, default=0.05)
     ap.add_argument("--out", type=Path, default=REPO / "measurements" / "reference")
+    ap.add_argument("--session", action="store_true",
+                    help="also write the simulated SR-3A session of two_spheres "
+                    "(<out>/sr3a_two_spheres)")
+    ap.add_argument("--session-spp", type=int, default=2048)
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
@@ -60,6 +64,16 @@ def main(argv: list[str] | None = None) -> int:
         atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2, sort_keys=True)
                           + "\n")
         print(json.dumps(summary, sort_keys=True), flush=True)
+    if args.session:
+        from spectral_fit.reference.instrument import simulate_readings
+
+        scene = load_scene(REPO / CONFIGS["two_spheres"], overrides)
+        folder = args.out / "sr3a_two_spheres"
+        white = {"position": [0.0, 0.0, -0.275], "normal": [0.0, 0.0, 1.0],
+                 "reflectance": 0.99}
+        m = simulate_readings(scene, folder, spp=args.session_spp, seed=args.seed, white=white,
+                              progress=lambda s: print(f"[session] {s}", flush=True))
+        print(f"session written: {m}", flush=True)
     return 0
 
 
