@@ -242,6 +242,25 @@ def _ladder(n: float) -> int:
     raise AssertionError  # pragma: no cover
 
 
+_DISPLAYS: dict[tuple, Any] = {}
+
+
+def _display(spec: Any) -> Any:
+    """The scene's Display, one instance per characterisation (it is a static argument of the
+    compiled frame and compares by identity, so equal scenes must share it)."""
+    from .display import Display, fit_display_csv
+
+    if spec.characterisation is not None:
+        p = spec.characterisation
+        key = ("csv", str(p), p.stat().st_mtime_ns)
+    else:
+        key = ("colourspace", spec.colourspace)
+    if key not in _DISPLAYS:
+        _DISPLAYS[key] = (fit_display_csv(spec.characterisation) if key[0] == "csv"
+                          else Display.from_colourspace(spec.colourspace))
+    return _DISPLAYS[key]
+
+
 def _white_luminance(y_map: np.ndarray, rotation_y_deg: float, normal: np.ndarray) -> float:
     """Luminance (cd/m²) of a perfect white Lambertian with world normal ``normal`` under a
     map of luminance ``y_map`` (Hm, Wm): Σ Y max(0, N·ω) Δω / π (exact texel sum)."""
@@ -349,7 +368,6 @@ def prepare(
     """
     from .basis import pca_basis
     from .colorimetry import xyz_weights
-    from .display import Display, fit_display_csv
     from .environment import EnvironmentMap
     from .scene import Scene, load_scene
 
@@ -426,8 +444,7 @@ def prepare(
 
     # display and exposure
     d = scene.display
-    display = (fit_display_csv(d.characterisation) if d.characterisation is not None
-               else Display.from_colourspace(d.colourspace))
+    display = _display(d)
     if d.exposure_luminance == "auto":
         exposure = _white_luminance(img @ W[:, 1], scene.environment.rotation_y_deg,
                                     view[2, :3].astype(np.float64))
@@ -612,6 +629,10 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     nv = jnp.sum(nrm * vdir, axis=-1, keepdims=True)
     bent = nrm + jnp.maximum(0.01 - nv, 0.0) * vdir
     nrm = bent / jnp.maximum(jnp.linalg.norm(bent, axis=-1, keepdims=True), 1e-12)
+    # empty slots: a harmless configuration (N = V = +Z), so no NaN enters any gradient
+    zdir = jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    nrm = jnp.where(pix.valid[:, None], nrm, zdir)
+    vdir = jnp.where(pix.valid[:, None], vdir, zdir)
     obj = jnp.where(pix.valid, prep.tri_object[jnp.maximum(pix.tri_id, 0)], -1)
     gb = GBuffer(position=pos, normal=nrm, view=vdir, object=obj,
                  pixel=jnp.where(pix.valid, pix.index, -1))
