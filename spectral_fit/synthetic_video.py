@@ -111,6 +111,26 @@ def marker_pose_in_camera(table: Table, marker_id: int, r_cam: np.ndarray, t_cam
     return r, t
 
 
+def _undistorted_grid(k: np.ndarray, dist: np.ndarray, h: int, w: int, s: int,
+                      step: int = 4) -> np.ndarray:
+    """Normalised undistorted coordinates (h·s, w·s, 2) of the supersampled pixel centres:
+    exact (``cv2.undistortPoints``) on a grid every ``step`` output pixels, bilinear in
+    between (the map is smooth: interpolation error ~1e-3 px for typical lenses)."""
+    import cv2
+
+    gj = np.arange(0, w + step, step, dtype=np.float64) - 0.5
+    gi = np.arange(0, h + step, step, dtype=np.float64) - 0.5
+    jj, ii = np.meshgrid(gj, gi)
+    pts = np.stack([jj, ii], -1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)
+    coarse = cv2.undistortPoints(pts, k, dist, criteria=crit).reshape(gi.size, gj.size, 2)
+    fj = ((np.arange(w * s) + 0.5) / s - 0.5 - gj[0]) / step
+    fi = ((np.arange(h * s) + 0.5) / s - 0.5 - gi[0]) / step
+    mj, mi = np.meshgrid(fj.astype(np.float32), fi.astype(np.float32))
+    return np.stack([cv2.remap(coarse[..., c].astype(np.float32), mj, mi, cv2.INTER_LINEAR)
+                     for c in range(2)], -1).astype(np.float64)
+
+
 def render_table(table: Table, k: np.ndarray, dist, r_cam: np.ndarray, t_cam: np.ndarray,
                  size: tuple[int, int], *, blur_px: float = 0.0, noise: float = 0.0,
                  supersample: int = 2, rng: np.random.Generator | None = None) -> np.ndarray:
@@ -121,22 +141,23 @@ def render_table(table: Table, k: np.ndarray, dist, r_cam: np.ndarray, t_cam: np
 
     h, w = size
     s = int(supersample)
-    jj, ii = np.meshgrid((np.arange(w * s) + 0.5) / s - 0.5, (np.arange(h * s) + 0.5) / s - 0.5)
-    pts = np.stack([jj, ii], -1).reshape(-1, 1, 2).astype(np.float64)
-    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
-    und = cv2.undistortPoints(pts, np.asarray(k, np.float64), d,
-                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40,
-                                        1e-10)).reshape(-1, 2)
-    rays = np.concatenate([und, np.ones((und.shape[0], 1))], 1) @ r_cam  # = (R^T d)^T
-    centre = -r_cam.T @ t_cam
+    und = _undistorted_grid(np.asarray(k, np.float64),
+                            np.zeros(5) if dist is None else np.asarray(dist, np.float64),
+                            h, w, s).reshape(-1, 2)
+    x, y = und[:, 0].astype(np.float32), und[:, 1].astype(np.float32)
+    rw = np.asarray(r_cam, np.float64).T  # world-from-camera rotation
+    centre = -rw @ np.asarray(t_cam, np.float64)
+    ray = [np.float32(rw[c, 0]) * x + np.float32(rw[c, 1]) * y + np.float32(rw[c, 2])
+           for c in range(3)]
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam = -centre[1] / rays[:, 1]
-    hit = np.isfinite(lam) & (lam > 0)
-    p = centre + np.where(hit, lam, 0.0)[:, None] * rays
-    col = (p[:, 0] - table.x0) / table.pitch - 0.5
-    row = (p[:, 2] - table.z0) / table.pitch - 0.5
-    col = np.where(hit, col, -1e6).reshape(h * s, w * s).astype(np.float32)
-    row = np.where(hit, row, -1e6).reshape(h * s, w * s).astype(np.float32)
+        lam = np.float32(-centre[1]) / ray[1]
+    lam = np.where(np.isfinite(lam) & (lam > 0), lam, np.float32(np.nan))
+    col = ((np.float32(centre[0] - table.x0) + lam * ray[0]) / np.float32(table.pitch)
+           - np.float32(0.5))
+    row = ((np.float32(centre[2] - table.z0) + lam * ray[2]) / np.float32(table.pitch)
+           - np.float32(0.5))
+    col = np.nan_to_num(col, nan=-1e6).reshape(h * s, w * s)
+    row = np.nan_to_num(row, nan=-1e6).reshape(h * s, w * s)
     img = cv2.remap(table.texture, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                     borderValue=table.background)
     img = img.astype(np.float32)
