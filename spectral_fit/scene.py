@@ -30,6 +30,13 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
       [objects.material] reflectance (number, CSV file, or "colourchecker:<set>/<patch>"),
                        alpha [1], beta [1], chi [0], mu [0.1], n [1.5], gamma [1],
                        distribution ["gaussian" | "beckmann"], geometry ["vcavity" | "smith"]
+    [markers]          (optional; live mixed reality, see spectral_fit/markers.py)
+                       dictionary ["DICT_5X5_100"] (an OpenCV ArUco/AprilTag dictionary),
+                       size [0.08] (side of the black square, m), world (optional marker id
+                       whose frame is the world: marker plane = ground, +Y up), smoothing [0]
+                       (exponential pose smoothing in [0, 1)), hold_frames [0] (frames a lost
+                       marker's object stays at its last pose before it is masked out),
+                       refine ["edges" | "subpix" | "contour" | "apriltag" | "none"]
 """
 
 from __future__ import annotations
@@ -55,6 +62,8 @@ __all__ = [
     "InterreflectionSpec",
     "ObjectSpec",
     "MaterialSpec",
+    "MarkerSpec",
+    "MARKER_DICTIONARIES",
     "load_scene",
     "parse_scene",
 ]
@@ -162,6 +171,41 @@ class ObjectSpec:
         return m
 
 
+#: OpenCV's predefined marker dictionaries and how many ids each holds
+MARKER_DICTIONARIES: dict[str, int] = {
+    **{f"DICT_{b}X{b}_{n}": n for b in (4, 5, 6, 7) for n in (50, 100, 250, 1000)},
+    "DICT_ARUCO_ORIGINAL": 1024,
+    "DICT_APRILTAG_16h5": 30,
+    "DICT_APRILTAG_25h9": 35,
+    "DICT_APRILTAG_36h10": 2320,
+    "DICT_APRILTAG_36h11": 587,
+    "DICT_ARUCO_MIP_36h12": 250,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class MarkerSpec:
+    """Fiducial markers of a live session (the ``[markers]`` table).
+
+    Attributes:
+        dictionary: OpenCV dictionary name (a key of :data:`MARKER_DICTIONARIES`).
+        size: side of the marker's black square in metres (the paper's markers: 0.08).
+        world: id of the marker whose frame is the world frame (its plane is the ground,
+            world +Y its normal), or None: the world is the camera's frame.
+        smoothing: exponential smoothing weight of the previous pose, in [0, 1) (0 = none).
+        hold_frames: frames an object keeps its last pose after its marker is lost.
+        refine: corner refinement: "edges" (sub-pixel edge lines, unbiased under blur; the
+            default), or OpenCV's "subpix", "contour", "apriltag", "none".
+    """
+
+    dictionary: str = "DICT_5X5_100"
+    size: float = 0.08
+    world: int | None = None
+    smoothing: float = 0.0
+    hold_frames: int = 0
+    refine: str = "edges"
+
+
 @dataclasses.dataclass(frozen=True)
 class Scene:
     """A validated scene description (see the module docstring for the file format)."""
@@ -175,6 +219,7 @@ class Scene:
     spectral: SpectralSpec
     interreflection: InterreflectionSpec
     objects: tuple[ObjectSpec, ...]
+    markers: MarkerSpec | None = None
 
     @property
     def wavelengths(self) -> np.ndarray:
@@ -475,9 +520,35 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise root.err("objects", f"object names must be unique; repeated: {sorted(dup)}")
+    markers = _markers(root, objects) if "markers" in data else None
     root.finish()
     return Scene(path=p, width=width, height=height, camera=camera, environment=environment,
-                 display=display, spectral=spectral, interreflection=inter, objects=objects)
+                 display=display, spectral=spectral, interreflection=inter, objects=objects,
+                 markers=markers)
+
+
+def _markers(root: _Reader, objects: tuple[ObjectSpec, ...]) -> MarkerSpec:
+    """The ``[markers]`` table; object marker ids must exist in the dictionary."""
+    mr = root.sub("markers")
+    dictionary = mr.choice("dictionary", tuple(MARKER_DICTIONARIES), "DICT_5X5_100")
+    n_ids = MARKER_DICTIONARIES[dictionary]
+    world = mr.raw("world", None)
+    if world is not None:
+        world = mr.integer("world", lo=0, hi=n_ids - 1)
+    spec = MarkerSpec(
+        dictionary=dictionary,
+        size=mr.number("size", 0.08, lo=0.0, lo_open=True, hi=10.0),
+        world=world,
+        smoothing=mr.number("smoothing", 0.0, lo=0.0, hi=0.99),
+        hold_frames=mr.integer("hold_frames", 0, lo=0, hi=10000),
+        refine=mr.choice("refine", ("edges", "subpix", "contour", "apriltag", "none"), "edges"),
+    )
+    mr.finish()
+    for i, o in enumerate(objects):
+        if o.marker is not None and o.marker >= n_ids:
+            raise root.err(f"objects[{i}].marker", f"id {o.marker} is not in {dictionary} "
+                           f"(ids 0..{n_ids - 1})")
+    return spec
 
 
 def load_scene(path: str | os.PathLike[str],

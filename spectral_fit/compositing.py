@@ -1,0 +1,283 @@
+"""Colour-matched compositing: CG spectra → the video camera's encoded RGB → over the frame.
+
+The CG must look as the camera would have seen it. A :class:`CameraModel` is the whole chain
+from scene light to the video frame's linear RGB, folded into ONE linear map, followed by the
+frame's tone curve:
+
+    spectral radiance (…, L) ──@ spectral_weights (L, 3)──▶ linear frame RGB ──tone──▶ [0, 1]
+    absolute XYZ (…, 3)      ──@ xyz_matrix.T (3, 3)──────▶ linear frame RGB ──tone──▶ [0, 1]
+
+where, for a camera with spectral sensitivities s(λ) (L, 3):
+
+    spectral_weights = s(λ)·Δλ · diag(exposure · white_balance) · colour_matrixᵀ
+
+* raw camera RGB = ∫ L(λ) s(λ) dλ (Riemann sum on the scene grid);
+* white balance: per-channel gains that make the scene's white (the radiance of a white
+  reference) neutral, raw(white) · wb = (1, 1, 1);
+* exposure: that white is shown at linear level ``white_level``;
+* colour matrix (3×3): white-balanced camera RGB → the frame's linear RGB primaries (sRGB),
+  least squares over the 24 ColorChecker patches under the scene's white, targets adapted to
+  the output white (CAT02), the usual camera characterisation (ISO 17321-1 style);
+* tone curve: the frame's encoding (sRGB by default), :func:`spectral_fit.display.encode`.
+
+Two ways to get a model:
+
+1. :func:`camera_model_from_sensitivities`: measured spectral sensitivities (colour-science's
+   ``MSDS_CAMERA_SENSITIVITIES``, e.g. "Nikon 5100 (NPL)", or an (L, 3) array). Spectral
+   renders go through ``spectral_weights``; XYZ renders through the best 3×3 from XYZ
+   (``xyz_matrix``, fitted on the same patches: exact only for a Luther camera).
+2. :func:`camera_model_from_colorchecker`: a 3×3 fitted from a ColorChecker in the video
+   itself: the patches' CG XYZ (rendered or computed under the scene light) against their
+   decoded frame RGB (:func:`sample_chart`). It absorbs exposure, white balance and matrix.
+
+Compositing (:func:`composite`) mixes in LINEAR light with the renderer's coverage (0..1):
+``out = encode(cov · cg + (1 − cov) · decode(frame))``; pixels without coverage are the frame's
+own values exactly (no round trip through the curve).
+
+Everything after the model is built runs under ``jax.jit`` (float32).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import InputError
+
+__all__ = [
+    "CameraModel",
+    "camera_sensitivities",
+    "camera_model_from_sensitivities",
+    "camera_model_from_colorchecker",
+    "colorchecker_reflectances",
+    "fit_colour_matrix",
+    "sample_chart",
+    "encode_frame",
+    "decode_frame",
+    "composite",
+]
+
+
+class CameraModel(eqx.Module):
+    """Scene light → the frame's linear RGB (see the module docstring), then ``tone``.
+
+    Attributes:
+        spectral_weights: (L, 3) radiance (W·sr⁻¹·m⁻²·nm⁻¹) → linear frame RGB, or NaN-free
+            zeros when the model came from XYZ only (``has_spectral`` False).
+        xyz_matrix: (3, 3) absolute XYZ (cd/m²) → linear frame RGB (``rgb = xyz @ M.T``).
+        wavelengths: (L,) nm grid of ``spectral_weights``.
+        tone: "srgb", "gamma" or "linear" (static).
+        gamma: exponent of the "gamma" curve (static).
+        has_spectral: whether ``spectral_weights`` is meaningful (static).
+    """
+
+    spectral_weights: jax.Array
+    xyz_matrix: jax.Array
+    wavelengths: jax.Array
+    tone: str = eqx.field(static=True, default="srgb")
+    gamma: float = eqx.field(static=True, default=2.2)
+    has_spectral: bool = eqx.field(static=True, default=True)
+
+    def linear_from_spectra(self, radiance: jax.Array) -> jax.Array:
+        """(…, L) spectral radiance → (…, 3) linear frame RGB."""
+        if not self.has_spectral:
+            raise InputError("this camera model has no spectral weights (fitted from XYZ)",
+                             field="camera")
+        return radiance @ self.spectral_weights
+
+    def linear_from_xyz(self, xyz: jax.Array) -> jax.Array:
+        """(…, 3) absolute XYZ → (…, 3) linear frame RGB."""
+        return xyz @ self.xyz_matrix.T
+
+
+def _display(tone: str, gamma: float):
+    from .display import Display
+
+    return Display.from_colourspace("sRGB", tone=tone, gamma=gamma)
+
+
+def encode_frame(linear, model: CameraModel):
+    """Linear frame RGB (…, 3) → encoded [0, 1] with the model's tone curve (clipped)."""
+    from .display import encode
+
+    return encode(linear, _display(model.tone, model.gamma))
+
+
+def decode_frame(encoded, model: CameraModel):
+    """Encoded [0, 1] (…, 3) → linear frame RGB (inverse tone curve)."""
+    from .display import decode
+
+    return decode(encoded, _display(model.tone, model.gamma))
+
+
+def camera_sensitivities(name: str, wavelengths) -> np.ndarray:
+    """(L, 3) spectral sensitivities of camera ``name`` from colour-science's
+    ``MSDS_CAMERA_SENSITIVITIES``, resampled onto ``wavelengths`` (nm), zero outside the
+    measured range."""
+    import colour
+
+    if name not in colour.MSDS_CAMERA_SENSITIVITIES:
+        raise InputError(f"unknown camera {name!r}; known: "
+                         f"{sorted(colour.MSDS_CAMERA_SENSITIVITIES)}", field="camera")
+    msds = colour.MSDS_CAMERA_SENSITIVITIES[name]
+    wl = np.asarray(wavelengths, np.float64)
+    src = np.asarray(msds.wavelengths)
+    vals = np.asarray(msds.values, np.float64)
+    return np.stack([np.interp(wl, src, vals[:, c], left=0.0, right=0.0) for c in range(3)], -1)
+
+
+def colorchecker_reflectances(wavelengths, *, chart: str = "BabelColor Average") -> np.ndarray:
+    """(24, L) reflectances of colour-science's ColorChecker ``chart`` (row-major, patch 1 =
+    dark skin … 24 = black) on ``wavelengths`` (nm)."""
+    import colour
+
+    from .spectra import resample
+
+    sds = colour.SDS_COLOURCHECKERS[chart]
+    wl = np.asarray(wavelengths, np.float64)
+    return np.stack([resample(sd.wavelengths, sd.values, wl, field=f"chart {chart}",
+                              margin_nm=40.0) for sd in sds.values()])
+
+
+def fit_colour_matrix(source, target, *, weights=None) -> np.ndarray:
+    """3×3 ``M`` minimising Σ w‖target − source·Mᵀ‖² (source, target (N, 3); N ≥ 3)."""
+    a = np.asarray(source, np.float64)
+    b = np.asarray(target, np.float64)
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape != b.shape or a.shape[0] < 3:
+        raise InputError(f"need matching (N>=3, 3) arrays, got {a.shape} and {b.shape}",
+                         field="colour matrix")
+    if weights is not None:
+        w = np.sqrt(np.asarray(weights, np.float64))[:, None]
+        a, b = a * w, b * w
+    m, *_ = np.linalg.lstsq(a, b, rcond=None)
+    return m.T
+
+
+def _srgb_targets(xyz_rel: np.ndarray, white_xyz: np.ndarray) -> np.ndarray:
+    """Linear sRGB of relative XYZ, adapted (CAT02) from ``white_xyz`` to D65."""
+    import colour
+
+    d65 = colour.xy_to_XYZ(colour.RGB_COLOURSPACES["sRGB"].whitepoint)
+    cat = colour.adaptation.matrix_chromatic_adaptation_VonKries(
+        white_xyz / white_xyz[1], d65, transform="CAT02")
+    from .display import Display
+
+    return (xyz_rel @ np.asarray(cat).T) @ Display.srgb().xyz_to_rgb.T
+
+
+def camera_model_from_sensitivities(sensitivities, wavelengths, white, *,
+                                    white_level: float = 0.85, tone: str = "srgb",
+                                    gamma: float = 2.2) -> CameraModel:
+    """Camera model from spectral sensitivities.
+
+    Args:
+        sensitivities: a colour-science camera name or an (L, 3) array on ``wavelengths``.
+        wavelengths: (L,) nm, the render's grid.
+        white: (L,) spectral radiance of the scene's white reference (e.g. a white Lambertian
+            under the environment); it becomes neutral at linear level ``white_level``.
+        white_level: linear frame value of the white reference (exposure).
+        tone, gamma: the frame's tone curve.
+    """
+    from .colorimetry import integration_weights, xyz_weights
+
+    wl = np.asarray(wavelengths, np.float64)
+    s = (camera_sensitivities(sensitivities, wl) if isinstance(sensitivities, str)
+         else np.asarray(sensitivities, np.float64))
+    if s.shape != (wl.size, 3):
+        raise InputError(f"sensitivities must be ({wl.size}, 3), got {s.shape}", field="camera")
+    white = np.asarray(white, np.float64).reshape(-1)
+    if white.shape != wl.shape or not np.all(np.isfinite(white)) or white.max() <= 0:
+        raise InputError("white reference must be a positive (L,) spectrum", field="white")
+    sw = s * integration_weights(wl)[:, None]
+    raw_white = white @ sw
+    if np.any(raw_white <= 0):
+        raise InputError("the white reference gives no signal in some camera channel",
+                         field="white")
+    wb = 1.0 / raw_white
+    refl = colorchecker_reflectances(wl)
+    patches = refl * white  # (24, L) radiance of the patches under the white's light
+    cam = (patches @ sw) * wb
+    xyzw = xyz_weights(wl)
+    white_xyz = white @ xyzw
+    target = _srgb_targets((patches @ xyzw) / white_xyz[1], white_xyz)
+    c = fit_colour_matrix(cam, target)
+    c = c / (c @ np.ones(3))[:, None]  # keep white neutral exactly: C·(1,1,1) = (1,1,1)
+    weights = sw @ np.diag(wb * white_level) @ c.T
+    xyz_m = fit_colour_matrix(patches @ xyzw, patches @ weights)
+    return CameraModel(jnp.asarray(weights, jnp.float32), jnp.asarray(xyz_m, jnp.float32),
+                       jnp.asarray(wl, jnp.float32), tone=tone, gamma=gamma, has_spectral=True)
+
+
+def camera_model_from_colorchecker(xyz, frame_rgb, *, tone: str = "srgb", gamma: float = 2.2,
+                                   wavelengths=None) -> CameraModel:
+    """Camera model fitted from a ColorChecker shot.
+
+    Args:
+        xyz: (N, 3) absolute XYZ of the patches as the renderer would produce them (the chart's
+            reflectances under the scene's light).
+        frame_rgb: (N, 3) the same patches' encoded values in the video frame, in [0, 1]
+            (e.g. from :func:`sample_chart` / 255). Clipped patches (any channel ≥ 0.98 or
+            ≤ 0.02) are left out of the fit.
+        tone, gamma: the frame's tone curve (to linearise ``frame_rgb``).
+    """
+    xyz = np.asarray(xyz, np.float64)
+    enc = np.asarray(frame_rgb, np.float64)
+    probe = CameraModel(jnp.zeros((1, 3)), jnp.eye(3), jnp.zeros(1), tone=tone, gamma=gamma,
+                        has_spectral=False)
+    lin = np.asarray(decode_frame(enc, probe), np.float64)
+    ok = np.all((enc < 0.98) & (enc > 0.02), axis=1)
+    if ok.sum() < 3:
+        raise InputError("fewer than 3 unclipped patches in the chart", field="chart")
+    m = fit_colour_matrix(xyz[ok], lin[ok])
+    wl = np.zeros(1) if wavelengths is None else np.asarray(wavelengths)
+    return CameraModel(jnp.zeros((wl.size, 3), jnp.float32), jnp.asarray(m, jnp.float32),
+                       jnp.asarray(wl, jnp.float32), tone=tone, gamma=gamma, has_spectral=False)
+
+
+def sample_chart(image: np.ndarray, corners, *, rows: int = 4, cols: int = 6,
+                 patch_fraction: float = 0.5) -> np.ndarray:
+    """Mean values (rows·cols, C) of a chart's patches, row-major.
+
+    ``corners`` (4, 2): pixel coordinates (x, y; OpenCV convention) of the chart's outer
+    corners in the order top-left, top-right, bottom-right, bottom-left (patch 1 at top-left).
+    Each patch is averaged over the central ``patch_fraction`` of its cell, mapped through
+    the chart's homography (so perspective views work).
+    """
+    import cv2
+
+    img = np.asarray(image)
+    src = np.array([[0, 0], [cols, 0], [cols, rows], [0, rows]], np.float64)
+    h = cv2.getPerspectiveTransform(src.astype(np.float32),
+                                    np.asarray(corners, np.float32).reshape(4, 2))
+    out = []
+    n = 9
+    g = (np.arange(n) + 0.5) / n - 0.5
+    gu, gv = np.meshgrid(g * patch_fraction, g * patch_fraction)
+    for r in range(rows):
+        for c in range(cols):
+            pts = np.stack([c + 0.5 + gu.ravel(), r + 0.5 + gv.ravel()], -1)
+            xy = cv2.perspectiveTransform(pts.reshape(-1, 1, 2), h).reshape(-1, 2)
+            vals = cv2.remap(img.astype(np.float32), xy[:, 0:1].astype(np.float32),
+                             xy[:, 1:2].astype(np.float32), cv2.INTER_LINEAR)
+            out.append(vals.reshape(-1, img.shape[-1] if img.ndim == 3 else 1).mean(0))
+    return np.stack(out)
+
+
+def composite(frame, cg_linear, coverage, model: CameraModel) -> jax.Array:
+    """Composite CG over a video frame in linear light.
+
+    Args:
+        frame: (H, W, 3) uint8 encoded video frame.
+        cg_linear: (H, W, 3) float linear frame RGB of the CG (from ``model.linear_from_*``).
+        coverage: (H, W) CG coverage in [0, 1] (bool accepted).
+        model: the camera model (its tone curve).
+
+    Returns (H, W, 3) uint8; uncovered pixels equal ``frame`` exactly.
+    """
+    bg = jnp.asarray(frame).astype(jnp.float32) / 255.0
+    cov = jnp.clip(jnp.asarray(coverage).astype(jnp.float32), 0.0, 1.0)[..., None]
+    mixed = cov * jnp.clip(cg_linear, 0.0, 1.0) + (1.0 - cov) * decode_frame(bg, model)
+    enc = jnp.round(encode_frame(mixed, model) * 255.0).astype(jnp.uint8)
+    return jnp.where(cov > 0, enc, jnp.asarray(frame, jnp.uint8))

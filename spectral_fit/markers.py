@@ -1,0 +1,338 @@
+"""Fiducial markers: ArUco detection, marker poses, objects attached to markers.
+
+The modern counterpart of the paper's NyARToolkit ID markers (80 mm): OpenCV ArUco / AprilTag
+dictionaries, chosen with the scene's ``[markers]`` table (:class:`spectral_fit.scene.MarkerSpec`).
+
+Pipeline per frame::
+
+    frame (H, W, 3) uint8 ──ArucoDetector──▶ corners (4, 2) px per id (distorted image)
+        ──solvePnP (IPPE_SQUARE, then Levenberg–Marquardt; K and distortion)──▶ (R, t) per id
+        ──MarkerTracker──▶ model (O, 4, 4) world-from-object, view (4, 4), visible (O,) bool
+
+Frames (see also :mod:`spectral_fit.synthetic_video`):
+
+* OpenCV marker frame: origin at the black square's centre, +X right, +Y towards the marker's
+  top edge, +Z out of the paper; corners in the order top-left, top-right, bottom-right,
+  bottom-left at (∓s/2, ±s/2, 0). (R, t): x_cam = R·x_marker + t, metres.
+* Marker "ground" frame (used for offsets): the same origin with +Y = the marker's normal and
+  −Z = its top edge, so that a marker lying on a table has the world's Y-up axes
+  (DESIGN §3). ``marker_offset = [0, r, 0]`` puts a sphere of radius r ON the marker.
+* The OpenCV → OpenGL axis change happens only in :func:`spectral_fit.camera.opencv_pose_to_view`.
+
+Object placement: an object with ``marker = id`` sits at
+``eye_from_object = eye_from_ground(id) · T(marker_offset) · Rz·Ry·Rx(rotation_deg) · scale``
+(its ``position`` is ignored); objects without a marker keep their config placement in world
+coordinates. The world frame is the ``[markers] world`` marker's ground frame when one is named
+(so the environment map stays fixed to the table while the camera moves), otherwise the scene
+camera's configured frame (a static camera). ``model = view⁻¹ · eye_from_object``.
+
+A lost marker: the object keeps its last pose for ``hold_frames`` frames, then ``visible`` turns
+False (the renderer masks it out). Array shapes never change, so nothing recompiles. With
+``smoothing = s`` the reported pose is ``s · previous + (1 − s) · measured`` (translation
+linearly; rotation blended and projected back onto SO(3)); a marker that reappears after being
+masked starts afresh.
+
+Requires the optional ``live`` extra (opencv-python-headless).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .scene import MarkerSpec, Scene
+
+__all__ = [
+    "MarkerDetection",
+    "MarkerDetector",
+    "MarkerTracker",
+    "Poses",
+    "aruco_dictionary",
+    "marker_object_points",
+    "estimate_marker_pose",
+    "refine_corners_by_edges",
+    "ground_frame",
+]
+
+#: OpenCV marker frame -> ground frame (x, y, z) -> (x, z, -y); see the module docstring
+_GROUND_FROM_MARKER = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def _cv2() -> Any:
+    try:
+        import cv2
+    except ImportError:  # pragma: no cover - depends on the installation
+        raise InputError("marker tracking needs OpenCV: pip install 'spectral_fit[live]'",
+                         field="markers") from None
+    return cv2
+
+
+def aruco_dictionary(name: str) -> Any:
+    """OpenCV predefined dictionary ``name`` (e.g. "DICT_5X5_100")."""
+    cv2 = _cv2()
+    code = getattr(cv2.aruco, name, None)
+    if not name.startswith("DICT_") or code is None:
+        raise InputError(f"unknown marker dictionary {name!r}", field="markers.dictionary")
+    return cv2.aruco.getPredefinedDictionary(code)
+
+
+def marker_object_points(size: float) -> np.ndarray:
+    """(4, 3) corners of a square marker of side ``size`` (m) in its OpenCV frame, in
+    ArUco order (top-left, top-right, bottom-right, bottom-left)."""
+    h = size / 2
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MarkerDetection:
+    """One detected marker: ``corners`` (4, 2) distorted pixel coordinates (OpenCV: pixel
+    (0, 0)'s centre at (0, 0)), pose ``rotation`` (3, 3) and ``translation`` (3,) m with
+    x_cam = R·x_marker + t, and the RMS corner reprojection error in pixels."""
+
+    marker_id: int
+    corners: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    reprojection_px: float
+
+
+def estimate_marker_pose(corners, size: float, k, dist=None
+                         ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Pose (R (3, 3), t (3,), RMS reprojection error px) of a square marker of side ``size``
+    (m) from its four image corners (4, 2) (ArUco order), intrinsics ``k`` (3×3) and OpenCV
+    distortion ``dist``: IPPE for squares (picks the better of the two planar solutions), then
+    Levenberg–Marquardt refinement."""
+    cv2 = _cv2()
+    obj = marker_object_points(size)
+    img = np.asarray(corners, np.float64).reshape(4, 1, 2)
+    k = np.asarray(k, np.float64)
+    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, k, d, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    if not ok:
+        raise InputError("solvePnP failed for a marker", field="markers")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, d, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, k, d)
+    err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - img.reshape(4, 2)) ** 2, -1))))
+    r, _ = cv2.Rodrigues(rvec)
+    return r, tvec.reshape(3), err
+
+
+def refine_corners_by_edges(grey: np.ndarray, corners, k, dist=None, *, samples: int = 24,
+                            half_width: float = 4.0) -> np.ndarray:
+    """Corners (4, 2) in NORMALISED undistorted coordinates (x/z, y/z) from the marker's four
+    outer edges: along each side, the black-to-white crossing at half contrast of a profile
+    across the edge (unbiased for a symmetric blur, unlike corner-based refinement, which pulls
+    blurred convex corners inwards), undistorted, fitted with a straight line (total least
+    squares); adjacent lines intersect at the corners.
+
+    ``grey``: (H, W) image; ``corners``: (4, 2) approximate pixel corners (ArUco order).
+    """
+    cv2 = _cv2()
+    c = np.asarray(corners, np.float64).reshape(4, 2)
+    g = np.asarray(grey, np.float32)
+    centre = c.mean(0)
+    ts = np.linspace(0.15, 0.85, samples)
+    offs = np.linspace(-half_width, half_width, int(4 * half_width) + 1)
+    lines = []
+    for e in range(4):
+        a, b = c[e], c[(e + 1) % 4]
+        d = (b - a) / np.linalg.norm(b - a)
+        n = np.array([-d[1], d[0]])
+        if np.dot(n, (a + b) / 2 - centre) < 0:
+            n = -n  # outward normal: profile goes from black (inside) to white
+        base = a[None] + ts[:, None] * (b - a)[None]  # (S, 2)
+        pts = base[:, None, :] + offs[None, :, None] * n[None, None, :]  # (S, P, 2)
+        prof = cv2.remap(g, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        lo = prof[:, :3].mean(1, keepdims=True)
+        hi = prof[:, -3:].mean(1, keepdims=True)
+        level = (lo + hi) / 2
+        above = prof >= level
+        good = (hi[:, 0] - lo[:, 0]) > 20.0
+        edge_pts = []
+        for s in np.nonzero(good)[0]:
+            idx = np.nonzero(above[s, 1:] & ~above[s, :-1])[0]
+            if idx.size != 1:
+                continue
+            j = idx[0]
+            p0, p1 = prof[s, j], prof[s, j + 1]
+            f = (level[s, 0] - p0) / (p1 - p0)
+            edge_pts.append(base[s] + (offs[j] + f * (offs[j + 1] - offs[j])) * n)
+        if len(edge_pts) < 4:
+            raise ValueError("edge refinement failed")
+        ep = np.asarray(edge_pts).reshape(-1, 1, 2)
+        kk = np.asarray(k, np.float64)
+        dd = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
+        und = cv2.undistortPoints(ep, kk, dd).reshape(-1, 2)
+        m = und.mean(0)
+        _, _, vt = np.linalg.svd(und - m)
+        normal = vt[1]
+        lines.append(np.array([normal[0], normal[1], -normal @ m]))  # a x + b y + c = 0
+    out = []
+    for e in range(4):
+        p = np.cross(lines[(e - 1) % 4], lines[e])  # corner e lies on edges e-1 and e
+        out.append(p[:2] / p[2])
+    return np.asarray(out)
+
+
+class MarkerDetector:
+    """ArUco detection and per-marker pose for one camera.
+
+    Args:
+        spec: the scene's :class:`~spectral_fit.scene.MarkerSpec`.
+        k: intrinsics (3×3, OpenCV).
+        dist: distortion coefficients (OpenCV order) or None. Detection runs on the raw
+            (distorted) frame; the poses account for the distortion.
+    """
+
+    def __init__(self, spec: MarkerSpec, k, dist=None) -> None:
+        cv2 = _cv2()
+        self.spec = spec
+        self.k = np.asarray(k, np.float64)
+        self.dist = None if dist is None else np.asarray(dist, np.float64)
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = {
+            "none": cv2.aruco.CORNER_REFINE_NONE, "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+            "edges": cv2.aruco.CORNER_REFINE_SUBPIX,
+            "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+            "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG}[spec.refine]
+        self._detector = cv2.aruco.ArucoDetector(aruco_dictionary(spec.dictionary), params)
+
+    def _pose(self, grey: np.ndarray, c: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """(R, t, corners (4, 2) px, RMS reprojection px) of one marker."""
+        if self.spec.refine == "edges":
+            cv2 = _cv2()
+            try:
+                norm = refine_corners_by_edges(grey, c, self.k, self.dist)
+            except ValueError:
+                pass
+            else:
+                d = np.zeros(5) if self.dist is None else self.dist
+                px, _ = cv2.projectPoints(np.concatenate([norm, np.ones((4, 1))], 1),
+                                          np.zeros(3), np.zeros(3), self.k, d)
+                px = px.reshape(4, 2)
+                if np.all(np.isfinite(px)) and np.max(np.abs(px - c)) < 3.0:
+                    r, t, err = estimate_marker_pose(px, self.spec.size, self.k, self.dist)
+                    return r, t, px, err
+        r, t, err = estimate_marker_pose(c, self.spec.size, self.k, self.dist)
+        return r, t, c, err
+
+    def detect(self, frame: np.ndarray) -> dict[int, MarkerDetection]:
+        """Markers in ``frame`` ((H, W, 3) RGB or (H, W) grey, uint8), by id. A marker seen
+        twice keeps the detection with the larger image area."""
+        cv2 = _cv2()
+        grey = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        corners, ids, _ = self._detector.detectMarkers(grey)
+        out: dict[int, MarkerDetection] = {}
+        if ids is None:
+            return out
+        for c, i in zip(corners, ids.reshape(-1), strict=True):
+            c = c.reshape(4, 2).astype(np.float64)
+            i = int(i)
+            if i in out and cv2.contourArea(c.astype(np.float32)) <= cv2.contourArea(
+                    out[i].corners.astype(np.float32)):
+                continue
+            r, t, c, err = self._pose(grey, c)
+            out[i] = MarkerDetection(i, c, r, t, err)
+        return out
+
+
+def ground_frame(rotation, translation) -> np.ndarray:
+    """OpenGL eye-from-ground matrix (4×4) of a marker at OpenCV pose (R, t): the marker's
+    ground frame (+Y = marker normal, −Z = its top edge) in OpenGL eye coordinates."""
+    from .camera import opencv_pose_to_view
+
+    r = np.asarray(rotation, np.float64) @ _GROUND_FROM_MARKER.T
+    return np.asarray(opencv_pose_to_view(r, translation), np.float64)
+
+
+class Poses:
+    """What the renderer needs each frame: ``model`` (O, 4, 4) float32 world-from-object,
+    ``view`` (4, 4) float32 world → OpenGL eye, ``visible`` (O,) bool. Shapes never change."""
+
+    __slots__ = ("model", "view", "visible")
+
+    def __init__(self, model: np.ndarray, view: np.ndarray, visible: np.ndarray) -> None:
+        self.model = model
+        self.view = view
+        self.visible = visible
+
+
+def _blend_rigid(prev: np.ndarray, new: np.ndarray, s: float) -> np.ndarray:
+    """s·prev + (1 − s)·new for rigid 4×4 transforms; rotation projected onto SO(3)."""
+    m = s * prev + (1.0 - s) * new
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    out = np.eye(4)
+    out[:3, :3] = r
+    out[:3, 3] = m[:3, 3]
+    return out
+
+
+class MarkerTracker:
+    """Turns per-frame marker detections into object poses for the renderer (see the module
+    docstring for frames, holding and smoothing).
+
+    Args:
+        scene: the scene (its objects' ``marker``/``marker_offset``; its ``[markers]`` table).
+        spec: overrides ``scene.markers``.
+    """
+
+    def __init__(self, scene: Scene, spec: MarkerSpec | None = None) -> None:
+        from .camera import look_at
+
+        self.spec = spec or scene.markers or MarkerSpec()
+        cam = scene.camera
+        self._static_view = np.asarray(look_at(cam.position, cam.look_at, cam.up), np.float64)
+        self._view = self._static_view.copy()
+        self.marker_ids = [o.marker for o in scene.objects]
+        self._local = np.stack([
+            dataclasses.replace(o, position=o.marker_offset).model_matrix()
+            if o.marker is not None else o.model_matrix() for o in scene.objects])
+        o = len(scene.objects)
+        self._eye_from_object = np.stack([self._view @ m for m in self._local])
+        self._visible = np.array([m is None for m in self.marker_ids])
+        self._ground: dict[int, np.ndarray] = {}
+        self._missing: dict[int, int] = {}
+        self.frames = 0
+        assert self._eye_from_object.shape == (o, 4, 4)
+
+    def _track(self, detections: dict[int, MarkerDetection]) -> None:
+        s = self.spec.smoothing
+        for i, d in detections.items():
+            g = ground_frame(d.rotation, d.translation)
+            fresh = self._missing.get(i, 0) > self.spec.hold_frames or i not in self._ground
+            self._ground[i] = g if fresh or s == 0 else _blend_rigid(self._ground[i], g, s)
+            self._missing[i] = 0
+        for i in self._ground:
+            if i not in detections:
+                self._missing[i] = self._missing.get(i, 0) + 1
+
+    def _alive(self, i: int | None) -> bool:
+        return i is not None and i in self._ground and self._missing[i] <= self.spec.hold_frames
+
+    def update(self, detections: dict[int, MarkerDetection]) -> Poses:
+        """Poses after this frame's ``detections`` (from :meth:`MarkerDetector.detect`)."""
+        self.frames += 1
+        self._track(detections)
+        w = self.spec.world
+        if self._alive(w):
+            self._view = self._ground[w]  # type: ignore[index]
+        for j, mid in enumerate(self.marker_ids):
+            if mid is None:
+                self._eye_from_object[j] = self._view @ self._local[j]
+                continue
+            alive = self._alive(mid)
+            self._visible[j] = alive
+            if alive:
+                self._eye_from_object[j] = self._ground[mid] @ self._local[j]
+        model = np.linalg.solve(self._view[None], self._eye_from_object)
+        return Poses(model.astype(np.float32), self._view.astype(np.float32),
+                     self._visible.copy())

@@ -1,0 +1,130 @@
+"""Colour-matched compositing: camera models from sensitivities / a ColorChecker shot, and the
+linear-light composite, against colour-science's own colorimetry."""
+
+from __future__ import annotations
+
+import colour
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+pytest.importorskip("cv2")
+
+from spectral_fit.colorimetry import illuminant, xyz_weights
+from spectral_fit.compositing import (
+    camera_model_from_colorchecker,
+    camera_model_from_sensitivities,
+    colorchecker_reflectances,
+    composite,
+    sample_chart,
+)
+
+WL = np.arange(400.0, 701.0, 10.0)
+D65_XY = colour.RGB_COLOURSPACES["sRGB"].whitepoint
+
+
+def _reference_lab(radiance, white):
+    """CIELAB (D65) of radiances as a colorimetric camera would show them: XYZ relative to
+    the white, CAT02-adapted from the white to D65 (colour-science throughout)."""
+    w = xyz_weights(WL)
+    xyz, wxyz = radiance @ w, white @ w
+    d65 = colour.xy_to_XYZ(D65_XY)
+    xa = colour.chromatic_adaptation(xyz / wxyz[1], wxyz / wxyz[1], d65, method="Von Kries",
+                                     transform="CAT02")
+    return colour.XYZ_to_Lab(xa, D65_XY)
+
+
+def _lab_of_linear_srgb(lin):
+    return colour.XYZ_to_Lab(colour.RGB_to_XYZ(np.asarray(lin, np.float64), "sRGB"), D65_XY)
+
+
+@pytest.mark.parametrize(("light", "camera", "mean_max"), [
+    ("D65", "Nikon 5100 (NPL)", (1.5, 3.5)),
+    ("A", "Nikon 5100 (NPL)", (1.5, 3.5)),
+    ("D65", "Sigma SDMerill (NPL)", (2.5, 6.0)),
+])
+def test_sensitivity_model_matches_colorimetry(light, camera, mean_max):
+    white = illuminant(light, WL) / 100.0 * 0.05  # radiance of a white reflector, W/(sr m² nm)
+    m = camera_model_from_sensitivities(camera, WL, white, white_level=1.0)
+    # the white reference is neutral at the exposure level
+    np.testing.assert_allclose(np.asarray(m.linear_from_spectra(jnp.asarray(white))), 1.0,
+                               atol=2e-6)
+    # a grey patch stays neutral at its reflectance (linear camera)
+    np.testing.assert_allclose(np.asarray(m.linear_from_spectra(jnp.asarray(0.2 * white))),
+                               0.2, atol=1e-6)
+    patches = colorchecker_reflectances(WL) * white
+    de = colour.delta_E(_reference_lab(patches, white),
+                        _lab_of_linear_srgb(m.linear_from_spectra(jnp.asarray(patches))),
+                        method="CIE 2000")
+    assert de.mean() < mean_max[0] and de.max() < mean_max[1]
+    # the XYZ route (3x3 fitted on the same patches) is close to the spectral one
+    lin_xyz = m.linear_from_xyz(jnp.asarray(patches @ xyz_weights(WL), jnp.float32))
+    de2 = colour.delta_E(_lab_of_linear_srgb(lin_xyz),
+                         _lab_of_linear_srgb(m.linear_from_spectra(jnp.asarray(patches))),
+                         method="CIE 2000")
+    assert de2.mean() < 2.0
+
+
+def test_luther_camera_is_colorimetric():
+    """Sensitivities that are a linear mix of the CMFs: both routes are exact (ΔE00 ≈ 0)."""
+    from spectral_fit.colorimetry import cmfs
+
+    mix = np.array([[0.9, 0.3, -0.1], [-0.2, 1.1, 0.1], [0.0, 0.05, 0.95]])
+    sens = cmfs(WL) @ mix.T
+    white = illuminant("A", WL) / 100.0 * 0.05
+    m = camera_model_from_sensitivities(sens, WL, white, white_level=0.8)
+    patches = colorchecker_reflectances(WL) * white
+    lin = np.asarray(m.linear_from_spectra(jnp.asarray(patches)))
+    ref = _reference_lab(patches, white)
+    de = colour.delta_E(ref, _lab_of_linear_srgb(lin / 0.8), method="CIE 2000")
+    assert de.max() < 0.05
+    lin_x = np.asarray(m.linear_from_xyz(jnp.asarray(patches @ xyz_weights(WL))))
+    np.testing.assert_allclose(lin_x, lin, atol=2e-4)
+
+
+def test_colorchecker_shot_recovers_the_camera_matrix():
+    """A synthetic camera (known 3x3 from XYZ + sRGB curve) photographs a chart in
+    perspective; sampling the chart and fitting recovers the matrix."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    white = illuminant("D65", WL) / 100.0 * 0.05
+    xyz = (colorchecker_reflectances(WL) * white) @ xyz_weights(WL)
+    m_true = np.array([[3.0, -1.4, -0.5], [-0.9, 1.9, 0.05], [0.05, -0.2, 1.05]]) * 0.9 / (
+        white @ xyz_weights(WL))[1]
+    lin = np.clip(xyz @ m_true.T, 0, 1)
+    enc = colour.cctf_encoding(lin, function="sRGB")
+    chart = np.repeat(np.repeat((enc * 255).reshape(4, 6, 3), 60, 0), 60, 1).astype(np.float32)
+    dst = np.array([[150, 90], [600, 120], [580, 420], [130, 380]], np.float32)
+    src = np.array([[0, 0], [360, 0], [360, 240], [0, 240]], np.float32)
+    h = cv2.getPerspectiveTransform(src, dst)
+    img = cv2.warpPerspective(chart, h, (720, 480), flags=cv2.INTER_LINEAR)
+    img = np.clip(np.rint(img + rng.normal(0, 1.5, img.shape)), 0, 255).astype(np.uint8)
+    vals = sample_chart(img, dst) / 255.0
+    np.testing.assert_allclose(vals, enc, atol=0.01)
+    m = camera_model_from_colorchecker(xyz, vals)
+    ok = np.all((enc > 0.02) & (enc < 0.98), axis=1)
+    got = np.asarray(m.linear_from_xyz(jnp.asarray(xyz[ok])))
+    np.testing.assert_allclose(got, lin[ok], atol=6e-3)
+    np.testing.assert_allclose(np.asarray(m.xyz_matrix), m_true, rtol=0.03,
+                               atol=0.03 * np.abs(m_true).max())
+
+
+def test_composite_in_linear_light():
+    white = illuminant("D65", WL) / 100.0
+    m = camera_model_from_sensitivities("Nikon 5100 (NPL)", WL, white)
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 256, (6, 5, 3), dtype=np.uint8)
+    cg = rng.uniform(0.0, 1.0, (6, 5, 3)).astype(np.float32)
+    cov = np.zeros((6, 5), np.float32)
+    cov[1, :] = 1.0
+    cov[2, :] = 0.5
+    out = np.asarray(composite(jnp.asarray(frame), jnp.asarray(cg), jnp.asarray(cov), m))
+    assert out.dtype == np.uint8
+    untouched = cov == 0
+    np.testing.assert_array_equal(out[untouched], frame[untouched])
+    want1 = colour.cctf_encoding(cg[1].astype(np.float64), function="sRGB") * 255
+    np.testing.assert_allclose(out[1], want1, atol=0.51)
+    bg_lin = colour.cctf_decoding(frame[2] / 255.0, function="sRGB")
+    want2 = colour.cctf_encoding(0.5 * cg[2] + 0.5 * bg_lin, function="sRGB") * 255
+    np.testing.assert_allclose(out[2], want2, atol=0.51)
