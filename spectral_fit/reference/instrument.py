@@ -309,7 +309,10 @@ def simulate_readings(
         return np.stack(reps)
 
     folder = Path(folder)
-    scene_path = scene_ref or os.path.relpath(scene.path, folder) if scene.path else ""
+    if scene_ref is not None:
+        scene_path = scene_ref
+    else:
+        scene_path = os.path.relpath(scene.path, folder) if scene.path else ""
     readings = []
     for i, s in enumerate(spots):
         pos = np.asarray(s.position or inst.position, np.float64)
