@@ -50,8 +50,8 @@ def environment_texels(scene: Scene) -> np.ndarray:
     try:
         wl_in, img = read_spectral_exr(spec.file)
     except InputError as exc:
-        if "spectral" not in str(exc).lower() and "channel" not in str(exc).lower():
-            raise
+        if not exc.reason.startswith("no spectral channels"):
+            raise  # a broken spectral file stays an error; an RGB map is lifted below
         from ..upsampling import read_rgb_environment
 
         wl_in, img = read_rgb_environment(spec.file, wl, method=spec.upsampling)
