@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "view": "view",
     "render": "render",
     "calibrate": "calibrate",
+    "validate": "validate",
 }
 
 
