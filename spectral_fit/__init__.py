@@ -43,6 +43,17 @@ _EXPORTS: dict[str, str] = {
     "rgb_to_spectra": "upsampling",
     "read_rgb_environment": "upsampling",
     "make_environment": "synthetic_environment",
+    # session, fitting, report
+    "Session": "session",
+    "load_session": "session",
+    "write_session": "session",
+    "FitResult": "fitting",
+    "FitOptions": "fitting",
+    "fit": "fitting",
+    "fit_many": "fitting",
+    "prepare_fit": "fitting",
+    "write_report": "report",
+    "run_demo_fit": "report",
 }
 
 
