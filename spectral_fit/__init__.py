@@ -43,6 +43,9 @@ _EXPORTS: dict[str, str] = {
     "rgb_to_spectra": "upsampling",
     "read_rgb_environment": "upsampling",
     "make_environment": "synthetic_environment",
+    # reference (Mitsuba ground truth; the loader needs no Mitsuba)
+    "load_reference": "reference.data",
+    "Reference": "reference.data",
     # session, fitting, report
     "Session": "session",
     "load_session": "session",
