@@ -46,6 +46,17 @@ _EXPORTS: dict[str, str] = {
     # reference (Mitsuba ground truth; the loader needs no Mitsuba)
     "load_reference": "reference.data",
     "Reference": "reference.data",
+    # session, fitting, report
+    "Session": "session",
+    "load_session": "session",
+    "write_session": "session",
+    "FitResult": "fitting",
+    "FitOptions": "fitting",
+    "fit": "fitting",
+    "fit_many": "fitting",
+    "prepare_fit": "fitting",
+    "write_report": "report",
+    "run_demo_fit": "report",
 }
 
 

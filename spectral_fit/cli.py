@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
     "render": "render",
     "calibrate": "calibrate",
     "validate": "validate",
+    "fit": "fit",
 }
 
 

@@ -66,6 +66,9 @@ __all__ = [
     "to_physical",
     "to_unconstrained",
     "PARAM_INDEX",
+    "fit_many",
+    "simulate_readings",
+    "disc_pixels",
 ]
 
 PARAM_INDEX = {k: i for i, k in enumerate(PARAMETERS)}
@@ -1235,7 +1238,7 @@ def simulate_readings(scene: Any, spots: Sequence[dict[str, Any]], *,
         warnings.simplefilter("ignore")
         prep = prepare_fit(scene, sess, options=opts, env=env)
     pr = prep.problem
-    vals = np.asarray(pr.values, np.float64)
+    vals = np.array(pr.values, np.float64)
     for o, name in enumerate(prep.objects):
         for k, p in enumerate(PARAMETERS):
             if params and name in params and p in params[name]:
@@ -1245,3 +1248,96 @@ def simulate_readings(scene: Any, spots: Sequence[dict[str, Any]], *,
                          jnp.asarray(np.broadcast_to(calibration, wl.shape), pr.values.dtype))
     return np.asarray(_predict_jit(pr, jnp.asarray(vals, pr.values.dtype),
                                    jnp.ones((), pr.values.dtype)), np.float64)
+
+
+# ----------------------------------------------------------------------------- batches
+
+
+@eqx.filter_jit
+def _solve_measured(problem: FitProblem, y0: jax.Array, rw: jax.Array, measured: jax.Array,
+                    sigma: jax.Array, solver: Any, max_steps: int) -> dict[str, jax.Array]:
+    """Like :func:`_solve_batch` but each batch entry has its own readings (K, B, L) and σ."""
+    import optimistix as optx
+
+    def one(y0_: jax.Array, w: jax.Array, meas: jax.Array, sig: jax.Array
+            ) -> dict[str, jax.Array]:
+        pr = eqx.tree_at(lambda q: (q.measured, q.sigma), problem, (meas, sig))
+        sol = optx.least_squares(lambda y, ww: _residuals_aux(y, pr, ww), solver, y0_, args=w,
+                                 has_aux=True, max_steps=max_steps, throw=False)
+        info = sol.state.f_info
+        r = info.residual
+        cost = 0.5 * jnp.sum(r * r)
+        ok = (sol.result == optx.RESULTS.successful) & jnp.isfinite(cost)
+        return {"y": sol.value, "cost": jnp.where(jnp.isfinite(cost), cost, jnp.inf),
+                "converged": ok, "steps": sol.stats["num_steps"], "residual": r,
+                "jacobian": info.jac.as_matrix()}
+
+    return jax.vmap(one)(y0, rw, measured, sigma)
+
+
+def fit_many(prepared: Prepared, measured: Any, *, sigma: Any = None,
+             options: FitOptions | None = None, devices: Sequence[Any] | None = None,
+             **kwargs: Any) -> dict[str, Any]:
+    """Fit K sets of readings of the same spots at once (``jax.vmap``), optionally sharded
+    across devices along K (``jax.sharding``; the problem is replicated).
+
+    Args:
+        prepared: :func:`prepare_fit` of the session whose spots all K sets share.
+        measured: (K, B, L) mean readings; ``sigma`` (K, B, L) their standard errors (default:
+            the session's).
+        devices: devices to shard K over (default: all of ``jax.devices()`` when more than
+            one); K is padded to a multiple of their number.
+
+    Returns:
+        dict with ``params`` (K, O, 6), ``stderr`` (K, O, 6) (Jacobian, unscaled by χ²),
+        ``scale`` (K,), ``cost`` (K,), ``converged`` (K,), ``steps`` (K,), ``devices`` (the
+        devices the result was computed on).
+    """
+    opts = dataclasses.replace(options or FitOptions(), **kwargs)
+    problem = prepared.problem
+    dt = problem.values.dtype
+    meas = np.asarray(measured, np.float64)
+    K = meas.shape[0]
+    if meas.ndim != 3 or meas.shape[1:] != tuple(problem.measured.shape):
+        raise InputError(f"expected (K, {problem.measured.shape[0]}, "
+                         f"{problem.measured.shape[1]}), got {meas.shape}", field="measured")
+    if not np.all(np.isfinite(meas)):
+        raise InputError("NaN or infinite readings", field="measured")
+    sig = np.broadcast_to(np.asarray(problem.sigma if sigma is None else sigma, np.float64),
+                          meas.shape)
+    use = np.array([r.kind in opts.kinds for r in prepared.session.readings], np.float64)
+    y0 = _y_start(problem, np.asarray(problem.values, np.float64), 1.0)
+    devs = list(devices) if devices is not None else jax.devices()
+    nd = len(devs)
+    Kp = int(math.ceil(K / nd)) * nd
+    pad = lambda a: np.concatenate([a, np.repeat(a[-1:], Kp - K, 0)]) if Kp > K else a  # noqa: E731
+    args = [jnp.asarray(pad(np.tile(y0, (K, 1))), dt), jnp.asarray(pad(np.tile(use, (K, 1))), dt),
+            jnp.asarray(pad(meas), dt), jnp.asarray(pad(np.ascontiguousarray(sig)), dt)]
+    if nd > 1:
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+        mesh = Mesh(np.array(devs), ("k",))
+        args = [jax.device_put(a, NamedSharding(mesh, PartitionSpec("k"))) for a in args]
+    out = _solve_measured(problem, *args, _solver(opts, False), opts.max_steps)
+    used = sorted({str(d) for d in out["y"].sharding.device_set})
+    out = {k: np.asarray(v)[:K] for k, v in out.items()}
+    O = problem.values.shape[0]
+    params = np.zeros((K, O, 6))
+    stderr = np.zeros((K, O, 6))
+    scales = np.ones(K)
+    kinds = [PARAMETERS[k] for _, k in problem.free] + (["scale"] if problem.fit_scale else [])
+    for i in range(K):
+        y = out["y"][i].astype(np.float64)
+        v, s = _physical_from_y(problem, jnp.asarray(y, dt))
+        params[i] = np.asarray(v, np.float64)
+        scales[i] = float(s)
+        dp = np.array([_dp_dy(float(a), k) for a, k in zip(y, kinds, strict=True)])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            J = out["jacobian"][i].astype(np.float64) / dp[None, :]
+        J[:, ~(np.abs(dp) > 1e-12)] = 0.0
+        cov = np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
+        se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        for j, (o, k) in enumerate(problem.free):
+            stderr[i, o, k] = se[j]
+    return {"params": params, "stderr": stderr, "scale": scales, "cost": out["cost"],
+            "converged": out["converged"], "steps": out["steps"], "devices": used}

@@ -839,7 +839,7 @@ def write_session(
         out.append(f"files = {_toml_value(files)}")
         for k in ("aim", "position"):
             if k in r:
-                out.append(f"{k} = {_toml_value([round(float(x), 6) for x in r[k]])}")
+                out.append(f"{k} = {_toml_value([float(x) for x in r[k]])}")
         for k in ("field_angle_deg", "distance_m"):
             if k in r:
                 out.append(f"{k} = {_toml_value(float(r[k]))}")
