@@ -20,6 +20,7 @@ COMMANDS: dict[str, str] = {
     "make-env": "make_env",
     "view": "view",
     "calibrate": "calibrate",
+    "live": "live",
 }
 
 
