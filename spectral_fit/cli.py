@@ -19,6 +19,7 @@ COMMANDS: dict[str, str] = {
     "bench": "bench",
     "make-env": "make_env",
     "view": "view",
+    "render": "render",
     "calibrate": "calibrate",
     "live": "live",
 }

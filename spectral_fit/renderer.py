@@ -1,0 +1,765 @@
+"""Multipass frame renderer: scene → spectral frame → XYZ → display RGB (DESIGN §4, §7).
+
+Two steps, so that a live loop or a fit never recompiles:
+
+* :func:`prepare` (Python, once per scene shape) builds everything that does not change from
+  frame to frame: the meshes (object frames, concatenated), the camera projection, the
+  environment (prefiltered, in bands or K basis coefficients), the display, the exposure, the
+  rasteriser's window capacities and the covered-pixel capacity. It returns a
+  :class:`Prepared` pytree.
+* :func:`render_frame` (jit-compiled, differentiable) renders one frame from a
+  :class:`Prepared` and the TRACED per-frame inputs: the materials of all objects, their model
+  matrices ``(O, 4, 4)``, the camera's view matrix ``(4, 4)`` and a visibility mask ``(O,)``.
+  New poses, a hidden object or new material values reuse the same compiled program.
+
+Per frame (eq. 5 + eq. 6 of Mochizuki & Tanaka in DESIGN §2's reading):
+
+1. vertices → world (per-object model matrix) → clip; hidden objects collapse to a point, so
+   their triangles are degenerate and draw nothing;
+2. rasterise all objects at once (:func:`~spectral_fit.raster.rasterize` with planned
+   capacities), compact the covered pixels (:func:`~spectral_fit.raster.covered_pixels`),
+   interpolate world positions and normals there (a :class:`~spectral_fit.gbuffer.GBuffer`);
+3. shade each covered pixel with its object's material under the environment
+   (:func:`~spectral_fit.environment.shade`), radiance in W·sr⁻¹·m⁻²·nm⁻¹ per band or basis
+   coefficient, and add the interreflection between objects
+   (``spectral_fit.interreflection.interreflection``; modes "gather", "paper", "none");
+4. background = the environment seen through each pixel (no video), looked up in a precomputed
+   XYZ copy of the map (exact: the lookup is linear);
+5. XYZ (absolute, cd/m², 683 lm/W) → display RGB (:func:`~spectral_fit.display.to_display`:
+   exposure, clipping in linear RGB with the out-of-gamut fraction reported, tone curve).
+
+Exposure ``"auto"``: the luminance of a perfect white Lambertian diffuser facing the camera
+under the environment, E_irr(−forward)·683∫ȳ/π, is shown as display white (the scene white of
+DESIGN §3), so diffuse objects never clip.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import InputError
+from .gbuffer import GBuffer, ObjectGeometry
+from .reflectance import Material
+
+__all__ = [
+    "Prepared",
+    "Frame",
+    "prepare",
+    "render_frame",
+    "render",
+    "scene_materials",
+    "load_environment",
+    "TRACE_COUNT",
+]
+
+#: number of times :func:`render_frame` has been traced (i.e. compiled), for tests and reports
+TRACE_COUNT = {"render_frame": 0}
+
+_IR_MODES = ("gather", "paper", "none")
+
+
+class Prepared(eqx.Module):
+    """Everything :func:`render_frame` needs besides the per-frame inputs.
+
+    Array attributes:
+        vertices: (V, 3) object-frame positions of all objects' vertices (m), concatenated.
+        normals: (V, 3) object-frame unit normals.
+        triangles: (T, 3) int32 indices into ``vertices``.
+        vertex_object: (V,) int32 object of each vertex; tri_object: (T,) likewise per triangle.
+        model: (O, 4, 4) default world-from-object matrices (from the config).
+        view: (4, 4) default view matrix (world → OpenGL eye).
+        projection: (4, 4) eye → clip.
+        env: the :class:`~spectral_fit.environment.EnvironmentMap` (bands or coefficients).
+        env_xyz: (Hm·Wm + 2, 3) absolute XYZ of the map's texels, then its two pole means (the
+            background lookup).
+        to_xyz: (C, 3) radiance channels → absolute XYZ (683 lm/W · x̄ȳz̄ · Δλ; in basis mode
+            the basis components times that).
+        to_spectrum: (C, L) channels → bands (identity in band mode).
+        exposure: scalar, luminance (cd/m²) shown as display white.
+        materials: the config's materials, stacked (leading axis O).
+    Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
+    ir_bounces, ir_texture_size, raster_config, pixel_capacity, object_slices ((start, stop)
+    vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size.
+    """
+
+    vertices: jax.Array
+    normals: jax.Array
+    triangles: jax.Array
+    vertex_object: jax.Array
+    tri_object: jax.Array
+    model: jax.Array
+    view: jax.Array
+    projection: jax.Array
+    env: Any
+    env_xyz: jax.Array
+    to_xyz: jax.Array
+    to_spectrum: jax.Array
+    exposure: jax.Array
+    materials: Material
+    shape: tuple[int, int] = eqx.field(static=True)
+    wavelengths: tuple[float, ...] = eqx.field(static=True)
+    spectral_mode: str = eqx.field(static=True)
+    k: int = eqx.field(static=True)
+    ir_mode: str = eqx.field(static=True)
+    ir_bounces: int = eqx.field(static=True)
+    ir_texture_size: int = eqx.field(static=True)
+    raster_config: Any = eqx.field(static=True)
+    pixel_capacity: int = eqx.field(static=True)
+    object_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    triangle_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    names: tuple[str, ...] = eqx.field(static=True)
+    display: Any = eqx.field(static=True)
+    scene_white_xy: tuple[float, float] | None = eqx.field(static=True)
+    batch_size: int = eqx.field(static=True, default=4096)
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.names)
+
+    @property
+    def channels(self) -> int:
+        return int(self.to_xyz.shape[0])
+
+
+class Frame(eqx.Module):
+    """One rendered frame (a pytree).
+
+    Attributes:
+        xyz: (H, W, 3) absolute CIE XYZ (Y in cd/m²), background included.
+        rgb: (H, W, 3) display-encoded RGB in [0, 1].
+        linear_rgb: (H, W, 3) linear display RGB before clipping.
+        mask: (H, W) bool, pixels covered by an object.
+        object_id: (H, W) int32 object index per pixel (−1 = background).
+        spectral: (H, W, L) spectral radiance (W·sr⁻¹·m⁻²·nm⁻¹) when requested, else None.
+        stats: dict of scalars: ``out_of_gamut_fraction``, ``below_zero_fraction``,
+            ``overexposed_fraction`` (over covered pixels), ``coverage`` (fraction of the frame),
+            ``covered_pixels``, ``pixel_overflow`` and ``raster_overflow`` (buffers too small:
+            the frame is incomplete).
+    """
+
+    xyz: jax.Array
+    rgb: jax.Array
+    linear_rgb: jax.Array
+    mask: jax.Array
+    object_id: jax.Array
+    spectral: jax.Array | None
+    stats: dict[str, jax.Array]
+
+
+# --------------------------------------------------------------------------------------------
+# preparation (Python)
+
+
+def load_environment(scene: Any, wavelengths: np.ndarray) -> np.ndarray:
+    """The scene's environment map as spectral radiance (Hm, Wm, L) on ``wavelengths`` (nm),
+    times the config's ``scale``: a spectral OpenEXR is resampled (linear), an RGB one is lifted
+    with the config's upsampling method."""
+    from .exr import read_spectral_exr
+    from .spectra import resample
+    from .upsampling import read_rgb_environment
+
+    spec = scene.environment
+    try:
+        wl_in, img = read_spectral_exr(spec.file)
+    except InputError as exc:
+        try:
+            _, img = read_rgb_environment(spec.file, wavelengths, method=spec.upsampling)
+        except InputError:
+            raise exc from None
+        return np.asarray(img, np.float64) * spec.scale
+    if not (wl_in.size == wavelengths.size and np.allclose(wl_in, wavelengths)):
+        img = resample(wl_in, img, wavelengths, path=spec.file, field="environment.file")
+    return np.asarray(img, np.float64) * spec.scale
+
+
+def _mesh(obj: Any):
+    from .mesh import icosphere, load_mesh, uv_sphere
+
+    if obj.shape == "uv_sphere":
+        return uv_sphere(obj.radius, obj.stacks, obj.slices)
+    if obj.shape == "icosphere":
+        return icosphere(obj.radius, obj.subdivisions)
+    return load_mesh(obj.mesh)
+
+
+def scene_materials(scene: Any, *, basis: Any = None) -> list[Material]:
+    """The config's materials (one per object), reflectance on the scene's band grid or
+    projected on ``basis`` (a :class:`~spectral_fit.basis.SpectralBasis`)."""
+    from .reflectance import make_material
+
+    out = []
+    for obj in scene.objects:
+        m = obj.material
+        refl = np.asarray(m.reflectance, np.float64)
+        if basis is not None:
+            refl = basis.project(refl)
+        out.append(make_material(alpha=m.alpha, beta=m.beta, chi=m.chi, mu=m.mu, n=m.n,
+                                 gamma=m.gamma, reflectance=refl, distribution=m.distribution,
+                                 geometry=m.geometry))
+    return out
+
+
+def _stack(materials: Sequence[Material]) -> Material:
+    first = materials[0]
+    return Material(**{f: jnp.stack([jnp.asarray(getattr(m, f), jnp.float32)
+                                     for m in materials])
+                       for f in ("alpha", "beta", "chi", "mu", "n", "gamma", "reflectance")},
+                    distribution=first.distribution, geometry=first.geometry)
+
+
+def _projection(scene: Any, shape: tuple[int, int]) -> np.ndarray:
+    from .camera import intrinsics_matrix, intrinsics_to_projection, perspective
+
+    cam = scene.camera
+    h, w = shape
+    if cam.intrinsics is None:
+        return np.asarray(perspective(cam.fov_y_deg, w / h, cam.near, cam.far))
+    if cam.distortion is not None and any(abs(x) > 0 for x in cam.distortion):
+        warnings.warn("camera.distortion is not applied by the renderer (pinhole only)",
+                      RuntimeWarning, stacklevel=3)
+    i = cam.intrinsics
+    sx, sy = w / scene.width, h / scene.height  # intrinsics are given for the config's size
+    k = intrinsics_matrix(i["fx"] * sx, i["fy"] * sy, (i["cx"] + 0.5) * sx - 0.5,
+                          (i["cy"] + 0.5) * sy - 0.5)
+    return np.asarray(intrinsics_to_projection(k, w, h, cam.near, cam.far))
+
+
+def _ladder(n: float) -> int:
+    """Smallest 2^k·{1, 1.25, 1.5, 1.75} ≥ n (≥ 64): capacities from a small set of sizes."""
+    n = max(64.0, float(n))
+    k = math.floor(math.log2(n))
+    for f in (1.0, 1.25, 1.5, 1.75, 2.0):
+        if int(f * (1 << k)) >= n:
+            return int(f * (1 << k))
+    raise AssertionError  # pragma: no cover
+
+
+_DISPLAYS: dict[tuple, Any] = {}
+
+
+def _display(spec: Any) -> Any:
+    """The scene's Display, one instance per characterisation (it is a static argument of the
+    compiled frame and compares by identity, so equal scenes must share it)."""
+    from .display import Display, fit_display_csv
+
+    if spec.characterisation is not None:
+        p = spec.characterisation
+        key = ("csv", str(p), p.stat().st_mtime_ns)
+    else:
+        key = ("colourspace", spec.colourspace)
+    if key not in _DISPLAYS:
+        _DISPLAYS[key] = (fit_display_csv(spec.characterisation) if key[0] == "csv"
+                          else Display.from_colourspace(spec.colourspace))
+    return _DISPLAYS[key]
+
+
+def _white_luminance(y_map: np.ndarray, rotation_y_deg: float, normal: np.ndarray) -> float:
+    """Luminance (cd/m²) of a perfect white Lambertian with world normal ``normal`` under a
+    map of luminance ``y_map`` (Hm, Wm): Σ Y max(0, N·ω) Δω / π (exact texel sum)."""
+    from .environment import rotation_y, texel_directions, texel_solid_angles
+
+    h, w = y_map.shape
+    n_map = rotation_y(rotation_y_deg).T @ (normal / np.linalg.norm(normal))
+    cos = np.maximum(texel_directions(h, w) @ n_map, 0.0)
+    return float(np.sum(y_map * cos * texel_solid_angles(h, w)) / math.pi)
+
+
+def plan_capacities(clip: np.ndarray, triangles: np.ndarray, shape: tuple[int, int], *,
+                    headroom: float = 1.5) -> tuple[Any, int]:
+    """Rasteriser window capacities and a bound on the covered pixels for one pose, in NumPy
+    (no compilation): per triangle the pixel-centre box of its projection (the whole frame when
+    a vertex lies behind the near plane), the window count per ladder size as the rasteriser
+    lists them (:mod:`spectral_fit.raster`), the 8×8 blocks and pixels touched by the union
+    of the boxes (upper bounds of what the rasteriser needs). Returns (RasterConfig, pixel
+    bound); the capacities are ``headroom`` × the counts on the rasteriser's ladder."""
+    from .raster import TILE_SIZES, RasterConfig
+    from .raster import _ladder as raster_ladder
+
+    h, w = shape
+    c = np.asarray(clip, np.float64)[np.asarray(triangles)]  # (T, 3, 4)
+    wc = c[..., 3]
+    behind = np.any(c[..., 2] < -wc, axis=1) | np.any(wc <= 0, axis=1)
+    ws = np.where(wc > 0, wc, 1.0)
+    px = (c[..., 0] / ws + 1) * 0.5 * w
+    py = (1 - c[..., 1] / ws) * 0.5 * h
+    e1 = np.stack([px[:, 1] - px[:, 0], py[:, 1] - py[:, 0]], -1)
+    e2 = np.stack([px[:, 2] - px[:, 0], py[:, 2] - py[:, 0]], -1)
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    m = 1.0 / 64
+    x0 = np.where(behind, 0, np.ceil(px.min(1) - 0.5 - m))
+    x1 = np.where(behind, w - 1, np.floor(px.max(1) - 0.5 + m))
+    y0 = np.where(behind, 0, np.ceil(py.min(1) - 0.5 - m))
+    y1 = np.where(behind, h - 1, np.floor(py.max(1) - 0.5 + m))
+    x0, y0 = np.maximum(x0, 0), np.maximum(y0, 0)
+    x1, y1 = np.minimum(x1, w - 1), np.minimum(y1, h - 1)
+    nx, ny = (x1 - x0 + 1).astype(np.int64), (y1 - y0 + 1).astype(np.int64)
+    valid = (behind | (det != 0)) & (nx > 0) & (ny > 0)
+    shorter = np.minimum(nx, ny)
+    counts = []
+    for b, s in enumerate(TILE_SIZES):
+        sel = valid & (shorter <= s) if b == 0 else valid & (shorter > TILE_SIZES[b - 1])
+        if 0 < b < len(TILE_SIZES) - 1:
+            sel &= shorter <= s
+        counts.append(int(np.sum(np.where(sel, -(-nx // s) * -(-ny // s), 0))))
+
+    def union(scale: int) -> np.ndarray:
+        hh, ww = -(-h // scale), -(-w // scale)
+        diff = np.zeros((hh + 1, ww + 1), np.int64)
+        a0, a1 = (x0[valid] // scale).astype(int), (x1[valid] // scale).astype(int) + 1
+        b0, b1 = (y0[valid] // scale).astype(int), (y1[valid] // scale).astype(int) + 1
+        for yy, xx, sgn in ((b0, a0, 1), (b0, a1, -1), (b1, a0, -1), (b1, a1, 1)):
+            np.add.at(diff, (yy, xx), sgn)
+        return np.cumsum(np.cumsum(diff, 0), 1)[:hh, :ww] > 0
+
+    blocks = int(union(8).sum())
+    pixels = int(union(1).sum())
+    caps = tuple(raster_ladder(headroom * n + 16) for n in counts)
+    return RasterConfig(TILE_SIZES, caps, raster_ladder(headroom * blocks + 16)), pixels
+
+
+def _look_at_impl(eye, target, up):
+    from .camera import look_at
+
+    return look_at(eye, target, up)
+
+
+_look_at_jit = jax.jit(_look_at_impl)
+
+
+def prepare(
+    scene: Any,
+    *,
+    size: tuple[int, int] | None = None,
+    mode: str | None = None,
+    spectral_mode: str | None = None,
+    k: int | None = None,
+    bounces: int | None = None,
+    texture_size: int | None = None,
+    headroom: float = 1.5,
+    pixel_capacity: int | None = None,
+    batch_size: int = 4096,
+    environment: np.ndarray | None = None,
+) -> Prepared:
+    """Precompute a scene for :func:`render_frame` (explicit precomputation, DESIGN §4).
+
+    Args:
+        scene: a :class:`~spectral_fit.scene.Scene` (``load_scene``) or a path to a config.
+        size: (W, H) frame size in pixels, replacing the config's ``[frame]``.
+        mode: interreflection mode "gather" | "paper" | "none" (default: the config's).
+        spectral_mode: "bands" | "basis" (default: the config's); ``k`` basis size.
+        bounces, texture_size: interreflection settings (default: the config's).
+        headroom: capacities (raster windows, covered pixels) are this multiple of what the
+            configured poses need, so that objects can move without recompiling; overflow is
+            reported in ``Frame.stats`` (and :func:`render` grows the buffers and re-renders).
+        pixel_capacity: covered-pixel list size (default: from the configured poses).
+        batch_size: shading batch (points per ``lax.map`` step).
+        environment: (Hm, Wm, L) spectral radiance on the scene grid to use instead of the
+            config's file (the config's rotation applies, its scale does not).
+    Raises:
+        InputError: bad options (naming the option), unreadable files (naming the file).
+    """
+    from .basis import pca_basis
+    from .colorimetry import xyz_weights
+    from .environment import EnvironmentMap
+    from .scene import Scene, load_scene
+
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    if size is None:
+        shape = (scene.height, scene.width)
+    else:
+        try:
+            w, h = (int(s) for s in size)
+        except (TypeError, ValueError):
+            raise InputError(f"expected (W, H), got {size!r}", field="size") from None
+        if not (0 < w <= 16384 and 0 < h <= 16384):
+            raise InputError(f"W and H must be in 1..16384, got {(w, h)}", field="size")
+        shape = (h, w)
+    ir_mode = scene.interreflection.mode if mode is None else mode
+    if ir_mode not in _IR_MODES:
+        raise InputError(f"must be one of {list(_IR_MODES)}, got {ir_mode!r}", field="mode")
+    smode = scene.spectral.mode if spectral_mode is None else spectral_mode
+    if smode not in ("bands", "basis"):
+        raise InputError(f"must be 'bands' or 'basis', got {smode!r}", field="spectral_mode")
+    wl = scene.wavelengths
+    kk = int(scene.spectral.k if k is None else k)
+    if smode == "basis" and not (1 <= kk <= wl.size):
+        raise InputError(f"must be in 1..{wl.size}, got {kk}", field="k")
+    nb = scene.interreflection.bounces if bounces is None else int(bounces)
+    ts = scene.interreflection.texture_size if texture_size is None else int(texture_size)
+
+    # meshes in object frames, concatenated
+    verts, norms, tris, vobj, tobj, vsl, tsl, models = [], [], [], [], [], [], [], []
+    vbase = tbase = 0
+    for i, obj in enumerate(scene.objects):
+        mesh = _mesh(obj)
+        nv, nt = len(mesh.vertices), len(mesh.triangles)
+        verts.append(mesh.vertices)
+        norms.append(mesh.normals)
+        tris.append(mesh.triangles + vbase)
+        vobj.append(np.full(nv, i, np.int32))
+        tobj.append(np.full(nt, i, np.int32))
+        vsl.append((vbase, vbase + nv))
+        tsl.append((tbase, tbase + nt))
+        vbase += nv
+        tbase += nt
+        models.append(obj.model_matrix())
+    vertices = np.concatenate(verts).astype(np.float32)
+    triangles = np.concatenate(tris).astype(np.int32)
+    model = np.stack(models).astype(np.float32)
+
+    cam = scene.camera
+    view = np.asarray(_look_at_jit(np.asarray(cam.position, np.float32),
+                                   np.asarray(cam.look_at, np.float32),
+                                   np.asarray(cam.up, np.float32)), np.float32)
+    proj = _projection(scene, shape).astype(np.float32)
+
+    # environment
+    img = load_environment(scene, wl) if environment is None else np.asarray(environment)
+    W = xyz_weights(wl)  # (L, 3) absolute
+    basis = None
+    if smode == "basis":
+        basis = pca_basis(kk, wl)
+        env = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor,
+                                        rotation_y_deg=scene.environment.rotation_y_deg,
+                                        path=str(scene.environment.file))
+        to_xyz = basis.components @ W
+        to_spectrum = basis.components
+    else:
+        env = EnvironmentMap.from_array(img, rotation_y_deg=scene.environment.rotation_y_deg,
+                                        path=str(scene.environment.file))
+        to_xyz = W
+        to_spectrum = np.eye(wl.size)
+    xyz_map = img @ W
+    env_xyz = np.concatenate([xyz_map.reshape(-1, 3), xyz_map[0].mean(0)[None],
+                              xyz_map[-1].mean(0)[None]])
+
+    # display and exposure
+    d = scene.display
+    display = _display(d)
+    if d.exposure_luminance == "auto":
+        exposure = _white_luminance(img @ W[:, 1], scene.environment.rotation_y_deg,
+                                    view[2, :3].astype(np.float64))
+        if not exposure > 0:
+            exposure = float(max(np.percentile(xyz_map[..., 1], 90), 1e-12))
+    else:
+        exposure = float(d.exposure_luminance)
+
+    mats = _stack(scene_materials(scene, basis=basis))
+
+    # capacities from the configured poses (NumPy: no compilation)
+    world = np.einsum("vij,vj->vi", model[np.concatenate(vobj)][:, :3, :3].astype(np.float64),
+                      vertices) + model[np.concatenate(vobj)][:, :3, 3]
+    vp = proj.astype(np.float64) @ view.astype(np.float64)
+    clip = world @ vp[:, :3].T + vp[:, 3]
+    cfg, bound = plan_capacities(clip, triangles, shape, headroom=headroom)
+    cap = pixel_capacity or min(shape[0] * shape[1], _ladder(headroom * bound + 64))
+
+    return Prepared(
+        vertices=jnp.asarray(vertices), normals=jnp.asarray(np.concatenate(norms), jnp.float32),
+        triangles=jnp.asarray(triangles), vertex_object=jnp.asarray(np.concatenate(vobj)),
+        tri_object=jnp.asarray(np.concatenate(tobj)), model=jnp.asarray(model),
+        view=jnp.asarray(view), projection=jnp.asarray(proj), env=env,
+        env_xyz=jnp.asarray(env_xyz, jnp.float32), to_xyz=jnp.asarray(to_xyz, jnp.float32),
+        to_spectrum=jnp.asarray(to_spectrum, jnp.float32),
+        exposure=jnp.asarray(exposure, jnp.float32), materials=mats, shape=shape,
+        wavelengths=tuple(float(x) for x in wl), spectral_mode=smode,
+        k=kk if smode == "basis" else int(wl.size), ir_mode=ir_mode, ir_bounces=nb,
+        ir_texture_size=ts, raster_config=cfg, pixel_capacity=int(cap),
+        object_slices=tuple(vsl), triangle_slices=tuple(tsl),
+        names=tuple(o.name for o in scene.objects), display=display,
+        scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy),
+        batch_size=int(batch_size),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# one frame (traced)
+
+
+def _to_world(vertices: jax.Array, vertex_object: jax.Array, model: jax.Array) -> jax.Array:
+    m = model[vertex_object]  # (V, 4, 4)
+    return jnp.einsum("vij,vj->vi", m[:, :3, :3], vertices) + m[:, :3, 3]
+
+
+def _normals_to_world(normals: jax.Array, vertex_object: jax.Array, model: jax.Array
+                      ) -> jax.Array:
+    nm = jnp.swapaxes(jnp.linalg.inv(model[:, :3, :3]), 1, 2)  # inverse transpose, (O, 3, 3)
+    n = jnp.einsum("vij,vj->vi", nm[vertex_object], normals)
+    return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def _as_stacked(materials: Any, n_objects: int) -> list[Material]:
+    """Materials → a list of per-object Materials (accepts a stacked Material or a sequence)."""
+    if isinstance(materials, Material):
+        a = jnp.asarray(materials.alpha)
+        if a.ndim == 0:
+            if n_objects != 1:
+                raise InputError(f"one material given for {n_objects} objects",
+                                 field="materials")
+            return [materials]
+        if a.shape[0] != n_objects:
+            raise InputError(f"{a.shape[0]} materials for {n_objects} objects",
+                             field="materials")
+        return [jax.tree.map(lambda x, i=i: x[i], materials) for i in range(n_objects)]
+    mats = list(materials)
+    if len(mats) != n_objects:
+        raise InputError(f"{len(mats)} materials for {n_objects} objects", field="materials")
+    return mats
+
+
+def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int) -> jax.Array:
+    """Environment shading (eq. 5) of every G-buffer sample with its object's material,
+    (N, C). Objects whose static choices (D, G) differ are shaded in separate groups."""
+    from .environment import shade
+
+    groups: dict[tuple[str, str], list[int]] = {}
+    for i, m in enumerate(mats):
+        groups.setdefault((m.distribution, m.geometry), []).append(i)
+    obj = jnp.clip(gb.object, 0, len(mats) - 1)
+    out = None
+    for (dist, geom), members in groups.items():
+        stacked = _stack(mats)
+        stacked = Material(**{f: getattr(stacked, f) for f in
+                              ("alpha", "beta", "chi", "mu", "n", "gamma", "reflectance")},
+                           distribution=dist, geometry=geom)
+
+        def one(args, stacked=stacked):
+            o, nrm, v = args
+            return shade(jax.tree.map(lambda x: x[o], stacked), env, nrm, v)
+
+        n = gb.object.shape[0]
+        bs = max(1, min(batch, n))
+        c = jax.lax.map(one, (obj, gb.normal, gb.view), batch_size=bs)
+        if len(groups) == 1:
+            return c
+        sel = jnp.isin(obj, jnp.asarray(members))
+        out = jnp.where(sel[:, None], c, 0.0 if out is None else out)
+    return out
+
+
+_IR_WARNED: set[str] = set()
+
+
+def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Material],
+                     gb: GBuffer) -> jax.Array | None:
+    if prep.ir_mode == "none" or len(geoms) < 2:
+        return None
+    try:
+        from .interreflection import interreflection
+    except ImportError:
+        if prep.ir_mode not in _IR_WARNED:
+            _IR_WARNED.add(prep.ir_mode)
+            warnings.warn(f"interreflection mode {prep.ir_mode!r} is not available in this "
+                          "installation (spectral_fit.interreflection missing); rendering "
+                          "without interreflection", RuntimeWarning, stacklevel=4)
+        return None
+    return interreflection(geoms, mats, prep.env, gb, mode=prep.ir_mode,
+                           texture_size=prep.ir_texture_size, bounces=prep.ir_bounces)
+
+
+def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
+    """(H·W, 3) world unit directions of the camera rays through the pixel centres."""
+    h, w = prep.shape
+    py, px = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32) + 0.5,
+                          jnp.arange(w, dtype=jnp.float32) + 0.5, indexing="ij")
+    ndc = jnp.stack([2 * px / w - 1, 1 - 2 * py / h, jnp.ones_like(px), jnp.ones_like(px)], -1)
+    inv = jnp.linalg.inv(prep.projection @ view)
+    far = ndc.reshape(-1, 4) @ inv.T
+    far = far[:, :3] / far[:, 3:4]
+    eye = jnp.linalg.inv(view)[:3, 3]
+    d = far - eye
+    return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:
+    """Bilinear lookups (N, C') of a table laid out as the map's texels + 2 pole rows."""
+    from .environment import lookup
+
+    c = flat.shape[-1]
+    h, w = env.texels.shape[:2]
+    tab = eqx.tree_at(lambda e: (e.texels, e.poles), env,
+                      (flat[:-2].reshape(h, w, c), flat[-2:]))
+    return jax.vmap(lambda d: lookup(tab, d))(dirs)
+
+
+def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
+                 visible: jax.Array, spectral: bool) -> Frame:
+    from .display import to_display
+    from .raster import covered_pixels, interpolate_pixels, rasterize, scatter_pixels
+
+    TRACE_COUNT["render_frame"] += 1
+    h, w = prep.shape
+    n_obj = prep.num_objects
+    mats = _as_stacked(materials, n_obj)
+    model = jnp.asarray(model, jnp.float32)
+    view = jnp.asarray(view, jnp.float32)
+    visible = jnp.asarray(visible, bool)
+
+    # 1. geometry in the world; hidden objects collapse onto their centre (draw nothing)
+    world = _to_world(prep.vertices, prep.vertex_object, model)
+    centres = model[:, :3, 3]
+    vis_v = visible[prep.vertex_object]
+    world = jnp.where(vis_v[:, None], world, centres[prep.vertex_object])
+    wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
+    vp = prep.projection @ view
+    clip = world @ vp[:, :3].T + vp[:, 3]
+
+    # 2. rasterise, compact covered pixels, G-buffer
+    ras = rasterize(clip, prep.triangles, (h, w), config=prep.raster_config, check=False)
+    pix = covered_pixels(ras, prep.pixel_capacity)
+    attrs = jnp.concatenate([world, wnorm], axis=1)
+    vals = interpolate_pixels(attrs, pix, prep.triangles, clip)
+    pos = vals[:, :3]
+    nrm = vals[:, 3:]
+    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
+    eye = jnp.linalg.inv(view)[:3, 3]
+    vdir = eye - pos
+    vdir = vdir / jnp.maximum(jnp.linalg.norm(vdir, axis=-1, keepdims=True), 1e-12)
+    # silhouette pixels whose interpolated (smooth) normal turns away from the eye: bend the
+    # normal towards V until N·V = 0.01, instead of shading them black
+    nv = jnp.sum(nrm * vdir, axis=-1, keepdims=True)
+    bent = nrm + jnp.maximum(0.01 - nv, 0.0) * vdir
+    nrm = bent / jnp.maximum(jnp.linalg.norm(bent, axis=-1, keepdims=True), 1e-12)
+    # empty slots: a harmless configuration (N = V = +Z), so no NaN enters any gradient
+    zdir = jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    nrm = jnp.where(pix.valid[:, None], nrm, zdir)
+    vdir = jnp.where(pix.valid[:, None], vdir, zdir)
+    obj = jnp.where(pix.valid, prep.tri_object[jnp.maximum(pix.tri_id, 0)], -1)
+    gb = GBuffer(position=pos, normal=nrm, view=vdir, object=obj,
+                 pixel=jnp.where(pix.valid, pix.index, -1))
+
+    # 3. shading + interreflection
+    radiance = _shade_samples(mats, prep.env, gb, prep.batch_size)
+    geoms = [ObjectGeometry(vertices=world[a:b], normals=wnorm[a:b],
+                            triangles=prep.triangles[ta:tb] - a, centre=centres[i])
+             for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
+                                                        prep.triangle_slices, strict=True))]
+    ir = _interreflection(prep, geoms, mats, gb)
+    if ir is not None:
+        radiance = radiance + ir
+    radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
+
+    # 4. background and XYZ
+    dirs = _pixel_directions(prep, view)
+    bg_xyz = _env_lookup(prep.env, prep.env_xyz, dirs).reshape(h, w, 3)
+    xyz = scatter_pixels(radiance @ prep.to_xyz, pix, bg_xyz)
+    mask = ras.tri_id >= 0
+    object_id = jnp.where(mask, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
+    spec = None
+    if spectral:
+        env = prep.env
+        hm, wm, c = env.texels.shape
+        flat = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
+        bg = _env_lookup(env, flat, dirs) @ prep.to_spectrum
+        spec = scatter_pixels(radiance @ prep.to_spectrum, pix, bg.reshape(h, w, -1))
+
+    # 5. display
+    d = to_display(xyz, exposure_luminance=prep.exposure, display=prep.display,
+                   scene_white_xy=prep.scene_white_xy, mask=mask)
+    count = pix.count
+    stats = {
+        "out_of_gamut_fraction": d.out_of_gamut_fraction,
+        "below_zero_fraction": d.below_zero_fraction,
+        "overexposed_fraction": d.overexposed_fraction,
+        "coverage": count.astype(jnp.float32) / (h * w),
+        "covered_pixels": count,
+        "pixel_overflow": pix.overflow,
+        "raster_overflow": ras.overflow,
+    }
+    return Frame(xyz=xyz, rgb=d.rgb, linear_rgb=d.linear, mask=mask, object_id=object_id,
+                 spectral=spec, stats=stats)
+
+
+_render_jit = eqx.filter_jit(_render_impl)
+
+
+def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, view: Any = None,
+                 visible: Any = None, spectral: bool = False) -> Frame:
+    """Render one frame (jit-compiled once per :class:`Prepared` shape; differentiable).
+
+    Args:
+        prep: from :func:`prepare`.
+        materials: a stacked :class:`~spectral_fit.reflectance.Material` (leading axis O) or a
+            sequence of O Materials (reflectance in bands, or K coefficients in basis mode);
+            default the config's. Traced: new values never recompile.
+        model: (O, 4, 4) world-from-object matrices (default the config's poses). Traced.
+        view: (4, 4) world → OpenGL eye view matrix (default the config's camera). Traced.
+        visible: (O,) bool per-object visibility (default all visible). Traced.
+        spectral: also return the spectral radiance (H, W, L) (a separate compilation).
+
+    Returns:
+        :class:`Frame`. Gradients flow to every material parameter of every object (and to
+        the model/view matrices through shading, not through visibility).
+    """
+    mats = prep.materials if materials is None else materials
+    model = prep.model if model is None else model
+    view = prep.view if view is None else view
+    visible = jnp.ones((prep.num_objects,), bool) if visible is None else visible
+    if not isinstance(model, jax.core.Tracer):
+        m = np.shape(model)
+        if m != (prep.num_objects, 4, 4):
+            raise InputError(f"expected shape ({prep.num_objects}, 4, 4), got {m}",
+                             field="model")
+    if not isinstance(view, jax.core.Tracer) and np.shape(view) != (4, 4):
+        raise InputError(f"expected shape (4, 4), got {np.shape(view)}", field="view")
+    if not isinstance(visible, jax.core.Tracer) and np.shape(visible) != (prep.num_objects,):
+        raise InputError(f"expected shape ({prep.num_objects},), got {np.shape(visible)}",
+                         field="visible")
+    if not isinstance(mats, Material):
+        mats = _stack(_as_stacked(mats, prep.num_objects)) if len(
+            {(m.distribution, m.geometry) for m in mats}) == 1 else list(mats)
+    return _render_jit(prep, mats, jnp.asarray(model, jnp.float32),
+                       jnp.asarray(view, jnp.float32), jnp.asarray(visible, bool),
+                       spectral)
+
+
+def render(scene: Any, materials: Any = None, *, spectral: bool = False,
+           **prepare_options: Any) -> Frame:
+    """Convenience (DESIGN §7): :func:`prepare` + :func:`render_frame` with the config's
+    poses. ``scene`` is a Scene or a config path; ``prepare_options`` go to :func:`prepare`
+    (size, mode, spectral_mode, k, ...). When a buffer overflowed (objects moved closer than
+    planned), the capacities are grown and the frame is rendered again, with a warning."""
+    prep = prepare(scene, **prepare_options)
+    frame = render_frame(prep, materials, spectral=spectral)
+    return _regrow(prep, frame, materials, spectral)
+
+
+def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Frame:
+    for _ in range(4):
+        pix_over = bool(frame.stats["pixel_overflow"])
+        ras_over = bool(frame.stats["raster_overflow"])
+        if not (pix_over or ras_over):
+            return frame
+        changes = {}
+        if pix_over:
+            h, w = prep.shape
+            changes["pixel_capacity"] = min(h * w, _ladder(
+                1.5 * int(frame.stats["covered_pixels"]) + 64))
+        if ras_over:
+            from .raster import rasterize
+
+            world = _to_world(prep.vertices, prep.vertex_object, prep.model)
+            vp = prep.projection @ prep.view
+            r = rasterize(world @ vp[:, :3].T + vp[:, 3], prep.triangles, prep.shape,
+                          config=prep.raster_config, check=False)
+            changes["raster_config"] = prep.raster_config.grown(np.asarray(r.needed), 1.5)
+        warnings.warn(f"render: buffers grown ({sorted(changes)}); recompiling",
+                      RuntimeWarning, stacklevel=3)
+        prep = _replace_static(prep, **changes)
+        frame = render_frame(prep, materials, spectral=spectral)
+    raise RuntimeError("render: buffers still overflow after growing them")
+
+
+def _replace_static(prep: Prepared, **changes: Any) -> Prepared:
+    import dataclasses
+
+    return dataclasses.replace(prep, **changes)

@@ -1,0 +1,342 @@
+"""The Mitsuba reference renderer (skipped without Mitsuba): furnace tests, the mirror term,
+single-bounce renders vs brute-force quadrature, BSDF sampling vs eval/pdf (chi-square and
+moments), the environment placement, the camera, and a smoke run of the generator."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mitsuba")
+
+from _reference_util import (  # noqa: E402
+    fully_covered,
+    pixel_subsamples,
+    single_bounce_quadrature,
+    small_scene,
+    smooth_environment,
+    sphere_obj,
+)
+
+from spectral_fit.reference.backend import init_mitsuba  # noqa: E402
+
+mi, dr = init_mitsuba()
+JIT = mi.variant().startswith(("llvm", "cuda"))
+needs_jit = pytest.mark.skipif(not JIT, reason="needs a JIT variant (scalar is too slow)")
+
+
+def _env_lookup(texels: np.ndarray, rotation_y_deg: float):
+    import jax
+    import jax.numpy as jnp
+
+    from spectral_fit.environment import EnvironmentMap, GlossQuadrature, lookup
+
+    env = EnvironmentMap.from_array(texels, rotation_y_deg=rotation_y_deg, compress_tol=0.0,
+                                    quadrature=GlossQuadrature(levels=0, max_sources=0))
+    f = jax.jit(jax.vmap(lambda d: lookup(env, d)))
+
+    def run(d: np.ndarray) -> np.ndarray:
+        return np.asarray(f(jnp.asarray(d, jnp.float32)), np.float64)
+    return run
+
+
+def _bsdf(**props):
+    base = {"type": "spectral_fit_model", "alpha": 0.0, "beta": 0.0, "chi": 0.0, "mu": 0.1,
+            "n": 1.5, "s0": 1.0, "s1": 1.0, "s2": 1.0}
+    base.update(props)
+    return base
+
+
+def _sphere_scene(bsdf: dict, *, fov: float, size: int, spp: int, depth: int = 2,
+                  env: float = 1.0) -> dict:
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": depth},
+        "emitter": {"type": "constant", "radiance": {"type": "rgb", "value": env}},
+        "sensor": {"type": "perspective", "fov": fov, "fov_axis": "y",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0],
+                                                              up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": size, "height": size,
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "sphere": {"type": "sphere", "bsdf": bsdf},
+    }
+
+
+# ---------------------------------------------------------------------------------- furnaces
+
+
+def test_white_furnace_gives_unit_radiance():
+    """α = 1, S = 1, β = χ = 0 under uniform unit radiance: every sphere pixel is 1."""
+    img = np.asarray(mi.render(mi.load_dict(_sphere_scene(
+        _bsdf(alpha=1.0), fov=20.0, size=12, spp=1024 if JIT else 64, depth=16))))
+    inner = img[3:9, 3:9]  # well inside the silhouette (radius ~ 5.8 px)
+    assert abs(inner.mean() - 1.0) < (0.005 if JIT else 0.02)
+    assert np.abs(inner - 1.0).max() < (0.04 if JIT else 0.2)
+
+
+def test_gloss_furnace_matches_design_value():
+    """Gloss lobe alone, Beckmann m = 0.5, F = G = 1, V = N: 1 − exp(−1/m²) = 0.981684."""
+    img = np.asarray(mi.render(mi.load_dict(_sphere_scene(
+        _bsdf(beta=1.0, mu=0.5, distribution="beckmann", unit_fg=True), fov=1.0, size=4,
+        spp=4096 if JIT else 256))))
+    expected = 1.0 - math.exp(-1.0 / 0.25)
+    assert abs(expected - 0.981684) < 1e-6
+    assert abs(img.mean() - expected) < (0.005 if JIT else 0.02)
+
+
+@pytest.mark.parametrize("rotation", [0.0, 180.0])
+def test_mirror_alone_is_fresnel_times_environment(rotation):
+    """χ = 1 alone (delta lobe): radiance F(n, θr) · L(R), sub-pixel averaged, vs our lookup."""
+    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+    from spectral_fit.reflectance import fresnel_dielectric
+
+    centre = (0.01, -0.005, -0.3)
+    scene = small_scene(objects=[sphere_obj("m", centre, alpha=0.0, chi=1.0, n=1.5)],
+                        width=32, height=32, fov=16.0, rotation_y_deg=rotation)
+    tex = smooth_environment()
+    # the only noise is the random position inside the pixel (the delta lobe is deterministic)
+    r = render_spectral(scene, spp=2048 if JIT else 8, passes=1, depths=(2,), environment=tex,
+                        analytic_spheres=True)
+    img = r.mean(2)
+    ys, xs = np.mgrid[0:32, 0:32]
+    ok = fully_covered(scene, centre, 0.0375, xs, ys)
+    sx, sy = pixel_subsamples(xs[ok].astype(float), ys[ok].astype(float), 8)
+    o, d = camera_rays(scene, sx, sy)
+    t = sphere_hits(o, d, centre, 0.0375)
+    nrm = (o + t[..., None] * d - np.asarray(centre)) / 0.0375
+    v = -d
+    nv = np.sum(nrm * v, -1)
+    refl = 2 * nv[..., None] * nrm - v
+    look = _env_lookup(tex, rotation)
+    expect = (np.asarray(fresnel_dielectric(nv, 1.5), np.float64)[..., None]
+              * look(refl.reshape(-1, 3)).reshape(*refl.shape)).mean(axis=1)
+    got = img[ok]
+    inner = nv.mean(axis=1) > 0.6
+    assert inner.sum() >= 100
+    rel = np.abs(got[inner] - expect[inner]) / expect[inner]
+    assert np.median(rel) < (0.002 if JIT else 0.01)
+    assert rel.max() < (0.015 if JIT else 0.08)
+
+
+# --------------------------------------------------------------- single bounce vs quadrature
+
+
+@needs_jit
+@pytest.mark.parametrize("model", [
+    ("gaussian", "vcavity", 0.1),
+    pytest.param(("beckmann", "smith", 0.3), marks=pytest.mark.slow),
+])
+def test_single_bounce_sphere_matches_quadrature(model):
+    """Depth-2 render of one sphere (α = 1, β = 1, S coloured) vs brute-force quadrature of the
+    environment integral at 20 pixels (normal and view from the ray–sphere hit): < 1 %."""
+    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+
+    dist, geom, mu = model
+    centre = (0.004, 0.003, -0.3)
+    s = (0.2, 0.5, 0.8)
+    scene = small_scene(objects=[sphere_obj("q", centre, reflectance=list(s), alpha=1.0,
+                                            beta=1.0, mu=mu, n=1.5, distribution=dist,
+                                            geometry=geom)],
+                        width=24, height=24, fov=12.0, rotation_y_deg=180.0)
+    tex = smooth_environment()
+    r = render_spectral(scene, spp=8192, passes=4, depths=(2,), environment=tex,
+                        analytic_spheres=True)
+    img = r.mean(2)
+    se = r.passes[0].std(axis=0, ddof=1) / 2.0
+    ys, xs = np.mgrid[0:24, 0:24]
+    ok = fully_covered(scene, centre, 0.0375, xs, ys)
+    rng = np.random.default_rng(1)
+    pick = rng.choice(np.flatnonzero(ok.ravel()), 20, replace=False)
+    px, py = xs.ravel()[pick].astype(float), ys.ravel()[pick].astype(float)
+    sx, sy = pixel_subsamples(px, py, 5)  # the box filter averages over the pixel
+    o, d = camera_rays(scene, sx.ravel(), sy.ravel())
+    t = sphere_hits(o, d, centre, 0.0375)
+    nrm = (o + t[:, None] * d - np.asarray(centre)) / 0.0375
+    quad = single_bounce_quadrature(_env_lookup(tex, 180.0), nrm, -d, alpha=1.0, s=s, beta=1.0,
+                                    mu=mu, n=1.5, distribution=dist, geometry=geom)
+    expect = quad.reshape(20, 25, 3).mean(axis=1)
+    got = img.reshape(-1, 3)[pick]
+    rel = np.abs(got - expect) / expect
+    assert rel.max() < 0.01, (rel.max(), (se.reshape(-1, 3)[pick] / expect).max())
+
+
+# ---------------------------------------------------------------------------- sampling
+
+
+def _directions_grid(nz: int, nphi: int, sub: int):
+    """Cell-centred sub-grid in (z = cosθ, φ) with its cell index and solid-angle weight."""
+    z = (np.arange(nz * sub) + 0.5) / (nz * sub)
+    p = 2 * np.pi * (np.arange(nphi * sub) + 0.5) / (nphi * sub)
+    Z, P = np.meshgrid(z, p, indexing="ij")
+    s = np.sqrt(1 - Z**2)
+    d = np.stack([s * np.cos(P), s * np.sin(P), Z], -1).reshape(-1, 3)
+    cell = ((np.arange(nz * sub) // sub)[:, None] * nphi
+            + (np.arange(nphi * sub) // sub)[None, :]).ravel()
+    dw = (1.0 / (nz * sub)) * (2 * np.pi / (nphi * sub))
+    return d, cell, dw
+
+
+@needs_jit
+@pytest.mark.parametrize("case", [
+    dict(alpha=0.6, beta=1.0, chi=0.0, mu=0.1, s0=0.3, s1=0.6, s2=0.9),
+    dict(alpha=0.0, beta=1.0, chi=0.5, mu=0.3, distribution="beckmann", geometry="smith"),
+    dict(alpha=1.0, beta=0.5, chi=0.3, mu=0.2),
+])
+def test_sampling_consistent_with_eval_and_pdf(case):
+    """sample() vs pdf(): chi-square over (cosθ, φ) bins (p > 1e-3); weights vs eval/pdf; the
+    mean weight vs the quadrature of eval (albedo); delta share vs its selection weight."""
+    from scipy import stats
+
+    bsdf = mi.load_dict(_bsdf(**case))
+    ctx = mi.BSDFContext()
+    n = 200_000
+    nz, nphi = 24, 24
+    d, cell, dw = _directions_grid(nz, nphi, 8)
+    rng = np.random.default_rng(7)
+    for theta_deg in (10.0, 50.0, 75.0):
+        th = math.radians(theta_deg)
+        wi = mi.Vector3f(math.sin(th), 0.0, math.cos(th))
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi = wi
+        u = rng.random((3, n)).astype(np.float32)
+        bs, w = bsdf.sample(ctx, si, mi.Float(u[0]), mi.Point2f(u[1], u[2]))
+        wo = np.asarray(bs.wo).reshape(3, -1).T if np.asarray(bs.wo).shape[0] == 3 else \
+            np.asarray(bs.wo)
+        w = np.asarray(w).reshape(3, -1).T if np.asarray(w).shape[0] == 3 else np.asarray(w)
+        pdf_s = np.asarray(bs.pdf)
+        delta = (np.asarray(bs.sampled_type) & int(mi.BSDFFlags.DeltaReflection)) > 0
+        valid = pdf_s > 0
+        # eval / pdf on the sample's direction (non-delta)
+        si_e = dr.zeros(mi.SurfaceInteraction3f, n)
+        si_e.wi = wi
+        wo_v = mi.Vector3f(*[mi.Float(wo[:, k].astype(np.float32)) for k in range(3)])
+        ev = np.asarray(bsdf.eval(ctx, si_e, wo_v))
+        ev = ev.reshape(3, -1).T if ev.shape[0] == 3 else ev
+        pd = np.asarray(bsdf.pdf(ctx, si_e, wo_v))
+        sm = valid & ~delta
+        assert np.allclose(pdf_s[sm], pd[sm], rtol=1e-4, atol=1e-6)
+        assert np.allclose(w[sm], ev[sm] / pd[sm, None], rtol=2e-3, atol=1e-6)
+        # quadrature of pdf and eval over the hemisphere
+        m = d.shape[0]
+        si_q = dr.zeros(mi.SurfaceInteraction3f, m)
+        si_q.wi = wi
+        dq = mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)])
+        pq = np.asarray(bsdf.pdf(ctx, si_q, dq), np.float64)
+        eq = np.asarray(bsdf.eval(ctx, si_q, dq), np.float64)
+        eq = eq.reshape(3, -1).T if eq.shape[0] == 3 else eq
+        p_smooth = np.bincount(cell, pq * dw, minlength=nz * nphi)
+        # non-delta samples land in the upper hemisphere as often as the pdf integrates to
+        assert abs(sm.mean() - p_smooth.sum()) < 0.005
+        if case.get("chi", 0.0) == 0.0:
+            assert not delta.any()
+        # chi-square on the non-delta samples
+        zc = np.clip((wo[sm, 2] * nz).astype(int), 0, nz - 1)
+        pc = np.clip((np.mod(np.arctan2(wo[sm, 1], wo[sm, 0]), 2 * np.pi)
+                      / (2 * np.pi) * nphi).astype(int), 0, nphi - 1)
+        obs = np.bincount(zc * nphi + pc, minlength=nz * nphi).astype(float)
+        exp = p_smooth * n
+        big = exp > 5
+        chi2 = ((obs[big] - exp[big]) ** 2 / exp[big]).sum()
+        chi2 += (obs[~big].sum() - exp[~big].sum()) ** 2 / max(exp[~big].sum(), 1.0)
+        pval = stats.chi2.sf(chi2, big.sum())
+        assert pval > 1e-3, (theta_deg, chi2, big.sum())
+        # moment: mean weight (all samples) vs ∫ eval dω + delta albedo
+        albedo_q = (eq * dw).sum(axis=0)
+        mirror = case.get("chi", 0.0) * float(fresnel_np(math.cos(th), case.get("n", 1.5)))
+        mean_w = np.where(valid[:, None], w, 0.0).mean(axis=0)
+        se = np.where(valid[:, None], w, 0.0).std(axis=0) / math.sqrt(n)
+        assert np.all(np.abs(mean_w - albedo_q - mirror) < 5 * se + 0.01 * albedo_q), (
+            theta_deg, mean_w, albedo_q + mirror)
+
+
+def fresnel_np(c: float, n: float) -> float:
+    from spectral_fit.reflectance import fresnel_dielectric
+
+    return float(fresnel_dielectric(c, n))
+
+
+# ------------------------------------------------------------------ placement and camera
+
+
+def test_envmap_rows_reproduce_our_lookup():
+    """Mitsuba's envmap fed 2H + 1 rows of our lookup (export.mitsuba_envmap_rows) returns our
+    lookup, rotation included, at random directions (relative 1e-4)."""
+    from spectral_fit.environment import rotation_y
+    from spectral_fit.reference.export import mitsuba_envmap_rows
+
+    tex = smooth_environment(16, 32)
+    tex[5, 7] = [40.0, 10.0, 1.0]  # a sharp texel: bilinear structure matters
+    rows = mitsuba_envmap_rows(tex)
+    to_world = np.eye(4)
+    to_world[:3, :3] = rotation_y(180.0)
+    bitmap = mi.Bitmap(np.ascontiguousarray(rows, np.float32),
+                       pixel_format=mi.Bitmap.PixelFormat.RGB)
+    em = mi.load_dict({"type": "envmap", "bitmap": bitmap,
+                       "to_world": mi.ScalarTransform4f(to_world.tolist())})
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(400 if JIT else 60, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:4] = [[0, 1, 0], [0, -1, 0], [0.05, 0.998, 0.0], [0, 0, -1]]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ours = _env_lookup(tex, 180.0)(d)
+    if JIT:
+        si = dr.zeros(mi.SurfaceInteraction3f, d.shape[0])
+        si.wi = mi.Vector3f(*[mi.Float(-d[:, k].astype(np.float32)) for k in range(3)])
+        got = np.asarray(em.eval(si))
+        got = got.reshape(3, -1).T if got.shape[0] == 3 else got
+    else:
+        got = []
+        for di in d:
+            si = dr.zeros(mi.SurfaceInteraction3f)
+            si.wi = mi.Vector3f(*(-di))
+            got.append(np.asarray(em.eval(si)))
+        got = np.asarray(got)
+    assert np.allclose(got, ours, rtol=1e-4, atol=1e-5)
+
+
+def test_camera_and_silhouettes_match_our_conventions():
+    """Black spheres left and right of the axis against a unit background: covered pixels are
+    where our camera rays (DESIGN §3: row 0 on top, +x to the right) hit the spheres."""
+    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+
+    objs = [sphere_obj("left", (-0.045, 0.02, -0.1), alpha=0.0),
+            sphere_obj("right", (0.045, 0.0, -0.1), alpha=0.0, radius=0.03)]
+    scene = small_scene(objects=objs, width=48, height=32, fov=90.0)
+    r = render_spectral(scene, spp=16, passes=1, depths=(2,), environment=1.0)
+    img = r.mean(2)[..., 0]
+    ys, xs = np.mgrid[0:32, 0:48]
+    inside = np.zeros(xs.shape, bool)
+    outside = np.ones(xs.shape, bool)
+    for ob in scene.objects:
+        inside |= fully_covered(scene, ob.position, ob.radius, xs, ys)
+        for cx, cy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            o, d = camera_rays(scene, xs + cx, ys + cy)
+            outside &= ~np.isfinite(sphere_hits(o, d, ob.position, ob.radius * 1.005))
+    assert inside.sum() > 40 and np.all(img[inside] < 0.02)  # meshes (uv spheres) used
+    assert np.allclose(img[outside], 1.0, atol=1e-3)
+
+
+def test_generator_smoke_run(tmp_path):
+    """scripts/make_references.py at a tiny size: files written, loadable, consistent."""
+    import importlib.util
+
+    from _reference_util import REPO
+
+    from spectral_fit.reference import load_reference
+
+    spec = importlib.util.spec_from_file_location("make_references",
+                                                  REPO / "scripts" / "make_references.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rc = mod.main(["--only", "benchmark", "--size", "288", "192", "--bands", "500", "520", "10",
+                   "--spp", "2", "--passes", "2", "--out", str(tmp_path)])
+    assert rc == 0
+    ref = load_reference(tmp_path / "benchmark.npz")
+    assert (tmp_path / "benchmark.png").stat().st_size > 100
+    assert ref.wavelengths.size == 3 and ref.num_patches > 10
+    assert set(ref.object_names) == {"yellow", "red"}
+    assert np.all(np.isfinite(ref.spectra)) and np.all(ref.spectra > 0)
+    assert ref.metadata["spp"] == 4 and ref.metadata["passes"] == 2

@@ -1,0 +1,309 @@
+"""Frame renderer: background, analytic sphere, symmetry, traced inputs without recompiling,
+gradients vs finite differences, interreflection locality, CLI.
+
+All frames are 128×96 with 32×32 UV spheres (31 bands), so that one compilation serves most
+tests (materials, poses, view and visibility are traced inputs)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _rendering_util import CENTRES, RADIUS, SIZE, ray_directions, write_scene
+
+from spectral_fit.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return tmp_path_factory.mktemp("render")
+
+
+@pytest.fixture(scope="module")
+def prep(folder):
+    from spectral_fit.renderer import prepare
+
+    return prepare(write_scene(folder, mode="none"))
+
+
+@pytest.fixture(scope="module")
+def frame(prep):
+    from spectral_fit.renderer import render_frame
+
+    return jax.block_until_ready(render_frame(prep))
+
+
+def _xyz_weights(prep):
+    from spectral_fit.colorimetry import xyz_weights
+
+    return xyz_weights(np.asarray(prep.wavelengths))
+
+
+def test_frame_fields(prep, frame):
+    h, w = SIZE[1], SIZE[0]
+    assert frame.xyz.shape == (h, w, 3) and frame.rgb.shape == (h, w, 3)
+    assert frame.mask.shape == (h, w) and frame.spectral is None
+    rgb = np.asarray(frame.rgb)
+    assert np.all(np.isfinite(rgb)) and rgb.min() >= 0.0 and rgb.max() <= 1.0
+    n = int(frame.stats["covered_pixels"])
+    assert n == int(np.asarray(frame.mask).sum()) > 100
+    assert not bool(frame.stats["pixel_overflow"]) and not bool(frame.stats["raster_overflow"])
+    # both spheres drawn, each in its half of the frame
+    oid = np.asarray(frame.object_id)
+    assert (oid[:, : w // 2] == 0).sum() > 50 and (oid[:, w // 2:] == 1).sum() > 50
+    assert not np.any(oid[:, : w // 2] == 1) and not np.any(oid[:, w // 2:] == 0)
+    # every covered pixel lit (no black silhouettes)
+    y = np.asarray(frame.xyz)[..., 1]
+    assert np.all(y[np.asarray(frame.mask)] > 0)
+
+
+def test_background_is_the_environment_seen_by_the_camera(prep, frame):
+    from spectral_fit.environment import lookup
+
+    h, w = prep.shape
+    rows, cols = np.nonzero(~np.asarray(frame.mask))
+    pick = np.random.default_rng(1).choice(rows.size, 200, replace=False)
+    rows, cols = rows[pick], cols[pick]
+    _, d = ray_directions(prep.projection, prep.view, rows, cols, (h, w))
+    bands = np.asarray(jax.vmap(lambda x: lookup(prep.env, x))(jnp.asarray(d, jnp.float32)))
+    want = bands @ _xyz_weights(prep)
+    got = np.asarray(frame.xyz)[rows, cols]
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-6 * want.max())
+
+
+def test_single_sphere_matches_shading_of_the_analytic_hit(prep):
+    """Hide the left sphere; at pixels well inside the right sphere's disc, the frame equals
+    eq. (5) shading of the exact ray–sphere intersection (normal and view from the sphere, not
+    from the mesh)."""
+    from spectral_fit.environment import shade
+    from spectral_fit.renderer import render_frame
+
+    f = render_frame(prep, visible=jnp.array([False, True]))
+    mask = np.asarray(f.mask)
+    oid = np.asarray(f.object_id)
+    assert not np.any(oid == 0) and np.all(oid[mask] == 1)
+    h, w = prep.shape
+    rows, cols = np.nonzero(mask)
+    eye, d = ray_directions(prep.projection, prep.view, rows, cols, (h, w))
+    c = np.asarray(CENTRES[1])
+    oc = eye - c
+    b = d @ oc
+    disc = b * b - (oc @ oc - RADIUS**2)
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    p = eye + t[:, None] * d
+    n = (p - c) / RADIUS
+    v = -d
+    nv = np.sum(n * v, axis=1)
+    keep = (disc > 0) & (nv > 0.35)
+    assert keep.sum() > 100
+    mat = jax.tree.map(lambda x: x[1], prep.materials)
+    rad = jax.vmap(lambda nn, vv: shade(mat, prep.env, nn, vv))(
+        jnp.asarray(n[keep], jnp.float32), jnp.asarray(v[keep], jnp.float32))
+    want = np.asarray(rad) @ _xyz_weights(prep)
+    got = np.asarray(f.xyz)[rows[keep], cols[keep]]
+    rel = np.abs(got - want) / want.max(axis=1, keepdims=True)
+    assert np.median(rel) < 3e-3, np.median(rel)
+    assert rel.max() < 3e-2, rel.max()
+    # the silhouette ring (mesh vs sphere) is the only place where coverage may differ
+    inside = disc > 0
+    assert inside.mean() > 0.97
+
+
+def test_mirror_symmetric_scene_gives_a_mirror_symmetric_image(prep, frame):
+    mask = np.asarray(frame.mask)
+    flip = mask[:, ::-1]
+    assert (mask ^ flip).sum() <= 0.01 * mask.sum()
+    both = mask & flip
+    xyz = np.asarray(frame.xyz)
+    a, b = xyz[both], xyz[:, ::-1][both]
+    rel = np.abs(a - b).max(axis=1) / np.maximum(a.max(axis=1), b.max(axis=1))
+    assert np.median(rel) < 2e-3, np.median(rel)
+    assert np.percentile(rel, 99) < 3e-2
+    bg = ~mask & ~flip
+    np.testing.assert_allclose(xyz[bg], xyz[:, ::-1][bg], rtol=1e-3, atol=1e-6 * xyz.max())
+
+
+def test_new_poses_view_visibility_and_materials_do_not_recompile(prep, frame):
+    from spectral_fit.mesh import rotate_y, translate
+    from spectral_fit.renderer import TRACE_COUNT, render_frame
+
+    before = TRACE_COUNT["render_frame"]
+    model = np.asarray(prep.model).copy()
+    model[:, 0, 3] += 0.01  # both spheres 1 cm to the right
+    moved = render_frame(prep, model=model)
+    view = np.asarray(prep.view) @ translate((0.0, 0.0, 0.02)) @ rotate_y(0.05)
+    turned = render_frame(prep, view=view.astype(np.float32))
+    hidden = render_frame(prep, visible=np.array([True, False]))
+    mats = prep.materials
+    darker = render_frame(prep, eqx_replace(mats, alpha=mats.alpha * 0.5))
+    jax.block_until_ready((moved, turned, hidden, darker))
+    assert TRACE_COUNT["render_frame"] == before
+    # and each change did what it says
+    m0, m1 = np.asarray(frame.mask), np.asarray(moved.mask)
+    cols0 = np.nonzero(m0.any(axis=0))[0]
+    cols1 = np.nonzero(m1.any(axis=0))[0]
+    shift = 0.01 / 0.275 * (SIZE[1] / 2)  # pixels per metre at the spheres' depth (90° FOV)
+    assert abs((cols1.mean() - cols0.mean()) - shift) < 1.0
+    assert not np.array_equal(np.asarray(turned.xyz), np.asarray(frame.xyz))
+    assert not np.any(np.asarray(hidden.object_id) == 1)
+    y0 = np.asarray(frame.xyz)[..., 1][m0]
+    y1 = np.asarray(darker.xyz)[..., 1][m0]
+    assert np.all(y1 <= y0 + 1e-6) and np.mean(y1) < 0.9 * np.mean(y0)
+
+
+def eqx_replace(m, **kw):
+    import dataclasses
+
+    return dataclasses.replace(m, **kw)
+
+
+def test_gradients_match_finite_differences(prep):
+    """d(loss)/d(parameter) for every material parameter of both objects (and one reflectance
+    band each) against central differences. The loss weights XYZ of the covered pixels by a
+    fixed random pattern, so errors cannot cancel."""
+    from spectral_fit.reflectance import Material
+    from spectral_fit.renderer import render_frame
+
+    refl = np.asarray(prep.materials.reflectance)
+    mats = Material(alpha=jnp.array([0.9, 0.7]), beta=jnp.array([1.1, 0.8]),
+                    chi=jnp.array([0.3, 0.2]), mu=jnp.array([0.18, 0.25]),
+                    n=jnp.array([1.5, 1.6]), gamma=jnp.array([1.0, 0.5]),
+                    reflectance=jnp.asarray(refl * np.array([[1.0], [0.8]]), jnp.float32))
+    mask = np.asarray(render_frame(prep, mats).mask)
+    wgt = jnp.asarray(np.random.default_rng(3).uniform(0.5, 1.5, mask.shape + (3,)) * mask[
+        ..., None], jnp.float32)
+    scale = 1.0 / float(np.asarray(render_frame(prep, mats).xyz)[mask].sum())
+
+    def loss(m):
+        return jnp.sum(render_frame(prep, m).xyz * wgt) * scale
+
+    g = jax.grad(loss)(mats)
+    band = 15
+    for name in ("alpha", "beta", "chi", "mu", "n", "gamma", "reflectance"):
+        for obj in (0, 1):
+            idx = (obj, band) if name == "reflectance" else (obj,)
+            x0 = float(np.asarray(getattr(mats, name))[idx])
+            h = 2e-2 * max(abs(x0), 0.1)
+
+            def at(x, name=name, idx=idx):
+                arr = jnp.asarray(getattr(mats, name)).at[idx].set(x)
+                return float(loss(eqx_replace(mats, **{name: arr})))
+
+            fd = (at(x0 + h) - at(x0 - h)) / (2 * h)
+            ad = float(np.asarray(getattr(g, name))[idx])
+            if name == "gamma" and prep.ir_mode == "none":
+                assert ad == 0.0 and abs(fd) < 1e-6  # γ weighs the interreflection only
+                continue
+            assert abs(ad - fd) <= 2e-2 * abs(fd) + 1e-5, (name, obj, ad, fd)
+            assert abs(fd) > 1e-4, (name, obj, fd)  # every parameter matters here
+
+
+def test_bad_inputs_name_the_option(prep, folder):
+    from spectral_fit.renderer import prepare, render_frame
+
+    cfg = write_scene(folder, mode="none")
+    with pytest.raises(InputError, match="mode"):
+        prepare(cfg, mode="sideways")
+    with pytest.raises(InputError, match="size"):
+        prepare(cfg, size=(0, 10))
+    with pytest.raises(InputError, match="model"):
+        render_frame(prep, model=np.eye(4))
+    with pytest.raises(InputError, match="visible"):
+        render_frame(prep, visible=np.array([True]))
+    with pytest.raises(InputError, match="materials"):
+        render_frame(prep, [jax.tree.map(lambda x: x[0], prep.materials)])
+
+
+def _interreflection_available() -> bool:
+    try:
+        import spectral_fit.interreflection  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(not _interreflection_available(),
+                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+@pytest.mark.parametrize("mode", ["gather", "paper"])
+def test_interreflection_changes_only_pixels_that_see_the_other_object(folder, prep, frame,
+                                                                       mode):
+    """A pixel on sphere i can receive light from sphere j only if j rises above i's tangent
+    plane there: N·(c_j − p) > −R. Elsewhere interreflection must change nothing."""
+    from spectral_fit.renderer import prepare, render_frame
+
+    p_ir = prepare(write_scene(folder, mode=mode))
+    f = render_frame(p_ir)
+    mask = np.asarray(frame.mask)
+    assert np.array_equal(mask, np.asarray(f.mask))
+    diff = np.abs(np.asarray(f.xyz) - np.asarray(frame.xyz)).max(-1)
+    rows, cols = np.nonzero(mask)
+    eye, d = ray_directions(prep.projection, prep.view, rows, cols, prep.shape)
+    oid = np.asarray(frame.object_id)[rows, cols]
+    c_self = np.asarray(CENTRES)[oid]
+    c_other = np.asarray(CENTRES)[1 - oid]
+    oc = eye - c_self
+    b = np.sum(d * oc, 1)
+    t = -b - np.sqrt(np.maximum(b * b - (np.sum(oc * oc, 1) - RADIUS**2), 0.0))
+    p = eye + t[:, None] * d
+    n = (p - c_self) / RADIUS
+    sees = np.sum(n * (c_other - p), 1) > -RADIUS - 2e-3
+    ymax = np.asarray(frame.xyz)[..., 1][mask].max()
+    changed = diff[rows, cols] > 1e-4 * ymax
+    assert changed.sum() > 20  # interreflection does something
+    assert not np.any(changed & ~sees), int(np.sum(changed & ~sees))
+
+
+def test_render_cli_smoke(folder, tmp_path):
+    from spectral_fit.cli import main
+    from spectral_fit.outputs import read_channels_exr
+
+    cfg = write_scene(folder, mode="none")
+    png, xyz = tmp_path / "f.png", tmp_path / "f_xyz.exr"
+    rc = main(["render", str(cfg), "-o", str(png), "--xyz-exr", str(xyz), "--size",
+               f"{SIZE[0]}x{SIZE[1]}", "--mode", "none", "--mask", str(tmp_path / "m.png")])
+    assert rc == 0 and png.is_file() and (tmp_path / "m.png").is_file()
+    img = read_channels_exr(xyz, "XYZ")
+    assert img.shape == (SIZE[1], SIZE[0], 3) and img[..., 1].min() > 0
+
+
+def test_render_cli_json(folder, tmp_path, capsys):
+    from spectral_fit.cli import main
+
+    cfg = write_scene(folder, mode="none")
+    rc = main(["render", str(cfg), "-o", str(tmp_path / "f.png"), "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["size"] == list(SIZE) and out["mode"] == "none"
+    assert 0.005 < out["coverage"] < 0.2 and out["frame_ms"] > 0
+    assert math.isfinite(out["out_of_gamut_fraction"])
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--size", "12"], "--size"),
+    (["--size", "0x10"], "--size"),
+    (["--composite", "c.png"], "--background"),
+])
+def test_render_cli_bad_input(folder, tmp_path, capsys, args, needle):
+    from spectral_fit.cli import main
+
+    cfg = write_scene(folder, mode="none")
+    rc = main(["render", str(cfg), "-o", str(tmp_path / "f.png"), *args])
+    err = capsys.readouterr().err
+    assert rc == 2 and needle in err and "Traceback" not in err
+
+
+def test_render_cli_missing_or_malformed_config(tmp_path, capsys):
+    from spectral_fit.cli import main
+
+    rc = main(["render", str(tmp_path / "nope.toml")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "nope.toml" in err
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[frame]\nwidth = -3\n")
+    rc = main(["render", str(bad)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "frame.width" in err
