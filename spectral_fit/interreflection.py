@@ -1,0 +1,765 @@
+"""Interreflection between objects: the paper's two-pass eq. (6) ("paper") and a physically
+based gather ("gather"), both as radiance to ADD to the environment-only shading of eq. (5).
+
+Both modes split into a geometry-only pass and a shading pass (nvdiffrast style), so a caller
+whose geometry is fixed (the fitter) rasterises once and re-shades many times:
+
+    geom = prepare_interreflection(objects, mode="gather")              # rasterise pass 1
+    extra = interreflection_from(geom, materials, env, receivers)       # shade, (N, C)
+
+and :func:`interreflection` is the composition. Every array has a static shape (ordered pairs
+of objects, pass-1 buffers and sample lists of fixed size), so moving objects never recompiles;
+everything is jit-able and differentiable w.r.t. every material parameter.
+
+Pairs. For n objects there are P = n(n − 1) ordered pairs p = (i, j), i the object that
+RECEIVES light and j the one that sends it, stored in the order p = i·(n − 1) + k with
+j = k for k < i and j = k + 1 otherwise.
+
+"paper" mode — eq. (6) of Mochizuki & Tanaka, literally (DESIGN §1):
+
+    C(λ) = α I_d S + α T_d(λ, x, y) + {β I_gloss + χ I_mirror} E + γ T_s(λ, x, y).
+
+Pass 1 renders object j with :func:`~spectral_fit.camera.interreflection_camera` (at c_i,
+looking at c_j, up +Y, 90° FOV, aspect 1, ``texture_size``²) into two spectral textures: T_d,
+the diffuse-only radiance α_j S_j E_irr/π of j, and T_s, its specular-only radiance
+β_j I_gloss + χ_j I_mirror, both shaded with the view direction towards c_i (the pass-1 eye).
+Pass 2 projects the receiving fragment x through the same camera and, where the projection is
+valid (in front of the eye, inside the view, and the fragment facing j: N·(c_j − x) > 0), adds
+α_paper T_d + γ T_s looked up bilinearly at (x, y) (clamp to edge, texels outside j are 0). In
+our scaling α_paper = α/π (DESIGN §2), γ is the material's ``gamma``. There are no bounces.
+
+"gather" mode — our correction (DESIGN §2). Pass 1 rasterises object j ORTHOGRAPHICALLY along
+the axis c_i → c_j (so it covers the whole hemisphere of j that faces i, not only the cap seen
+from c_i) at (4g)² and box-filters it into g × g surface samples y (g = ``gather_size``): area
+A_y, area-weighted mean position and normal, and coverage. The shading pass then:
+
+1. shades each sample with j's full model under the environment (eq. 5), towards the point of
+   i's bounding sphere nearest to it, and subtracts the environment radiance it hides
+   (looked up along the direction from that point to the sample): ΔL_y = L_j(y) − L_env;
+2. gathers at each receiver x on i, per fragment (no shared projection centre):
+   - diffuse: α S_i(λ) Σ_y F(x, y) ΔL_y(λ) with the point-to-patch form factor
+     F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²)) (the midpoint rule cos cos A/(π r²) to second
+     order, bounded by cos_x cos_y at contact), so S_i filters the neighbour's light;
+   - gloss: β A(x) ⟨ΔL⟩, A the receiver's lobe albedo ∫ D F G (V·H)/(N·V) dω_H and ⟨ΔL⟩ the
+     coverage-weighted ΔL around the point where the reflected ray R meets j's bounding sphere
+     (or passes closest to it), read from a mip pyramid of the samples at the level of the
+     lobe's footprint (std ≈ t √2 μ at distance t);
+   - mirror: χ F(n, θr) ΔL at that point (finest level);
+3. ``bounces`` > 1: the samples themselves receive step 2 from the other objects' samples
+   before the receivers gather (Jacobi iteration of the radiosity-like exchange).
+
+Only receivers whose tangent plane has some of j's bounding sphere above it get anything; the
+sum of both modes' terms over j ≠ i is returned. Empty receiver slots (``object == −1``) get 0.
+
+Units: radiance in the environment's unit (bands) or its basis coefficients (coefficient
+mode: the S·L product goes through ``env.product_tensor``, as in ``environment.shade``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .camera import interreflection_camera, look_at, project
+from .environment import (
+    EnvironmentMap,
+    _lobe_albedo,
+    gloss_integral,
+    irradiance,
+    lookup,
+    mirror_radiance,
+    shade,
+)
+from .errors import InputError
+from .gbuffer import GBuffer, ObjectGeometry
+from .raster import covered_pixels, interpolate, interpolate_pixels, rasterize
+from .reflectance import Material, fresnel_dielectric
+
+__all__ = [
+    "MODES",
+    "IRGeometry",
+    "prepare_interreflection",
+    "interreflection_from",
+    "interreflection",
+    "pair_list",
+]
+
+MODES = ("gather", "paper", "none")
+
+#: pass-1 supersampling of the gather samples (raster side = SUPERSAMPLE · gather_size)
+SUPERSAMPLE = 4
+#: smallest |n·axis| used for the area of a grazing pass-1 texel (caps 1/cos at 20)
+_MIN_COS = 0.05
+#: the ortho window is the bounding sphere's radius times this
+_MARGIN = 1.02
+#: lobe-albedo quadrature of the receiver's gloss (radial × azimuthal nodes, scalar only),
+#: tabulated at this many cosines per object
+_ALBEDO_NODES = (16, 8)
+_ALBEDO_TABLE = 33
+#: receivers per chunk of the diffuse gather (receivers are sorted by object first)
+_CHUNK = 512
+#: footprint of a lookup: texel side = this × the lobe footprint std
+_FOOTPRINT = 2.5
+
+
+def pair_list(n: int) -> list[tuple[int, int]]:
+    """Ordered pairs (receiver i, sender j), i ≠ j, in storage order p = i·(n − 1) + k."""
+    return [(i, j) for i in range(n) for j in range(n) if j != i]
+
+
+class IRGeometry(eqx.Module):
+    """Geometry-only interreflection data of n objects (pass 1), for P = n(n − 1) ordered pairs
+    (see :func:`pair_list`). Fields not needed by ``mode`` are None.
+
+    Attributes:
+        centre_i, centre_j: (P, 3) centres of the receiving / sending object (m).
+        radius_i, radius_j: (P,) their bounding-sphere radii about the centres (m).
+        frame: (P, 3, 3) rows s, u, a: the pass-1 eye's right, up and forward (a ∥ c_j − c_i).
+        extent: (P,) half side of the orthographic window of the gather pass (m).
+        s_pos, s_nrm, s_view: (P, M, 3) gather samples (M = g²): position, unit normal, unit
+            direction towards the receiver's nearest bounding-sphere point (tilted to at least
+            3° above the sample's horizon).
+        s_area: (P, M) surface area of each sample (m², 0 = empty).
+        s_cov: (P, M) covered fraction of each sample's pass-1 texels.
+        p_view_proj: (P, 4, 4) paper mode's pass-1 camera (projection @ view).
+        p_index: (P, Q) flat texel index of the covered pass-1 texels (Q = capacity).
+        p_pos, p_nrm: (P, Q, 3) their world positions and unit normals.
+        p_valid: (P, Q) bool.
+        overflow: bool scalar: a pass-1 buffer overflowed (results incomplete).
+        n_objects, mode, texture_size, gather_size: static.
+    """
+
+    centre_i: jax.Array
+    centre_j: jax.Array
+    radius_i: jax.Array
+    radius_j: jax.Array
+    frame: jax.Array
+    extent: jax.Array
+    s_pos: jax.Array | None
+    s_nrm: jax.Array | None
+    s_view: jax.Array | None
+    s_area: jax.Array | None
+    s_cov: jax.Array | None
+    p_view_proj: jax.Array | None
+    p_index: jax.Array | None
+    p_pos: jax.Array | None
+    p_nrm: jax.Array | None
+    p_valid: jax.Array | None
+    overflow: jax.Array
+    n_objects: int = eqx.field(static=True)
+    mode: str = eqx.field(static=True)
+    texture_size: int = eqx.field(static=True)
+    gather_size: int = eqx.field(static=True)
+
+    @property
+    def pairs(self) -> list[tuple[int, int]]:
+        return pair_list(self.n_objects)
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+
+
+def _normalize(v: jax.Array) -> jax.Array:
+    return v / jnp.sqrt(jnp.maximum(jnp.sum(v * v, axis=-1, keepdims=True), 1e-30))
+
+
+def _check_mode(mode: str) -> str:
+    if mode not in MODES:
+        raise InputError(f"unknown interreflection mode {mode!r}; choose one of {MODES}",
+                         field="mode")
+    return mode
+
+
+def _check_int(value: Any, name: str, lo: int, hi: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or not (
+            lo <= int(value) <= hi):
+        raise InputError(f"must be an integer in {lo}..{hi}, got {value!r}", field=name)
+    return int(value)
+
+
+def _bounding_radius(obj: ObjectGeometry) -> jax.Array:
+    v = jnp.asarray(obj.vertices, jnp.float32) - jnp.asarray(obj.centre, jnp.float32)
+    return jnp.sqrt(jnp.max(jnp.sum(v * v, axis=-1)))
+
+
+def _ortho_clip(view: jax.Array, vertices: jax.Array, extent: jax.Array, near: jax.Array,
+                far: jax.Array) -> jax.Array:
+    """Clip coordinates (V, 4) of an orthographic eye: x, y / extent, depth −z_eye ∈ [near,
+    far] → [−1, 1], w = 1."""
+    q = vertices @ view[:3, :3].T + view[:3, 3]
+    z = 2.0 * (-q[:, 2] - near) / (far - near) - 1.0
+    return jnp.stack([q[:, 0] / extent, q[:, 1] / extent, z, jnp.ones_like(z)], axis=-1)
+
+
+def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array,
+                    r_j: jax.Array, g: int, config: Any) -> tuple[jax.Array, ...]:
+    """Orthographic pass 1 of sender j along c_i → c_j, box-filtered to g × g samples."""
+    ss = SUPERSAMPLE
+    side = g * ss
+    ci = jnp.asarray(obj_i.centre, jnp.float32)
+    cj = jnp.asarray(obj_j.centre, jnp.float32)
+    view = look_at(ci, cj)
+    frame = view[:3, :3]
+    axis = -frame[2]
+    dist = jnp.linalg.norm(cj - ci)
+    extent = _MARGIN * r_j
+    near = dist - 1.1 * r_j
+    far = dist + 1.1 * r_j
+    verts = jnp.asarray(obj_j.vertices, jnp.float32)
+    tris = jnp.asarray(obj_j.triangles, jnp.int32)
+    clip = _ortho_clip(view, verts, extent, near, far)
+    ras = rasterize(clip, tris, (side, side), config=config)
+    hit = (ras.tri_id >= 0)
+    pos = interpolate(verts, ras, tris)
+    nrm = _normalize(interpolate(jnp.asarray(obj_j.normals, jnp.float32), ras, tris))
+    cos_a = jnp.abs(jnp.sum(nrm * axis, axis=-1))
+    texel = (2.0 * extent / side) ** 2
+    a = jnp.where(hit, texel / jnp.maximum(cos_a, _MIN_COS), 0.0)  # (side, side)
+
+    def blocks(x: jax.Array) -> jax.Array:
+        return x.reshape(g, ss, g, ss, *x.shape[2:]).sum(axis=(1, 3)).reshape(g * g,
+                                                                              *x.shape[2:])
+
+    area = blocks(a)
+    ok = area > 0.0
+    safe = jnp.where(ok, area, 1.0)
+    s_pos = jnp.where(ok[:, None], blocks(a[..., None] * pos) / safe[:, None], cj)
+    s_nrm = _normalize(jnp.where(ok[:, None], blocks(a[..., None] * nrm), axis))
+    s_cov = blocks(hit.astype(jnp.float32)) / (ss * ss)
+    near_i = ci + r_i * _normalize(s_pos - ci)
+    s_view = _normalize(near_i - s_pos)
+    # samples near j's rim cannot see that point; tilt their view just above the horizon
+    # (the receivers that do see them are there)
+    s_view = _normalize(s_view + jnp.maximum(0.0, _MIN_COS - jnp.sum(s_view * s_nrm, -1,
+                                                                        keepdims=True)) * s_nrm)
+    return frame, extent, s_pos, s_nrm, s_view, area, s_cov, ras.overflow
+
+
+def _paper_texels(obj_i: ObjectGeometry, obj_j: ObjectGeometry, t: int, capacity: int,
+                  config: Any) -> tuple[jax.Array, ...]:
+    """Paper pass 1 (geometry): j seen from c_i through the 90° interreflection camera."""
+    cam = interreflection_camera(jnp.asarray(obj_i.centre, jnp.float32),
+                                 jnp.asarray(obj_j.centre, jnp.float32), aspect=1.0)
+    verts = jnp.asarray(obj_j.vertices, jnp.float32)
+    tris = jnp.asarray(obj_j.triangles, jnp.int32)
+    clip = project(cam, verts)
+    ras = rasterize(clip, tris, (t, t), config=config)
+    pix = covered_pixels(ras, capacity)
+    pos = interpolate_pixels(verts, pix, tris, clip)
+    nrm = _normalize(interpolate_pixels(jnp.asarray(obj_j.normals, jnp.float32), pix, tris,
+                                        clip))
+    return (cam.view_projection, pix.index, pos, nrm, pix.valid,
+            ras.overflow | pix.overflow)
+
+
+# --------------------------------------------------------------------------------------------
+# pass 1 (geometry only)
+
+
+def prepare_interreflection(
+    objects: Sequence[ObjectGeometry],
+    *,
+    mode: str = "gather",
+    texture_size: int = 128,
+    gather_size: int = 16,
+    capacity_fraction: float = 0.35,
+    raster_config: Any = None,
+) -> IRGeometry:
+    """Geometry-only pass 1 of the interreflection (rasterise once, shade many times).
+
+    Args:
+        objects: n objects in world space (vertices (V, 3) m, normals, triangles, centre).
+        mode: "gather" (orthographic sample grids) or "paper" (eq. 6's 90° perspective views);
+            "none" keeps only the pair frames.
+        texture_size: paper mode: side of the pass-1 textures (texels).
+        gather_size: gather mode: g, samples per side (a power of two, 2..64); the pass-1
+            raster is (4g)².
+        capacity_fraction: paper mode: covered texels kept per view, as a fraction of
+            ``texture_size``² (j subtends at most 26 % of the view for two equal spheres that
+            do not intersect); more sets ``overflow``.
+        raster_config: :class:`~spectral_fit.raster.RasterConfig` of the pass-1 rasters
+            (default: the rasteriser's own sizing).
+
+    Returns:
+        :class:`IRGeometry` with P = n(n − 1) pairs. Jit-able (shapes depend only on n,
+        the meshes' sizes and the static options).
+    """
+    _check_mode(mode)
+    n = len(objects)
+    if n < 1:
+        raise InputError("no objects", field="objects")
+    texture_size = _check_int(texture_size, "texture_size", 2, 4096)
+    gather_size = _check_int(gather_size, "gather_size", 2, 64)
+    if gather_size & (gather_size - 1):
+        raise InputError(f"must be a power of two, got {gather_size}", field="gather_size")
+    if not 0.0 < capacity_fraction <= 1.0:
+        raise InputError(f"must be in (0, 1], got {capacity_fraction!r}",
+                         field="capacity_fraction")
+    radii = [_bounding_radius(o) for o in objects]
+    pairs = pair_list(n)
+    cap = max(1, int(math.ceil(capacity_fraction * texture_size * texture_size)))
+    cols: dict[str, list[Any]] = {k: [] for k in (
+        "centre_i", "centre_j", "radius_i", "radius_j", "frame", "extent", "s_pos", "s_nrm",
+        "s_view", "s_area", "s_cov", "p_view_proj", "p_index", "p_pos", "p_nrm", "p_valid",
+        "overflow")}
+    for i, j in pairs:
+        oi, oj = objects[i], objects[j]
+        cols["centre_i"].append(jnp.asarray(oi.centre, jnp.float32))
+        cols["centre_j"].append(jnp.asarray(oj.centre, jnp.float32))
+        cols["radius_i"].append(radii[i])
+        cols["radius_j"].append(radii[j])
+        if mode == "gather":
+            frame, extent, sp, sn, sv, sa, sc, of = _gather_samples(
+                oi, oj, radii[i], radii[j], gather_size, raster_config)
+            for k, v in zip(("s_pos", "s_nrm", "s_view", "s_area", "s_cov"),
+                            (sp, sn, sv, sa, sc), strict=True):
+                cols[k].append(v)
+        else:
+            frame = look_at(jnp.asarray(oi.centre, jnp.float32),
+                            jnp.asarray(oj.centre, jnp.float32))[:3, :3]
+            extent = _MARGIN * radii[j]
+            of = jnp.asarray(False)
+        if mode == "paper":
+            vp, idx, pp, pn, pv, of2 = _paper_texels(oi, oj, texture_size, cap, raster_config)
+            for k, v in zip(("p_view_proj", "p_index", "p_pos", "p_nrm", "p_valid"),
+                            (vp, idx, pp, pn, pv), strict=True):
+                cols[k].append(v)
+            of = of | of2
+        cols["frame"].append(frame)
+        cols["extent"].append(extent)
+        cols["overflow"].append(of)
+
+    def stack(k: str, shape: tuple[int, ...] = (), dtype: Any = jnp.float32) -> Any:
+        if not cols[k]:
+            return jnp.zeros((0, *shape), dtype) if k in (
+                "centre_i", "centre_j", "radius_i", "radius_j", "frame", "extent") else None
+        return jnp.stack(cols[k])
+
+    overflow = jnp.any(jnp.stack(cols["overflow"])) if cols["overflow"] else jnp.asarray(False)
+    return IRGeometry(
+        centre_i=stack("centre_i", (3,)), centre_j=stack("centre_j", (3,)),
+        radius_i=stack("radius_i"), radius_j=stack("radius_j"),
+        frame=stack("frame", (3, 3)), extent=stack("extent"),
+        s_pos=stack("s_pos"), s_nrm=stack("s_nrm"), s_view=stack("s_view"),
+        s_area=stack("s_area"), s_cov=stack("s_cov"),
+        p_view_proj=stack("p_view_proj"), p_index=stack("p_index"), p_pos=stack("p_pos"),
+        p_nrm=stack("p_nrm"), p_valid=stack("p_valid"),
+        overflow=overflow, n_objects=n, mode=mode, texture_size=texture_size,
+        gather_size=gather_size,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# materials per receiver
+
+
+def _stack_materials(materials: Sequence[Material]) -> dict[str, jax.Array]:
+    return {k: jnp.stack([jnp.asarray(getattr(m, k)) for m in materials])
+            for k in ("alpha", "beta", "chi", "mu", "n", "gamma", "reflectance")}
+
+
+def _times_reflectance(env: EnvironmentMap, s: jax.Array, x: jax.Array) -> jax.Array:
+    """S ⊙ X per row (bands), or the basis product (coefficients)."""
+    if env.product_tensor is None:
+        return s * x
+    return jnp.einsum("...i,...j,ijk->...k", s, x, env.product_tensor)
+
+
+def _albedo(materials: Sequence[Material], obj: jax.Array, nv: jax.Array) -> jax.Array:
+    """Receiver lobe albedo A(cosθr) = ∫ D F G (V·H)/(N·V) dω_H per receiver (N,): tabulated
+    per object at ``_ALBEDO_TABLE`` cosines with the object's μ, n, D and G (differentiable)
+    and interpolated linearly in cosθr."""
+    nodes = np.linspace(0.0, 1.0, _ALBEDO_TABLE)
+    nodes[0] = 1e-3
+    rows = []
+    for m in materials:
+        rows.append(jax.vmap(lambda c, m=m: _lobe_albedo(
+            c, m.mu, m.n, m.mu, distribution=m.distribution, geometry=m.geometry,
+            fresnel=True, radial=_ALBEDO_NODES[0], azimuthal=_ALBEDO_NODES[1]))(
+                jnp.asarray(nodes, jnp.result_type(m.mu))))
+    table = jnp.stack(rows)  # (n, T)
+    x = jnp.clip(nv, 0.0, 1.0) * (_ALBEDO_TABLE - 1)
+    i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, _ALBEDO_TABLE - 2)
+    f = x - i0.astype(x.dtype)
+    o = jnp.maximum(obj, 0)
+    return (1.0 - f) * table[o, i0] + f * table[o, i0 + 1]
+
+
+# --------------------------------------------------------------------------------------------
+# gather mode
+
+
+def _mip_levels(g: int) -> list[int]:
+    sizes = [g]
+    while sizes[-1] > 1:
+        sizes.append(sizes[-1] // 2)
+    return sizes
+
+
+def _build_mips(values: jax.Array, g: int) -> jax.Array:
+    """(P, g², C) premultiplied texels → (P, T, C) atlas of all mip levels, each padded by a
+    one-texel zero border (so bilinear lookups fade to 0 outside j)."""
+    p, _, c = values.shape
+    lev = values.reshape(p, g, g, c)
+    flat = []
+    for s in _mip_levels(g):
+        if lev.shape[1] != s:
+            lev = lev.reshape(p, s, 2, s, 2, c).mean(axis=(2, 4))
+        flat.append(jnp.pad(lev, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(p, -1, c))
+    return jnp.concatenate(flat, axis=1)
+
+
+def _mip_lookup(atlas: jax.Array, pair: jax.Array, g: int, tx: jax.Array, ty: jax.Array,
+                level: jax.Array) -> jax.Array:
+    """Trilinear lookup (C,) of pair ``pair``'s mip atlas at level-0 texel coordinates
+    (tx, ty) (texel centres at integer + 0.5), fractional ``level`` (clamped)."""
+    sizes = _mip_levels(g)
+    offs = np.cumsum([0] + [(s + 2) ** 2 for s in sizes])[:-1]
+    nl = len(sizes)
+    level = jnp.clip(level, 0.0, nl - 1.0)
+    lo = jnp.minimum(jnp.floor(level).astype(jnp.int32), nl - 1)
+    hi = jnp.minimum(lo + 1, nl - 1)
+    wh = level - lo.astype(level.dtype)
+    sizes_a = jnp.asarray(sizes, jnp.int32)
+    offs_a = jnp.asarray(offs, jnp.int32)
+
+    def one(k: jax.Array) -> jax.Array:
+        s = sizes_a[k]
+        sf = s.astype(tx.dtype)
+        scale = sf / g
+        x = tx * scale - 0.5 + 1.0  # +1: border
+        y = ty * scale - 0.5 + 1.0
+        x0f, y0f = jnp.floor(x), jnp.floor(y)
+        fx, fy = x - x0f, y - y0f
+        x0 = jnp.clip(x0f.astype(jnp.int32), 0, s + 1)
+        y0 = jnp.clip(y0f.astype(jnp.int32), 0, s + 1)
+        x1 = jnp.clip(x0f.astype(jnp.int32) + 1, 0, s + 1)
+        y1 = jnp.clip(y0f.astype(jnp.int32) + 1, 0, s + 1)
+        row = s + 2
+        idx = offs_a[k] + jnp.stack([y0 * row + x0, y0 * row + x1, y1 * row + x0,
+                                     y1 * row + x1])
+        w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx])
+        vals = atlas[pair, idx]  # (4, C)
+        return w @ vals
+
+    return (1.0 - wh) * one(lo) + wh * one(hi)
+
+
+def _diffuse_gather(geom: IRGeometry, dl: jax.Array, pos: jax.Array, nrm: jax.Array,
+                    obj: jax.Array) -> jax.Array:
+    """Σ_y F(x, y) ΔL_y (N, C) over the samples of the receiver's pairs, with the point-to-patch
+    form factor F = cos_x cos_y A / (π √(r⁴ + (A/π)²)). Receivers are sorted by object and
+    processed in chunks of ``_CHUNK``; a chunk evaluates only the blocks of the objects it
+    holds."""
+    n_obj = geom.n_objects
+    k_per = n_obj - 1
+    p_count, m_count, c = dl.shape
+    km = k_per * m_count
+    origin = jnp.mean(geom.centre_j, axis=0)
+    ypos = (geom.s_pos - origin).reshape(n_obj, km, 3)
+    ynrm = geom.s_nrm.reshape(n_obj, km, 3)
+    yarea = geom.s_area.reshape(n_obj, km)
+    ydl = dl.reshape(n_obj, km, c)
+    n = pos.shape[0]
+    key = jnp.where(obj >= 0, obj, n_obj)
+    order = jnp.argsort(key)
+    nc = -(-n // _CHUNK)
+    pad = nc * _CHUNK - n
+    xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
+    ns = jnp.pad(nrm[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
+    ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
+
+    def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
+        y0, ny, area = ypos[o], ynrm[o], yarea[o]
+        r2 = jnp.maximum(jnp.sum(x0 * x0, -1)[:, None] + jnp.sum(y0 * y0, -1)[None, :]
+                         - 2.0 * (x0 @ y0.T), 0.0)
+        cx = nx @ y0.T - jnp.sum(nx * x0, -1)[:, None]       # N·(y − x)
+        cy = x0 @ ny.T - jnp.sum(ny * y0, -1)[None, :]       # n_y·(x − y)
+        a = area / math.pi
+        w = jnp.maximum(cx, 0.0) * jnp.maximum(cy, 0.0) * a / jnp.maximum(
+            r2 * jnp.sqrt(r2 * r2 + a * a), 1e-30)
+        w = jnp.where(sel[:, None], w, 0.0)
+        return w @ ydl[o]
+
+    def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
+        x0, nx, kk = args
+        acc = jnp.zeros((_CHUNK, c), dl.dtype)
+        for o in range(n_obj):
+            sel = kk == o
+            acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
+                                     lambda s: jnp.zeros((_CHUNK, c), dl.dtype), sel)
+        return acc
+
+    res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, c)[:n]
+    return jnp.zeros((n, c), dl.dtype).at[order].set(res)
+
+
+def _gather(geom: IRGeometry, dl: jax.Array, atlas: jax.Array, materials: Sequence[Material],
+            env: EnvironmentMap, pos: jax.Array, nrm: jax.Array, view: jax.Array,
+            obj: jax.Array) -> jax.Array:
+    """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) from the senders'
+    net sample radiance ``dl`` (P, M, C) (mip ``atlas`` of dl·coverage)."""
+    n_obj = geom.n_objects
+    k_per = n_obj - 1
+    g = geom.gather_size
+    p_count, m_count, c = dl.shape
+    ok = obj >= 0
+    o = jnp.maximum(obj, 0)
+    mats = _stack_materials(materials)
+    alpha, beta, chi = mats["alpha"][o], mats["beta"][o], mats["chi"][o]
+    mu, eta, refl = mats["mu"][o], mats["n"][o], mats["reflectance"][o]
+
+    # diffuse: point-to-patch form factors to the samples of the receiver's own pairs
+    net = _diffuse_gather(geom, dl, pos, nrm, obj)  # Σ F ΔL, (N, C)
+    out = alpha[:, None] * _times_reflectance(env, refl, net)
+
+    # gloss and mirror: reflected ray against the sender's bounding sphere, mip lookup
+    nv = jnp.sum(nrm * view, -1)
+    refl_dir = 2.0 * nv[:, None] * nrm - view
+    albedo = _albedo(materials, obj, nv)
+    fres = fresnel_dielectric(nv, eta)
+    for k in range(k_per):
+        pair = o * k_per + k
+        cj = geom.centre_j[pair]
+        rj = geom.radius_j[pair]
+        oc = cj - pos
+        tp = jnp.sum(oc * refl_dir, -1)
+        b2 = jnp.sum(oc * oc, -1) - tp * tp
+        t = tp - jnp.sqrt(jnp.maximum(rj * rj - b2, 0.0))
+        t = jnp.maximum(t, 0.0)
+        hitp = pos + t[:, None] * refl_dir - cj
+        fr = geom.frame[pair]  # (N, 3, 3)
+        ext = geom.extent[pair]
+        ux = jnp.sum(hitp * fr[:, 0], -1) / ext
+        uy = jnp.sum(hitp * fr[:, 1], -1) / ext
+        tx = (ux + 1.0) * 0.5 * g
+        ty = (1.0 - uy) * 0.5 * g
+        texel = 2.0 * ext / g
+        foot = _FOOTPRINT * t * math.sqrt(2.0) * mu
+        level = jnp.log2(jnp.maximum(foot / texel, 1.0))
+        look = jax.vmap(lambda p_, a, b, lv: _mip_lookup(atlas, p_, g, a, b, lv))
+        gl = look(pair, tx, ty, level)
+        mr = look(pair, tx, ty, jnp.zeros_like(level))
+        visible = ok & (nv > 0.0) & (tp > 0.0) & (jnp.sum(nrm * oc, -1) > -rj)
+        spec = (beta * albedo)[:, None] * gl + (chi * fres)[:, None] * mr
+        out = out + jnp.where(visible[:, None], spec, 0.0)
+    vis_any = ok & (nv > 0.0)
+    return jnp.where(vis_any[:, None], out, 0.0)
+
+
+def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                 receivers: GBuffer, bounces: int) -> jax.Array:
+    pairs = geom.pairs
+    senders = [j for _, j in pairs]
+    p_count, m_count = geom.s_area.shape
+    nrm = geom.s_nrm.reshape(-1, 3)
+    view = geom.s_view.reshape(-1, 3)
+    if len({(m.distribution, m.geometry) for m in materials}) == 1:
+        # one batched shading call over all samples, materials gathered per sample
+        sid = jnp.asarray(np.repeat(senders, m_count), jnp.int32)
+        stacked = _stack_materials(materials)
+        per = {k: v[sid] for k, v in stacked.items()}
+        m0 = materials[0]
+        batch = Material(**per, distribution=m0.distribution, geometry=m0.geometry)
+        lj = jax.vmap(lambda m, nn, vv: shade(m, env, nn, vv))(batch, nrm, view)
+        lj = lj.reshape(p_count, m_count, -1)
+    else:
+        lj = jnp.stack([jax.vmap(lambda nn, vv, m=materials[j]: shade(m, env, nn, vv))(
+            geom.s_nrm[p], geom.s_view[p]) for p, j in enumerate(senders)])
+    # the environment each sample hides, seen from the receiver's nearest point
+    behind = jax.vmap(lambda d: lookup(env, d))(-view).reshape(lj.shape)
+    dl0 = jnp.where((geom.s_area > 0)[..., None], lj - behind, 0.0)  # (P, M, C)
+    cov = geom.s_cov[..., None]
+    dl = dl0
+    if bounces > 1:
+        sender = jnp.asarray(np.repeat([j for _, j in pairs], geom.s_pos.shape[1]), jnp.int32)
+        spos = geom.s_pos.reshape(-1, 3)
+        snrm = geom.s_nrm.reshape(-1, 3)
+        sview = geom.s_view.reshape(-1, 3)
+        live = (geom.s_area > 0).reshape(-1)
+        for _ in range(bounces - 1):
+            atlas = _build_mips(dl * cov, geom.gather_size)
+            extra = _gather(geom, dl, atlas, materials, env, spos, snrm, sview,
+                            jnp.where(live, sender, -1))
+            dl = dl0 + extra.reshape(dl0.shape)
+    atlas = _build_mips(dl * cov, geom.gather_size)
+    return _gather(geom, dl, atlas, materials, env, receivers.position, receivers.normal,
+                   receivers.view, receivers.object)
+
+
+# --------------------------------------------------------------------------------------------
+# paper mode
+
+
+def _paper_textures(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap
+                    ) -> tuple[jax.Array, jax.Array]:
+    """Pass 1 shading: T_d, T_s (P, T², C) of each sender seen from the receiver's centre."""
+    t2 = geom.texture_size ** 2
+    c = env.channels
+    tds, tss = [], []
+    for p, (_, j) in enumerate(geom.pairs):
+        m = materials[j]
+        nrm = geom.p_nrm[p]
+        view = _normalize(geom.centre_i[p] - geom.p_pos[p])
+
+        def texel(nn: jax.Array, vv: jax.Array, m: Material = m) -> tuple[jax.Array, jax.Array]:
+            e = irradiance(env, nn)
+            td = (m.alpha / math.pi) * _times_reflectance(env, m.reflectance, e)
+            ts = (m.beta * gloss_integral(env, nn, vv, m.mu, m.n, distribution=m.distribution,
+                                          geometry=m.geometry)
+                  + m.chi * mirror_radiance(env, nn, vv, m.n))
+            front = jnp.dot(nn, vv) > 0.0
+            return td, jnp.where(front, ts, 0.0)
+
+        td, ts = jax.vmap(texel)(nrm, view)
+        valid = geom.p_valid[p][:, None]
+        idx = jnp.where(geom.p_valid[p], geom.p_index[p], t2)
+        tds.append(jnp.zeros((t2, c), td.dtype).at[idx].set(jnp.where(valid, td, 0.0),
+                                                            mode="drop"))
+        tss.append(jnp.zeros((t2, c), ts.dtype).at[idx].set(jnp.where(valid, ts, 0.0),
+                                                            mode="drop"))
+    return jnp.stack(tds), jnp.stack(tss)
+
+
+def _bilinear_clamped(tex: jax.Array, pair: jax.Array, t: int, px: jax.Array, py: jax.Array
+                      ) -> jax.Array:
+    """GL_LINEAR + CLAMP_TO_EDGE lookup (C,) of texture ``tex[pair]`` (T², C) at pixel
+    coordinates (px, py) (texel centres at integer + 0.5)."""
+    x = px - 0.5
+    y = py - 0.5
+    x0f, y0f = jnp.floor(x), jnp.floor(y)
+    fx, fy = x - x0f, y - y0f
+    x0 = jnp.clip(x0f.astype(jnp.int32), 0, t - 1)
+    x1 = jnp.clip(x0f.astype(jnp.int32) + 1, 0, t - 1)
+    y0 = jnp.clip(y0f.astype(jnp.int32), 0, t - 1)
+    y1 = jnp.clip(y0f.astype(jnp.int32) + 1, 0, t - 1)
+    idx = jnp.stack([y0 * t + x0, y0 * t + x1, y1 * t + x0, y1 * t + x1])
+    w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx])
+    return w @ tex[pair, idx]
+
+
+def _paper_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                receivers: GBuffer) -> jax.Array:
+    td, ts = _paper_textures(geom, materials, env)
+    t = geom.texture_size
+    k_per = geom.n_objects - 1
+    obj = receivers.object
+    ok = obj >= 0
+    o = jnp.maximum(obj, 0)
+    mats = _stack_materials(materials)
+    a_paper = mats["alpha"][o] / math.pi
+    gamma = mats["gamma"][o]
+    pos, nrm = receivers.position, receivers.normal
+    out = jnp.zeros((pos.shape[0], env.channels), td.dtype)
+    for k in range(k_per):
+        pair = o * k_per + k
+        vp = geom.p_view_proj[pair]  # (N, 4, 4)
+        clip = jnp.einsum("nij,nj->ni", vp[:, :, :3], pos) + vp[:, :, 3]
+        w = clip[:, 3]
+        wsafe = jnp.where(w > 0, w, 1.0)
+        nx, ny = clip[:, 0] / wsafe, clip[:, 1] / wsafe
+        facing = jnp.sum(nrm * (geom.centre_j[pair] - pos), -1) > 0.0
+        valid = ok & (w > 0) & (jnp.abs(nx) <= 1.0) & (jnp.abs(ny) <= 1.0) & facing
+        px = (nx + 1.0) * 0.5 * t
+        py = (1.0 - ny) * 0.5 * t
+        look = jax.vmap(lambda p_, a, b, tex: _bilinear_clamped(tex, p_, t, a, b),
+                        in_axes=(0, 0, 0, None))
+        add = a_paper[:, None] * look(pair, px, py, td) + gamma[:, None] * look(pair, px, py,
+                                                                                 ts)
+        out = out + jnp.where(valid[:, None], add, 0.0)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# public entry points
+
+
+def _check_inputs(n: int, materials: Sequence[Material], env: EnvironmentMap,
+                  receivers: GBuffer) -> None:
+    if len(materials) != n:
+        raise InputError(f"{len(materials)} materials for {n} objects", field="materials")
+    c = env.channels
+    for k, m in enumerate(materials):
+        if not isinstance(m, Material):
+            raise InputError(f"expected a Material, got {type(m).__name__}",
+                             field=f"materials[{k}]")
+        if jnp.shape(m.reflectance)[-1] != c:
+            raise InputError(f"reflectance has {jnp.shape(m.reflectance)[-1]} channels, the "
+                             f"environment {c}", field=f"materials[{k}].reflectance")
+    if not isinstance(receivers, GBuffer):
+        raise InputError(f"expected a GBuffer, got {type(receivers).__name__}",
+                         field="receivers")
+
+
+def interreflection_from(
+    geometry: IRGeometry,
+    materials: Sequence[Material],
+    env: EnvironmentMap,
+    receivers: GBuffer,
+    *,
+    mode: str | None = None,
+    bounces: int = 1,
+) -> jax.Array:
+    """Shading pass of the interreflection: radiance (N, C) to ADD to
+    ``shade(materials[obj], env, normal, view)`` at every receiver (DESIGN §1 eq. 6 / §2).
+
+    Args:
+        geometry: from :func:`prepare_interreflection` (same objects, same order).
+        materials: one :class:`Material` per object (bands (L,) or K coefficients, matching
+            ``env``).
+        env: the environment (bands, or basis coefficients with its product tensor).
+        receivers: N surface samples (position m, unit normal, unit view, object index; −1 =
+            empty slot → zeros).
+        mode: "gather", "paper" or "none" (default: the geometry's mode).
+        bounces: gather mode: number of light exchanges (1 = the neighbours' environment
+            lighting only); ignored by "paper" (eq. 6 has one).
+
+    Returns:
+        (N, C) float32, W·sr⁻¹·m⁻²·nm⁻¹ per band (or coefficients).
+    """
+    mode = geometry.mode if mode is None else _check_mode(mode)
+    n = geometry.n_objects
+    _check_inputs(n, materials, env, receivers)
+    bounces = _check_int(bounces, "bounces", 0, 64)
+    zeros = jnp.zeros((receivers.object.shape[0], env.channels), jnp.float32)
+    if mode == "none" or n < 2 or bounces == 0:
+        return zeros
+    if mode != geometry.mode:
+        raise InputError(f"the geometry was prepared for mode {geometry.mode!r}, not {mode!r}",
+                         field="mode")
+    if mode == "paper":
+        return _paper_mode(geometry, materials, env, receivers)
+    return _gather_mode(geometry, materials, env, receivers, bounces)
+
+
+def interreflection(
+    objects: Sequence[ObjectGeometry],
+    materials: Sequence[Material],
+    env: EnvironmentMap,
+    receivers: GBuffer,
+    *,
+    mode: str = "gather",
+    texture_size: int = 128,
+    bounces: int = 1,
+) -> jax.Array:
+    """Interreflection radiance (N, C) to ADD to the environment-only shading of every receiver
+    sample: :func:`prepare_interreflection` then :func:`interreflection_from`.
+
+    Modes: "paper" — eq. (6) literally (α_paper T_d + γ T_s, pass-1 textures of
+    ``texture_size``² from the receiver's centre); "gather" — the neighbours' full radiance
+    through the receiver's BRDF with per-fragment parallax, minus the environment they hide,
+    ``bounces`` exchanges (DESIGN §2); "none" — zeros. See the module docstring.
+    """
+    _check_mode(mode)
+    if mode == "none":
+        _check_inputs(len(objects), materials, env, receivers)
+        return jnp.zeros((receivers.object.shape[0], env.channels), jnp.float32)
+    geom = prepare_interreflection(objects, mode=mode, texture_size=texture_size)
+    return interreflection_from(geom, materials, env, receivers, mode=mode, bounces=bounces)
