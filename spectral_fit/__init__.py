@@ -43,6 +43,19 @@ _EXPORTS: dict[str, str] = {
     "rgb_to_spectra": "upsampling",
     "read_rgb_environment": "upsampling",
     "make_environment": "synthetic_environment",
+    # live mixed reality (live, markers, compositing, camera_calibration, video)
+    "LiveSession": "live",
+    "MarkerDetector": "markers",
+    "MarkerTracker": "markers",
+    "CameraModel": "compositing",
+    "camera_model_from_sensitivities": "compositing",
+    "camera_model_from_colorchecker": "compositing",
+    "composite": "compositing",
+    "CalibrationTarget": "camera_calibration",
+    "calibrate_images": "camera_calibration",
+    "write_calibrated_config": "camera_calibration",
+    "VideoSource": "video",
+    "VideoSink": "video",
 }
 
 

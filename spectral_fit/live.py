@@ -119,8 +119,9 @@ class LiveSession:
 
     Args:
         scene: the scene (objects with ``marker`` ids; ``[markers]``; camera intrinsics).
-        size: (H, W) of the video frames; must match ``[frame]`` when the config has
-            intrinsics (they were calibrated at that size), else the config is resized.
+        size: (H, W) of the video frames. With ``[camera] intrinsics`` (calibrated at the
+            ``[frame]`` size) the frames may be a uniform resize of that size (the intrinsics
+            are scaled; pixel centres stay at +0.5); another aspect ratio is an error.
         camera: the video camera's colour model (default: ``sensitivities`` with the
             environment's white reference at ``white_level``).
         sensitivities: colour-science camera name for the default model.
@@ -140,18 +141,22 @@ class LiveSession:
         from .renderer import load_environment
 
         h, w = size or (scene.height, scene.width)
-        if scene.camera.intrinsics is not None and (h, w) != (scene.height, scene.width):
+        if scene.camera.intrinsics is not None and abs(
+                (w / h) / (scene.width / scene.height) - 1) > 0.01:
             raise InputError(f"the video is {w}x{h} but the camera was calibrated at "
                              f"{scene.width}x{scene.height} ([frame] and [camera] "
-                             "intrinsics); recalibrate or resize the video", path=scene.path,
+                             "intrinsics), another aspect ratio; recalibrate", path=scene.path,
                              field="frame")
         if not any(o.marker is not None for o in scene.objects):
             raise InputError("no object has a marker id: nothing to place", path=scene.path,
                              field="objects")
+        self.k, self.dist = scene_intrinsics(scene, (h, w))
+        if scene.camera.intrinsics is not None:
+            i = {"fx": self.k[0, 0], "fy": self.k[1, 1], "cx": self.k[0, 2], "cy": self.k[1, 2]}
+            scene = scene.replace(camera=dataclasses.replace(scene.camera, intrinsics=i))
         scene = scene.replace(width=w, height=h)
         self.scene = scene
         self.size = (h, w)
-        self.k, self.dist = scene_intrinsics(scene)
         self.detector = MarkerDetector(scene.markers or _default_markers(), self.k, self.dist)
         self.tracker = MarkerTracker(scene)
         self._maps = None

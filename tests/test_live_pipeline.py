@@ -76,9 +76,8 @@ def session():
 
 
 def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, tables):
-    from spectral_fit.renderer import TRACE_COUNT
-
     from spectral_fit.live import STEP_TRACES
+    from spectral_fit.renderer import TRACE_COUNT
 
     both, only3 = tables
     eyes = [(0.0, 0.3, 0.25), (0.12, 0.28, 0.28), (-0.1, 0.33, 0.22)]
@@ -155,5 +154,16 @@ def test_video_size_must_match_calibration(tmp_path):
     from spectral_fit.errors import InputError
     from spectral_fit.live import LiveSession
 
-    with pytest.raises(InputError, match="calibrated at 240x160"):
-        LiveSession(_scene(tmp_path), size=(480, 720))
+    with pytest.raises(InputError, match="calibrated at 240x160.*another aspect ratio"):
+        LiveSession(_scene(tmp_path), size=(480, 640))
+
+
+def test_resized_video_scales_the_intrinsics():
+    from spectral_fit.live import scene_intrinsics
+
+    k, dist = scene_intrinsics(_scene(), (480, 720))
+    # pixel centres at +0.5: (c + 0.5) scales, not c
+    np.testing.assert_allclose(k[0], [KS[0, 0] * 3, 0, (KS[0, 2] + 0.5) * 3 - 0.5])
+    np.testing.assert_allclose(k[1], [0, KS[1, 1] * 3, (KS[1, 2] + 0.5) * 3 - 0.5])
+    np.testing.assert_allclose(k, K, atol=1e-9)
+    np.testing.assert_allclose(dist, DIST)
