@@ -20,6 +20,7 @@ COMMANDS: dict[str, str] = {
     "make-env": "make_env",
     "view": "view",
     "render": "render",
+    "validate": "validate",
     "calibrate": "calibrate",
     "live": "live",
 }

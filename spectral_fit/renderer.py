@@ -85,6 +85,8 @@ class Prepared(eqx.Module):
         to_spectrum: (C, L) channels → bands (identity in band mode).
         exposure: scalar, luminance (cd/m²) shown as display white.
         materials: the config's materials, stacked (leading axis O).
+        irradiance_lut: (Hl·Wl + 2, C) irradiance map over normal directions (map frame, the
+            map's texel layout plus two pole rows), or None (irradiance from ``env``).
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
     ir_bounces, ir_texture_size, raster_config, pixel_capacity, object_slices ((start, stop)
     vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size.
@@ -104,6 +106,7 @@ class Prepared(eqx.Module):
     to_spectrum: jax.Array
     exposure: jax.Array
     materials: Material
+    irradiance_lut: jax.Array | None
     shape: tuple[int, int] = eqx.field(static=True)
     wavelengths: tuple[float, ...] = eqx.field(static=True)
     spectral_mode: str = eqx.field(static=True)
@@ -325,6 +328,36 @@ def plan_capacities(clip: np.ndarray, triangles: np.ndarray, shape: tuple[int, i
     return RasterConfig(TILE_SIZES, caps, raster_ladder(headroom * blocks + 16)), pixels
 
 
+def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
+                     source_texels: int = 64 * 128) -> np.ndarray:
+    """The paper's irradiance map I_d: irradiance E(N) = Σ L(ω) max(0, N·ω) Δω (C channels,
+    bands or basis coefficients; exact texel sum with exact texel solid angles) at the texel
+    centres of an (Hl, Wl) equirectangular grid of normals in the MAP frame, then the two
+    pole values. Returns (Hl·Wl + 2, C). The map is first averaged down (solid-angle weighted)
+    to at most ``source_texels`` texels, which keeps every source's flux."""
+    from .environment import texel_directions, texel_solid_angles, uv_to_direction
+
+    img = np.asarray(texels, np.float64)
+    h, w, c = img.shape
+    f = 1
+    while (h // (2 * f)) * (w // (2 * f)) >= source_texels and h % (2 * f) == 0 \
+            and w % (2 * f) == 0:
+        f *= 2
+    sa = texel_solid_angles(h, w)
+    if f > 1:
+        wsum = sa.reshape(h // f, f, w // f, f).sum(axis=(1, 3))
+        img = (img * sa[..., None]).reshape(h // f, f, w // f, f, c).sum(axis=(1, 3))
+        img = img / wsum[..., None]
+        h, w = h // f, w // f
+        sa = texel_solid_angles(h, w)
+    src = texel_directions(h, w).reshape(-1, 3)
+    rad = img.reshape(-1, c) * sa.reshape(-1, 1)
+    hl, wl = shape
+    normals = np.concatenate([texel_directions(hl, wl).reshape(-1, 3),
+                              uv_to_direction(0.0, 0.0)[None], uv_to_direction(0.0, 1.0)[None]])
+    return np.maximum(normals @ src.T, 0.0) @ rad
+
+
 def _look_at_impl(eye, target, up):
     from .camera import look_at
 
@@ -347,6 +380,8 @@ def prepare(
     pixel_capacity: int | None = None,
     batch_size: int = 4096,
     environment: np.ndarray | None = None,
+    diffuse: str = "map",
+    irradiance_shape: tuple[int, int] = (32, 64),
 ) -> Prepared:
     """Precompute a scene for :func:`render_frame` (explicit precomputation, DESIGN §4).
 
@@ -363,6 +398,11 @@ def prepare(
         batch_size: shading batch (points per ``lax.map`` step).
         environment: (Hm, Wm, L) spectral radiance on the scene grid to use instead of the
             config's file (the config's rotation applies, its scale does not).
+        diffuse: irradiance of the diffuse term: "map" (default; the paper's irradiance map,
+            a look-up table over normal directions of ``irradiance_shape`` texels, each the
+            exact texel sum over the environment, looked up bilinearly), "sh" (order-2
+            spherical harmonics: smooth but up to ~10 % of the peak off under a lamp) or
+            "exact" (texel sum over the whole map per sample: the reference, slow).
     Raises:
         InputError: bad options (naming the option), unreadable files (naming the file).
     """
@@ -384,6 +424,8 @@ def prepare(
             raise InputError(f"W and H must be in 1..16384, got {(w, h)}", field="size")
         shape = (h, w)
     ir_mode = scene.interreflection.mode if mode is None else mode
+    if diffuse not in ("map", "sh", "exact"):
+        raise InputError(f"must be 'map', 'sh' or 'exact', got {diffuse!r}", field="diffuse")
     if ir_mode not in _IR_MODES:
         raise InputError(f"must be one of {list(_IR_MODES)}, got {ir_mode!r}", field="mode")
     smode = scene.spectral.mode if spectral_mode is None else spectral_mode
@@ -430,15 +472,21 @@ def prepare(
         basis = pca_basis(kk, wl)
         env = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor,
                                         rotation_y_deg=scene.environment.rotation_y_deg,
-                                        path=str(scene.environment.file))
+                                        path=str(scene.environment.file),
+                                        diffuse="exact" if diffuse == "exact" else "sh")
         to_xyz = basis.components @ W
         to_spectrum = basis.components
     else:
         env = EnvironmentMap.from_array(img, rotation_y_deg=scene.environment.rotation_y_deg,
-                                        path=str(scene.environment.file))
+                                        path=str(scene.environment.file),
+                                        diffuse="exact" if diffuse == "exact" else "sh")
         to_xyz = W
         to_spectrum = np.eye(wl.size)
     xyz_map = img @ W
+    lut = None
+    if diffuse == "map":
+        chan = img if basis is None else basis.project(img)
+        lut = irradiance_table(chan, irradiance_shape)
     env_xyz = np.concatenate([xyz_map.reshape(-1, 3), xyz_map[0].mean(0)[None],
                               xyz_map[-1].mean(0)[None]])
 
@@ -470,7 +518,8 @@ def prepare(
         view=jnp.asarray(view), projection=jnp.asarray(proj), env=env,
         env_xyz=jnp.asarray(env_xyz, jnp.float32), to_xyz=jnp.asarray(to_xyz, jnp.float32),
         to_spectrum=jnp.asarray(to_spectrum, jnp.float32),
-        exposure=jnp.asarray(exposure, jnp.float32), materials=mats, shape=shape,
+        exposure=jnp.asarray(exposure, jnp.float32), materials=mats,
+        irradiance_lut=None if lut is None else jnp.asarray(lut, jnp.float32), shape=shape,
         wavelengths=tuple(float(x) for x in wl), spectral_mode=smode,
         k=kk if smode == "basis" else int(wl.size), ir_mode=ir_mode, ir_bounces=nb,
         ir_texture_size=ts, raster_config=cfg, pixel_capacity=int(cap),
@@ -516,15 +565,23 @@ def _as_stacked(materials: Any, n_objects: int) -> list[Material]:
     return mats
 
 
-def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int) -> jax.Array:
+def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
+                   lut: jax.Array | None = None) -> jax.Array:
     """Environment shading (eq. 5) of every G-buffer sample with its object's material,
-    (N, C). Objects whose static choices (D, G) differ are shaded in separate groups."""
+    (N, C). Objects whose static choices (D, G) differ are shaded in separate groups. With an
+    irradiance map ``lut`` (:func:`irradiance_table`), the diffuse term α S I_d(N)/π takes its
+    irradiance from the map (the gloss and mirror terms from ``env`` as always)."""
+    import dataclasses
+
     from .environment import shade
 
     groups: dict[tuple[str, str], list[int]] = {}
     for i, m in enumerate(mats):
         groups.setdefault((m.distribution, m.geometry), []).append(i)
     obj = jnp.clip(gb.object, 0, len(mats) - 1)
+    table = None
+    if lut is not None:
+        table = _lut_env(env, lut)
     out = None
     for (dist, geom), members in groups.items():
         stacked = _stack(mats)
@@ -534,7 +591,17 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int) -> j
 
         def one(args, stacked=stacked):
             o, nrm, v = args
-            return shade(jax.tree.map(lambda x: x[o], stacked), env, nrm, v)
+            m = jax.tree.map(lambda x: x[o], stacked)
+            if table is None:
+                return shade(m, env, nrm, v)
+            spec = shade(dataclasses.replace(m, alpha=jnp.zeros_like(m.alpha)), env, nrm, v)
+            e = _lookup(table, nrm)
+            if env.product_tensor is None:
+                se = m.reflectance * e
+            else:
+                se = jnp.einsum("i,j,ijk->k", m.reflectance, e, env.product_tensor)
+            diffuse = jnp.where(jnp.dot(nrm, v) > 0.0, m.alpha / math.pi, 0.0) * se
+            return spec + diffuse
 
         n = gb.object.shape[0]
         bs = max(1, min(batch, n))
@@ -544,6 +611,24 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int) -> j
         sel = jnp.isin(obj, jnp.asarray(members))
         out = jnp.where(sel[:, None], c, 0.0 if out is None else out)
     return out
+
+
+def _lut_env(env: Any, flat: jax.Array, shape: tuple[int, int] | None = None) -> Any:
+    """``env`` with its texels/poles replaced by a table laid out as texels + 2 pole rows
+    (same rotation), for :func:`~spectral_fit.environment.lookup`."""
+    c = flat.shape[-1]
+    if shape is None:
+        n = flat.shape[0] - 2
+        h = int(round(math.sqrt(n / 2)))
+        shape = (h, n // h)
+    return eqx.tree_at(lambda e: (e.texels, e.poles), env,
+                       (flat[:-2].reshape(shape[0], shape[1], c), flat[-2:]))
+
+
+def _lookup(table: Any, direction: jax.Array) -> jax.Array:
+    from .environment import lookup
+
+    return lookup(table, direction)
 
 
 _IR_WARNED: set[str] = set()
@@ -582,13 +667,8 @@ def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
 
 def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:
     """Bilinear lookups (N, C') of a table laid out as the map's texels + 2 pole rows."""
-    from .environment import lookup
-
-    c = flat.shape[-1]
-    h, w = env.texels.shape[:2]
-    tab = eqx.tree_at(lambda e: (e.texels, e.poles), env,
-                      (flat[:-2].reshape(h, w, c), flat[-2:]))
-    return jax.vmap(lambda d: lookup(tab, d))(dirs)
+    tab = _lut_env(env, flat, env.texels.shape[:2])
+    return jax.vmap(lambda d: _lookup(tab, d))(dirs)
 
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
@@ -638,7 +718,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                  pixel=jnp.where(pix.valid, pix.index, -1))
 
     # 3. shading + interreflection
-    radiance = _shade_samples(mats, prep.env, gb, prep.batch_size)
+    radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut)
     geoms = [ObjectGeometry(vertices=world[a:b], normals=wnorm[a:b],
                             triangles=prep.triangles[ta:tb] - a, centre=centres[i])
              for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
