@@ -57,6 +57,19 @@ _EXPORTS: dict[str, str] = {
     "prepare_fit": "fitting",
     "write_report": "report",
     "run_demo_fit": "report",
+    # live mixed reality (live, markers, compositing, camera_calibration, video)
+    "LiveSession": "live",
+    "MarkerDetector": "markers",
+    "MarkerTracker": "markers",
+    "CameraModel": "compositing",
+    "camera_model_from_sensitivities": "compositing",
+    "camera_model_from_colorchecker": "compositing",
+    "composite": "compositing",
+    "CalibrationTarget": "camera_calibration",
+    "calibrate_images": "camera_calibration",
+    "write_calibrated_config": "camera_calibration",
+    "VideoSource": "video",
+    "VideoSink": "video",
 }
 
 

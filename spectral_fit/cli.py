@@ -23,6 +23,8 @@ COMMANDS: dict[str, str] = {
     "calibrate": "calibrate",
     "validate": "validate",
     "fit": "fit",
+    "calibrate": "calibrate",
+    "live": "live",
 }
 
 

@@ -1,0 +1,141 @@
+"""``spectral-fit live``: marker-placed spectral CG composited onto a video."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+HELP = ("mixed reality: place the scene's objects on ArUco markers in a video (file or "
+        "camera), render them spectrally and composite them colour-matched")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="scene config (TOML) with [markers] and objects' marker ids")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--video", help="input video file")
+    src.add_argument("--camera", type=int, help="camera index (e.g. 0) instead of a file")
+    p.add_argument("-o", "--output", default=None, help="output video (.mp4 or .avi)")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    p.add_argument("--mode", choices=("gather", "paper", "none"), default=None,
+                   help="interreflection mode (default: the config's)")
+    p.add_argument("--spectral-mode", choices=("bands", "basis"), default=None)
+    p.add_argument("--k", type=int, default=None, help="basis size for --spectral-mode basis")
+    p.add_argument("--sensitivities", default="Nikon 5100 (NPL)",
+                   help="camera spectral sensitivities (colour-science name) for colour "
+                   "matching (default: 'Nikon 5100 (NPL)')")
+    p.add_argument("--white-level", type=float, default=0.85,
+                   help="linear frame level of a white sheet on the table (exposure)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="output frame rate (default: the input's, or 25)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _bar(i: int, n: int | None, render_fps: float, e2e_fps: float) -> str:
+    if n:
+        done = int(30 * i / n)
+        head = f"[{'#' * done}{'.' * (30 - done)}] {i}/{n}"
+    else:
+        head = f"frame {i}"
+    return f"\rlive: {head}  render {render_fps:6.1f} fps  end-to-end {e2e_fps:6.1f} fps"
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import InputError
+    from ..live import LiveSession
+    from ..scene import load_scene
+    from ..video import VideoSink, VideoSource, count_frames
+
+    if args.max_frames is not None and args.max_frames < 1:
+        raise InputError("must be >= 1", field="--max-frames")
+    if not 0 < args.white_level <= 1:
+        raise InputError("must be in (0, 1]", field="--white-level")
+    scene = load_scene(args.config)
+    t_start = time.perf_counter()
+    source = VideoSource(args.camera if args.camera is not None else args.video,
+                         field="--camera" if args.camera is not None else "--video")
+    with source:
+        session = LiveSession(scene, size=(source.height, source.width), mode=args.mode,
+                              spectral_mode=args.spectral_mode, k=args.k,
+                              sensitivities=args.sensitivities, white_level=args.white_level)
+        fps_out = args.fps or (source.fps if source.fps and source.fps > 0 else 25.0)
+        total = source.frame_count
+        if args.max_frames is not None:
+            total = min(total, args.max_frames) if total else args.max_frames
+        sink = (VideoSink(args.output, fps=fps_out, size=(source.height, source.width))
+                if args.output else None)
+        render_ms, e2e_ms, first_s = [], [], None
+        lost = [0] * len(scene.objects)
+        n = 0
+        compiles_seen = 0
+        ctx = sink if sink is not None else _Null()
+        with ctx:
+            t_prev = time.perf_counter()
+            while args.max_frames is None or n < args.max_frames:
+                frame = source.read()
+                if frame is None:
+                    break
+                out = session.process(frame)
+                if sink is not None:
+                    sink.write(out)
+                now = time.perf_counter()
+                steady = n > 0 and session.recompiles == compiles_seen
+                compiles_seen = session.recompiles
+                if n == 0:
+                    first_s = now - t_start
+                elif steady:
+                    render_ms.append(session.timings.render * 1e3)
+                    e2e_ms.append((now - t_prev) * 1e3)
+                t_prev = now
+                for j, v in enumerate(session.last_poses.visible):
+                    lost[j] += int(not v)
+                n += 1
+                if not args.quiet:
+                    rf = 1e3 / statistics.median(render_ms) if render_ms else 0.0
+                    ef = 1e3 / statistics.median(e2e_ms) if e2e_ms else 0.0
+                    print(_bar(n, total, rf, ef), end="", file=sys.stderr, flush=True)
+        if not args.quiet:
+            print(file=sys.stderr)
+    if n == 0:
+        raise InputError("no frames read", field="--video")
+    written = count_frames(args.output) if args.output else None
+    summary = {
+        "frames": n,
+        "first_frame_s": first_s,
+        "render_median_ms": statistics.median(render_ms) if render_ms else None,
+        "end_to_end_median_ms": statistics.median(e2e_ms) if e2e_ms else None,
+        "render_fps": 1e3 / statistics.median(render_ms) if render_ms else None,
+        "end_to_end_fps": 1e3 / statistics.median(e2e_ms) if e2e_ms else None,
+        "recompiles": session.recompiles,
+        "frames_masked": {o.name: c for o, c in zip(scene.objects, lost, strict=True)},
+        "output": args.output,
+        "output_frames": written,
+        "pixel_capacity": session.prep.pixel_capacity,
+    }
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        def f(x: float | None, fmt: str) -> str:
+            return "n/a" if x is None else format(x, fmt)
+
+        print(f"live: {n} frames; first frame (compile) {f(first_s, '.1f')} s; render "
+              f"{f(summary['render_median_ms'], '.1f')} ms ({f(summary['render_fps'], '.1f')} "
+              f"fps); end-to-end {f(summary['end_to_end_median_ms'], '.1f')} ms "
+              f"({f(summary['end_to_end_fps'], '.1f')} fps); recompiles {session.recompiles}")
+        if args.output:
+            print(f"wrote {args.output} ({written} frames)")
+    if args.output and written != n:
+        raise InputError(f"wrote {n} frames but {written} read back", path=args.output,
+                         field="--output")
+    return 0
+
+
+class _Null:
+    def __enter__(self) -> _Null:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None

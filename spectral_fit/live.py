@@ -1,0 +1,293 @@
+"""Live mixed reality: video frames in, marker-placed spectral CG composited, frames out.
+
+Per frame (``LiveSession.process``)::
+
+    frame (H, W, 3) uint8 ──MarkerDetector (raw frame, K + distortion)──▶ marker poses
+        ──MarkerTracker──▶ model (O, 4, 4), view (4, 4), visible (O,)      [CPU, NumPy]
+    frame ──undistort onto the pinhole K (cv2.remap)──▶ background          [CPU, OpenCV]
+    ──one jitted step: render_frame (traced poses) → camera RGB → composite──▶ uint8 frame
+
+Geometry: the renderer draws with the pinhole intrinsics K (``[camera] intrinsics``, or the
+config's field of view when absent); each video frame is undistorted onto that same K
+(:func:`spectral_fit.camera_calibration.undistort_maps`), so the output video is undistorted.
+Marker poses come from the raw frame with the distortion model.
+
+Colour: the renderer's radiance channels go straight to the camera's linear RGB: the
+:class:`~spectral_fit.renderer.Prepared` matrix ``to_xyz`` (channels → XYZ) is replaced by
+channels → camera RGB (``to_spectrum @ camera.spectral_weights``), so the camera's spectral
+sensitivities act on the full spectra at no extra cost (``Frame.xyz`` then holds camera linear
+RGB). A camera model fitted from a ColorChecker shot (XYZ → RGB 3×3) uses ``to_xyz @ M.T``
+instead. The composite uses the renderer's coverage mask (see :mod:`spectral_fit.compositing`).
+
+Compilation: the step is compiled once per session (poses, visibility and the background frame
+are traced inputs). Buffers (raster windows, covered pixels) are planned for the objects at
+``plan_distance`` in front of the camera; when a frame overflows them (objects closer than
+planned) the session re-plans with twice the headroom, recompiles once and re-renders the frame
+(counted in ``recompiles``), so nothing is ever silently dropped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .compositing import CameraModel, camera_model_from_sensitivities, composite
+from .errors import InputError
+from .scene import Scene
+
+__all__ = ["LiveSession", "FrameTimings", "scene_intrinsics", "white_reference",
+           "STEP_TRACES"]
+
+#: number of times the live step has been traced (compiled), for tests and reports
+STEP_TRACES = {"step": 0}
+
+
+def scene_intrinsics(scene: Scene, size: tuple[int, int] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray | None]:
+    """OpenCV K (3×3) and distortion of the scene camera for a frame of ``size`` = (H, W)
+    (default the config's): ``[camera] intrinsics`` scaled to the size, or the pinhole of
+    ``fov_y_deg`` (square pixels, centred)."""
+    from .camera import perspective, projection_to_intrinsics
+
+    h, w = size or (scene.height, scene.width)
+    cam = scene.camera
+    if cam.intrinsics is None:
+        k = np.asarray(projection_to_intrinsics(perspective(cam.fov_y_deg, w / h), w, h),
+                       np.float64)
+        return k, None
+    i = cam.intrinsics
+    sx, sy = w / scene.width, h / scene.height
+    k = np.array([[i["fx"] * sx, 0.0, (i["cx"] + 0.5) * sx - 0.5],
+                  [0.0, i["fy"] * sy, (i["cy"] + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
+    dist = None if cam.distortion is None else np.asarray(cam.distortion, np.float64)
+    return k, dist
+
+
+def white_reference(environment: np.ndarray) -> np.ndarray:
+    """(L,) radiance of a white Lambertian facing world +Y (the table) under an
+    equirectangular map (Hm, Wm, L) (DESIGN §3 mapping: row k at polar angle π(k + ½)/Hm):
+    E(+Y)/π = (1/π) ∑ L cosθ sinθ Δθ Δφ over the upper hemisphere. Rotations about +Y do not
+    change it."""
+    env = np.asarray(environment, np.float64)
+    hm, wm = env.shape[:2]
+    theta = (np.arange(hm) + 0.5) * np.pi / hm
+    wgt = np.cos(theta) * np.sin(theta) * (np.pi / hm) * (2 * np.pi / wm)
+    wgt = np.where(theta < np.pi / 2, wgt, 0.0)
+    e = np.einsum("h,hwl->l", wgt, env)
+    return e / np.pi
+
+
+@dataclasses.dataclass
+class FrameTimings:
+    """Seconds spent per stage of the last frame."""
+
+    detect: float = 0.0
+    undistort: float = 0.0
+    render: float = 0.0
+    total: float = 0.0
+
+
+def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
+               visible: jax.Array, background: jax.Array, camera: CameraModel
+               ) -> tuple[jax.Array, dict[str, jax.Array]]:
+    from .renderer import render_frame
+
+    STEP_TRACES["step"] += 1
+    frame = render_frame(prep, materials, model=model, view=view, visible=visible)
+    out = composite(background, frame.xyz, frame.mask, camera)
+    stats = {"covered_pixels": frame.stats["covered_pixels"],
+             "overflow": frame.stats["pixel_overflow"] | frame.stats["raster_overflow"],
+             "object_id": frame.object_id}
+    return out, stats
+
+
+_step = eqx.filter_jit(_step_impl)
+
+
+class LiveSession:
+    """A compiled live mixed-reality pipeline for one scene and frame size.
+
+    After :meth:`process`: ``last_poses`` (:class:`~spectral_fit.markers.Poses`),
+    ``last_object_id`` ((H, W) int32 object per pixel, −1 = video), ``timings``
+    (:class:`FrameTimings`), ``frames``, ``recompiles``.
+
+    Args:
+        scene: the scene (objects with ``marker`` ids; ``[markers]``; camera intrinsics).
+        size: (H, W) of the video frames. With ``[camera] intrinsics`` (calibrated at the
+            ``[frame]`` size) the frames may be a uniform resize of that size (the intrinsics
+            are scaled; pixel centres stay at +0.5); another aspect ratio is an error.
+        camera: the video camera's colour model (default: ``sensitivities`` with the
+            environment's white reference at ``white_level``).
+        sensitivities: colour-science camera name for the default model.
+        white_level: linear level of the white reference in the default model.
+        mode, spectral_mode, k: renderer options (interreflection mode, bands/basis).
+        plan_distance: distance (m) in front of the camera at which buffers are planned.
+        headroom: capacity headroom over the planned poses.
+    """
+
+    def __init__(self, scene: Scene, *, size: tuple[int, int] | None = None,
+                 camera: CameraModel | None = None,
+                 sensitivities: str = "Nikon 5100 (NPL)", white_level: float = 0.85,
+                 mode: str | None = None, spectral_mode: str | None = None,
+                 k: int | None = None, plan_distance: float = 0.35,
+                 headroom: float = 1.3) -> None:
+        from .markers import MarkerDetector, MarkerTracker
+        from .renderer import load_environment
+
+        h, w = size or (scene.height, scene.width)
+        if scene.camera.intrinsics is not None and abs(
+                (w / h) / (scene.width / scene.height) - 1) > 0.01:
+            raise InputError(f"the video is {w}x{h} but the camera was calibrated at "
+                             f"{scene.width}x{scene.height} ([frame] and [camera] "
+                             "intrinsics), another aspect ratio; recalibrate", path=scene.path,
+                             field="frame")
+        if not any(o.marker is not None for o in scene.objects):
+            raise InputError("no object has a marker id: nothing to place", path=scene.path,
+                             field="objects")
+        self.k, self.dist = scene_intrinsics(scene, (h, w))
+        if scene.camera.intrinsics is not None:
+            i = {"fx": self.k[0, 0], "fy": self.k[1, 1], "cx": self.k[0, 2], "cy": self.k[1, 2]}
+            scene = scene.replace(camera=dataclasses.replace(scene.camera, intrinsics=i))
+        scene = scene.replace(width=w, height=h)
+        self.scene = scene
+        self.size = (h, w)
+        self.detector = MarkerDetector(scene.markers or _default_markers(), self.k, self.dist)
+        self.tracker = MarkerTracker(scene)
+        self._maps = None
+        if self.dist is not None and np.any(self.dist != 0):
+            from .camera_calibration import undistort_maps
+
+            self._maps = undistort_maps(self.k, self.dist, (h, w))
+        if camera is None:
+            env = load_environment(scene, scene.wavelengths)
+            camera = camera_model_from_sensitivities(
+                sensitivities, scene.wavelengths, white_reference(env),
+                white_level=white_level)
+        self.camera = camera
+        self._options = {"mode": mode, "spectral_mode": spectral_mode, "k": k}
+        self.plan_distance = float(plan_distance)
+        self.headroom = float(headroom)
+        self.recompiles = 0
+        self.frames = 0
+        self.timings = FrameTimings()
+        self.prep = self._prepare(self.headroom)
+
+    # ------------------------------------------------------------------ preparation
+
+    def _planning_scene(self) -> Scene:
+        """The scene with marker-attached objects side by side at ``plan_distance`` in front
+        of the configured camera (their screen footprint sizes the buffers)."""
+        objs = []
+        x = 0.0
+        cam = self.scene.camera
+        fwd = np.subtract(cam.look_at, cam.position)
+        fwd = fwd / np.linalg.norm(fwd)
+        right = np.cross(fwd, cam.up)
+        right = right / np.linalg.norm(right)
+        for o in self.scene.objects:
+            if o.marker is None:
+                objs.append(o)
+                continue
+            r = o.radius * o.scale
+            pos = np.asarray(cam.position) + self.plan_distance * fwd + (x + r) * right
+            x += 2.2 * r
+            objs.append(dataclasses.replace(o, position=tuple(float(v) for v in pos)))
+        # the render is an ideal pinhole by design: frames are undistorted instead
+        camera = dataclasses.replace(cam, distortion=None)
+        return self.scene.replace(objects=tuple(objs), camera=camera)
+
+    def _replan(self, poses: Any, headroom: float) -> bool:
+        """Grow the buffers to fit ``poses`` (× ``headroom``); True when they changed (the
+        next render recompiles)."""
+        from .raster import RasterConfig
+        from .renderer import plan_capacities
+
+        p = self.prep
+        v = np.asarray(p.vertices, np.float64)
+        m = np.asarray(poses.model, np.float64)[np.asarray(p.vertex_object)]
+        world = np.einsum("vij,vj->vi", m[:, :3, :3], v) + m[:, :3, 3]
+        vp = np.asarray(p.projection, np.float64) @ np.asarray(poses.view, np.float64)
+        clip = world @ vp[:, :3].T + vp[:, 3]
+        cfg, bound = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom)
+        old = p.raster_config
+        cfg = RasterConfig(old.tile_sizes, tuple(max(a, b) for a, b in zip(
+            cfg.capacities, old.capacities, strict=True)),
+            max(cfg.block_capacity, old.block_capacity))
+        h, w = p.shape
+        cap = max(p.pixel_capacity, min(h * w, 1024 * -(-int(headroom * bound + 64) // 1024)))
+        if cfg == old and cap == p.pixel_capacity:
+            return False
+        self.prep = dataclasses.replace(p, raster_config=cfg, pixel_capacity=int(cap))
+        return True
+
+    def _prepare(self, headroom: float) -> Any:
+        from .renderer import prepare
+
+        h, w = self.size
+        prep = prepare(self._planning_scene(), size=(w, h), headroom=headroom,
+                       **self._options)
+        if self.camera.has_spectral:
+            to_out = prep.to_spectrum @ self.camera.spectral_weights
+        else:
+            to_out = prep.to_xyz @ self.camera.xyz_matrix.T
+        return dataclasses.replace(prep, to_xyz=jnp.asarray(to_out, jnp.float32))
+
+    # ------------------------------------------------------------------ per frame
+
+    def undistort(self, frame: np.ndarray) -> np.ndarray:
+        """The frame resampled onto the pinhole intrinsics (identity without distortion)."""
+        if self._maps is None:
+            return frame
+        import cv2
+
+        return cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR)
+
+    def render(self, poses: Any, background: np.ndarray) -> tuple[jax.Array, dict[str, Any]]:
+        """Dispatch the compiled step (asynchronous; block on the result to time it)."""
+        return _step(self.prep, self.prep.materials, jnp.asarray(poses.model),
+                     jnp.asarray(poses.view), jnp.asarray(poses.visible),
+                     jnp.asarray(background), self.camera)
+
+    def process(self, frame: np.ndarray) -> np.ndarray:
+        """Composite one video frame (H, W, 3) uint8 RGB; returns (H, W, 3) uint8 RGB."""
+        if frame.shape != (*self.size, 3) or frame.dtype != np.uint8:
+            raise InputError(f"frame must be {(*self.size, 3)} uint8, got {frame.shape} "
+                             f"{frame.dtype}", field="frame")
+        t0 = time.perf_counter()
+        poses = self.tracker.update(self.detector.detect(frame))
+        t1 = time.perf_counter()
+        bg = self.undistort(frame)
+        t2 = time.perf_counter()
+        if self.frames == 0 and poses.visible.any():
+            self._replan(poses, self.headroom)  # size the buffers on the first real poses
+        out, stats = self.render(poses, bg)
+        out = jax.block_until_ready(out)
+        for _ in range(3):
+            if not bool(stats["overflow"]):
+                break
+            self.headroom *= 1.5
+            self._replan(poses, self.headroom)
+            self.recompiles += 1
+            out, stats = self.render(poses, bg)
+            out = jax.block_until_ready(out)
+        if bool(stats["overflow"]):
+            raise RuntimeError("live: render buffers still overflow after re-planning")
+        t3 = time.perf_counter()
+        self.timings = FrameTimings(detect=t1 - t0, undistort=t2 - t1, render=t3 - t2,
+                                    total=t3 - t0)
+        self.frames += 1
+        self.last_poses = poses
+        self.last_object_id = stats["object_id"]
+        return np.asarray(out)
+
+
+def _default_markers():
+    from .scene import MarkerSpec
+
+    return MarkerSpec()

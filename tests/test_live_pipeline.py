@@ -1,0 +1,169 @@
+"""The live pipeline end to end on synthetic marker frames: composited spheres land on their
+analytic silhouettes; new poses and lost markers never recompile; the live command."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cv2")
+pytest.importorskip("spectral_fit.renderer")
+
+from _live_util import DIST, K, scene_dict
+from skimage import data
+
+from spectral_fit.scene import parse_scene
+from spectral_fit.synthetic_video import (
+    MarkerPlacement,
+    camera_pose_looking_at,
+    make_table,
+    marker_pose_in_camera,
+    render_table,
+)
+
+S = 3  # frames at 1/3 of the 720×480 test camera: 240×160
+SIZE = (160, 240)
+KS = np.array([[K[0, 0] / S, 0, (K[0, 2] + 0.5) / S - 0.5],
+               [0, K[1, 1] / S, (K[1, 2] + 0.5) / S - 0.5], [0, 0, 1.0]])
+R = 0.03  # sphere radius (m)
+
+
+def _scene(tmp_path=None, **markers):
+    d = scene_dict(markers={"size": 0.08, **markers}, width=SIZE[1], height=SIZE[0])
+    d["camera"]["intrinsics"] = {"fx": KS[0, 0], "fy": KS[1, 1], "cx": KS[0, 2],
+                                 "cy": KS[1, 2]}
+    for o in d["objects"]:
+        o["stacks"] = o["slices"] = 32
+    d["interreflection"] = {"mode": "none"}
+    return parse_scene(d, path=None if tmp_path is None else tmp_path / "live.toml")
+
+
+@pytest.fixture(scope="module")
+def tables():
+    both = make_table(data.coffee(), [MarkerPlacement(3, -0.06, 0.0, 0.08),
+                                      MarkerPlacement(7, 0.07, 0.02, 0.08)])
+    only3 = make_table(data.coffee(), [MarkerPlacement(3, -0.06, 0.0, 0.08)])
+    return both, only3
+
+
+def _frame(table, eye, seed=0):
+    r, t = camera_pose_looking_at(eye, (0.0, 0.0, 0.0))
+    img = render_table(table, KS, DIST, r, t, SIZE, blur_px=0.5, noise=1.5,
+                       rng=np.random.default_rng(seed))
+    return img, r, t
+
+
+def _analytic_mask(table, marker_id, r, t):
+    """Pixels whose centre ray passes within the sphere's angular radius (OpenCV pixel
+    (j, i) is our pixel centre (j + 0.5, i + 0.5)); also the boundary distance in pixels."""
+    rm, tm = marker_pose_in_camera(table, marker_id, r, t)
+    c = rm @ np.array([0.0, 0.0, R]) + tm  # centre: R along the marker's +Z (its normal)
+    jj, ii = np.meshgrid(np.arange(SIZE[1]), np.arange(SIZE[0]))
+    d = np.stack([jj, ii, np.ones_like(jj)], -1).astype(np.float64) @ np.linalg.inv(KS).T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    ang = np.arccos(np.clip(d @ (c / np.linalg.norm(c)), -1, 1))
+    alpha = np.arcsin(R / np.linalg.norm(c))
+    return ang < alpha, np.abs(ang - alpha) * KS[0, 0]
+
+
+@pytest.fixture(scope="module")
+def session():
+    from spectral_fit.live import LiveSession
+
+    return LiveSession(_scene(hold_frames=0), size=SIZE)
+
+
+def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, tables):
+    from spectral_fit.live import STEP_TRACES
+    from spectral_fit.renderer import TRACE_COUNT
+
+    both, only3 = tables
+    eyes = [(0.0, 0.3, 0.25), (0.12, 0.28, 0.28), (-0.1, 0.33, 0.22)]
+    traces = None
+    for n, eye in enumerate(eyes):
+        img, r, t = _frame(both, eye, seed=n)
+        out = session.process(img)
+        assert out.shape == (*SIZE, 3) and out.dtype == np.uint8
+        assert session.last_poses.visible.tolist() == [True, True]
+        oid = np.asarray(session.last_object_id)
+        for j, mid in enumerate((3, 7)):
+            want, dist_px = _analytic_mask(both, mid, r, t)
+            got = oid == j
+            iou = (got & want).sum() / (got | want).sum()
+            assert iou > 0.95, (eye, mid, iou)
+            assert np.all(dist_px[got != want] < 1.0)  # disagreements only at the rim
+        # uncovered pixels are the undistorted video frame, untouched
+        bg = session.undistort(img)
+        np.testing.assert_array_equal(out[oid < 0], bg[oid < 0])
+        assert np.any(out[oid >= 0] != bg[oid >= 0])
+        if n == 0:
+            traces = (STEP_TRACES["step"], TRACE_COUNT["render_frame"], session.recompiles)
+    # marker 7 lost: its sphere is masked out, same compiled program
+    img, r, t = _frame(only3, eyes[1], seed=9)
+    session.process(img)
+    assert session.last_poses.visible.tolist() == [True, False]
+    oid = np.asarray(session.last_object_id)
+    assert not np.any(oid == 1) and np.any(oid == 0)
+    assert (STEP_TRACES["step"], TRACE_COUNT["render_frame"], session.recompiles) == traces
+
+
+def test_live_command_writes_complete_video(tmp_path, tables, capsys):
+    from spectral_fit.cli import main
+    from spectral_fit.video import VideoSink, count_frames
+
+    both, _ = tables
+    src = tmp_path / "in.avi"
+    with VideoSink(src, fps=10.0, size=SIZE) as sink:
+        for n, eye in enumerate([(0.0, 0.3, 0.25), (0.03, 0.3, 0.25), (0.06, 0.3, 0.25)]):
+            sink.write(_frame(both, eye, seed=n)[0])
+    cfg = tmp_path / "live.toml"
+    d = scene_dict(width=SIZE[1], height=SIZE[0])
+    lines = [
+        "[frame]", f"width = {SIZE[1]}", f"height = {SIZE[0]}", "",
+        "[camera]",
+        f"intrinsics = {{ fx = {KS[0, 0]}, fy = {KS[1, 1]}, cx = {KS[0, 2]}, cy = {KS[1, 2]} }}",
+        f"distortion = {list(DIST)}", "",
+        "[environment]", f'file = "{d["environment"]["file"]}"', "rotation_y_deg = 180.0", "",
+        "[spectral]", "start_nm = 400.0", "end_nm = 700.0", "step_nm = 10.0", "",
+        "[interreflection]", 'mode = "none"', "",
+        "[markers]", "size = 0.08", "",
+    ]
+    for o in d["objects"]:
+        lines += ["[[objects]]", f'name = "{o["name"]}"', "radius = 0.03", "stacks = 32",
+                  "slices = 32", f"marker = {o['marker']}", "marker_offset = [0.0, 0.03, 0.0]",
+                  "", "[objects.material]",
+                  f'reflectance = "{o["material"]["reflectance"]}"', ""]
+    cfg.write_text("\n".join(lines))
+    out = tmp_path / "out.mp4"
+    rc = main(["live", str(cfg), "--video", str(src), "-o", str(out), "--json", "--quiet"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames"] == 3 and summary["output_frames"] == 3
+    assert count_frames(out) == 3
+    assert summary["recompiles"] == 0 and summary["frames_masked"] == {"yellow": 0, "red": 0}
+    assert summary["render_median_ms"] > 0 and summary["end_to_end_median_ms"] > 0
+    # a missing video is a clear error naming the file, exit status 2
+    rc = main(["live", str(cfg), "--video", str(tmp_path / "nope.mp4")])
+    assert rc == 2
+    assert "nope.mp4: --video: video file not found" in capsys.readouterr().err
+
+
+def test_video_size_must_match_calibration(tmp_path):
+    from spectral_fit.errors import InputError
+    from spectral_fit.live import LiveSession
+
+    with pytest.raises(InputError, match="calibrated at 240x160.*another aspect ratio"):
+        LiveSession(_scene(tmp_path), size=(480, 640))
+
+
+def test_resized_video_scales_the_intrinsics():
+    from spectral_fit.live import scene_intrinsics
+
+    k, dist = scene_intrinsics(_scene(), (480, 720))
+    # pixel centres at +0.5: (c + 0.5) scales, not c
+    np.testing.assert_allclose(k[0], [KS[0, 0] * 3, 0, (KS[0, 2] + 0.5) * 3 - 0.5])
+    np.testing.assert_allclose(k[1], [0, KS[1, 1] * 3, (KS[1, 2] + 0.5) * 3 - 0.5])
+    np.testing.assert_allclose(k, K, atol=1e-9)
+    np.testing.assert_allclose(dist, DIST)
