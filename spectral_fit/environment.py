@@ -550,16 +550,25 @@ def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk
     return idx, w
 
 
+def _select(table: Any, index: jax.Array) -> jax.Array:
+    """``table[index]`` for a short static table, as a sum of masked constants (elementwise, so
+    it fuses into the surrounding arithmetic instead of becoming a gather)."""
+    out = jnp.zeros(index.shape, jnp.asarray(table[0]).dtype)
+    for k, value in enumerate(table):
+        out = jnp.where(index == k, value, out)
+    return out
+
+
 def _lookup_blend(env: EnvironmentMap, u: jax.Array, v: jax.Array, lo: jax.Array,
                   hi: jax.Array, w_hi: jax.Array) -> jax.Array:
     """(1 − w_hi)·level lo + w_hi·level hi, bilinear, at map coordinates (u, v) (M,): all eight
     taps of a node gathered at once from the atlas. Returns (M, r)."""
-    shapes = np.asarray(env.level_shapes, dtype=np.int32)
-    offs = jnp.asarray(np.asarray(env.level_offsets, dtype=np.int32))
+    shapes = [(int(h), int(w)) for h, w in env.level_shapes]
     lev = jnp.stack([lo, hi], axis=-1)  # (M, 2)
-    hk = jnp.asarray(shapes[:, 0])[lev]
-    wk = jnp.asarray(shapes[:, 1])[lev]
-    idx, w = _bilinear_taps(u[:, None], v[:, None], offs[lev], hk, wk)  # (M, 2, 4)
+    hk = _select([np.int32(h) for h, _ in shapes], lev)
+    wk = _select([np.int32(w) for _, w in shapes], lev)
+    off = _select([np.int32(o) for o in env.level_offsets], lev)
+    idx, w = _bilinear_taps(u[:, None], v[:, None], off, hk, wk)  # (M, 2, 4)
     w = w * jnp.stack([1.0 - w_hi, w_hi], axis=-1)[..., None]
     taps = env.atlas.at[idx.reshape(-1)].get(mode="promise_in_bounds")
     return jnp.einsum("mk,mkc->mc", w.reshape(-1, 8), taps.reshape(-1, 8, taps.shape[-1]))

@@ -135,7 +135,9 @@ def test_uniform_map_all_options_match_brute_force():
     vs = jnp.asarray(np.array([c[1] for c in cfg]), jnp.float32)
     for distribution in ("gaussian", "beckmann"):
         for geometry in ("vcavity", "smith"):
-            for quality in ("exact", "render"):
+            qualities = (("exact", "render") if (distribution, geometry) == ("gaussian", "vcavity")
+                         else ("exact",))
+            for quality in qualities:
                 f = jax.jit(jax.vmap(lambda n, v, m: gloss_integral(
                     env, n, v, m, 1.5, distribution=distribution,  # noqa: B023
                     geometry=geometry, quality=quality), in_axes=(0, 0, None)))  # noqa: B023
