@@ -23,7 +23,6 @@ COMMANDS: dict[str, str] = {
     "calibrate": "calibrate",
     "validate": "validate",
     "fit": "fit",
-    "calibrate": "calibrate",
     "live": "live",
 }
 
