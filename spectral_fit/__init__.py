@@ -43,6 +43,28 @@ _EXPORTS: dict[str, str] = {
     "rgb_to_spectra": "upsampling",
     "read_rgb_environment": "upsampling",
     "make_environment": "synthetic_environment",
+    # geometry, cameras and the rasteriser
+    "Mesh": "mesh",
+    "uv_sphere": "mesh",
+    "icosphere": "mesh",
+    "load_mesh": "mesh",
+    "concat_meshes": "mesh",
+    "Camera": "camera",
+    "perspective": "camera",
+    "look_at": "camera",
+    "perspective_camera": "camera",
+    "interreflection_camera": "camera",
+    "relative_transform": "camera",
+    "project": "camera",
+    "Raster": "raster",
+    "RasterConfig": "raster",
+    "rasterize": "raster",
+    "rasterize_batch": "raster",
+    "plan_config": "raster",
+    "interpolate": "raster",
+    "covered_pixels": "raster",
+    "interpolate_pixels": "raster",
+    "scatter_pixels": "raster",
 }
 
 
