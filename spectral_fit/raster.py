@@ -212,6 +212,35 @@ def clip_to_pixel(clip: jax.Array, shape: tuple[int, int]) -> jax.Array:
     return jnp.stack([(x + ww) * (0.5 * w), (ww - y) * (0.5 * h), ww], axis=-1)
 
 
+def _lex_less(a, b):
+    """a < b lexicographically for component tuples a = (a0, a1, a2), b likewise."""
+    return (a[0] < b[0]) | ((a[0] == b[0]) & ((a[1] < b[1]) | ((a[1] == b[1]) & (a[2] < b[2]))))
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _edge_setup(hv):
+    """Canonical edge functions of triangles with homogeneous pixel vertices ``hv``: a list of 3
+    corners, each a tuple (X, Y, w) of arrays.
+
+    Returns ``n`` (3 edges × 3 components; edge i is opposite corner i, its edge function at
+    pixel p is ``o_i · n_i · (px, py, 1)``), ``o`` (3 arrays of ±1) and the edges' vertices in
+    canonical order (3 × (lo, hi), each a tuple (X, Y, w)).
+    """
+    ns, os_, ends = [], [], []
+    for i in range(3):
+        a, b = hv[(i + 1) % 3], hv[(i + 2) % 3]
+        swap = _lex_less(b, a)
+        lo = tuple(jnp.where(swap, bb, aa) for aa, bb in zip(a, b, strict=True))
+        hi = tuple(jnp.where(swap, aa, bb) for aa, bb in zip(a, b, strict=True))
+        ns.append(_cross(lo, hi))
+        os_.append(jnp.where(swap, -1.0, 1.0).astype(a[0].dtype))
+        ends.append((lo, hi))
+    return ns, os_, ends
+
+
 # columns of the per-triangle data rows (float32)
 _C_EDGE = 0  # 3 edges × (X, Y, w of the canonical first vertex, then of the second)
 _C_SIGN = 18  # 3 inside signs σ_i (inside: σ_i·e_i > 0)
@@ -223,55 +252,33 @@ _NCOL = 34
 
 
 def _triangle_setup(clip, triangles, shape, cull):
-    """Per-triangle data packed in one float32 array (T, _NCOL) (columns: the ``_C_*``
-    constants). Written on (T, 3) arrays (corner or edge on the last axis) to keep the
-    compiled graph small."""
+    """Per-triangle data packed in one float32 array (T, _NCOL), computed component-wise
+    (columns: see the ``_C_*`` constants)."""
     h, w = shape
-    f32 = jnp.float32
-    v = clip[triangles]  # (T, 3, 4)
-    X = (v[..., 0] + v[..., 3]) * (0.5 * w)  # homogeneous pixel coordinates (X, Y, W)
-    Y = (v[..., 3] - v[..., 1]) * (0.5 * h)
-    W = v[..., 3]
-    Z = v[..., 2]
+    comp = [clip[:, j] for j in range(4)]
+    corners = [[comp[j][triangles[:, k]] for j in range(4)] for k in range(3)]
+    hv = [((c[0] + c[3]) * (0.5 * w), (c[3] - c[1]) * (0.5 * h), c[3]) for c in corners]
     # Dividing by a runtime 1.0 materialises a value: XLA:CPU does not duplicate an
     # "expensive" op (a divide) into several consumers, whereas it recomputes chains of cheap
     # ops inside every consumer kernel (measured: the setup ran several times slower).
-    one = jnp.where(clip[0, 3] == clip[0, 3], f32(1.0), f32(2.0))
-
-    def nxt(q, k):  # q[:, (i + k) % 3]
-        return jnp.roll(q, -k, axis=1)
-
-    # edge i (opposite corner i) joins corners i+1 and i+2; its canonical vertex order
-    # (lexicographic on (X, Y, W)) makes both triangles sharing it compute the same numbers
-    aX, aY, aW, bX, bY, bW = nxt(X, 1), nxt(Y, 1), nxt(W, 1), nxt(X, 2), nxt(Y, 2), nxt(W, 2)
-    swap = (bX < aX) | ((bX == aX) & ((bY < aY) | ((bY == aY) & (bW < aW))))
-    loX, loY, loW = (jnp.where(swap, q, r) for q, r in ((bX, aX), (bY, aY), (bW, aW)))
-    hiX, hiY, hiW = (jnp.where(swap, r, q) for q, r in ((bX, aX), (bY, aY), (bW, aW)))
-    # x and y derivatives of the edge function det[lo; hi; (px, py, 1)] (tie rule)
-    n0 = (loY * hiW - loW * hiY) / one
-    n1 = (loW * hiX - loX * hiW) / one
-    o = jnp.where(swap, f32(-1.0), f32(1.0))
+    one = jnp.where(clip[0, 3] == clip[0, 3], jnp.float32(1.0), jnp.float32(2.0))
+    n, o, ends = _edge_setup(hv)
+    n = [[nk / one for nk in ni] for ni in n]
+    o = [oi / one for oi in o]
     # det = det[hv0; hv1; hv2], evaluated with the origin moved to the projection of the
     # corner with the largest w (a column operation: same value, no large cancelling terms).
     # Its sign decides which side of the edges is inside (and that the point seen is in
     # front of the eye), so it must be right even for edge-on slivers at a silhouette.
-    ia = jnp.argmax(W, axis=1)[:, None]
-    wmax = jnp.take_along_axis(W, ia, 1)[:, 0]
-    xa = jnp.take_along_axis(X, ia, 1)[:, 0]
-    ya = jnp.take_along_axis(Y, ia, 1)[:, 0]
-    za = jnp.take_along_axis(Z, ia, 1)[:, 0]
-    front_a = wmax > 0
-    inv_wa = 1.0 / jnp.where(front_a, wmax, 1.0)
-    pxa = jnp.where(front_a, xa * inv_wa, 0.0) / one
-    pya = jnp.where(front_a, ya * inv_wa, 0.0) / one
-    rX = X - pxa[:, None] * W
-    rY = Y - pya[:, None] * W
-    raX, raY, raW, rbX, rbY, rbW = (nxt(rX, 1), nxt(rY, 1), nxt(W, 1), nxt(rX, 2), nxt(rY, 2),
-                                    nxt(W, 2))
-    cr0 = raY * rbW - raW * rbY  # cross(rel_{i+1}, rel_{i+2})
-    cr1 = raW * rbX - raX * rbW
-    cr2 = raX * rbY - raY * rbX
-    det = (rX[:, 0] * cr0[:, 0] + rY[:, 0] * cr1[:, 0] + W[:, 0] * cr2[:, 0]) / one
+    wmax = jnp.maximum(jnp.maximum(corners[0][3], corners[1][3]), corners[2][3])
+    anchor = [corners[k][3] == wmax for k in range(3)]
+    xa = jnp.where(anchor[0], hv[0][0], jnp.where(anchor[1], hv[1][0], hv[2][0]))
+    ya = jnp.where(anchor[0], hv[0][1], jnp.where(anchor[1], hv[1][1], hv[2][1]))
+    inv_wa = 1.0 / jnp.where(wmax > 0, wmax, 1.0)
+    pxa = jnp.where(wmax > 0, xa * inv_wa, 0.0) / one
+    pya = jnp.where(wmax > 0, ya * inv_wa, 0.0) / one
+    rel = [(v[0] - pxa * v[2], v[1] - pya * v[2], v[2]) for v in hv]
+    c12 = _cross(rel[1], rel[2])
+    det = (rel[0][0] * c12[0] + rel[0][1] * c12[1] + rel[0][2] * c12[2]) / one
     # In pixel coordinates y points down, so a front face (counter-clockwise in NDC) has det < 0.
     valid = jnp.isfinite(det) & (det != 0)
     if cull == "back":
@@ -280,38 +287,54 @@ def _triangle_setup(clip, triangles, shape, cull):
         valid &= det > 0
     s = jnp.sign(det)
     inv_det = 1.0 / jnp.where(valid, det, 1.0)
+    z = [c[2] for c in corners]
     # NDC depth z/w is affine in pixel coordinates: z/w = d_a + a·(px − pxa) + b·(py − pya),
     # anchored at the projection of the corner with the largest w (exact to rounding there);
-    # the gradient comes from the anchored coordinates (little cancellation) and only acts
-    # over the distance to the anchor (a plane stored as a·px + b·py + c loses ~1e−5 for
-    # edge-on triangles far from the frame's origin).
-    za_ndc = jnp.where(front_a, za * inv_wa, jnp.sum(Z * cr2, 1) * inv_det)
-    zp = [jnp.sum(Z * cr0, 1) * inv_det, jnp.sum(Z * cr1, 1) * inv_det, za_ndc, pxa, pya]
-    sigma = o * s[:, None]
+    # the gradient comes from edge normals of the anchored coordinates (little cancellation)
+    # and only acts over the distance to the anchor (a plane stored as a·px + b·py + c loses
+    # ~1e−5 for edge-on triangles far from the frame's origin).
+    cr = [_cross(rel[(i + 1) % 3], rel[(i + 2) % 3]) for i in range(3)]
+    zc = [sum(z[i] * cr[i][k] for i in range(3)) * inv_det for k in range(2)]
+    # The constant term of the depth plane from the homogeneous formula cancels badly (its
+    # terms are ~X·Y of the pixel coordinates; errors ~1e-4 in NDC depth for small, distant
+    # triangles). Anchor the plane at the corner with the largest w instead: z/w there is
+    # exact to rounding, and the gradient's error only acts over the triangle's extent.
+    za = jnp.where(anchor[0], z[0], jnp.where(anchor[1], z[1], z[2]))
+    zc += [jnp.where(wmax > 0, za * inv_wa, sum(z[i] * cr[i][2] for i in range(3)) * inv_det),
+           pxa, pya]
+    sigma = [o[i] * s for i in range(3)]
     # tie rule: a centre exactly on an edge goes to the side the edge function takes at the
-    # centre moved by +ε in x (then +ε² in y)
-    tie = jnp.sign(sigma * jnp.where(n0 != 0, n0, n1))
-    edges = jnp.stack([loX, loY, loW, hiX, hiY, hiW], axis=2).reshape(-1, 18)
+    # centre moved by +ε in x (then +ε² in y); n_i[0], n_i[1] are its x and y derivatives
+    tie = [jnp.sign(sigma[i] * jnp.where(n[i][0] != 0, n[i][0], n[i][1])) for i in range(3)]
+    comps = [c for lo, hi in ends for c in (*lo, *hi)] + sigma + tie + zc
 
-    # conservative box: the polygon clipped to z >= -w (corners, then edge crossings)
-    d = Z + W
-    dj = nxt(d, 1)
-    den = d - dj
-    t = d / jnp.where(den != 0, den, 1.0)
-    px_ = jnp.concatenate([X, X + t * (nxt(X, 1) - X)], 1)  # (T, 6)
-    py_ = jnp.concatenate([Y, Y + t * (nxt(Y, 1) - Y)], 1)
-    pw_ = jnp.concatenate([W, W + t * (nxt(W, 1) - W)], 1)
-    ok = jnp.concatenate([d >= 0, (d * dj) < 0], 1)
-    front = pw_ > 0
-    bad_w = jnp.any(ok & ~front, 1)
-    any_ok = jnp.any(ok, 1)
-    inv = 1.0 / jnp.where(ok & front, pw_, 1.0)
-    big = f32(1e9)
-    x, y = px_ * inv, py_ * inv
-    xmin = jnp.min(jnp.where(ok, x, big), 1) / one
-    xmax = jnp.max(jnp.where(ok, x, -big), 1) / one
-    ymin = jnp.min(jnp.where(ok, y, big), 1) / one
-    ymax = jnp.max(jnp.where(ok, y, -big), 1) / one
+    # conservative box: the polygon clipped to z >= -w
+    d = [c[2] + c[3] for c in corners]
+    pts, ok = [], []
+    for i in range(3):
+        j = (i + 1) % 3
+        pts.append(hv[i])
+        ok.append(d[i] >= 0)
+        den = d[i] - d[j]
+        t = d[i] / jnp.where(den != 0, den, 1.0)
+        pts.append(tuple(hv[i][k] + t * (hv[j][k] - hv[i][k]) for k in range(3)))
+        ok.append((d[i] * d[j]) < 0)
+    big = jnp.float32(1e9)
+    xmin = ymin = big
+    xmax = ymax = -big
+    bad_w = jnp.zeros_like(valid)
+    any_ok = jnp.zeros_like(valid)
+    for (px_, py_, pw), k in zip(pts, ok, strict=True):
+        front = pw > 0
+        bad_w |= k & ~front
+        any_ok |= k
+        inv = 1.0 / jnp.where(k & front, pw, 1.0)
+        x, y = px_ * inv, py_ * inv
+        xmin = jnp.minimum(xmin, jnp.where(k, x, big))
+        xmax = jnp.maximum(xmax, jnp.where(k, x, -big))
+        ymin = jnp.minimum(ymin, jnp.where(k, y, big))
+        ymax = jnp.maximum(ymax, jnp.where(k, y, -big))
+    xmin, xmax, ymin, ymax = (v / one for v in (xmin, xmax, ymin, ymax))
     full = bad_w | ~(jnp.isfinite(xmin) & jnp.isfinite(xmax) & jnp.isfinite(ymin)
                      & jnp.isfinite(ymax))
     xmin = jnp.where(full, 0.0, xmin)
@@ -322,15 +345,18 @@ def _triangle_setup(clip, triangles, shape, cull):
     # pixel-centre index ranges with a margin against rounding of the box
     mx = 1.0 / 64 + 1e-6 * jnp.maximum(jnp.abs(xmin), jnp.abs(xmax))
     my = 1.0 / 64 + 1e-6 * jnp.maximum(jnp.abs(ymin), jnp.abs(ymax))
-    lim = f32(1 << 15)
-    x0 = jnp.maximum(jnp.ceil(jnp.clip(xmin - 0.5 - mx, -1.0, lim)), 0.0)
-    x1 = jnp.minimum(jnp.floor(jnp.clip(xmax - 0.5 + mx, -2.0, lim)), w - 1.0)
-    y0 = jnp.maximum(jnp.ceil(jnp.clip(ymin - 0.5 - my, -1.0, lim)), 0.0)
-    y1 = jnp.minimum(jnp.floor(jnp.clip(ymax - 0.5 + my, -2.0, lim)), h - 1.0)
+    lim = jnp.float32(1 << 15)
+    x0 = jnp.ceil(jnp.clip(xmin - 0.5 - mx, -1.0, lim)).astype(jnp.int32)
+    x1 = jnp.floor(jnp.clip(xmax - 0.5 + mx, -2.0, lim)).astype(jnp.int32)
+    y0 = jnp.ceil(jnp.clip(ymin - 0.5 - my, -1.0, lim)).astype(jnp.int32)
+    y1 = jnp.floor(jnp.clip(ymax - 0.5 + my, -2.0, lim)).astype(jnp.int32)
+    x0, y0 = jnp.maximum(x0, 0), jnp.maximum(y0, 0)
+    x1, y1 = jnp.minimum(x1, w - 1), jnp.minimum(y1, h - 1)
     nx, ny = x1 - x0 + 1, y1 - y0 + 1
     valid &= (nx > 0) & (ny > 0)
-    data = jnp.concatenate([edges, sigma, tie, jnp.stack(zp + [valid.astype(f32), x0, y0, nx,
-                                                               ny], 1)], axis=1)
+    f32 = jnp.float32
+    data = jnp.stack(comps + [valid.astype(f32), x0.astype(f32), y0.astype(f32), nx.astype(f32),
+                              ny.astype(f32)], axis=1)
     # materialised once (see above) instead of recomputed per gathered window
     return data / one
 
