@@ -15,6 +15,7 @@ SMALL = (32, 64)  # (H, W) of the frames compared with the brute-force reference
 MID = (72, 96)
 T_PAD = 4096  # triangle lists are padded to this many (degenerate triangles are never drawn)
 V_PAD = 4096
+T_COVER = V_COVER = 2560  # sizes of the dense coverage counts (T × H × W)
 
 
 def fixed_config(shape) -> raster.RasterConfig:
@@ -107,7 +108,9 @@ def coverage_sets(clip, tris, shape):
     functions (to count double coverage, which the visibility buffers cannot show)."""
     h, w = shape
     cp, tp = pad(clip, tris)
-    valid = np.zeros(T_PAD, bool)
+    cp, tp = cp[:V_COVER], tp[:T_COVER]
+    assert len(tris) <= T_COVER and len(clip) <= V_COVER
+    valid = np.zeros(T_COVER, bool)
     valid[: len(tris)] = True
     out = _coverage_counts_jit(cp, tp, valid, np.arange(h, dtype=np.float32),
                                np.arange(w, dtype=np.float32))
