@@ -161,3 +161,48 @@ def test_environment_export_reads_spectral_and_rgb_maps(tmp_path):
     tex = environment_texels(sc)
     assert tex.shape == (8, 16, sc.wavelengths.size) and np.all(tex > 0)
     assert np.allclose(tex, tex[0, 0])  # a uniform grey map stays uniform
+
+
+def test_committed_sr3a_session_is_consistent_with_its_truth():
+    """measurements/reference/sr3a_two_spheres: manifest and files in the documented format;
+    repeats scatter about the noise-free truth at the stated noise; kinds follow the truth."""
+    import json
+    import tomllib
+
+    from spectral_fit.spectra import read_spectrum_csv
+
+    folder = REPO / "measurements" / "reference" / "sr3a_two_spheres"
+    man = tomllib.loads((folder / "session.toml").read_text())
+    truth = json.loads((folder / "truth.json").read_text())
+    assert (folder / man["session"]["scene"]).resolve() == (
+        REPO / "configs" / "two_spheres.toml").resolve()
+    assert man["session"]["format"] == 1 and man["session"]["units"] == "W.sr^-1.m^-2.nm^-1"
+    wl = np.asarray(truth["wavelengths_nm"])
+    assert wl[0] == 380 and wl[-1] == 780 and wl.size == 401
+    inst = truth["instrument"]
+    floor = truth["noise_floor_abs"]
+    z_all = []
+    for r in man["readings"]:
+        t = truth["readings"][r["id"]]
+        mean = np.asarray(t["mean"])
+        reps = []
+        for f in r["files"]:
+            wl_f, v = read_spectrum_csv(folder / f)
+            assert np.allclose(wl_f, wl)
+            reps.append(v)
+        reps = np.stack(reps)
+        assert reps.shape[0] == inst["repeats"]
+        sigma = np.sqrt(floor**2 + (inst["noise_relative"] * mean) ** 2
+                        + (inst["gain_sigma"] * mean) ** 2)
+        z_all.append((reps - mean) / sigma)
+        assert r["kind"] == ("interreflection" if t["ir_fraction"] > 0.05 else "object")
+        assert np.isclose(r["distance_m"], np.linalg.norm(
+            np.asarray(r["aim"]) - np.asarray(man["instrument"]["position"])), atol=1e-3)
+    z = np.concatenate([x.ravel() for x in z_all])
+    assert 0.8 < z.std() < 1.2 and abs(z.mean()) < 0.2
+    assert sum(r["kind"] == "interreflection" for r in man["readings"]) >= 1
+    white = np.stack([read_spectrum_csv(folder / f)[1]
+                      for f in man["white_standard"]["readings"]])
+    wmean = np.asarray(truth["white"]["mean"])
+    wsig = np.sqrt(floor**2 + ((inst["noise_relative"] + inst["gain_sigma"]) * wmean) ** 2)
+    assert np.all(np.abs(white.mean(axis=0) - wmean) < 5 * wsig / np.sqrt(white.shape[0]))
