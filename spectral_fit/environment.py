@@ -194,7 +194,8 @@ class GlossQuadrature:
             the surface's horizon (so no light from behind the surface is blurred in).
         levels: number of prefiltered levels besides the unfiltered map (std ratio 2).
         max_sources: at most this many bright texels are taken out of the map as explicit
-            sources, integrated exactly (0, the default, disables it).
+            sources whose gloss is summed exactly (0 disables it): small, very bright lamps
+            that no prefiltered quadrature resolves.
         source_threshold: a texel is a source when its channel-summed |radiance| exceeds this
             multiple of the map's solid-angle-weighted mean.
         nodes: "visible" (rings × visible arcs) or "gauss" (Gauss–Laguerre rings × full
@@ -212,8 +213,8 @@ class GlossQuadrature:
     albedo_table: int = 48
     horizon_ratio: float = 0.2
     levels: int = 7
-    max_sources: int = 0
-    source_threshold: float = 6.0
+    max_sources: int = 32
+    source_threshold: float = 30.0
     nodes: str = "visible"
 
 
