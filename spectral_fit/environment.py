@@ -331,6 +331,9 @@ class EnvironmentMap(eqx.Module):
                 raise InputError(f"expected a finite ({k}, {k}, {k}) tensor, got {pt.shape}",
                                  path=path, field="product_tensor")
         quad = quadrature or GlossQuadrature()
+        if quad.nodes not in ("visible", "gauss"):
+            raise InputError(f"must be 'visible' or 'gauss', got {quad.nodes!r}",
+                             field="quadrature.nodes")
         residual, sdirs, sflux = _extract_sources(img, quad.max_sources,
                                                   quad.source_threshold)
         levels, sigmas = _build_levels(residual, quad.levels)
@@ -1092,10 +1095,11 @@ def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any, *,
 
 
 def shade_points(material: Material, env: EnvironmentMap, normals: Any, views: Any, *,
-                 batch_size: int = 4096, quality: str = "exact") -> jax.Array:
+                 batch_size: int = 32, quality: str = "exact") -> jax.Array:
     """:func:`shade` over many points, (P, 3) normals and views → (P, C), evaluated in batches
-    of ``batch_size`` points (``jax.lax.map``) so that the per-node lookups of the gloss
-    quadrature never hold more than ``batch_size`` × nodes × channels values at once.
+    of ``batch_size`` points (``jax.lax.map``): small batches keep each batch's gloss nodes and
+    map taps (points × nodes × 8 × channels) in cache, which on a CPU is several times faster
+    than one large batch (measured: 32 points per batch vs 4096, ~3× on the benchmark frame).
     jit/grad-able; the same numbers as ``jax.vmap(shade)``. ``quality``: see :func:`shade`."""
     normals = jnp.asarray(normals)
     views = jnp.asarray(views)
