@@ -141,37 +141,6 @@ def _downsample2(img: np.ndarray) -> np.ndarray:
     return (pair * wgt).sum(axis=1) / wgt.sum(axis=1)
 
 
-def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
-    """Approximately isotropic Gaussian blur of std ``sigma`` (radians, per axis) on the sphere.
-
-    Separable: along each row a wrapped Gaussian of angular std σ/sinθ (exact circular
-    convolution by FFT), then along meridians a Gaussian of std σ in arc length, continued across
-    the poles onto the opposite meridian (φ + π), rows normalised.
-    """
-    if sigma <= 0:
-        return img
-    h, w = img.shape[:2]
-    theta = np.pi * (np.arange(h) + 0.5) / h
-    m = np.fft.rfftfreq(w, d=1.0 / w)  # integer angular frequencies
-    s = sigma / np.sin(theta)
-    filt = np.exp(-0.5 * (m[None, :] * s[:, None]) ** 2)
-    spec = np.fft.rfft(img, axis=1) * filt[:, :, None]
-    rows = np.fft.irfft(spec, n=w, axis=1)
-    ti, tj = theta[:, None], theta[None, :]
-    direct = np.exp(-0.5 * ((ti - tj) / sigma) ** 2)
-    over = np.exp(-0.5 * ((ti + tj) / sigma) ** 2) + np.exp(
-        -0.5 * ((2.0 * np.pi - ti - tj) / sigma) ** 2)
-    # solid-angle weights sinθ_j: the blur is then a local area average, which conserves the
-    # flux ∫ L dω to second order (row-normalised arc-length weights lose ~σ²/2 of it)
-    sj = np.sin(theta)[None, :]
-    direct, over = direct * sj, over * sj
-    norm = (direct + over).sum(axis=1, keepdims=True)
-    shifted = np.roll(rows, w // 2, axis=1) if w % 2 == 0 else rows
-    out = np.einsum("ij,jwc->iwc", direct / norm, rows)
-    out += np.einsum("ij,jwc->iwc", over / norm, shifted)
-    return out
-
-
 @dataclasses.dataclass(frozen=True)
 class GlossQuadrature:
     """Settings of the gloss lobe quadrature (static).
