@@ -167,6 +167,10 @@ def test_unknown_node_rule_rejected():
     with pytest.raises(InputError) as e:
         EnvironmentMap.from_array(np.ones((8, 16, 1)), quadrature=GlossQuadrature(nodes="x"))
     assert e.value.field == "quadrature.nodes"
+    with pytest.raises(InputError) as e:
+        EnvironmentMap.from_array(np.ones((8, 16, 1)),
+                                  quadrature=GlossQuadrature(source_subpoints=2))
+    assert e.value.field == "quadrature.source_subpoints"
 
 
 def test_shade_points_batches_equal_vmap():
