@@ -68,7 +68,8 @@ def spots() -> list[dict]:
     """Nine spots per sphere: facing the instrument; the ceiling panel's highlight and two
     spots 4° and 8° (of normal) off it (the lobe's width: μ); two grazing views (θr ≈ 60°,
     75°: n through the Fresnel rise); the lamp's highlight and a spot 3° off it (a small
-    source: mirror χ vs gloss β); one spot facing the other sphere (interreflection)."""
+    source: mirror χ vs gloss β); one spot facing the other sphere (interreflection).
+    Grazing and lamp spots use the 0.2° field, the others 1°."""
     out = []
     for name, c in CENTRES.items():
         side = -1.0 if name == "yellow" else 1.0  # outward x direction
@@ -102,7 +103,9 @@ def spots() -> list[dict]:
         c = CENTRES[s["object"]]
         s["aim"] = c + RADIUS * s["N"]
         s["position"] = s["aim"] + 0.30 * s["V"]
-        s["field_angle_deg"] = 1.0
+        # the 0.2° field (SR-3A) where the footprint must stay small: grazing views (the
+        # footprint stretches by 1/cos θr) and the lamp's reflection (a 3.6° source)
+        s["field_angle_deg"] = 0.2 if ("grazing" in s["id"] or "lamp" in s["id"]) else 1.0
         cos_r = float(np.dot(s["N"], s["V"]))
         assert cos_r > 0.2, (s["id"], cos_r)
     return out
