@@ -372,8 +372,8 @@ class FitOptions:
     spot_resolution: int = 8
     starts: int = 3
     max_steps: int = 50
-    rtol: float = 1e-5
-    atol: float = 1e-6
+    rtol: float = 1e-4
+    atol: float = 1e-5
     kinds: tuple[str, ...] = ("object", "interreflection")
     interreflection: str = "auto"
     bootstrap: int = 0
