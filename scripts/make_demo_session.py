@@ -56,28 +56,45 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
+def _tilt(n: np.ndarray, towards: np.ndarray, deg: float) -> np.ndarray:
+    """n rotated by ``deg`` towards the direction ``towards``."""
+    t = towards - np.dot(towards, n) * n
+    t = t / np.linalg.norm(t)
+    a = math.radians(deg)
+    return _unit(math.cos(a) * n + math.sin(a) * t)
+
+
 def spots() -> list[dict]:
+    """Nine spots per sphere: facing the instrument; the ceiling panel's highlight and two
+    spots 4° and 8° (of normal) off it (the lobe's width: μ); two grazing views (θr ≈ 60°,
+    75°: n through the Fresnel rise); the lamp's highlight and a spot 3° off it (a small
+    source: mirror χ vs gloss β); one spot facing the other sphere (interreflection).
+    Grazing and lamp spots use the 0.2° field, the others 1°."""
     out = []
     for name, c in CENTRES.items():
         side = -1.0 if name == "yellow" else 1.0  # outward x direction
-        inst0 = np.array([0.0, 0.0, 0.0])
-        # 1: facing the instrument at the origin
-        v = _unit(inst0 - c)
-        out.append({"id": f"{name}_front", "object": name, "kind": "object", "N": v, "V": v})
-        # 2: the ceiling panel's highlight seen from the origin
+        v0 = _unit(-c)  # towards the origin
+        up = np.array([0.0, 1.0, 0.0])
+        out.append({"id": f"{name}_front", "object": name, "kind": "object", "N": v0, "V": v0})
         L = _unit(PANEL - c)
-        out.append({"id": f"{name}_panel_highlight", "object": name, "kind": "object",
-                    "N": _unit(v + L), "V": v})
-        # 3: a grazing view (θr ≈ 60°) from above and outside
-        V = _unit([side * 0.5, 0.55, 1.0])
-        N = _unit(_unit([side * 0.2, 1.0, 0.6]))
-        out.append({"id": f"{name}_grazing", "object": name, "kind": "object", "N": N, "V": V})
-        # 4: the lamp's highlight (the lamp is behind-left): seen from the front-left
+        nh = _unit(v0 + L)
+        for k, deg in enumerate((0.0, 4.0, 8.0)):
+            n = nh if deg == 0 else _tilt(nh, v0, deg)
+            out.append({"id": f"{name}_panel_{k}", "object": name, "kind": "object",
+                        "N": n, "V": v0})
+        for k, (vv, th) in enumerate((([side * 0.5, 0.55, 1.0], 60.0),
+                                      ([side * 1.0, 0.2, 0.3], 75.0))):
+            V = _unit(vv)
+            N = _tilt(V, up if k == 0 else np.array([0.0, -1.0, 0.0]), th)
+            out.append({"id": f"{name}_grazing_{k}", "object": name, "kind": "object",
+                        "N": N, "V": V})
         Ll = _unit(LAMP - c)
         V = _unit([-0.6 + 0.3 * side, 0.1, 1.0])
-        out.append({"id": f"{name}_lamp_highlight", "object": name, "kind": "object",
-                    "N": _unit(Ll + V), "V": V})
-        # 5: interreflection: the side facing the other sphere, seen from the front
+        nl = _unit(Ll + V)
+        for k, deg in enumerate((0.0, 3.0)):
+            n = nl if deg == 0 else _tilt(nl, V, deg)
+            out.append({"id": f"{name}_lamp_{k}", "object": name, "kind": "object",
+                        "N": n, "V": V})
         N = _unit([-side * 0.8, 0.05, 0.6])
         V = _unit([-side * 0.15, 0.05, 1.0])
         out.append({"id": f"{name}_gap", "object": name, "kind": "interreflection",
@@ -86,7 +103,9 @@ def spots() -> list[dict]:
         c = CENTRES[s["object"]]
         s["aim"] = c + RADIUS * s["N"]
         s["position"] = s["aim"] + 0.30 * s["V"]
-        s["field_angle_deg"] = 1.0
+        # the 0.2° field (SR-3A) where the footprint must stay small: grazing views (the
+        # footprint stretches by 1/cos θr) and the lamp's reflection (a 3.6° source)
+        s["field_angle_deg"] = 0.2 if ("grazing" in s["id"] or "lamp" in s["id"]) else 1.0
         cos_r = float(np.dot(s["N"], s["V"]))
         assert cos_r > 0.2, (s["id"], cos_r)
     return out
@@ -94,6 +113,49 @@ def spots() -> list[dict]:
 
 def calibration_error(wl: np.ndarray) -> np.ndarray:
     return 1.15 * (1.0 + 0.10 * (wl - 580.0) / 200.0)
+
+
+def main_reference(out: Path = OUT, spp: int = 512) -> None:
+    """The bundled session: the same spots and true parameters rendered by the independent
+    Mitsuba reference (spectral_fit.reference: our whole model as one BSDF, path depth 16,
+    band trick) and read by its simulated SR-3A (1 nm output, 5 nm band-pass, repeatability
+    0.4 %, floor 5e-4 of the peak, gain jitter 0.2 %, 3 repeats)."""
+    import dataclasses
+
+    from spectral_fit.reference.instrument import ReadingSpec, Spectroradiometer
+    from spectral_fit.reference.instrument import simulate_readings as sim
+
+    scene = load_scene(CONFIG)
+    objs = []
+    for o in scene.objects:
+        m = dataclasses.replace(o.material, **TRUE[o.name])
+        objs.append(dataclasses.replace(o, material=m))
+    truth_scene = scene.replace(objects=tuple(objs))
+    sp = [ReadingSpec(id=s["id"], object=s["object"], aim=tuple(map(float, s["aim"])),
+                      position=tuple(map(float, s["position"])),
+                      field_angle_deg=s["field_angle_deg"]) for s in spots()]
+    w_pos = [0.0, 0.0, -0.275]
+    white = {"position": w_pos, "normal": [0.0, 0.0, 1.0], "reflectance": 0.98,
+             "radius": 0.02}
+    manifest = sim(truth_scene, out, instrument=Spectroradiometer(), spots=sp, spp=spp,
+                   white=white, scene_ref="../../../configs/two_spheres.toml",
+                   progress=print)
+    text = manifest.read_text()
+    for s_ in spots():  # kinds by geometry: the spots facing the neighbour
+        if s_["kind"] == "interreflection":
+            i = text.index(f'id = "{s_["id"]}"')
+            j = text.index("kind = ", i)
+            k = text.index("\n", j)
+            text = text[:j] + 'kind = "interreflection"' + text[k:]
+    text = text.replace("field_angle_deg = 1.0\n", "field_angle_deg = 1.0\nbandwidth_nm = 5.0\n", 1)
+    manifest.write_text(text)
+    truth = json.loads((out / "truth.json").read_text())
+    truth["params"] = TRUE
+    truth["independent"] = True
+    truth["generator"] = ("scripts/make_demo_session.py (spectral_fit.reference.instrument."
+                          f"simulate_readings, {spp} spp, path depth 16)")
+    (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    print(f"wrote {out}")
 
 
 def main(out: Path = OUT) -> None:
@@ -147,4 +209,8 @@ def main(out: Path = OUT) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else OUT)
+    args = sys.argv[1:]
+    own = "--own-model" in args
+    args = [a for a in args if a != "--own-model"]
+    dest = Path(args[0]) if args else OUT
+    (main if own else main_reference)(dest)

@@ -234,13 +234,17 @@ def run_demo_fit(out_dir: str | os.PathLike[str], *, progress: Any = None,
     t0 = time.perf_counter()
     scene = load_scene(DEMO_CONFIG)
     session = load_session(DEMO_SESSION, scene=scene)
-    res = fit(scene, session, progress=progress, aim_step_m=0.0005)
+    # Object-colour readings only, without the interreflection term: the interreflection
+    # readings are predicted (hold-out). Measured against this session's Mitsuba reference,
+    # the gather mode is still off at the spots facing the neighbour (see docs/fitting.md).
+    res = fit(scene, session, progress=progress, kinds=("object",), interreflection="none",
+              aim_step_m=0.0)
     summary = write_report(res, out_dir, scene=scene, session=session, render=render)
     truth_path = DEMO_SESSION / "truth.json"
     table = None
     if truth_path.is_file():
         truth = json.loads(truth_path.read_text())
-        table = recovery_table(res, truth.get("params", {}))
+        table = recovery_table(res, truth.get("params") or truth.get("materials", {}))
     return {"output": str(out_dir), "status": res.status, "params": res.params,
             "stderr": res.stderr, "recovery": table, "warnings": res.warnings,
             "mean_delta_e00": float(np.mean([r["delta_e00"] for r in res.readings])),

@@ -154,6 +154,7 @@ class Session:
     units: str
     instrument: str
     calibration: str  # "white" | "global" | "none"
+    bandwidth_nm: float  # instrument band-pass FWHM (0: none)
     reference: str | None  # "global" mode: object whose alpha is held fixed
     white: WhiteStandard | None
     dark: np.ndarray | None  # (L,) mean dark reading subtracted from everything
@@ -543,7 +544,8 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
     names = [o.name for o in scene.objects]
 
     it = ctx.table(data, "instrument", "instrument")
-    ctx.finish(it, ("position", "field_angle_deg"), "instrument")
+    ctx.finish(it, ("position", "field_angle_deg", "bandwidth_nm"), "instrument")
+    bandwidth = ctx.number(it, "bandwidth_nm", "instrument.bandwidth_nm", 0.0, lo=0.0, hi=50.0)
     inst_pos = ctx.vector(it, "position", "instrument.position", [0.0, 0.0, 0.0])
     inst_field = ctx.number(it, "field_angle_deg", "instrument.field_angle_deg", 1.0,
                             lo=0.01, hi=20.0)
@@ -706,7 +708,8 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
         noise = dataclasses.replace(noise, absolute=1e-6 * peak)
 
     return Session(path=p, scene_path=scene_path, scene=scene, wavelengths=wl, units=units,
-                   instrument=instrument, calibration=mode, reference=reference, white=white,
+                   instrument=instrument, calibration=mode, bandwidth_nm=bandwidth,
+                   reference=reference, white=white,
                    dark=dark, noise=noise, objects=objects, readings=tuple(readings),
                    lines=lines)
 

@@ -27,10 +27,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--aim-step-mm", type=float, default=0.5,
                    help="aim shift for the aiming sensitivity (0: skip; default 0.5 mm)")
     p.add_argument("--no-render", action="store_true", help="skip the render of the fit")
+    p.add_argument("--interreflection", choices=("auto", "none"), default="auto",
+                   help="auto: the scene config's interreflection mode; none: fit without "
+                   "the interreflection term")
 
 
 def _say(msg: str) -> None:
     print(f"fit: {msg}", file=sys.stderr, flush=True)
+
+
+def enable_compilation_cache() -> str | None:
+    """Keep XLA's compiled programs between runs (the fit's solver takes ~30 s to compile on
+    2 CPU cores): ``$SPECTRAL_FIT_JAX_CACHE`` or ``~/.cache/spectral_fit/jax``; set the variable
+    to an empty string to disable. Applications (this CLI) opt in; the library never does."""
+    import os
+
+    import jax
+
+    path = os.environ.get("SPECTRAL_FIT_JAX_CACHE",
+                          os.path.join(os.path.expanduser("~"), ".cache", "spectral_fit", "jax"))
+    if not path:
+        return None
+    try:
+        os.makedirs(path, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    except Exception:  # a read-only home must not stop the fit
+        return None
+    return path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,13 +75,15 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"must be >= {lo}, got {v}", field=name)
     if not (args.aim_step_mm >= 0):
         raise InputError(f"must be >= 0, got {args.aim_step_mm}", field="--aim-step-mm")
+    enable_compilation_cache()
     scene = load_scene(args.config)
     session = load_session(args.session, scene=scene)
     _say(f"{len(session.readings)} readings of {sorted({r.object for r in session.readings})}, "
          f"calibration {session.calibration}, noise {session.noise.source}")
     res = fit(scene, session, progress=_say, starts=args.starts, bootstrap=args.bootstrap,
               kinds=kinds, spot_resolution=args.spot_resolution, max_steps=args.max_steps,
-              holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3)
+              holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3,
+              interreflection=args.interreflection)
     summary = write_report(res, args.output, scene=scene, session=session,
                            render=not args.no_render)
     for w in res.warnings:
