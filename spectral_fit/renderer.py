@@ -115,6 +115,7 @@ class Prepared(eqx.Module):
     ir_bounces: int = eqx.field(static=True)
     ir_texture_size: int = eqx.field(static=True)
     raster_config: Any = eqx.field(static=True)
+    ir_raster_config: Any = eqx.field(static=True)
     pixel_capacity: int = eqx.field(static=True)
     object_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
     triangle_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -144,8 +145,8 @@ class Frame(eqx.Module):
         spectral: (H, W, L) spectral radiance (W·sr⁻¹·m⁻²·nm⁻¹) when requested, else None.
         stats: dict of scalars: ``out_of_gamut_fraction``, ``below_zero_fraction``,
             ``overexposed_fraction`` (over covered pixels), ``coverage`` (fraction of the frame),
-            ``covered_pixels``, ``pixel_overflow`` and ``raster_overflow`` (buffers too small:
-            the frame is incomplete).
+            ``covered_pixels``, ``pixel_overflow``, ``raster_overflow`` and
+            ``interreflection_overflow`` (buffers too small: the frame is incomplete).
     """
 
     xyz: jax.Array
@@ -358,6 +359,28 @@ def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
     return np.maximum(normals @ src.T, 0.0) @ rad
 
 
+def _ir_raster_config(mode: str, texture_size: int, triangles: int,
+                      paper_clips: list[np.ndarray] | None = None,
+                      paper_tris: list[np.ndarray] | None = None) -> Any:
+    """Window capacities of the interreflection pass-1 rasters (inside the compiled frame, so
+    they cannot be grown there): the rasteriser's generic sizes for the largest object with room
+    for every 8×8 block of the pass-1 frame (64² for gather: 4× supersampled 16² samples;
+    ``texture_size``² for paper), and in paper mode at least twice what the configured poses
+    need (:func:`plan_capacities` on each pair's view)."""
+    if mode == "none":
+        return None
+    from .raster import default_config
+
+    side = texture_size if mode == "paper" else 64
+    blocks = (-(-side // 8)) ** 2
+    cfg = default_config(triangles, (side, side))._replace(block_capacity=blocks)
+    for clip, tris in zip(paper_clips or [], paper_tris or [], strict=True):
+        need, _ = plan_capacities(clip, tris, (side, side), headroom=2.0)
+        cfg = cfg._replace(capacities=tuple(max(a, b) for a, b in
+                                            zip(cfg.capacities, need.capacities, strict=True)))
+    return cfg
+
+
 def _look_at_impl(eye, target, up):
     from .camera import look_at
 
@@ -510,6 +533,21 @@ def prepare(
     clip = world @ vp[:, :3].T + vp[:, 3]
     cfg, bound = plan_capacities(clip, triangles, shape, headroom=headroom)
     cap = pixel_capacity or min(shape[0] * shape[1], _ladder(headroom * bound + 64))
+    paper_clips, paper_tris = [], []
+    if ir_mode == "paper":
+        from .camera import interreflection_camera
+
+        centres = model[:, :3, 3]
+        for i in range(len(models)):
+            for j in range(len(models)):
+                if i != j:
+                    cam = interreflection_camera(centres[i], centres[j], aspect=1.0)
+                    m = np.asarray(cam.view_projection, np.float64)
+                    (a, b), (ta, tb) = vsl[j], tsl[j]
+                    paper_clips.append(world[a:b] @ m[:, :3].T + m[:, 3])
+                    paper_tris.append(triangles[ta:tb] - a)
+    ir_cfg = _ir_raster_config(ir_mode, ts, max(b - a for a, b in tsl), paper_clips,
+                               paper_tris)
 
     return Prepared(
         vertices=jnp.asarray(vertices), normals=jnp.asarray(np.concatenate(norms), jnp.float32),
@@ -522,7 +560,8 @@ def prepare(
         irradiance_lut=None if lut is None else jnp.asarray(lut, jnp.float32), shape=shape,
         wavelengths=tuple(float(x) for x in wl), spectral_mode=smode,
         k=kk if smode == "basis" else int(wl.size), ir_mode=ir_mode, ir_bounces=nb,
-        ir_texture_size=ts, raster_config=cfg, pixel_capacity=int(cap),
+        ir_texture_size=ts, raster_config=cfg, ir_raster_config=ir_cfg,
+        pixel_capacity=int(cap),
         object_slices=tuple(vsl), triangle_slices=tuple(tsl),
         names=tuple(o.name for o in scene.objects), display=display,
         scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy),
@@ -635,20 +674,25 @@ _IR_WARNED: set[str] = set()
 
 
 def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Material],
-                     gb: GBuffer) -> jax.Array | None:
+                     gb: GBuffer) -> tuple[jax.Array | None, jax.Array]:
+    """Interreflection radiance (N, C) to add (None when off) and the pass-1 overflow flag."""
+    no = jnp.zeros((), bool)
     if prep.ir_mode == "none" or len(geoms) < 2:
-        return None
+        return None, no
     try:
-        from .interreflection import interreflection
+        from .interreflection import interreflection_from, prepare_interreflection
     except ImportError:
         if prep.ir_mode not in _IR_WARNED:
             _IR_WARNED.add(prep.ir_mode)
             warnings.warn(f"interreflection mode {prep.ir_mode!r} is not available in this "
                           "installation (spectral_fit.interreflection missing); rendering "
                           "without interreflection", RuntimeWarning, stacklevel=4)
-        return None
-    return interreflection(geoms, mats, prep.env, gb, mode=prep.ir_mode,
-                           texture_size=prep.ir_texture_size, bounces=prep.ir_bounces)
+        return None, no
+    geom = prepare_interreflection(geoms, mode=prep.ir_mode, texture_size=prep.ir_texture_size,
+                                   raster_config=prep.ir_raster_config)
+    extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
+                                 bounces=prep.ir_bounces)
+    return extra, jnp.asarray(geom.overflow, bool)
 
 
 def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
@@ -723,7 +767,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                             triangles=prep.triangles[ta:tb] - a, centre=centres[i])
              for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
                                                         prep.triangle_slices, strict=True))]
-    ir = _interreflection(prep, geoms, mats, gb)
+    ir, ir_overflow = _interreflection(prep, geoms, mats, gb)
     if ir is not None:
         radiance = radiance + ir
     radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
@@ -754,6 +798,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         "covered_pixels": count,
         "pixel_overflow": pix.overflow,
         "raster_overflow": ras.overflow,
+        "interreflection_overflow": ir_overflow,
     }
     return Frame(xyz=xyz, rgb=d.rgb, linear_rgb=d.linear, mask=mask, object_id=object_id,
                  spectral=spec, stats=stats)
