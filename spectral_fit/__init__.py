@@ -46,6 +46,11 @@ _EXPORTS: dict[str, str] = {
     # reference (Mitsuba ground truth; the loader needs no Mitsuba)
     "load_reference": "reference.data",
     "Reference": "reference.data",
+    # interreflection (paper eq. 6 and the gather mode)
+    "interreflection": "interreflection",
+    "interreflection_from": "interreflection",
+    "prepare_interreflection": "interreflection",
+    "IRGeometry": "interreflection",
 }
 
 
