@@ -43,6 +43,14 @@ _EXPORTS: dict[str, str] = {
     "rgb_to_spectra": "upsampling",
     "read_rgb_environment": "upsampling",
     "make_environment": "synthetic_environment",
+    # reference (Mitsuba ground truth; the loader needs no Mitsuba)
+    "load_reference": "reference.data",
+    "Reference": "reference.data",
+    # interreflection (paper eq. 6 and the gather mode)
+    "interreflection": "interreflection",
+    "interreflection_from": "interreflection",
+    "prepare_interreflection": "interreflection",
+    "IRGeometry": "interreflection",
 }
 
 

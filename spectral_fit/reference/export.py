@@ -146,6 +146,9 @@ def scene_dict(
     crop: Crop | None = None,
     analytic_spheres: bool = False,
     meshes: dict[str, Any] | None = None,
+    sensors: list[dict[str, Any]] | None = None,
+    objects: bool = True,
+    extra_shapes: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """A Mitsuba scene dict for one band triple (Mitsuba must be initialised).
 
@@ -157,6 +160,10 @@ def scene_dict(
         crop: render only this window of the frame.
         analytic_spheres: render sphere objects as exact spheres instead of their meshes.
         meshes: object name -> world-space Mesh (default: :func:`object_mesh`), to reuse.
+        sensors: Mitsuba sensor dicts replacing the scene's camera (e.g. instruments);
+            ``mi.render(scene, sensor=i)`` picks one.
+        objects: False leaves the scene's objects out (e.g. a white standard read alone).
+        extra_shapes: further Mitsuba shapes by key (e.g. a white standard).
     """
     from ..environment import rotation_y
     from .backend import init_mitsuba
@@ -201,7 +208,12 @@ def scene_dict(
             "to_world": mi.ScalarTransform4f(to_world.tolist()),
             "scale": 1.0,
         }
-    for obj in scene.objects:
+    if sensors is not None:
+        del d["sensor"]
+        for i, sd in enumerate(sensors):
+            d[f"sensor_{i:03d}"] = sd
+    d.update(extra_shapes or {})
+    for obj in scene.objects if objects else ():
         m = obj.material
         s = np.asarray(reflectances[obj.name], np.float64)
         bsdf = {"type": PLUGIN, "alpha": m.alpha, "beta": m.beta, "chi": m.chi, "mu": m.mu,
