@@ -21,7 +21,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = {"benchmark": "configs/benchmark.toml", "two_spheres": "configs/two_spheres.toml"}
 #: samples per pixel per pass of the committed references (8 passes each)
-DEFAULT_SPP = {"benchmark": 256, "two_spheres": 128}
+DEFAULT_SPP = {"benchmark": 256, "two_spheres": 256}
 
 
 def main(argv: list[str] | None = None) -> int:

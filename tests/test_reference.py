@@ -98,7 +98,7 @@ def test_mirror_alone_is_fresnel_times_environment(rotation):
                         width=32, height=32, fov=16.0, rotation_y_deg=rotation)
     tex = smooth_environment()
     # the only noise is the random position inside the pixel (the delta lobe is deterministic)
-    r = render_spectral(scene, spp=2048 if JIT else 8, passes=1, depths=(2,), environment=tex,
+    r = render_spectral(scene, spp=2048 if JIT else 64, passes=1, depths=(2,), environment=tex,
                         analytic_spheres=True)
     img = r.mean(2)
     ys, xs = np.mgrid[0:32, 0:32]
@@ -404,3 +404,20 @@ def test_instrument_band_pass_closed_forms():
     spike[wl == 550] = 1.0  # a 5 nm-wide triangle (piecewise linear) through a 5 nm slit
     out = instrument_response(wl, spike, out_wl, 5.0)
     assert np.isclose(out[out_wl == 550][0], 2.0 / 3.0, atol=2e-3)  # ∫ tri² / ∫ tri
+
+
+def test_bad_input_is_a_clear_error(tmp_path):
+    from spectral_fit.errors import InputError
+    from spectral_fit.reference.export import scene_dict
+    from spectral_fit.reference.render import render_spectral
+
+    other = "scalar_rgb" if JIT else "llvm_ad_rgb"
+    with pytest.raises(InputError, match="SPECTRAL_FIT_MI_VARIANT"):
+        init_mitsuba(other)
+    scene = small_scene(objects=[sphere_obj("a", (0, 0, -0.3))])
+    cam = scene.camera.__class__(intrinsics={"fx": 10.0, "fy": 10.0, "cx": 16.0, "cy": 16.0})
+    with pytest.raises(InputError, match="camera"):
+        scene_dict(scene.replace(camera=cam), env_rgb=1.0, reflectances={"a": np.ones(3)},
+                   spp=1)
+    with pytest.raises(InputError, match="environment"):
+        render_spectral(scene, spp=1, environment=np.ones((4, 8, 5)))

@@ -137,3 +137,27 @@ def test_direct_light_matches_our_shading_where_the_neighbour_is_hidden():
     assert np.median(np.abs(rel)) < 0.005
     assert np.abs(rel).max() < 0.015
     assert abs(rel.mean()) < 0.002
+
+
+def test_environment_export_reads_spectral_and_rgb_maps(tmp_path):
+    """environment_texels: the benchmark's spectral map on the config grid (scale applied), and
+    an RGB map lifted to the scene's bands; an object without reflectance gets the 0.5 default."""
+    import OpenEXR
+
+    from spectral_fit.exr import read_spectral_exr
+    from spectral_fit.reference.export import environment_texels
+    from spectral_fit.scene import parse_scene
+
+    scene = load_scene(REPO / "configs" / "benchmark.toml",
+                       lambda d: d["environment"].update(scale=2.0))
+    wl, img = read_spectral_exr(REPO / "measurements" / "benchmark" / "anchor_environment.exr")
+    assert np.allclose(environment_texels(scene), 2.0 * img)
+    p = tmp_path / "rgb.exr"
+    rgb = np.full((8, 16, 3), 0.5, np.float32)
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {"RGB": rgb}).write(str(p))
+    sc = parse_scene({"environment": {"file": str(p)}, "objects": [{"name": "a"}]})
+    assert np.allclose(sc.objects[0].material.reflectance, 0.5)
+    tex = environment_texels(sc)
+    assert tex.shape == (8, 16, sc.wavelengths.size) and np.all(tex > 0)
+    assert np.allclose(tex, tex[0, 0])  # a uniform grey map stays uniform

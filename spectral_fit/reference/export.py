@@ -50,8 +50,8 @@ def environment_texels(scene: Scene) -> np.ndarray:
     try:
         wl_in, img = read_spectral_exr(spec.file)
     except InputError as exc:
-        if "spectral" not in str(exc).lower() and "channel" not in str(exc).lower():
-            raise
+        if not exc.reason.startswith("no spectral channels"):
+            raise  # a broken spectral file stays an error; an RGB map is lifted below
         from ..upsampling import read_rgb_environment
 
         wl_in, img = read_rgb_environment(spec.file, wl, method=spec.upsampling)
@@ -129,9 +129,8 @@ def _mi_mesh(mi: Any, dr: Any, name: str, mesh: Any, bsdf: Any) -> Any:
     m = mi.Mesh(name, len(v), len(t), props=props, has_vertex_normals=True,
                 has_vertex_texcoords=False)
     params = mi.traverse(m)
-    params["vertex_positions"] = dr.ravel(mi.Point3f(v.T))
-    params["faces"] = dr.ravel(mi.Vector3u(t.T))
-    params["vertex_normals"] = dr.ravel(mi.Normal3f(n.T))
+    for key, arr in (("vertex_positions", v), ("faces", t), ("vertex_normals", n)):
+        params[key] = type(params[key])(np.ravel(arr))  # flat buffers (JIT or scalar types)
     params.update()
     return m
 

@@ -309,7 +309,10 @@ def simulate_readings(
         return np.stack(reps)
 
     folder = Path(folder)
-    scene_path = scene_ref or os.path.relpath(scene.path, folder) if scene.path else ""
+    if scene_ref is not None:
+        scene_path = scene_ref
+    else:
+        scene_path = os.path.relpath(scene.path, folder) if scene.path else ""
     readings = []
     for i, s in enumerate(spots):
         pos = np.asarray(s.position or inst.position, np.float64)
@@ -359,8 +362,19 @@ def simulate_readings(
             wl, res["white"][1], owl, inst.bandwidth_nm).tolist()}
     from ..fileio import atomic_write_text
 
-    atomic_write_text(folder / "truth.json", json.dumps(truth, indent=1) + "\n")
+    atomic_write_text(folder / "truth.json", json.dumps(_rounded(truth), indent=1) + "\n")
     return manifest
+
+
+def _rounded(x: Any) -> Any:
+    """JSON-ready copy with floats at 6 significant digits (compact truth files)."""
+    if isinstance(x, float):
+        return float(f"{x:.6g}")
+    if isinstance(x, list | tuple):
+        return [_rounded(v) for v in x]
+    if isinstance(x, dict):
+        return {k: _rounded(v) for k, v in x.items()}
+    return x
 
 
 def _write_session(folder: Path, **kw: Any) -> Path:
