@@ -51,6 +51,14 @@ _EXPORTS: dict[str, str] = {
     "interreflection_from": "interreflection",
     "prepare_interreflection": "interreflection",
     "IRGeometry": "interreflection",
+    # renderer (multipass frames), outputs, validation against the references
+    "render": "renderer",
+    "prepare": "renderer",
+    "render_frame": "renderer",
+    "Frame": "renderer",
+    "Prepared": "renderer",
+    "write_frame": "outputs",
+    "validate": "validation",
 }
 
 
