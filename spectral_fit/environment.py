@@ -141,37 +141,6 @@ def _downsample2(img: np.ndarray) -> np.ndarray:
     return (pair * wgt).sum(axis=1) / wgt.sum(axis=1)
 
 
-def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
-    """Approximately isotropic Gaussian blur of std ``sigma`` (radians, per axis) on the sphere.
-
-    Separable: along each row a wrapped Gaussian of angular std σ/sinθ (exact circular
-    convolution by FFT), then along meridians a Gaussian of std σ in arc length, continued across
-    the poles onto the opposite meridian (φ + π), rows normalised.
-    """
-    if sigma <= 0:
-        return img
-    h, w = img.shape[:2]
-    theta = np.pi * (np.arange(h) + 0.5) / h
-    m = np.fft.rfftfreq(w, d=1.0 / w)  # integer angular frequencies
-    s = sigma / np.sin(theta)
-    filt = np.exp(-0.5 * (m[None, :] * s[:, None]) ** 2)
-    spec = np.fft.rfft(img, axis=1) * filt[:, :, None]
-    rows = np.fft.irfft(spec, n=w, axis=1)
-    ti, tj = theta[:, None], theta[None, :]
-    direct = np.exp(-0.5 * ((ti - tj) / sigma) ** 2)
-    over = np.exp(-0.5 * ((ti + tj) / sigma) ** 2) + np.exp(
-        -0.5 * ((2.0 * np.pi - ti - tj) / sigma) ** 2)
-    # solid-angle weights sinθ_j: the blur is then a local area average, which conserves the
-    # flux ∫ L dω to second order (row-normalised arc-length weights lose ~σ²/2 of it)
-    sj = np.sin(theta)[None, :]
-    direct, over = direct * sj, over * sj
-    norm = (direct + over).sum(axis=1, keepdims=True)
-    shifted = np.roll(rows, w // 2, axis=1) if w % 2 == 0 else rows
-    out = np.einsum("ij,jwc->iwc", direct / norm, rows)
-    out += np.einsum("ij,jwc->iwc", over / norm, shifted)
-    return out
-
-
 @dataclasses.dataclass(frozen=True)
 class GlossQuadrature:
     """Settings of the gloss lobe quadrature (static).
@@ -198,6 +167,8 @@ class GlossQuadrature:
             that no prefiltered quadrature resolves.
         source_threshold: a texel is a source when its channel-summed |radiance| exceeds this
             multiple of the map's solid-angle-weighted mean.
+        source_subpoints: 4 (at (±¼, ±¼) texel offsets) or 1 (the texel centre) points per
+            source texel.
         nodes: "visible" (rings × visible arcs) or "gauss" (Gauss–Laguerre rings × full
             azimuths over the whole narrowed lobe; the earlier rule, kept for comparison).
     """
@@ -215,6 +186,7 @@ class GlossQuadrature:
     levels: int = 7
     max_sources: int = 32
     source_threshold: float = 30.0
+    source_subpoints: int = 4
     nodes: str = "visible"
 
 
@@ -238,8 +210,9 @@ class EnvironmentMap(eqx.Module):
         spectral_basis: (r, C) orthonormal rows: the map's own principal spectra, as many as
             needed for a relative error <= ``compress_tol`` on every texel (r = C, the
             identity, when ``compress_tol`` = 0). The gloss lookups run in these r channels.
-        source_dirs: (S, 4, 3) map-frame directions of 4 sub-points of each source texel.
-        source_flux: (S, r) excess radiance × solid angle / 4 of each source texel (per
+        source_dirs: (S, k, 3) map-frame directions of k = 4 (or 1) sub-points of each source
+            texel.
+        source_flux: (S, r) excess radiance × solid angle / k of each source texel (per
             sub-point); residual + sources = the map exactly.
         level_sigma: (M,) prefilter std (radians) per level, level 0 = unfiltered (0).
         product_tensor: (K, K, K) basis product tensor in coefficient mode, else None.
@@ -331,8 +304,14 @@ class EnvironmentMap(eqx.Module):
                 raise InputError(f"expected a finite ({k}, {k}, {k}) tensor, got {pt.shape}",
                                  path=path, field="product_tensor")
         quad = quadrature or GlossQuadrature()
+        if quad.nodes not in ("visible", "gauss"):
+            raise InputError(f"must be 'visible' or 'gauss', got {quad.nodes!r}",
+                             field="quadrature.nodes")
+        if quad.source_subpoints not in (1, 4):
+            raise InputError(f"must be 1 or 4, got {quad.source_subpoints!r}",
+                             field="quadrature.source_subpoints")
         residual, sdirs, sflux = _extract_sources(img, quad.max_sources,
-                                                  quad.source_threshold)
+                                                  quad.source_threshold, quad.source_subpoints)
         levels, sigmas = _build_levels(residual, quad.levels)
         if not (compress_tol >= 0 and math.isfinite(compress_tol)):
             raise InputError(f"must be finite and >= 0, got {compress_tol!r}",
@@ -388,22 +367,23 @@ def _spectral_basis(x: np.ndarray, tol: float) -> np.ndarray:
     return vt[:r]
 
 
-def _extract_sources(img: np.ndarray, max_sources: int, threshold: float
+def _extract_sources(img: np.ndarray, max_sources: int, threshold: float, subpoints: int = 4
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split the map into a residual without compact bright sources plus explicit source texels.
 
     A texel is a source when its channel-summed |value| exceeds ``threshold`` × the map's mean
     (at most ``max_sources``, brightest first). Its residual value is the mean of the non-source
     texels in its 5×5 neighbourhood (wrapping in u); the excess (value − residual) × solid angle
-    is carried by 4 sub-points at (±¼, ±¼) texel offsets. Residual + sources = the map exactly,
-    and the residual is smooth enough for the prefiltered lobe quadrature."""
+    is carried by 4 sub-points at (±¼, ±¼) texel offsets (``subpoints`` = 4) or by the texel
+    centre (1). Residual + sources = the map exactly, and the residual is smooth enough for the
+    prefiltered lobe quadrature."""
     h, w, c = img.shape
     sa = texel_solid_angles(h, w)
     lum = np.abs(img).sum(axis=-1)
     mean = (lum * sa).sum() / sa.sum()
     cand = np.argwhere(lum > threshold * max(mean, 1e-300))
     if max_sources <= 0 or cand.size == 0:
-        return img, np.zeros((0, 4, 3)), np.zeros((0, c))
+        return img, np.zeros((0, subpoints, 3)), np.zeros((0, c))
     order = np.argsort(-lum[cand[:, 0], cand[:, 1]])[:max_sources]
     cand = cand[order]
     is_src = np.zeros((h, w), bool)
@@ -417,10 +397,11 @@ def _extract_sources(img: np.ndarray, max_sources: int, threshold: float
         residual[r, col] = block[mask].mean(axis=0) if mask.any() else np.median(
             img.reshape(-1, c), axis=0)
     excess = (img - residual)[cand[:, 0], cand[:, 1]] * sa[cand[:, 0], cand[:, 1]][:, None]
-    offs = np.array([[-0.25, -0.25], [-0.25, 0.25], [0.25, -0.25], [0.25, 0.25]])
+    offs = (np.array([[-0.25, -0.25], [-0.25, 0.25], [0.25, -0.25], [0.25, 0.25]])
+            if subpoints == 4 else np.zeros((1, 2)))
     v = (cand[:, 0:1] + 0.5 + offs[None, :, 0]) / h
     u = (cand[:, 1:2] + 0.5 + offs[None, :, 1]) / w
-    return residual, uv_to_direction(u, v), excess / 4.0
+    return residual, uv_to_direction(u, v), excess / subpoints
 
 
 def _sphere_blur(img: np.ndarray, sigma: float) -> np.ndarray:
@@ -1020,7 +1001,7 @@ def _source_gloss(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array
                   *, distribution: str, geometry: str, fresnel: bool) -> jax.Array:
     """Σ over source sub-points of F D G / (4 cosθr) · excess flux (the exact integrand)."""
     d = env.source_dirs.reshape(-1, 3) @ env.rotation.T  # world directions (S·4, 3)
-    flux = jnp.repeat(env.source_flux, 4, axis=0)
+    flux = jnp.repeat(env.source_flux, env.source_dirs.shape[1], axis=0)
     nv = jnp.dot(N, V)
     nl = d @ N
     Hs = d + V
@@ -1092,10 +1073,11 @@ def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any, *,
 
 
 def shade_points(material: Material, env: EnvironmentMap, normals: Any, views: Any, *,
-                 batch_size: int = 4096, quality: str = "exact") -> jax.Array:
+                 batch_size: int = 32, quality: str = "exact") -> jax.Array:
     """:func:`shade` over many points, (P, 3) normals and views → (P, C), evaluated in batches
-    of ``batch_size`` points (``jax.lax.map``) so that the per-node lookups of the gloss
-    quadrature never hold more than ``batch_size`` × nodes × channels values at once.
+    of ``batch_size`` points (``jax.lax.map``): small batches keep each batch's gloss nodes and
+    map taps (points × nodes × 8 × channels) in cache, which on a CPU is several times faster
+    than one large batch (measured: 32 points per batch vs 4096, ~3× on the benchmark frame).
     jit/grad-able; the same numbers as ``jax.vmap(shade)``. ``quality``: see :func:`shade`."""
     normals = jnp.asarray(normals)
     views = jnp.asarray(views)

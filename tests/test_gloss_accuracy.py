@@ -158,3 +158,35 @@ def test_unknown_quality_rejected(anchor):
         gloss_integral(env, jnp.array([0.0, 1.0, 0.0]), jnp.array([0.0, 1.0, 0.0]), 0.1, 1.5,
                        quality="fast")
     assert e.value.field == "quality"
+
+
+def test_unknown_node_rule_rejected():
+    from spectral_fit.environment import GlossQuadrature
+    from spectral_fit.errors import InputError
+
+    with pytest.raises(InputError) as e:
+        EnvironmentMap.from_array(np.ones((8, 16, 1)), quadrature=GlossQuadrature(nodes="x"))
+    assert e.value.field == "quadrature.nodes"
+    with pytest.raises(InputError) as e:
+        EnvironmentMap.from_array(np.ones((8, 16, 1)),
+                                  quadrature=GlossQuadrature(source_subpoints=2))
+    assert e.value.field == "quadrature.source_subpoints"
+
+
+def test_shade_points_batches_equal_vmap():
+    from spectral_fit.environment import shade, shade_points
+    from spectral_fit.reflectance import make_material
+
+    wl = np.array([450.0, 550.0, 650.0])
+    env = EnvironmentMap.from_array(synthetic_environment(16, 32, wl))
+    cfg = configs(unit([0.4, 0.8, -0.45]), 0.2, 7, seed=4)
+    ns = jnp.asarray(np.array([c[0] for c in cfg]), jnp.float32)
+    vs = jnp.asarray(np.array([c[1] for c in cfg]), jnp.float32)
+    m = make_material(alpha=0.7, beta=1.0, chi=0.3, mu=0.2, n=1.5,
+                      reflectance=np.array([0.2, 0.5, 0.7]))
+    for quality in ("render",):  # the batching does not depend on the quadrature
+        want = np.asarray(jax.jit(jax.vmap(lambda a, b, q=quality: shade(
+            m, env, a, b, quality=q)))(ns, vs))
+        got = np.asarray(jax.jit(lambda a, b, q=quality: shade_points(
+            m, env, a, b, batch_size=3, quality=q))(ns, vs))
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
