@@ -218,7 +218,7 @@ def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array
     verts = jnp.asarray(obj_j.vertices, jnp.float32)
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = _ortho_clip(view, verts, extent, near, far)
-    ras = rasterize(clip, tris, (side, side), config=config)
+    ras = rasterize(clip, tris, (side, side), cull="back", config=config)
     hit = (ras.tri_id >= 0)
     pos = interpolate(verts, ras, tris)
     nrm = _normalize(interpolate(jnp.asarray(obj_j.normals, jnp.float32), ras, tris))
@@ -253,7 +253,7 @@ def _paper_texels(obj_i: ObjectGeometry, obj_j: ObjectGeometry, t: int, capacity
     verts = jnp.asarray(obj_j.vertices, jnp.float32)
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = project(cam, verts)
-    ras = rasterize(clip, tris, (t, t), config=config)
+    ras = rasterize(clip, tris, (t, t), cull="back", config=config)
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(verts, pix, tris, clip)
     nrm = _normalize(interpolate_pixels(jnp.asarray(obj_j.normals, jnp.float32), pix, tris,

@@ -80,7 +80,9 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
     both, offs = concat_meshes(meshes)
     cam = perspective_camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), fov_y_deg=90.0, aspect=w / h)
     clip = project(cam, both.vertices)
-    ras = rasterize(clip, both.triangles, shape)
+    # back faces culled: with cull="none" the rasteriser returned the far side of the spheres
+    # at ~9 % of the covered pixels of this frame (605 of 6,933)
+    ras = rasterize(clip, both.triangles, shape, cull="back")
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(both.vertices, pix, both.triangles, clip)
     nrm = interpolate_pixels(both.normals, pix, both.triangles, clip)
