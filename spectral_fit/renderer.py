@@ -123,7 +123,7 @@ class Prepared(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     display: Any = eqx.field(static=True)
     scene_white_xy: tuple[float, float] | None = eqx.field(static=True)
-    batch_size: int = eqx.field(static=True, default=4096)
+    batch_size: int = eqx.field(static=True, default=32)
     quality: str = eqx.field(static=True, default="render")
 
     @property
@@ -403,7 +403,7 @@ def prepare(
     texture_size: int | None = None,
     headroom: float = 1.5,
     pixel_capacity: int | None = None,
-    batch_size: int = 4096,
+    batch_size: int = 32,
     environment: np.ndarray | None = None,
     diffuse: str = "map",
     irradiance_shape: tuple[int, int] = (32, 64),
@@ -422,7 +422,8 @@ def prepare(
             reported in ``Frame.stats`` (and :func:`render` grows the buffers and re-renders).
         pixel_capacity: covered-pixel list size per object (an int for all, or one per
             object; default: from the configured poses).
-        batch_size: shading batch (points per ``lax.map`` step).
+        batch_size: shading batch (points per ``lax.map`` step of ``shade_points``; small
+            batches keep the gloss lookups in cache).
         environment: (Hm, Wm, L) spectral radiance on the scene grid to use instead of the
             config's file (the config's rotation applies, its scale does not).
         diffuse: irradiance of the diffuse term: "map" (default; the paper's irradiance map,
