@@ -34,12 +34,6 @@ _EXPORTS: dict[str, str] = {
     "EnvironmentMap": "environment",
     "shade": "environment",
     "shade_points": "environment",
-    "interreflection": "interreflection",
-    "Prepared": "renderer",
-    "Frame": "renderer",
-    "prepare": "renderer",
-    "render_frame": "renderer",
-    "render": "renderer",
     "Scene": "scene",
     "load_scene": "scene",
     "Display": "display",
@@ -99,6 +93,19 @@ _EXPORTS: dict[str, str] = {
     "covered_pixels": "raster",
     "interpolate_pixels": "raster",
     "scatter_pixels": "raster",
+    # interreflection (paper eq. 6 and the gather mode)
+    "interreflection": "interreflection",
+    "interreflection_from": "interreflection",
+    "prepare_interreflection": "interreflection",
+    "IRGeometry": "interreflection",
+    # renderer (multipass frames), outputs, validation against the references
+    "render": "renderer",
+    "prepare": "renderer",
+    "render_frame": "renderer",
+    "Frame": "renderer",
+    "Prepared": "renderer",
+    "write_frame": "outputs",
+    "validate": "validation",
 }
 
 

@@ -69,10 +69,13 @@ import numpy as np
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
+    _levels_for,
     _lobe_albedo,
+    _to_map,
     gloss_integral,
     irradiance,
     lookup,
+    lookup_level,
     mirror_radiance,
     shade,
 )
@@ -215,7 +218,7 @@ def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array
     verts = jnp.asarray(obj_j.vertices, jnp.float32)
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = _ortho_clip(view, verts, extent, near, far)
-    ras = rasterize(clip, tris, (side, side), config=config)
+    ras = rasterize(clip, tris, (side, side), cull="back", config=config)
     hit = (ras.tri_id >= 0)
     pos = interpolate(verts, ras, tris)
     nrm = _normalize(interpolate(jnp.asarray(obj_j.normals, jnp.float32), ras, tris))
@@ -250,7 +253,7 @@ def _paper_texels(obj_i: ObjectGeometry, obj_j: ObjectGeometry, t: int, capacity
     verts = jnp.asarray(obj_j.vertices, jnp.float32)
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = project(cam, verts)
-    ras = rasterize(clip, tris, (t, t), config=config)
+    ras = rasterize(clip, tris, (t, t), cull="back", config=config)
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(verts, pix, tris, clip)
     nrm = _normalize(interpolate_pixels(jnp.asarray(obj_j.normals, jnp.float32), pix, tris,
@@ -452,21 +455,35 @@ def _mip_lookup(atlas: jax.Array, pair: jax.Array, g: int, tx: jax.Array, ty: ja
     return (1.0 - wh) * one(lo) + wh * one(hi)
 
 
-def _diffuse_gather(geom: IRGeometry, dl: jax.Array, pos: jax.Array, nrm: jax.Array,
-                    obj: jax.Array) -> jax.Array:
-    """Σ_y F(x, y) ΔL_y (N, C) over the samples of the receiver's pairs, with the point-to-patch
-    form factor F = cos_x cos_y A / (π √(r⁴ + (A/π)²)). Receivers are sorted by object and
-    processed in chunks of ``_CHUNK``; a chunk evaluates only the blocks of the objects it
-    holds."""
+def _diffuse_gather(geom: IRGeometry, lum: jax.Array, env: EnvironmentMap, pos: jax.Array,
+                    nrm: jax.Array, obj: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array,
+                                                          jax.Array]:
+    """Form-factor sums over the samples of the receiver's pairs, with the point-to-patch form
+    factor F = cos_x cos_y A / (π √(r⁴ + (A/π)²)):
+
+    - Σ_y F L_y (N, C), the senders' radiance;
+    - Σ_y F (N,) and Σ_y F (y − x)/r (N, 3): the solid angle the senders hide (cosine-weighted,
+      over π) and its mean direction;
+    - (1/π) Σ_s flux_s max(0, N·d_s) over the environment's bright sources whose direction hits
+      a sender's bounding sphere (N, C): the source light the senders hide.
+
+    Receivers are sorted by object and processed in chunks of ``_CHUNK``; a chunk evaluates only
+    the blocks of the objects it holds."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
-    p_count, m_count, c = dl.shape
+    p_count, m_count, c = lum.shape
     km = k_per * m_count
     origin = jnp.mean(geom.centre_j, axis=0)
     ypos = (geom.s_pos - origin).reshape(n_obj, km, 3)
     ynrm = geom.s_nrm.reshape(n_obj, km, 3)
     yarea = geom.s_area.reshape(n_obj, km)
-    ydl = dl.reshape(n_obj, km, c)
+    ylum = lum.reshape(n_obj, km, c)
+    cj = (geom.centre_j - origin).reshape(n_obj, k_per, 3)
+    rj = geom.radius_j.reshape(n_obj, k_per)
+    n_src = env.source_flux.shape[0] * 4
+    if n_src:
+        sdir = env.source_dirs.reshape(-1, 3) @ env.rotation.T
+        sflux = jnp.repeat(env.source_flux @ env.spectral_basis, 4, axis=0) / math.pi
     n = pos.shape[0]
     key = jnp.where(obj >= 0, obj, n_obj)
     order = jnp.argsort(key)
@@ -475,6 +492,7 @@ def _diffuse_gather(geom: IRGeometry, dl: jax.Array, pos: jax.Array, nrm: jax.Ar
     xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
     ns = jnp.pad(nrm[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
     ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
+    width = c + 4 + c
 
     def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
         y0, ny, area = ypos[o], ynrm[o], yarea[o]
@@ -486,26 +504,50 @@ def _diffuse_gather(geom: IRGeometry, dl: jax.Array, pos: jax.Array, nrm: jax.Ar
         w = jnp.maximum(cx, 0.0) * jnp.maximum(cy, 0.0) * a / jnp.maximum(
             r2 * jnp.sqrt(r2 * r2 + a * a), 1e-30)
         w = jnp.where(sel[:, None], w, 0.0)
-        return w @ ydl[o]
+        wr = w / jnp.sqrt(jnp.maximum(r2, 1e-30))
+        dsum = wr @ y0 - jnp.sum(wr, -1)[:, None] * x0
+        parts = [w @ ylum[o], jnp.sum(w, -1)[:, None], dsum]
+        if n_src:
+            occ = jnp.zeros((x0.shape[0], n_src), x0.dtype)
+            for k in range(k_per):
+                oc = cj[o, k] - x0
+                tp = oc @ sdir.T
+                miss2 = jnp.sum(oc * oc, -1)[:, None] - tp * tp
+                occ = jnp.maximum(occ, ((tp > 0.0) & (miss2 < rj[o, k] ** 2)).astype(x0.dtype))
+            cosn = jnp.maximum(nx @ sdir.T, 0.0)
+            parts.append(jnp.where(sel[:, None], (occ * cosn) @ sflux, 0.0))
+        else:
+            parts.append(jnp.zeros((x0.shape[0], c), lum.dtype))
+        return jnp.concatenate(parts, -1)
 
     def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
         x0, nx, kk = args
-        acc = jnp.zeros((_CHUNK, c), dl.dtype)
+        acc = jnp.zeros((_CHUNK, width), lum.dtype)
         for o in range(n_obj):
             sel = kk == o
             acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
-                                     lambda s: jnp.zeros((_CHUNK, c), dl.dtype), sel)
+                                     lambda s: jnp.zeros((_CHUNK, width), lum.dtype), sel)
         return acc
 
-    res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, c)[:n]
-    return jnp.zeros((n, c), dl.dtype).at[order].set(res)
+    res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, width)[:n]
+    res = jnp.zeros((n, width), lum.dtype).at[order].set(res)
+    return res[:, :c], res[:, c], res[:, c + 1:c + 4], res[:, c + 4:]
+
+
+def _blurred_env(env: EnvironmentMap, direction: jax.Array, sigma: jax.Array) -> jax.Array:
+    """Environment radiance (C,) along a world unit direction, prefiltered to angular std
+    ``sigma`` (radians; the map's residual without its bright sources)."""
+    lo, hi, w_hi, _ = _levels_for(env, sigma)
+    d = _to_map(env, direction)
+    r = (1.0 - w_hi) * lookup_level(env, lo, d) + w_hi * lookup_level(env, hi, d)
+    return r @ env.spectral_basis
 
 
 def _gather(geom: IRGeometry, dl: jax.Array, atlas: jax.Array, materials: Sequence[Material],
             env: EnvironmentMap, pos: jax.Array, nrm: jax.Array, view: jax.Array,
             obj: jax.Array) -> jax.Array:
     """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) from the senders'
-    net sample radiance ``dl`` (P, M, C) (mip ``atlas`` of dl·coverage)."""
+    sample radiance ``dl`` (P, M, C) (mip ``atlas`` of [dl·coverage, coverage])."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
     g = geom.gather_size
@@ -516,8 +558,14 @@ def _gather(geom: IRGeometry, dl: jax.Array, atlas: jax.Array, materials: Sequen
     alpha, beta, chi = mats["alpha"][o], mats["beta"][o], mats["chi"][o]
     mu, eta, refl = mats["mu"][o], mats["n"][o], mats["reflectance"][o]
 
-    # diffuse: point-to-patch form factors to the samples of the receiver's own pairs
-    net = _diffuse_gather(geom, dl, pos, nrm, obj)  # Σ F ΔL, (N, C)
+    # diffuse: the senders' radiance minus the environment they hide, through α S/π
+    net, fsum, dsum, src = _diffuse_gather(geom, dl, env, pos, nrm, obj)
+    dlen = jnp.sqrt(jnp.maximum(jnp.sum(dsum * dsum, -1), 1e-30))
+    mean_dir = jnp.where((dlen > 0)[:, None], dsum / dlen[:, None], nrm)
+    resultant = dlen / jnp.maximum(fsum, 1e-30)
+    spread = jnp.sqrt(jnp.clip(1.0 - resultant, 1e-6, 1.0))
+    hidden = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(mean_dir, spread)
+    net = net - fsum[:, None] * hidden - src
     out = alpha[:, None] * _times_reflectance(env, refl, net)
 
     # gloss and mirror: reflected ray against the sender's bounding sphere, mip lookup
@@ -545,8 +593,13 @@ def _gather(geom: IRGeometry, dl: jax.Array, atlas: jax.Array, materials: Sequen
         foot = _FOOTPRINT * t * math.sqrt(2.0) * mu
         level = jnp.log2(jnp.maximum(foot / texel, 1.0))
         look = jax.vmap(lambda p_, a, b, lv: _mip_lookup(atlas, p_, g, a, b, lv))
-        gl = look(pair, tx, ty, level)
+        gl = look(pair, tx, ty, level)  # (N, C + 1): L·coverage, coverage
         mr = look(pair, tx, ty, jnp.zeros_like(level))
+        env_lobe = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(
+            refl_dir, math.sqrt(2.0) * mu)
+        env_mirror = jax.vmap(lambda d_: lookup(env, d_))(refl_dir)
+        gl = gl[:, :c] - gl[:, c:] * env_lobe
+        mr = mr[:, :c] - mr[:, c:] * env_mirror
         visible = ok & (nv > 0.0) & (tp > 0.0) & (jnp.sum(nrm * oc, -1) > -rj)
         spec = (beta * albedo)[:, None] * gl + (chi * fres)[:, None] * mr
         out = out + jnp.where(visible[:, None], spec, 0.0)
@@ -573,24 +626,19 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
     else:
         lj = jnp.stack([jax.vmap(lambda nn, vv, m=materials[j]: shade(m, env, nn, vv))(
             geom.s_nrm[p], geom.s_view[p]) for p, j in enumerate(senders)])
-    # the environment each sample hides, seen from the receiver's nearest point
-    behind = jax.vmap(lambda d: lookup(env, d))(-view).reshape(lj.shape)
-    dl0 = jnp.where((geom.s_area > 0)[..., None], lj - behind, 0.0)  # (P, M, C)
+    live = geom.s_area > 0
+    l0 = jnp.where(live[..., None], lj, 0.0)  # (P, M, C) senders' radiance towards i
     cov = geom.s_cov[..., None]
-    dl = dl0
+    lum = l0
     if bounces > 1:
-        sender = jnp.asarray(np.repeat([j for _, j in pairs], geom.s_pos.shape[1]), jnp.int32)
-        spos = geom.s_pos.reshape(-1, 3)
-        snrm = geom.s_nrm.reshape(-1, 3)
-        sview = geom.s_view.reshape(-1, 3)
-        live = (geom.s_area > 0).reshape(-1)
+        sender = jnp.asarray(np.repeat(senders, m_count), jnp.int32)
         for _ in range(bounces - 1):
-            atlas = _build_mips(dl * cov, geom.gather_size)
-            extra = _gather(geom, dl, atlas, materials, env, spos, snrm, sview,
-                            jnp.where(live, sender, -1))
-            dl = dl0 + extra.reshape(dl0.shape)
-    atlas = _build_mips(dl * cov, geom.gather_size)
-    return _gather(geom, dl, atlas, materials, env, receivers.position, receivers.normal,
+            atlas = _build_mips(jnp.concatenate([lum * cov, cov], -1), geom.gather_size)
+            extra = _gather(geom, lum, atlas, materials, env, geom.s_pos.reshape(-1, 3), nrm,
+                            view, jnp.where(live.reshape(-1), sender, -1))
+            lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
+    atlas = _build_mips(jnp.concatenate([lum * cov, cov], -1), geom.gather_size)
+    return _gather(geom, lum, atlas, materials, env, receivers.position, receivers.normal,
                    receivers.view, receivers.object)
 
 

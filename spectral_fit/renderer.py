@@ -88,7 +88,8 @@ class Prepared(eqx.Module):
         irradiance_lut: (Hl·Wl + 2, C) irradiance map over normal directions (map frame, the
             map's texel layout plus two pole rows), or None (irradiance from ``env``).
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
-    ir_bounces, ir_texture_size, raster_config, pixel_capacity, object_slices ((start, stop)
+    ir_bounces, ir_texture_size, raster_config, pixel_capacity (covered-pixel list size per
+    object), object_slices ((start, stop)
     vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size.
     """
 
@@ -115,13 +116,15 @@ class Prepared(eqx.Module):
     ir_bounces: int = eqx.field(static=True)
     ir_texture_size: int = eqx.field(static=True)
     raster_config: Any = eqx.field(static=True)
-    pixel_capacity: int = eqx.field(static=True)
+    ir_raster_config: Any = eqx.field(static=True)
+    pixel_capacity: tuple[int, ...] = eqx.field(static=True)
     object_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
     triangle_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
     display: Any = eqx.field(static=True)
     scene_white_xy: tuple[float, float] | None = eqx.field(static=True)
-    batch_size: int = eqx.field(static=True, default=4096)
+    batch_size: int = eqx.field(static=True, default=32)
+    quality: str = eqx.field(static=True, default="render")
 
     @property
     def num_objects(self) -> int:
@@ -144,8 +147,8 @@ class Frame(eqx.Module):
         spectral: (H, W, L) spectral radiance (W·sr⁻¹·m⁻²·nm⁻¹) when requested, else None.
         stats: dict of scalars: ``out_of_gamut_fraction``, ``below_zero_fraction``,
             ``overexposed_fraction`` (over covered pixels), ``coverage`` (fraction of the frame),
-            ``covered_pixels``, ``pixel_overflow`` and ``raster_overflow`` (buffers too small:
-            the frame is incomplete).
+            ``covered_pixels``, ``pixel_overflow``, ``raster_overflow`` and
+            ``interreflection_overflow`` (buffers too small: the frame is incomplete).
     """
 
     xyz: jax.Array
@@ -358,6 +361,28 @@ def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
     return np.maximum(normals @ src.T, 0.0) @ rad
 
 
+def _ir_raster_config(mode: str, texture_size: int, triangles: int,
+                      paper_clips: list[np.ndarray] | None = None,
+                      paper_tris: list[np.ndarray] | None = None) -> Any:
+    """Window capacities of the interreflection pass-1 rasters (inside the compiled frame, so
+    they cannot be grown there): the rasteriser's generic sizes for the largest object with room
+    for every 8×8 block of the pass-1 frame (64² for gather: 4× supersampled 16² samples;
+    ``texture_size``² for paper), and in paper mode at least twice what the configured poses
+    need (:func:`plan_capacities` on each pair's view)."""
+    if mode == "none":
+        return None
+    from .raster import default_config
+
+    side = texture_size if mode == "paper" else 64
+    blocks = (-(-side // 8)) ** 2
+    cfg = default_config(triangles, (side, side))._replace(block_capacity=blocks)
+    for clip, tris in zip(paper_clips or [], paper_tris or [], strict=True):
+        need, _ = plan_capacities(clip, tris, (side, side), headroom=2.0)
+        cfg = cfg._replace(capacities=tuple(max(a, b) for a, b in
+                                            zip(cfg.capacities, need.capacities, strict=True)))
+    return cfg
+
+
 def _look_at_impl(eye, target, up):
     from .camera import look_at
 
@@ -378,10 +403,11 @@ def prepare(
     texture_size: int | None = None,
     headroom: float = 1.5,
     pixel_capacity: int | None = None,
-    batch_size: int = 4096,
+    batch_size: int = 32,
     environment: np.ndarray | None = None,
     diffuse: str = "map",
     irradiance_shape: tuple[int, int] = (32, 64),
+    quality: str = "render",
 ) -> Prepared:
     """Precompute a scene for :func:`render_frame` (explicit precomputation, DESIGN §4).
 
@@ -394,8 +420,10 @@ def prepare(
         headroom: capacities (raster windows, covered pixels) are this multiple of what the
             configured poses need, so that objects can move without recompiling; overflow is
             reported in ``Frame.stats`` (and :func:`render` grows the buffers and re-renders).
-        pixel_capacity: covered-pixel list size (default: from the configured poses).
-        batch_size: shading batch (points per ``lax.map`` step).
+        pixel_capacity: covered-pixel list size per object (an int for all, or one per
+            object; default: from the configured poses).
+        batch_size: shading batch (points per ``lax.map`` step of ``shade_points``; small
+            batches keep the gloss lookups in cache).
         environment: (Hm, Wm, L) spectral radiance on the scene grid to use instead of the
             config's file (the config's rotation applies, its scale does not).
         diffuse: irradiance of the diffuse term: "map" (default; the paper's irradiance map,
@@ -403,6 +431,8 @@ def prepare(
             exact texel sum over the environment, looked up bilinearly), "sh" (order-2
             spherical harmonics: smooth but up to ~10 % of the peak off under a lamp) or
             "exact" (texel sum over the whole map per sample: the reference, slow).
+        quality: gloss quadrature of the environment shading, "render" (default, fewer
+            lookups) or "exact" (the fitter's; see ``environment.gloss_integral``).
     Raises:
         InputError: bad options (naming the option), unreadable files (naming the file).
     """
@@ -424,6 +454,8 @@ def prepare(
             raise InputError(f"W and H must be in 1..16384, got {(w, h)}", field="size")
         shape = (h, w)
     ir_mode = scene.interreflection.mode if mode is None else mode
+    if quality not in ("render", "exact"):
+        raise InputError(f"must be 'render' or 'exact', got {quality!r}", field="quality")
     if diffuse not in ("map", "sh", "exact"):
         raise InputError(f"must be 'map', 'sh' or 'exact', got {diffuse!r}", field="diffuse")
     if ir_mode not in _IR_MODES:
@@ -508,8 +540,35 @@ def prepare(
                       vertices) + model[np.concatenate(vobj)][:, :3, 3]
     vp = proj.astype(np.float64) @ view.astype(np.float64)
     clip = world @ vp[:, :3].T + vp[:, 3]
-    cfg, bound = plan_capacities(clip, triangles, shape, headroom=headroom)
-    cap = pixel_capacity or min(shape[0] * shape[1], _ladder(headroom * bound + 64))
+    cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom)
+    if pixel_capacity is None:
+        caps = []
+        for ta, tb in tsl:
+            _, bound = plan_capacities(clip, triangles[ta:tb], shape, headroom=headroom)
+            caps.append(min(shape[0] * shape[1], _ladder(headroom * bound + 64)))
+        cap = tuple(caps)
+    elif isinstance(pixel_capacity, int | np.integer):
+        cap = (int(pixel_capacity),) * len(tsl)
+    else:
+        cap = tuple(int(c) for c in pixel_capacity)
+        if len(cap) != len(tsl):
+            raise InputError(f"need one capacity per object ({len(tsl)})",
+                             field="pixel_capacity")
+    paper_clips, paper_tris = [], []
+    if ir_mode == "paper":
+        from .camera import interreflection_camera
+
+        centres = model[:, :3, 3]
+        for i in range(len(models)):
+            for j in range(len(models)):
+                if i != j:
+                    cam = interreflection_camera(centres[i], centres[j], aspect=1.0)
+                    m = np.asarray(cam.view_projection, np.float64)
+                    (a, b), (ta, tb) = vsl[j], tsl[j]
+                    paper_clips.append(world[a:b] @ m[:, :3].T + m[:, 3])
+                    paper_tris.append(triangles[ta:tb] - a)
+    ir_cfg = _ir_raster_config(ir_mode, ts, max(b - a for a, b in tsl), paper_clips,
+                               paper_tris)
 
     return Prepared(
         vertices=jnp.asarray(vertices), normals=jnp.asarray(np.concatenate(norms), jnp.float32),
@@ -522,11 +581,12 @@ def prepare(
         irradiance_lut=None if lut is None else jnp.asarray(lut, jnp.float32), shape=shape,
         wavelengths=tuple(float(x) for x in wl), spectral_mode=smode,
         k=kk if smode == "basis" else int(wl.size), ir_mode=ir_mode, ir_bounces=nb,
-        ir_texture_size=ts, raster_config=cfg, pixel_capacity=int(cap),
+        ir_texture_size=ts, raster_config=cfg, ir_raster_config=ir_cfg,
+        pixel_capacity=cap,
         object_slices=tuple(vsl), triangle_slices=tuple(tsl),
         names=tuple(o.name for o in scene.objects), display=display,
         scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy),
-        batch_size=int(batch_size),
+        batch_size=int(batch_size), quality=quality,
     )
 
 
@@ -566,51 +626,41 @@ def _as_stacked(materials: Any, n_objects: int) -> list[Material]:
 
 
 def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
-                   lut: jax.Array | None = None) -> jax.Array:
-    """Environment shading (eq. 5) of every G-buffer sample with its object's material,
-    (N, C). Objects whose static choices (D, G) differ are shaded in separate groups. With an
-    irradiance map ``lut`` (:func:`irradiance_table`), the diffuse term α S I_d(N)/π takes its
-    irradiance from the map (the gloss and mirror terms from ``env`` as always)."""
+                   lut: jax.Array | None = None, quality: str = "render",
+                   capacities: tuple[int, ...] | None = None) -> jax.Array:
+    """Environment shading (eq. 5) of the G-buffer samples, (N, C): the samples are laid out
+    object by object (``capacities[o]`` slots for object o), and each object's slice is shaded
+    with its material by :func:`~spectral_fit.environment.shade_points`. With an irradiance map
+    ``lut`` (:func:`irradiance_table`), the diffuse term α S I_d(N)/π takes its irradiance from
+    the map (the gloss and mirror terms come from ``env`` as always)."""
     import dataclasses
 
-    from .environment import shade
+    from .environment import shade_points
 
-    groups: dict[tuple[str, str], list[int]] = {}
-    for i, m in enumerate(mats):
-        groups.setdefault((m.distribution, m.geometry), []).append(i)
-    obj = jnp.clip(gb.object, 0, len(mats) - 1)
-    table = None
-    if lut is not None:
-        table = _lut_env(env, lut)
-    out = None
-    for (dist, geom), members in groups.items():
-        stacked = _stack(mats)
-        stacked = Material(**{f: getattr(stacked, f) for f in
-                              ("alpha", "beta", "chi", "mu", "n", "gamma", "reflectance")},
-                           distribution=dist, geometry=geom)
-
-        def one(args, stacked=stacked):
-            o, nrm, v = args
-            m = jax.tree.map(lambda x: x[o], stacked)
-            if table is None:
-                return shade(m, env, nrm, v)
-            spec = shade(dataclasses.replace(m, alpha=jnp.zeros_like(m.alpha)), env, nrm, v)
-            e = _lookup(table, nrm)
-            if env.product_tensor is None:
-                se = m.reflectance * e
-            else:
-                se = jnp.einsum("i,j,ijk->k", m.reflectance, e, env.product_tensor)
-            diffuse = jnp.where(jnp.dot(nrm, v) > 0.0, m.alpha / math.pi, 0.0) * se
-            return spec + diffuse
-
-        n = gb.object.shape[0]
-        bs = max(1, min(batch, n))
-        c = jax.lax.map(one, (obj, gb.normal, gb.view), batch_size=bs)
-        if len(groups) == 1:
-            return c
-        sel = jnp.isin(obj, jnp.asarray(members))
-        out = jnp.where(sel[:, None], c, 0.0 if out is None else out)
-    return out
+    if capacities is None:
+        capacities = (gb.object.shape[0],)
+        mats = mats[:1]
+    table = None if lut is None else _lut_env(env, lut)
+    out = []
+    start = 0
+    for m, cap in zip(mats, capacities, strict=True):
+        nrm = gb.normal[start:start + cap]
+        v = gb.view[start:start + cap]
+        start += cap
+        bs = max(1, min(batch, cap))
+        if table is None:
+            out.append(shade_points(m, env, nrm, v, batch_size=bs, quality=quality))
+            continue
+        spec = shade_points(dataclasses.replace(m, alpha=jnp.zeros_like(m.alpha)), env, nrm, v,
+                            batch_size=bs, quality=quality)
+        e = jax.vmap(lambda d: _lookup(table, d))(nrm)
+        if env.product_tensor is None:
+            se = m.reflectance * e
+        else:
+            se = jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
+        front = jnp.sum(nrm * v, axis=-1, keepdims=True) > 0.0
+        out.append(spec + jnp.where(front, m.alpha / math.pi, 0.0) * se)
+    return jnp.concatenate(out)
 
 
 def _lut_env(env: Any, flat: jax.Array, shape: tuple[int, int] | None = None) -> Any:
@@ -635,20 +685,25 @@ _IR_WARNED: set[str] = set()
 
 
 def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Material],
-                     gb: GBuffer) -> jax.Array | None:
+                     gb: GBuffer) -> tuple[jax.Array | None, jax.Array]:
+    """Interreflection radiance (N, C) to add (None when off) and the pass-1 overflow flag."""
+    no = jnp.zeros((), bool)
     if prep.ir_mode == "none" or len(geoms) < 2:
-        return None
+        return None, no
     try:
-        from .interreflection import interreflection
+        from .interreflection import interreflection_from, prepare_interreflection
     except ImportError:
         if prep.ir_mode not in _IR_WARNED:
             _IR_WARNED.add(prep.ir_mode)
             warnings.warn(f"interreflection mode {prep.ir_mode!r} is not available in this "
                           "installation (spectral_fit.interreflection missing); rendering "
                           "without interreflection", RuntimeWarning, stacklevel=4)
-        return None
-    return interreflection(geoms, mats, prep.env, gb, mode=prep.ir_mode,
-                           texture_size=prep.ir_texture_size, bounces=prep.ir_bounces)
+        return None, no
+    geom = prepare_interreflection(geoms, mode=prep.ir_mode, texture_size=prep.ir_texture_size,
+                                   raster_config=prep.ir_raster_config)
+    extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
+                                 bounces=prep.ir_bounces)
+    return extra, jnp.asarray(geom.overflow, bool)
 
 
 def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
@@ -674,7 +729,13 @@ def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
                  visible: jax.Array, spectral: bool) -> Frame:
     from .display import to_display
-    from .raster import covered_pixels, interpolate_pixels, rasterize, scatter_pixels
+    from .raster import (
+        PixelList,
+        covered_pixels,
+        interpolate_pixels,
+        rasterize,
+        scatter_pixels,
+    )
 
     TRACE_COUNT["render_frame"] += 1
     h, w = prep.shape
@@ -695,7 +756,16 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
 
     # 2. rasterise, compact covered pixels, G-buffer
     ras = rasterize(clip, prep.triangles, (h, w), config=prep.raster_config, check=False)
-    pix = covered_pixels(ras, prep.pixel_capacity)
+    # covered pixels, one fixed-capacity list per object (each object is shaded with its own
+    # material by shade_points, whose per-material precomputations then run once per object)
+    obj_img = jnp.where(ras.tri_id >= 0, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
+    lists = [covered_pixels(eqx.tree_at(lambda r: r.tri_id, ras,
+                                        jnp.where(obj_img == o, ras.tri_id, -1)), cap)
+             for o, cap in enumerate(prep.pixel_capacity)]
+    pix = PixelList(index=jnp.concatenate([q.index for q in lists]),
+                    tri_id=jnp.concatenate([q.tri_id for q in lists]),
+                    count=sum(q.count for q in lists),
+                    overflow=jnp.any(jnp.stack([q.overflow for q in lists])), shape=(h, w))
     attrs = jnp.concatenate([world, wnorm], axis=1)
     vals = interpolate_pixels(attrs, pix, prep.triangles, clip)
     pos = vals[:, :3]
@@ -718,12 +788,13 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                  pixel=jnp.where(pix.valid, pix.index, -1))
 
     # 3. shading + interreflection
-    radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut)
+    radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
+                              prep.quality, prep.pixel_capacity)
     geoms = [ObjectGeometry(vertices=world[a:b], normals=wnorm[a:b],
                             triangles=prep.triangles[ta:tb] - a, centre=centres[i])
              for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
                                                         prep.triangle_slices, strict=True))]
-    ir = _interreflection(prep, geoms, mats, gb)
+    ir, ir_overflow = _interreflection(prep, geoms, mats, gb)
     if ir is not None:
         radiance = radiance + ir
     radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
@@ -733,7 +804,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     bg_xyz = _env_lookup(prep.env, prep.env_xyz, dirs).reshape(h, w, 3)
     xyz = scatter_pixels(radiance @ prep.to_xyz, pix, bg_xyz)
     mask = ras.tri_id >= 0
-    object_id = jnp.where(mask, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
+    object_id = obj_img
     spec = None
     if spectral:
         env = prep.env
@@ -754,6 +825,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         "covered_pixels": count,
         "pixel_overflow": pix.overflow,
         "raster_overflow": ras.overflow,
+        "interreflection_overflow": ir_overflow,
     }
     return Frame(xyz=xyz, rgb=d.rgb, linear_rgb=d.linear, mask=mask, object_id=object_id,
                  spectral=spec, stats=stats)
@@ -822,8 +894,11 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
         changes = {}
         if pix_over:
             h, w = prep.shape
-            changes["pixel_capacity"] = min(h * w, _ladder(
-                1.5 * int(frame.stats["covered_pixels"]) + 64))
+            counts = np.bincount(np.asarray(frame.object_id).reshape(-1) + 1,
+                                 minlength=prep.num_objects + 1)[1:]
+            changes["pixel_capacity"] = tuple(
+                max(c, min(h * w, _ladder(1.5 * int(n) + 64)))
+                for c, n in zip(prep.pixel_capacity, counts, strict=True))
         if ras_over:
             from .raster import rasterize
 

@@ -107,7 +107,7 @@ def gradient_check() -> dict:
                      reflectance=(0.3, 0.5, 0.9), dtype=f64)]
     weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (8, 3)), f64)
     results = {}
-    for mode, bounces in (("gather", 1), ("gather", 2), ("paper", 1)):
+    for mode, bounces in (("gather", 2), ("paper", 1)):
         geom = prepare_interreflection(objs, mode=mode, texture_size=16, gather_size=4)
 
         def loss(ms, geom=geom, mode=mode, bounces=bounces):
@@ -121,7 +121,11 @@ def gradient_check() -> dict:
                 leaf = getattr(mats[o], name)
                 comps = [None] if leaf.ndim == 0 else list(range(leaf.shape[0]))
                 for c in comps:
-                    eps = 1e-6
+                    # relative step 1e-3: the O(h²) error is ~1e-7 here, while much smaller
+                    # steps meet the float32 rounding of fresnel_dielectric's cos θ (the
+                    # G-buffer is float32)
+                    x0 = float(leaf if c is None else leaf[c])
+                    eps = 1e-3 * max(abs(x0), 0.1)
 
                     def bump(delta, o=o, name=name, c=c, leaf=leaf, lf=lf):
                         v = leaf + delta if c is None else leaf.at[c].add(delta)

@@ -346,9 +346,49 @@ def test_paper_mode_matches_hand_built_eq6(paper_geom, linear_env):
     assert checked >= 4
 
 
+def test_gradients_float32_gather(gather_geom, linear_env):
+    """Fast check: d(Σ IR)/d(each material parameter of both objects), gather mode, float32,
+    vs central differences with 1 % relative steps."""
+    x0, n0 = facing_points(C0, C1, [0.0, 20.0])
+    x1, n1 = facing_points(C1, C0, [10.0])
+    x, n = np.concatenate([x0, x1]), np.concatenate([n0, n1])
+    v = -x / np.linalg.norm(x, axis=1, keepdims=True)
+    v = np.where((np.sum(v * n, 1) > 0.2)[:, None], v, n)
+    rec = gbuffer(x, n, v, [0] * len(x0) + [1] * len(x1), CAP)
+    mats = [material(alpha=0.9, beta=0.8, chi=0.3, mu=0.15, n=1.45, reflectance=(0.8, 0.6, 0.2)),
+            material(alpha=0.7, beta=1.1, chi=0.2, mu=0.12, n=1.55, reflectance=(0.3, 0.5, 0.9))]
+    names = ("alpha", "beta", "chi", "mu", "n")
+
+    def loss(params):
+        ms = [type(m)(**{k: params[o][k] for k in names}, gamma=m.gamma,
+                      reflectance=params[o]["reflectance"]) for o, m in enumerate(mats)]
+        return jnp.sum(interreflection_from(gather_geom, ms, linear_env, rec))
+
+    params = [{k: getattr(m, k) for k in (*names, "reflectance")} for m in mats]
+    lf = jax.jit(loss)
+    grad = jax.jit(jax.grad(loss))(params)
+    for o in range(2):
+        for k in (*names, "reflectance"):
+            comps = [None] if k != "reflectance" else [0, 2]
+            for c in comps:
+                v0 = float(params[o][k] if c is None else params[o][k][c])
+                h = 1e-2 * v0
+
+                def at(val, o=o, k=k, c=c):
+                    p = [dict(q) for q in params]
+                    p[o][k] = jnp.asarray(val, jnp.float32) if c is None else \
+                        p[o][k].at[c].set(val)
+                    return float(lf(p))
+
+                fd = (at(v0 + h) - at(v0 - h)) / (2 * h)
+                g = float(grad[o][k] if c is None else grad[o][k][c])
+                assert g == pytest.approx(fd, rel=0.02, abs=2e-4), (o, k, c, g, fd)
+
+
+@pytest.mark.slow
 def test_gradients_match_finite_differences():
     """d(Σ w · IR)/d(every material parameter of both objects) vs central differences, float64,
-    gather (1 and 2 bounces) and paper mode, in a fresh interpreter (x64)."""
+    gather (2 bounces) and paper mode, in a fresh interpreter (x64)."""
     here = Path(__file__).resolve().parent
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(here.parent), str(here), os.environ.get("PYTHONPATH", "")])}
@@ -359,8 +399,7 @@ def test_gradients_match_finite_differences():
     for key, rows in data.items():
         nonzero = 0
         for o, name, c, g, fd in rows:
-            assert g == pytest.approx(fd, rel=2e-4, abs=1e-8 + 1e-5 * abs(fd)), (key, o, name,
-                                                                                 c, g, fd)
+            assert g == pytest.approx(fd, rel=1e-3, abs=1e-7), (key, o, name, c, g, fd)
             nonzero += abs(fd) > 1e-8
         # every parameter but gamma (paper only) moves the gather result, and so on
         assert nonzero >= (16 if key.startswith("gather") else 10), (key, nonzero)

@@ -27,7 +27,7 @@ _ENV = Path(__file__).resolve().parents[2] / "measurements" / "benchmark" / \
 
 def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, int] = (480, 720),
                     capacity: int = 8192, k: int | None = None, env_path: Any = None,
-                    wavelengths: Any = None) -> dict[str, Any]:
+                    wavelengths: Any = None, diffuse: str = "sh") -> dict[str, Any]:
     """The benchmark scene as interreflection inputs.
 
     Returns a dict with ``objects`` (2 :class:`ObjectGeometry`), ``materials``, ``env``
@@ -56,11 +56,11 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
         wl = np.asarray(wavelengths, np.float64)
     basis = None
     if k is None:
-        env = EnvironmentMap.from_array(img, rotation_y_deg=180.0)
+        env = EnvironmentMap.from_array(img, rotation_y_deg=180.0, diffuse=diffuse)
     else:
         basis = pca_basis(int(k), wl)
         env = EnvironmentMap.from_array(basis.project(img), rotation_y_deg=180.0,
-                                        product_tensor=basis.product_tensor)
+                                        product_tensor=basis.product_tensor, diffuse=diffuse)
     centres = [(-0.045, 0.0, z), (0.045, 0.0, z)]
     sph = uv_sphere(0.0375, stacks, stacks)
     meshes = [sph.transformed(translate(c)) for c in centres]
@@ -80,7 +80,9 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
     both, offs = concat_meshes(meshes)
     cam = perspective_camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), fov_y_deg=90.0, aspect=w / h)
     clip = project(cam, both.vertices)
-    ras = rasterize(clip, both.triangles, shape)
+    # back faces culled: with cull="none" the rasteriser returned the far side of the spheres
+    # at ~9 % of the covered pixels of this frame (605 of 6,933)
+    ras = rasterize(clip, both.triangles, shape, cull="back")
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(both.vertices, pix, both.triangles, clip)
     nrm = interpolate_pixels(both.normals, pix, both.triangles, clip)

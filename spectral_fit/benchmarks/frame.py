@@ -1,0 +1,162 @@
+"""Benchmark cases of whole frames (BENCHMARK.md "paper" scene, ``configs/benchmark.toml``).
+
+Every case prepares the scene once (not timed; reported as ``prepare_s``), then times the
+jit-compiled :func:`~spectral_fit.renderer.render_frame` (visibility, G-buffer, shading of the
+covered pixels, interreflection, background, XYZ, display encoding): ``compile_s`` is the first
+call, ``median_ms`` the steady state.
+
+* ``frame_paper``: 720×480, 31 bands (400–700 nm, the anchor's), gather interreflection;
+  ``frame_paper_none`` / ``frame_paper_paper``: without interreflection / eq. (6) literally;
+* ``frame_paper_81``: 81 bands (400–700 nm at 3.75 nm); ``frame_paper_k8``: K = 8 basis;
+* ``frame_closeup``: the spheres at z = −0.100 m (~19 % coverage), gather;
+* ``cold_start_s``: a fresh Python process (import + prepare + compile + first frame of the
+  paper scene), with a JAX persistent compilation cache in a temporary folder: first run
+  (cold cache) and second run (warm cache); import time reported separately.
+
+``--quick`` (harness smoke test) renders one small configuration for every frame case and runs
+one fresh process for the cold start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from ..bench import BenchOptions, measure
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = ROOT / "configs" / "benchmark.toml"
+
+__all__ = ["CASES", "benchmark_scene"]
+
+
+def benchmark_scene(*, z: float = -0.275, quick: bool = False, step_nm: float | None = None):
+    """The benchmark Scene with sphere centres at depth ``z`` (m); quick: 20×20 spheres."""
+    from ..scene import load_scene
+
+    scene = load_scene(CONFIG)
+    objs = []
+    for o in scene.objects:
+        kw: dict[str, Any] = {"position": (o.position[0], o.position[1], z)}
+        if quick:
+            kw.update(stacks=20, slices=20)
+        objs.append(dataclasses.replace(o, **kw))
+    changes: dict[str, Any] = {"objects": tuple(objs)}
+    if step_nm is not None:
+        from ..spectra import resample
+
+        spectral = dataclasses.replace(scene.spectral, step_nm=step_nm)
+        wl = spectral.wavelengths()
+        objs = [dataclasses.replace(o, material=dataclasses.replace(
+            o.material, reflectance=resample(scene.wavelengths, o.material.reflectance, wl)))
+            for o in changes["objects"]]
+        changes.update(spectral=spectral, objects=tuple(objs))
+    return scene.replace(**changes)
+
+
+def _case(opts: BenchOptions, *, mode: str = "gather", z: float = -0.275,
+          step_nm: float | None = None, spectral_mode: str | None = None,
+          k: int | None = None) -> dict[str, Any]:
+    import time
+
+    import jax
+
+    from ..renderer import prepare, render_frame
+
+    if opts.quick:  # harness smoke test: one small configuration shared by the variants
+        mode, z, step_nm, spectral_mode, k = "none", -0.275, None, None, None
+    scene = benchmark_scene(z=z, quick=opts.quick, step_nm=step_nm)
+    size = (180, 120) if opts.quick else None
+    if not opts.quick:
+        jax.clear_caches()
+    t0 = time.perf_counter()
+    prep = prepare(scene, size=size, mode=mode, spectral_mode=spectral_mode, k=k)
+    prepare_s = time.perf_counter() - t0
+    out = measure(lambda: render_frame(prep).rgb, repeats=opts.repeats)
+    f = render_frame(prep)
+    out.update(prepare_s=prepare_s, mode=mode, channels=prep.channels,
+               size=[prep.shape[1], prep.shape[0]],
+               covered_pixels=int(f.stats["covered_pixels"]),
+               pixel_capacity=prep.pixel_capacity,
+               overflow=bool(f.stats["pixel_overflow"] | f.stats["raster_overflow"]
+                             | f.stats["interreflection_overflow"]))
+    return out
+
+
+_COLD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import jax
+from spectral_fit.renderer import prepare, render_frame
+t1 = time.perf_counter()
+prep = prepare(sys.argv[1], size=None if sys.argv[2] == "full" else (180, 120))
+t2 = time.perf_counter()
+jax.block_until_ready(render_frame(prep).rgb)
+t3 = time.perf_counter()
+print(json.dumps({"import_s": t1 - t0, "prepare_s": t2 - t1, "first_frame_s": t3 - t2,
+                  "total_s": t3 - t0}))
+"""
+
+
+def _fresh_process(cache: str, quick: bool) -> dict[str, float]:
+    env = dict(os.environ)
+    env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    r = subprocess.run([sys.executable, "-c", _COLD, str(CONFIG), "quick" if quick else "full"],
+                       capture_output=True, text=True, env=env, check=True, timeout=900)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def cold_start_s(opts: BenchOptions) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="jax_cache_") as cache:
+        cold = _fresh_process(cache, opts.quick)
+        warm = cold if opts.quick else _fresh_process(cache, opts.quick)
+    return {
+        "median_ms": cold["total_s"] * 1e3, "min_ms": cold["total_s"] * 1e3,
+        "max_ms": cold["total_s"] * 1e3, "compile_s": cold["first_frame_s"], "n": 1,
+        "cold_cache": cold, "warm_cache": warm,
+        "first_frame_after_import_cold_s": cold["prepare_s"] + cold["first_frame_s"],
+        "first_frame_after_import_warm_s": warm["prepare_s"] + warm["first_frame_s"],
+    }
+
+
+def frame_paper(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="gather")
+
+
+def frame_paper_none(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="none")
+
+
+def frame_paper_paper(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="paper")
+
+
+def frame_paper_81(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="gather", step_nm=3.75)
+
+
+def frame_paper_k8(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="gather", spectral_mode="basis", k=8)
+
+
+def frame_closeup(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="gather", z=-0.100)
+
+
+CASES = {
+    "frame_paper": frame_paper,
+    "frame_paper_none": frame_paper_none,
+    "frame_paper_paper": frame_paper_paper,
+    "frame_paper_81": frame_paper_81,
+    "frame_paper_k8": frame_paper_k8,
+    "frame_closeup": frame_closeup,
+    "cold_start_s": cold_start_s,
+}
