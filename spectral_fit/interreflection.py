@@ -81,7 +81,14 @@ from .environment import (
 )
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
-from .raster import covered_pixels, interpolate, interpolate_pixels, rasterize
+from .raster import (
+    TILE_SIZES,
+    RasterConfig,
+    covered_pixels,
+    interpolate,
+    interpolate_pixels,
+    rasterize,
+)
 from .reflectance import Material, fresnel_dielectric
 
 __all__ = [
@@ -201,6 +208,17 @@ def _ortho_clip(view: jax.Array, vertices: jax.Array, extent: jax.Array, near: j
     return jnp.stack([q[:, 0] / extent, q[:, 1] / extent, z, jnp.ones_like(z)], axis=-1)
 
 
+def _pass1_config(num_triangles: int, side: int) -> RasterConfig:
+    """Window capacities of a pass-1 raster (side², back faces culled, so at most half the
+    triangles are drawn) that hold for any pose: T/2 windows of 1 and 2 px, T/4 of 4 px, and
+    all 8×8 blocks of the target; larger windows for coarse meshes. Overflow is still flagged."""
+    half = max(16, num_triangles // 2 + 16)
+    caps = (half, half, max(16, num_triangles // 4 + 16), min(half, 256), min(half, 64),
+            min(half, 16))
+    blocks = (-(-side // 8)) ** 2
+    return RasterConfig(TILE_SIZES, tuple(int(c) for c in caps), int(blocks))
+
+
 def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array,
                     r_j: jax.Array, g: int, config: Any) -> tuple[jax.Array, ...]:
     """Orthographic pass 1 of sender j along c_i → c_j, box-filtered to g × g samples."""
@@ -218,10 +236,13 @@ def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array
     verts = jnp.asarray(obj_j.vertices, jnp.float32)
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = _ortho_clip(view, verts, extent, near, far)
+    if config is None:
+        config = _pass1_config(int(tris.shape[0]), side)
     ras = rasterize(clip, tris, (side, side), cull="back", config=config)
     hit = (ras.tri_id >= 0)
-    pos = interpolate(verts, ras, tris)
-    nrm = _normalize(interpolate(jnp.asarray(obj_j.normals, jnp.float32), ras, tris))
+    # barycentrics recomputed from the clip positions (independent of the raster's block list)
+    pos = interpolate(verts, ras, tris, clip)
+    nrm = _normalize(interpolate(jnp.asarray(obj_j.normals, jnp.float32), ras, tris, clip))
     cos_a = jnp.abs(jnp.sum(nrm * axis, axis=-1))
     texel = (2.0 * extent / side) ** 2
     a = jnp.where(hit, texel / jnp.maximum(cos_a, _MIN_COS), 0.0)  # (side, side)
@@ -253,6 +274,8 @@ def _paper_texels(obj_i: ObjectGeometry, obj_j: ObjectGeometry, t: int, capacity
     verts = jnp.asarray(obj_j.vertices, jnp.float32)
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = project(cam, verts)
+    if config is None:
+        config = _pass1_config(int(tris.shape[0]), t)
     ras = rasterize(clip, tris, (t, t), cull="back", config=config)
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(verts, pix, tris, clip)

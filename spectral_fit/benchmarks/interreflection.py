@@ -116,7 +116,8 @@ def _case(opts: BenchOptions, *, mode: str, z: float = -0.275, k: int | None = N
         sc = benchmark_scene(z, stacks=20, shape=(120, 180), capacity=2048, k=k,
                              wavelengths=wl)
     else:
-        sc = benchmark_scene(z, k=k, wavelengths=wl)
+        # capacity: the close-up covers ~66k pixels
+        sc = benchmark_scene(z, k=k, wavelengths=wl, capacity=8192 if z < -0.2 else 81920)
     objs, mats, env, rec = sc["objects"], sc["materials"], sc["env"], sc["receivers"]
     if shade_only:
         geom = prepare_interreflection(objs, mode=mode)
