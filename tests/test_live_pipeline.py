@@ -167,3 +167,34 @@ def test_resized_video_scales_the_intrinsics():
     np.testing.assert_allclose(k[1], [0, KS[1, 1] * 3, (KS[1, 2] + 0.5) * 3 - 0.5])
     np.testing.assert_allclose(k, K, atol=1e-9)
     np.testing.assert_allclose(dist, DIST)
+
+
+def test_lost_marker_object_leaves_no_interreflection():
+    """A hidden object (its marker lost) neither lights nor shadows the others: the visible
+    sphere renders as with interreflection off, in "gather" and "paper" modes (and no NaN
+    from the collapsed geometry)."""
+    import jax.numpy as jnp
+
+    from spectral_fit.renderer import prepare, render_frame
+
+    d = scene_dict(markers=False, width=120, height=80, intrinsics=False)
+    for o, x in zip(d["objects"], (-0.045, 0.045), strict=True):
+        o.update(radius=0.0375, stacks=16, slices=16, position=[x, 0.0, -0.2])
+        del o["marker"], o["marker_offset"]
+    scene = parse_scene(d)
+    out = {}
+    for m in ("none", "gather", "paper"):
+        prep = prepare(scene, mode=m, texture_size=32)
+        for vis in ((True, False), (True, True)):
+            f = render_frame(prep, visible=jnp.asarray(vis))
+            out[m, vis] = (np.asarray(f.xyz), np.asarray(f.object_id))
+    x0, oid0 = out["none", (True, False)]
+    peak = np.abs(x0[oid0 == 0]).max()
+    for m in ("gather", "paper"):
+        x, oid = out[m, (True, False)]
+        assert not np.isnan(x).any() and not np.any(oid == 1)
+        np.testing.assert_array_equal(oid, oid0)
+        assert np.abs(x[oid == 0] - x0[oid0 == 0]).max() < 1e-5 * peak, m
+        # with both visible the interreflection is there (so the comparison can fail)
+        xb, oidb = out[m, (True, True)]
+        assert np.abs(xb[oidb == 0] - x0[oid0 == 0]).max() > 1e-2 * peak, m
