@@ -5,8 +5,10 @@
 
 Each config is rendered at path depths 2 and 16 with the band trick (see
 spectral_fit/reference/render.py) and reduced to per-patch mean spectra; writes <name>.npz,
-<name>.png (preview with patch outlines) and <name>.json (summary) per config. The Mitsuba variant
-comes from SPECTRAL_FIT_MI_VARIANT or is chosen automatically (spectral_fit/reference/backend.py).
+<name>.png (preview with patch outlines) and <name>.json (summary) per config, and the simulated
+SR-3A session of two_spheres in <out>/sr3a_two_spheres (session.toml, CSV files, truth.json).
+The Mitsuba variant comes from SPECTRAL_FIT_MI_VARIANT or is chosen automatically
+(spectral_fit/reference/backend.py). The defaults reproduce the committed files.
 """
 
 from __future__ import annotations
@@ -18,12 +20,16 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = {"benchmark": "configs/benchmark.toml", "two_spheres": "configs/two_spheres.toml"}
+#: samples per pixel per pass of the committed references (8 passes each)
+DEFAULT_SPP = {"benchmark": 256, "two_spheres": 128}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", choices=sorted(CONFIGS), action="append")
-    ap.add_argument("--spp", type=int, default=512, help="samples per pixel per pass")
+    ap.add_argument("--only", choices=[*sorted(CONFIGS), "session"], action="append",
+                    help="what to make (repeatable; default: everything)")
+    ap.add_argument("--spp", type=int, help="samples per pixel per pass (default: "
+                    f"{DEFAULT_SPP})")
     ap.add_argument("--passes", type=int, default=8, help="independent passes (noise estimate)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
@@ -32,6 +38,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="override the spectral grid (smoke runs)")
     ap.add_argument("--threshold", type=float, default=0.05)
     ap.add_argument("--out", type=Path, default=REPO / "measurements" / "reference")
+    ap.add_argument("--session-spp", type=int, default=2048)
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
@@ -47,9 +54,11 @@ def main(argv: list[str] | None = None) -> int:
             d.setdefault("spectral", {}).update(start_nm=args.bands[0], end_nm=args.bands[1],
                                                 step_nm=args.bands[2])
 
-    for name in args.only or sorted(CONFIGS):
+    todo = args.only or [*sorted(CONFIGS), "session"]
+    for name in [n for n in todo if n in CONFIGS]:
         scene = load_scene(REPO / CONFIGS[name], overrides)
-        ref = make_reference(scene, name, spp=args.spp, passes=args.passes, seed=args.seed,
+        ref = make_reference(scene, name, spp=args.spp or DEFAULT_SPP[name],
+                             passes=args.passes, seed=args.seed,
                              threshold=args.threshold,
                              progress=lambda s, n=name: print(f"[{n}] {s}", flush=True))
         out = args.out
@@ -60,6 +69,16 @@ def main(argv: list[str] | None = None) -> int:
         atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2, sort_keys=True)
                           + "\n")
         print(json.dumps(summary, sort_keys=True), flush=True)
+    if "session" in todo:  # the simulated SR-3A session of two_spheres
+        from spectral_fit.reference.instrument import simulate_readings
+
+        scene = load_scene(REPO / CONFIGS["two_spheres"], overrides)
+        folder = args.out / "sr3a_two_spheres"
+        white = {"position": [0.0, 0.0, -0.275], "normal": [0.0, 0.0, 1.0],
+                 "reflectance": 0.99}
+        m = simulate_readings(scene, folder, spp=args.session_spp, seed=args.seed, white=white,
+                              progress=lambda s: print(f"[session] {s}", flush=True))
+        print(f"session written: {m}", flush=True)
     return 0
 
 

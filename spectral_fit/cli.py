@@ -20,8 +20,9 @@ COMMANDS: dict[str, str] = {
     "make-env": "make_env",
     "view": "view",
     "render": "render",
-    "validate": "validate",
     "calibrate": "calibrate",
+    "validate": "validate",
+    "fit": "fit",
     "live": "live",
 }
 

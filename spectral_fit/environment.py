@@ -51,6 +51,7 @@ __all__ = [
     "SH_C4",
     "SH_C5",
     "GlossQuadrature",
+    "QUALITIES",
     "EnvironmentMap",
     "rotation_y",
     "texel_directions",
@@ -175,30 +176,48 @@ def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
 class GlossQuadrature:
     """Settings of the gloss lobe quadrature (static).
 
+    Two qualities share one prefiltered map: ``"exact"`` (the default, for fitting and
+    validation) and ``"render"`` (fewer lookups, for frames); see :func:`gloss_integral`.
+
     Attributes:
-        radial, azimuthal: nodes (Gauss–Legendre) of the radiance quadrature: rings in
-            s = θh/μ' (Gaussian) or tanθh/m' (Beckmann), and azimuths over each ring's visible arc.
-            Each node costs two bilinear lookups of C channels.
+        radial, azimuthal: nodes (Gauss–Legendre) of the exact radiance quadrature: rings in
+            s = θh/μ' (Gaussian) or tanθh/m' (Beckmann), and azimuths over each ring's visible
+            arc. Each node costs two bilinear lookups of r channels.
+        prefilter_ratio: r, the prefilter std in reflected directions as a fraction of the lobe's
+            (√2 μ cosθr across the plane of incidence); the lobe is narrowed to compensate.
+        render_radial, render_azimuthal, render_prefilter_ratio: the same for ``"render"``.
         albedo_radial, albedo_azimuthal: nodes of the scalar lobe-albedo quadrature (no lookups;
             the azimuthal nodes cover half of the symmetric visible arc).
-        prefilter_ratio: r, the prefilter std in reflected directions as a fraction of the lobe's
-            (√2 μ per axis at normal incidence); the lobe is narrowed to μ' = √(μ² − σ²/2) so
-            that lobe ⊛ prefilter ≈ the true lobe.
+        albedo_table: ``"render"`` interpolates the lobe albedo in √(1 − cosθr) from this many
+            exact values per material (computed once per call, not per point).
+        horizon_ratio: a node's prefilter std is at most this fraction of its elevation above
+            the surface's horizon (so no light from behind the surface is blurred in).
         levels: number of prefiltered levels besides the unfiltered map (std ratio 2).
         max_sources: at most this many bright texels are taken out of the map as explicit
-            sources (0 disables it).
+            sources, integrated exactly (0, the default, disables it).
         source_threshold: a texel is a source when its channel-summed |radiance| exceeds this
             multiple of the map's solid-angle-weighted mean.
+        nodes: "visible" (rings × visible arcs) or "gauss" (Gauss–Laguerre rings × full
+            azimuths over the whole narrowed lobe; the earlier rule, kept for comparison).
     """
 
-    radial: int = 6
-    azimuthal: int = 8
+    radial: int = 16
+    azimuthal: int = 32
+    prefilter_ratio: float = 0.3
+    render_radial: int = 8
+    render_azimuthal: int = 16
+    render_prefilter_ratio: float = 0.3
     albedo_radial: int = 16
     albedo_azimuthal: int = 8
-    prefilter_ratio: float = 0.35
+    albedo_table: int = 48
+    horizon_ratio: float = 0.2
     levels: int = 7
-    max_sources: int = 128
+    max_sources: int = 0
     source_threshold: float = 6.0
+    nodes: str = "visible"
+
+
+QUALITIES = ("exact", "render")
 
 
 class EnvironmentMap(eqx.Module):
@@ -403,10 +422,37 @@ def _extract_sources(img: np.ndarray, max_sources: int, threshold: float
     return residual, uv_to_direction(u, v), excess / 4.0
 
 
+def _sphere_blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    """Isotropic Gaussian blur of an (H, W, C) equirectangular map on the sphere: every output
+    texel is the solid-angle-weighted mean of all texels with weights exp(−γ²/2σ²), γ the great
+    circle angle between texel centres. The weights between two rows depend only on the azimuth
+    difference (a circulant), so each row pair is a circular convolution, done by FFT along the
+    rows: exact on the texel-centre sampling, at any latitude and across the poles."""
+    if sigma <= 0:
+        return img
+    h, w, c = img.shape
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2.0 * np.pi * np.arange(w) / w
+    ct, st = np.cos(theta), np.sin(theta)
+    cosg = (ct[:, None, None] * ct[None, :, None]
+            + st[:, None, None] * st[None, :, None] * np.cos(phi)[None, None, :])
+    gamma = np.arccos(np.clip(cosg, -1.0, 1.0))
+    k = np.exp(-0.5 * (gamma / sigma) ** 2) * st[None, :, None]  # (H_out, H_in, W)
+    norm = k.sum(axis=(1, 2))  # (H_out,)
+    kf = np.fft.rfft(k, axis=2)  # (H, H, W/2+1)
+    ff = np.fft.rfft(img, axis=1)  # (H, W/2+1, C)
+    # out_i(φ) = Σ_j Σ_φ' k_ij(φ − φ') img_j(φ')  (k is even in φ)
+    of = np.matmul(kf.transpose(2, 0, 1), ff.transpose(1, 0, 2))  # (W/2+1, H, C)
+    out = np.fft.irfft(of.transpose(1, 0, 2), n=w, axis=1)
+    return out / norm[:, None, None]
+
+
 def _build_levels(img: np.ndarray, n_levels: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """Level 0 = the map; level k >= 1: blurred to std σ_k = Δ·2^(k−1) (Δ = π/H, one texel),
-    stored at the coarsest resolution (halvings of the map) with texels <= σ_k/2. Blurs are
-    cascaded (Gaussian variances add); a halving adds the variance Δ_new²/16 of a pair average."""
+    """Level 0 = the map; level k >= 1: blurred to std σ_k = Δ·2^(k−1) (Δ = π/H, one texel)
+    by an exact spherical Gaussian (:func:`_sphere_blur`), stored at the coarsest resolution
+    (halvings of the map) with texels <= σ_k/2. Each level is made from the map itself: halved
+    by solid-angle-weighted 2×2 averages (each halving adds the variance Δ_new²/16 of a pair
+    average), then blurred by the rest of the variance."""
     h0 = img.shape[0]
     delta = math.pi / h0
     levels, sigmas = [img], [0.0]
@@ -420,9 +466,7 @@ def _build_levels(img: np.ndarray, n_levels: int) -> tuple[list[np.ndarray], np.
                 break
             cur = _downsample2(cur)
             var += d_new**2 / 16.0  # a pair average of texels Δ_new/2 apart
-        cur = _blur(cur, math.sqrt(max(sigma**2 - var, 0.0)))
-        var = sigma**2
-        levels.append(cur)
+        levels.append(_sphere_blur(cur, math.sqrt(max(sigma**2 - var, 0.0))))
         sigmas.append(sigma)
     return levels, np.asarray(sigmas)
 
@@ -477,6 +521,57 @@ def _bilinear(flat: jax.Array, off: Any, hk: Any, wk: Any, d_map: Any,
     idx = jnp.stack([i00, i01, i10, i11])
     w = jnp.stack([(1 - wy1) * (1 - fx), (1 - wy1) * fx, wy1 * (1 - fx), wy1 * fx])
     return jnp.einsum("i,ic->c", w, flat.at[idx].get(mode="promise_in_bounds"))
+
+
+def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk: jax.Array
+                   ) -> tuple[jax.Array, jax.Array]:
+    """Atlas rows (..., 4) and weights (..., 4) of the bilinear lookup of :func:`_bilinear`
+    (same wrapping and pole blending), elementwise in (u, v) and the level's (off, hk, wk)."""
+    dtype = u.dtype
+    tx = u * wk.astype(dtype) - 0.5
+    ty = v * hk.astype(dtype) - 0.5
+    x0f = jnp.floor(tx)
+    fx = tx - x0f
+    x0 = jnp.mod(x0f.astype(jnp.int32), wk)
+    x1 = jnp.where(x0 + 1 >= wk, 0, x0 + 1)
+    y0f = jnp.floor(ty)
+    fy = ty - y0f
+    y0 = y0f.astype(jnp.int32)
+    north = y0 < 0
+    south = y0 >= hk - 1
+    wy1 = jnp.clip(jnp.where(north, 2.0 * fy - 1.0, jnp.where(south, 2.0 * fy, fy)), 0.0, 1.0)
+    r0 = off + jnp.clip(y0, 0, hk - 1) * wk
+    r1 = off + jnp.clip(y0 + 1, 0, hk - 1) * wk
+    pole_n = off + hk * wk
+    idx = jnp.stack([jnp.where(north, pole_n, r0 + x0), jnp.where(north, pole_n, r0 + x1),
+                     jnp.where(south, pole_n + 1, r1 + x0),
+                     jnp.where(south, pole_n + 1, r1 + x1)], axis=-1)
+    w = jnp.stack([(1 - wy1) * (1 - fx), (1 - wy1) * fx, wy1 * (1 - fx), wy1 * fx], axis=-1)
+    return idx, w
+
+
+def _select(table: Any, index: jax.Array) -> jax.Array:
+    """``table[index]`` for a short static table, as a sum of masked constants (elementwise, so
+    it fuses into the surrounding arithmetic instead of becoming a gather)."""
+    out = jnp.zeros(index.shape, jnp.asarray(table[0]).dtype)
+    for k, value in enumerate(table):
+        out = jnp.where(index == k, value, out)
+    return out
+
+
+def _lookup_blend(env: EnvironmentMap, u: jax.Array, v: jax.Array, lo: jax.Array,
+                  hi: jax.Array, w_hi: jax.Array) -> jax.Array:
+    """(1 − w_hi)·level lo + w_hi·level hi, bilinear, at map coordinates (u, v) (M,): all eight
+    taps of a node gathered at once from the atlas. Returns (M, r)."""
+    shapes = [(int(h), int(w)) for h, w in env.level_shapes]
+    lev = jnp.stack([lo, hi], axis=-1)  # (M, 2)
+    hk = _select([np.int32(h) for h, _ in shapes], lev)
+    wk = _select([np.int32(w) for _, w in shapes], lev)
+    off = _select([np.int32(o) for o in env.level_offsets], lev)
+    idx, w = _bilinear_taps(u[:, None], v[:, None], off, hk, wk)  # (M, 2, 4)
+    w = w * jnp.stack([1.0 - w_hi, w_hi], axis=-1)[..., None]
+    taps = env.atlas.at[idx.reshape(-1)].get(mode="promise_in_bounds")
+    return jnp.einsum("mk,mkc->mc", w.reshape(-1, 8), taps.reshape(-1, 8, taps.shape[-1]))
 
 
 def _to_map(env: EnvironmentMap, direction: jax.Array) -> jax.Array:
@@ -739,6 +834,98 @@ def _narrowed_nodes(
     return H, wq * jac, cos_h
 
 
+def _visible_nodes(
+    N: jax.Array, V: jax.Array, mu: jax.Array, var: jax.Array, nv: jax.Array, *,
+    distribution: str, radial: int, azimuthal: int,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Half vectors (M, 3), relative weights (M,) and cosθh (M,) of a quadrature of the gloss
+    lobe narrowed for a reflected-direction prefilter of variance ``var`` per axis, restricted to
+    the half vectors whose reflection is above the surface.
+
+    The narrowed lobe is an anisotropic Gaussian in the lobe's tangent coordinates (θh for the
+    Gaussian D, tanθh for Beckmann) with squared widths w_t² = μ² − var/2 along V's azimuth
+    (reflection doubles angles in the plane of incidence) and w_b² = μ² − var/(2cos²θr) across
+    it. Nodes: rings at s = θh/w_t (or tanθh/w_t), Gauss–Legendre in t = 1 − e^{−s²} on
+    [0, t(s_max)] (so the radial weight s e^{−s²} ds = dt/2 is integrated exactly), s_max from
+    the horizon (θh <= π/4 + θr/2) and the truncation s <= 4.5; on each ring Gauss–Legendre in
+    the azimuth φ' (from V's azimuth) over the whole visible arc |φ'| <= φ_max(θh) (N·L > 0 ⟺
+    sin2θh sinθr cosφ' > −cosθr cos2θh). The across-axis narrowing enters the weights as
+    exp(−s² sin²φ' (w_t²/w_b² − 1)). The nodes move smoothly with μ, N and V and never sample
+    the map below the horizon, so the quadrature converges on the visible lobe alone."""
+    dtype = N.dtype
+    xr, wr = np.polynomial.legendre.leggauss(radial)
+    xa, wa = np.polynomial.legendre.leggauss(azimuthal)
+    xr, wr = 0.5 * (xr + 1.0), 0.5 * wr
+    nv = jnp.clip(nv, 0.0, 1.0)
+    floor = 0.01 * mu * mu
+    wt2 = jnp.maximum(mu * mu - 0.5 * var, floor)
+    wb2 = jnp.maximum(mu * mu - 0.5 * var / jnp.maximum(nv * nv, 1e-4), floor)
+    wt = jnp.sqrt(wt2)
+    theta_r = jnp.arccos(jnp.clip(nv, 1e-7, 1.0 - 1e-7))
+    theta_max = jnp.minimum(0.25 * math.pi + 0.5 * theta_r, 0.5 * math.pi - 1e-4)
+    if distribution == "gaussian":
+        s_max = jnp.minimum(theta_max / wt, _S_MAX)
+    elif distribution == "beckmann":
+        s_max = jnp.minimum(jnp.tan(theta_max) / wt, _S_MAX)
+    else:
+        raise InputError(f"unknown distribution {distribution!r}", field="distribution")
+    s = s_max * jnp.asarray(xr, dtype)  # (R,)
+    wring = s_max * jnp.asarray(wr, dtype) * s * jnp.exp(-s * s)  # s e^{-s²} ds
+    if distribution == "gaussian":
+        th = wt * s
+        cos_h, sin_h = jnp.cos(th), jnp.sin(th)
+        jac = jnp.where(th > 1e-4, sin_h / jnp.where(th > 1e-4, th, 1.0), 1.0 - th * th / 6.0)
+    else:
+        tan_h = wt * s
+        cos_h = 1.0 / jnp.sqrt(1.0 + tan_h * tan_h)
+        sin_h = tan_h * cos_h
+        jac = 1.0 / cos_h
+    sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
+    a = 2.0 * sin_h * cos_h * sin_r
+    bnum = -nv * (cos_h * cos_h - sin_h * sin_h)
+    full = bnum < -jnp.abs(a) * (1.0 - 1e-6)
+    empty = bnum > jnp.abs(a) * (1.0 - 1e-6)
+    c = jnp.where(full | empty, 0.0, bnum / jnp.where(full | empty, 1.0, a))
+    phi_max = jnp.where(full, math.pi, jnp.where(empty, 0.0, jnp.arccos(c)))  # (R,)
+    phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A), xa in [-1, 1]
+    wgt = (wring * jac * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
+    sp = jnp.sin(phi)
+    wgt = wgt * jnp.exp(-(s * s)[:, None] * sp * sp * (wt2 / wb2 - 1.0))
+    T, B = _view_frame(N, V)
+    tang = jnp.cos(phi)[..., None] * T + sp[..., None] * B  # (R, A, 3)
+    H = cos_h[:, None, None] * N + sin_h[:, None, None] * tang
+    ch = jnp.broadcast_to(cos_h[:, None], phi.shape)
+    return H.reshape(-1, 3), wgt.reshape(-1), ch.reshape(-1)
+
+
+def _albedo_table(mu: jax.Array, n: jax.Array, size: int, *, distribution: str, geometry: str,
+                  fresnel: bool, radial: int, azimuthal: int) -> jax.Array:
+    """Exact lobe albedos (size,) at cosθr = 1 − x², x = j/(size − 1) (see :func:`_lobe_albedo`).
+    Independent of the point, so under ``jax.vmap`` over points it is computed once."""
+    x = np.linspace(0.0, 1.0, size)
+    c = np.maximum(1.0 - x * x, 1e-3)
+    dtype = jnp.result_type(mu, jnp.float32)
+    return jax.vmap(lambda cc: _lobe_albedo(cc, mu, n, mu, distribution=distribution,
+                                            geometry=geometry, fresnel=fresnel, radial=radial,
+                                            azimuthal=azimuthal))(jnp.asarray(c, dtype))
+
+
+def _interp_table(table: jax.Array, nv: jax.Array) -> jax.Array:
+    """Catmull–Rom cubic interpolation (C¹) of :func:`_albedo_table` at cosθr = ``nv``; the
+    albedo is even in θr, hence smooth in x = √(1 − cosθr)."""
+    size = table.shape[0]
+    x = jnp.sqrt(jnp.clip(1.0 - nv, 0.0, 1.0)) * (size - 1)
+    i = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, size - 2)
+    t = x - i.astype(x.dtype)
+    # mirror at x = 0 (even function), clamp at the grazing end
+    p0 = table[jnp.abs(i - 1)]
+    p1 = table[i]
+    p2 = table[i + 1]
+    p3 = table[jnp.minimum(i + 2, size - 1)]
+    return p1 + 0.5 * t * (p2 - p0 + t * (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3
+                                          + t * (3.0 * (p1 - p2) + p3 - p0)))
+
+
 def gloss_integral(
     env: EnvironmentMap,
     normal: Any,
@@ -749,24 +936,29 @@ def gloss_integral(
     distribution: str = "gaussian",
     geometry: str = "vcavity",
     fresnel: bool = True,
+    quality: str = "exact",
 ) -> jax.Array:
-    """Gloss radiance per unit β (C,): ∫ L(ω) F(n, θd) D(μ, θh) G / (4 cosθr) dω (DESIGN §2).
+    """Gloss radiance per unit β (C,): ∫ L(ω) F(n, θd) D(μ, θh) G / (4 cosθr) dω (DESIGN §2,
+    the gloss term of eq. 5).
 
     Method. With dω_L = 4 (V·H) dω_H the integral is ∫ D(H) g(H) L(l(H)) dω_H,
     g = F G (V·H)/(N·V), over the half vectors whose reflection l(H) is above the surface. It is
     split as A · ⟨L⟩:
 
     - A = ∫ D g dω_H, the lobe's directional albedo, by a fine scalar quadrature
-      (``GlossQuadrature.albedo_radial`` × ``albedo_azimuthal`` nodes; no map lookups);
-    - ⟨L⟩ = ∫ D' g L_σ / ∫ D' g, the g-weighted mean radiance over the lobe, by a coarse
-      quadrature (``radial`` × ``azimuthal`` nodes) on a prefiltered copy L_σ of the map
-      (Gaussian prefilter of std σ ≈ r·√2·μ in reflected directions, two adjacent levels blended
-      smoothly in μ) with the lobe narrowed to μ'² = μ² − σ²/2, so that narrowed lobe ⊛
-      prefilter has the true lobe's width (exact for a Gaussian lobe at normal incidence).
+      (``albedo_radial`` × ``albedo_azimuthal`` nodes; no map lookups). ``"render"``
+      interpolates it from a per-material table in cosθr (:func:`_albedo_table`).
+    - ⟨L⟩ = ∫ D' g L_σ / ∫ D' g, the g-weighted mean radiance over the lobe, by a quadrature on
+      the visible part of the lobe (:func:`_visible_nodes`) of a prefiltered copy L_σ of the
+      map (exact spherical Gaussian, std σ = r·√2·μ·cosθr in reflected directions, two adjacent
+      levels blended smoothly in log σ) with the lobe D' narrowed so that narrowed lobe ⊛
+      prefilter has the true lobe's width; near the surface's horizon each node's σ is cut to
+      ``horizon_ratio`` × its elevation.
 
-    Both quadratures place nodes on the visible part of the lobe only (see
-    :func:`_lobe_albedo`), so they move smoothly with μ, n, N, V: the result is smooth in μ and
-    n (no tables in μ). Zero if N·V <= 0.
+    The nodes move smoothly with μ, n, N, V, so the result is smooth in μ and n (no tables in
+    μ or n; the level blend is C² in σ). ``quality`` picks the node counts and r:
+    ``"exact"`` (16 × 32 nodes, r = 0.3) or ``"render"`` (8 × 16 nodes, r = 0.3; see
+    docs/lighting.md for the measured accuracy of each). Zero if N·V <= 0.
 
     Args:
         normal, view: world unit vectors (3,).
@@ -774,7 +966,11 @@ def gloss_integral(
         n: refractive index > 1.
         geometry: "vcavity", "smith" or "none" (G = 1, for furnace tests).
         fresnel: False sets F = 1 (furnace tests).
+        quality: "exact" or "render" (static).
     """
+    if quality not in QUALITIES:
+        raise InputError(f"unknown quality {quality!r}; choose one of {QUALITIES}",
+                         field="quality")
     N = jnp.asarray(normal)
     V = jnp.asarray(view)
     dtype = env.atlas.dtype
@@ -784,23 +980,34 @@ def gloss_integral(
     n = jnp.asarray(n, dtype)
     quad = env.quadrature
     kw = dict(geometry=geometry, fresnel=fresnel)
+    nv_raw = jnp.dot(N, V)
+    nv = jnp.clip(nv_raw, 0.0, 1.0)
     # A: directional albedo of the lobe (true width)
-    albedo = _lobe_albedo(jnp.dot(N, V), mu, n, mu, distribution=distribution,
-                          radial=quad.albedo_radial, azimuthal=quad.albedo_azimuthal, **kw)
+    akw = dict(distribution=distribution, radial=quad.albedo_radial,
+               azimuthal=quad.albedo_azimuthal, **kw)
+    if quality == "render":
+        albedo = _interp_table(_albedo_table(mu, n, quad.albedo_table, **akw), nv)
+        radial, azimuthal, ratio = (quad.render_radial, quad.render_azimuthal,
+                                    quad.render_prefilter_ratio)
+    else:
+        albedo = _lobe_albedo(nv_raw, mu, n, mu, **akw)
+        radial, azimuthal, ratio = quad.radial, quad.azimuthal, quad.prefilter_ratio
     # <L>: mean prefiltered radiance over the narrowed lobe
-    nv = jnp.clip(jnp.dot(N, V), 0.0, 1.0)
-    lo, hi, w_hi, var = _levels_for(
-        env, quad.prefilter_ratio * math.sqrt(2.0) * mu * jnp.maximum(nv, 0.05))
-    Hb, wb, chb = _narrowed_nodes(N, V, mu, var, nv, distribution=distribution,
-                                  radial=quad.radial, azimuthal=quad.azimuthal)
+    sigma = ratio * math.sqrt(2.0) * mu * jnp.maximum(nv, 0.05)
+    _, _, _, var = _levels_for(env, sigma)
+    nodes = _visible_nodes if quad.nodes == "visible" else _narrowed_nodes
+    Hb, wb, chb = nodes(N, V, mu, var, nv, distribution=distribution,
+                        radial=radial, azimuthal=azimuthal)
     gb, L = _lobe_factor(N, V, Hb, chb, mu, n, **kw)
     f = wb * gb
+    # near the surface's horizon the prefilter would blur in light from behind the surface:
+    # there each node's prefilter std is cut to a fraction of its elevation above the horizon
+    elev = jnp.maximum(L @ N, 0.0)
+    lo, hi, w_hi, _ = _levels_for(env, jnp.minimum(sigma, quad.horizon_ratio * elev))
     u, v = direction_to_uv(_to_map(env, L))
-    look = jax.vmap(lambda uu, vv, lev: lookup_level(env, lev, None, (uu, vv)),
-                    in_axes=(0, 0, None))
-    radiance = (1.0 - w_hi) * look(u, v, lo) + w_hi * look(u, v, hi)  # (M, r)
+    radiance = _lookup_blend(env, u, v, lo, hi, w_hi)  # (M, r)
     total = jnp.sum(f)
-    ok = (jnp.dot(N, V) > 0.0) & (total > 0.0)
+    ok = (nv_raw > 0.0) & (total > 0.0)
     mean = (f @ radiance) / jnp.where(ok, total, 1.0)
     out = albedo * mean
     if env.source_flux.shape[0]:
@@ -849,7 +1056,8 @@ def mirror_radiance(env: EnvironmentMap, normal: Any, view: Any, n: Any) -> jax.
     return jnp.where(nv > 0.0, out, 0.0)
 
 
-def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any) -> jax.Array:
+def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any, *,
+          quality: str = "exact") -> jax.Array:
     """Radiance (C,) leaving a surface point towards V under the environment, eq. (5) in
     DESIGN §2's reading:
 
@@ -860,6 +1068,11 @@ def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any) -> ja
     are K basis coefficients and the result is the K coefficients of the radiance (the S·E
     product through ``env.product_tensor``). Unbatched: ``jax.vmap`` over points and/or
     materials. Zero if N·V <= 0.
+
+    Args:
+        normal, view: world unit vectors (3,), away from the surface.
+        quality: gloss quadrature, "exact" (fitting, validation) or "render" (frames); see
+            :func:`gloss_integral`.
     """
     N = jnp.asarray(normal)
     V = jnp.asarray(view)
@@ -869,23 +1082,23 @@ def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any) -> ja
     else:
         se = jnp.einsum("i,j,ijk->k", material.reflectance, E, env.product_tensor)
     diffuse = (material.alpha / math.pi) * se
-    geometry = material.geometry
     gloss = gloss_integral(env, N, V, material.mu, material.n,
-                           distribution=material.distribution, geometry=geometry)
+                           distribution=material.distribution, geometry=material.geometry,
+                           quality=quality)
     mirror = mirror_radiance(env, N, V, material.n)
     out = diffuse + material.beta * gloss + material.chi * mirror
     return jnp.where(jnp.dot(N, V) > 0.0, out, 0.0)
 
 
 def shade_points(material: Material, env: EnvironmentMap, normals: Any, views: Any, *,
-                 batch_size: int = 4096) -> jax.Array:
+                 batch_size: int = 4096, quality: str = "exact") -> jax.Array:
     """:func:`shade` over many points, (P, 3) normals and views → (P, C), evaluated in batches
     of ``batch_size`` points (``jax.lax.map``) so that the per-node lookups of the gloss
     quadrature never hold more than ``batch_size`` × nodes × channels values at once.
-    jit/grad-able; the same numbers as ``jax.vmap(shade)``."""
+    jit/grad-able; the same numbers as ``jax.vmap(shade)``. ``quality``: see :func:`shade`."""
     normals = jnp.asarray(normals)
     views = jnp.asarray(views)
-    return jax.lax.map(lambda nv: shade(material, env, nv[0], nv[1]),
+    return jax.lax.map(lambda nv: shade(material, env, nv[0], nv[1], quality=quality),
                        jnp.stack([normals, views], axis=1), batch_size=batch_size)
 
 

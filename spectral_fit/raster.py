@@ -125,37 +125,53 @@ class RasterConfig(NamedTuple):
         return RasterConfig(self.tile_sizes, tuple(caps), blocks)
 
 
-TILE_SIZES = (1, 2, 4, 8, 16, 32)
+TILE_SIZES = (1, 4, 16)
 
 
 def default_config(num_triangles: int, shape: tuple[int, int]) -> RasterConfig:
     """A generic configuration for ``num_triangles`` triangles on an (H, W) frame, used when
-    no measured plan exists (e.g. inside a user's ``jit``): up to T windows for S ≤ 2, T/2 for
-    S = 4, a sixteenth of the frame area for S = 8, 64 and 32 windows for S = 16, 32, and
-    blocks for a quarter of the frame."""
+    no measured plan exists (e.g. inside a user's ``jit`` without ``config=``): T windows for
+    every ladder size but the largest, which gets enough windows to tile half the frame, and
+    blocks for half the frame."""
     h, w = shape
     t = num_triangles
     area = h * w
-    caps = (t, t, t / 2, min(t, area / (16 * 64)), min(t, 64), min(t, 32))
-    blocks = (-(-h // 8)) * (-(-w // 8)) / 4
+    big = TILE_SIZES[-1]
+    caps = [t] * (len(TILE_SIZES) - 1) + [min(t, area / (2 * big * big) + 64)]
+    blocks = (-(-h // _TILE)) * (-(-w // _TILE)) / 2
     return RasterConfig(TILE_SIZES, tuple(_ladder(c) for c in caps), _ladder(blocks))
 
 
 def plan_config(clip_xyzw, triangles, shape: tuple[int, int], *, cull: str = "none",
                 headroom: float = 1.5) -> RasterConfig:
-    """Capacities measured on one pose, with ``headroom`` for motion: runs the cheap setup
-    pass, counts the windows per ladder size and sizes each list (and the block list, from
-    one rasterisation) to ``headroom`` × what this pose needs, rounded up on the ladder. Pass
-    the result as ``config=`` inside a live loop or a ``jit``; overflow is still detected."""
+    """Capacities measured on one or several poses, with ``headroom`` for motion.
+
+    Runs the cheap setup pass only (no rasterisation): counts the windows per ladder size and
+    the 8×8 pixel blocks touched by the triangles' bounding boxes (a bound on the blocks the
+    final stage visits), takes the maximum over the poses, and sizes each list to
+    ``headroom`` × that, rounded up on the ladder. Pass the result as ``config=`` inside a live
+    loop or a ``jit``; overflow is still detected.
+
+    Args:
+        clip_xyzw: ``(V, 4)`` clip positions of one pose, or ``(P, V, 4)`` for P poses
+            (e.g. the extremes of the expected motion).
+        triangles: ``(T, 3)`` int indices.
+        shape: ``(H, W)``.
+        cull: as in :func:`rasterize`.
+        headroom: factor ≥ 1 on the measured counts.
+    """
     shape = _check_shape(shape)
-    clip, tris = _validate(clip_xyzw, triangles, False)
+    if cull not in _CULL:
+        raise InputError(f"unknown cull mode {cull!r} (one of {_CULL})", field="cull")
+    poses = np.ndim(clip_xyzw) == 3
+    clip, tris = _validate(clip_xyzw, triangles, poses)
+    if not poses:
+        clip = clip[None]
     probe = default_config(int(tris.shape[0]), shape)
-    counts = np.asarray(_count_jit(clip, tris, shape=shape, cull=cull, config=probe))
+    counts = np.max(np.stack([np.asarray(_count_jit(c, tris, shape=shape, cull=cull,
+                                                    config=probe)) for c in clip]), axis=0)
     caps = tuple(_ladder(headroom * n + 16) for n in counts.tolist())
-    cfg = RasterConfig(TILE_SIZES, caps, probe.block_capacity)
-    out = _raster_jit(clip, tris, shape=shape, cull=cull, config=cfg)
-    nblocks = int(np.asarray(out.needed)[-1])
-    return cfg._replace(block_capacity=_ladder(headroom * nblocks + 16))
+    return RasterConfig(TILE_SIZES, caps[:-1], caps[-1])
 
 
 class Raster(eqx.Module):
@@ -210,9 +226,10 @@ def _edge_setup(hv):
     corners, each a tuple (X, Y, w) of arrays.
 
     Returns ``n`` (3 edges × 3 components; edge i is opposite corner i, its edge function at
-    pixel p is ``o_i · n_i · (px, py, 1)``) and ``o`` (3 arrays of ±1).
+    pixel p is ``o_i · n_i · (px, py, 1)``), ``o`` (3 arrays of ±1) and the edges' vertices in
+    canonical order (3 × (lo, hi), each a tuple (X, Y, w)).
     """
-    ns, os_ = [], []
+    ns, os_, ends = [], [], []
     for i in range(3):
         a, b = hv[(i + 1) % 3], hv[(i + 2) % 3]
         swap = _lex_less(b, a)
@@ -220,13 +237,23 @@ def _edge_setup(hv):
         hi = tuple(jnp.where(swap, aa, bb) for aa, bb in zip(a, b, strict=True))
         ns.append(_cross(lo, hi))
         os_.append(jnp.where(swap, -1.0, 1.0).astype(a[0].dtype))
-    return ns, os_
+        ends.append((lo, hi))
+    return ns, os_, ends
+
+
+# columns of the per-triangle data rows (float32)
+_C_EDGE = 0  # 3 edges × (X, Y, w of the canonical first vertex, then of the second)
+_C_SIGN = 18  # 3 inside signs σ_i (inside: σ_i·e_i > 0)
+_C_TIE = 21  # 3 values σ_i·(tie direction): the verdict where e_i == 0 exactly
+_C_DEPTH = 24  # NDC depth plane (a, b, d_a, pxa, pya): z/w = d_a + a(px − pxa) + b(py − pya)
+_C_VALID = 29  # 1 / 0
+_C_BOX = 30  # pixel-centre index box x0, y0, nx, ny
+_NCOL = 34
 
 
 def _triangle_setup(clip, triangles, shape, cull):
-    """Per-triangle data packed in one float32 array (T, 20), computed component-wise:
-    columns 0–8 edge functions n (edge i, component k at 3i + k), 9–11 inside signs σ,
-    12–14 depth plane, 15 valid (1/0), 16–19 pixel-centre index box x0, y0, nx, ny."""
+    """Per-triangle data packed in one float32 array (T, _NCOL), computed component-wise
+    (columns: see the ``_C_*`` constants)."""
     h, w = shape
     comp = [clip[:, j] for j in range(4)]
     corners = [[comp[j][triangles[:, k]] for j in range(4)] for k in range(3)]
@@ -235,10 +262,23 @@ def _triangle_setup(clip, triangles, shape, cull):
     # "expensive" op (a divide) into several consumers, whereas it recomputes chains of cheap
     # ops inside every consumer kernel (measured: the setup ran several times slower).
     one = jnp.where(clip[0, 3] == clip[0, 3], jnp.float32(1.0), jnp.float32(2.0))
-    n, o = _edge_setup(hv)
+    n, o, ends = _edge_setup(hv)
     n = [[nk / one for nk in ni] for ni in n]
     o = [oi / one for oi in o]
-    det = o[0] * (hv[0][0] * n[0][0] + hv[0][1] * n[0][1] + hv[0][2] * n[0][2]) / one
+    # det = det[hv0; hv1; hv2], evaluated with the origin moved to the projection of the
+    # corner with the largest w (a column operation: same value, no large cancelling terms).
+    # Its sign decides which side of the edges is inside (and that the point seen is in
+    # front of the eye), so it must be right even for edge-on slivers at a silhouette.
+    wmax = jnp.maximum(jnp.maximum(corners[0][3], corners[1][3]), corners[2][3])
+    anchor = [corners[k][3] == wmax for k in range(3)]
+    xa = jnp.where(anchor[0], hv[0][0], jnp.where(anchor[1], hv[1][0], hv[2][0]))
+    ya = jnp.where(anchor[0], hv[0][1], jnp.where(anchor[1], hv[1][1], hv[2][1]))
+    inv_wa = 1.0 / jnp.where(wmax > 0, wmax, 1.0)
+    pxa = jnp.where(wmax > 0, xa * inv_wa, 0.0) / one
+    pya = jnp.where(wmax > 0, ya * inv_wa, 0.0) / one
+    rel = [(v[0] - pxa * v[2], v[1] - pya * v[2], v[2]) for v in hv]
+    c12 = _cross(rel[1], rel[2])
+    det = (rel[0][0] * c12[0] + rel[0][1] * c12[1] + rel[0][2] * c12[2]) / one
     # In pixel coordinates y points down, so a front face (counter-clockwise in NDC) has det < 0.
     valid = jnp.isfinite(det) & (det != 0)
     if cull == "back":
@@ -248,26 +288,25 @@ def _triangle_setup(clip, triangles, shape, cull):
     s = jnp.sign(det)
     inv_det = 1.0 / jnp.where(valid, det, 1.0)
     z = [c[2] for c in corners]
-    zc = [sum(z[i] * o[i] * n[i][k] for i in range(3)) * inv_det for k in range(3)]
-    # The homogeneous form above divides by a triple product of nearly parallel vectors for
-    # small triangles (float32 loses ~5 digits: depth errors up to 0.15 in NDC on the
-    # benchmark spheres, enough to show back faces). When all three vertices are in front of
-    # the eye, take the same plane z/w = a·x + b·y + c from screen-space differences instead.
-    front = (hv[0][2] > 0) & (hv[1][2] > 0) & (hv[2][2] > 0)
-    sw = [jnp.where(front, hv[i][2], 1.0) for i in range(3)]
-    sx = [hv[i][0] / sw[i] for i in range(3)]
-    sy = [hv[i][1] / sw[i] for i in range(3)]
-    sz = [z[i] / sw[i] for i in range(3)]
-    e1x, e1y, e2x, e2y = sx[1] - sx[0], sy[1] - sy[0], sx[2] - sx[0], sy[2] - sy[0]
-    dz1, dz2 = sz[1] - sz[0], sz[2] - sz[0]
-    den = e1x * e2y - e1y * e2x
-    ok = front & (den != 0)
-    inv_den = 1.0 / jnp.where(ok, den, 1.0)
-    za = (dz1 * e2y - dz2 * e1y) * inv_den
-    zb = (dz2 * e1x - dz1 * e2x) * inv_den
-    zc = [jnp.where(ok, za, zc[0]), jnp.where(ok, zb, zc[1]),
-          jnp.where(ok, sz[0] - za * sx[0] - zb * sy[0], zc[2])]
-    comps = [n[i][k] for i in range(3) for k in range(3)] + [o[i] * s for i in range(3)] + zc
+    # NDC depth z/w is affine in pixel coordinates: z/w = d_a + a·(px − pxa) + b·(py − pya),
+    # anchored at the projection of the corner with the largest w (exact to rounding there);
+    # the gradient comes from edge normals of the anchored coordinates (little cancellation)
+    # and only acts over the distance to the anchor (a plane stored as a·px + b·py + c loses
+    # ~1e−5 for edge-on triangles far from the frame's origin).
+    cr = [_cross(rel[(i + 1) % 3], rel[(i + 2) % 3]) for i in range(3)]
+    zc = [sum(z[i] * cr[i][k] for i in range(3)) * inv_det for k in range(2)]
+    # The constant term of the depth plane from the homogeneous formula cancels badly (its
+    # terms are ~X·Y of the pixel coordinates; errors ~1e-4 in NDC depth for small, distant
+    # triangles). Anchor the plane at the corner with the largest w instead: z/w there is
+    # exact to rounding, and the gradient's error only acts over the triangle's extent.
+    za = jnp.where(anchor[0], z[0], jnp.where(anchor[1], z[1], z[2]))
+    zc += [jnp.where(wmax > 0, za * inv_wa, sum(z[i] * cr[i][2] for i in range(3)) * inv_det),
+           pxa, pya]
+    sigma = [o[i] * s for i in range(3)]
+    # tie rule: a centre exactly on an edge goes to the side the edge function takes at the
+    # centre moved by +ε in x (then +ε² in y); n_i[0], n_i[1] are its x and y derivatives
+    tie = [jnp.sign(sigma[i] * jnp.where(n[i][0] != 0, n[i][0], n[i][1])) for i in range(3)]
+    comps = [c for lo, hi in ends for c in (*lo, *hi)] + sigma + tie + zc
 
     # conservative box: the polygon clipped to z >= -w
     d = [c[2] + c[3] for c in corners]
@@ -322,18 +361,31 @@ def _triangle_setup(clip, triangles, shape, cull):
     return data / one
 
 
+def _plane(zp, px, py):
+    """NDC depth at pixel coordinates from the anchored plane (a, b, d_a, pxa, pya)."""
+    return zp[..., 2] + zp[..., 0] * (px - zp[..., 3]) + zp[..., 1] * (py - zp[..., 4])
+
+
 def _cover(rows, px, py):
-    """Coverage and depth of pixel centres (px, py) (..., S, S) for triangle rows (..., 16)."""
+    """Coverage and depth of pixel centres (px, py) (..., S, S) for triangle rows (..., _NCOL).
+
+    Edge functions are evaluated relative to the pixel, e = (X_lo − px·w_lo)(Y_hi − py·w_hi)
+    − (Y_lo − py·w_lo)(X_hi − px·w_hi), from the edge's two vertices in canonical order: the
+    two triangles sharing an edge run the identical float operations on identical operands
+    (so they see bit-identical values, whatever FMA contraction the compiler applies), and
+    no large terms cancel (the error is ~1e−7 of the pixel's distance to the vertices)."""
     r = rows[..., None, None, :]
     inside = None
     for i in range(3):
-        nx_, ny_, nz_ = r[..., 3 * i], r[..., 3 * i + 1], r[..., 3 * i + 2]
-        g = nx_ * px + ny_ * py + nz_
-        tie = jnp.where(nx_ != 0, nx_, ny_)
-        key = jnp.where(g != 0, g, tie)
-        ins = r[..., 9 + i] * key > 0
+        c = _C_EDGE + 6 * i
+        xl = r[..., c] - px * r[..., c + 2]
+        yl = r[..., c + 1] - py * r[..., c + 2]
+        xh = r[..., c + 3] - px * r[..., c + 5]
+        yh = r[..., c + 4] - py * r[..., c + 5]
+        e = xl * yh - yl * xh
+        ins = jnp.where(e != 0, r[..., _C_SIGN + i] * e, r[..., _C_TIE + i]) > 0
         inside = ins if inside is None else inside & ins
-    depth = r[..., 12] * px + r[..., 13] * py + r[..., 14]
+    depth = _plane(r[..., _C_DEPTH:_C_DEPTH + 5], px, py)
     inside = inside & (depth >= -1.0) & (depth <= 1.0)
     return inside, depth
 
@@ -385,14 +437,13 @@ def _scan(op, x, identity, block: int = 64):
 
 
 _TILE = 8  # side of the square pixel blocks of the final (barycentric/depth) stage
-_NCOL = 20
 
 
 def _window_counts(data, config):
     """Windows per triangle and ladder size: (m (NB, T), tx (NB, T)) (static divisors)."""
-    valid = data[:, 15] > 0
-    nx = data[:, 18].astype(jnp.int32)
-    ny = data[:, 19].astype(jnp.int32)
+    valid = data[:, _C_VALID] > 0
+    nx = data[:, _C_BOX + 2].astype(jnp.int32)
+    ny = data[:, _C_BOX + 3].astype(jnp.int32)
     shorter = jnp.minimum(nx, ny)
     sizes = config.tile_sizes
     ms, txs = [], []
@@ -428,7 +479,7 @@ def _window_lists(data, config):
         tri = _scan(jnp.maximum, first, 0)
         k = jnp.arange(cap, dtype=jnp.int32)
         live = k < total
-        d = data[tri]  # (C, 20)
+        d = data[tri]  # (C, _NCOL)
         local = k - (cb[tri] - mb[tri])  # window number within its triangle
         txt = jnp.maximum(tx[b][tri], 1)
         # row = local // txt in float32: exact while row·txt < 2^22 (always here: at most
@@ -436,8 +487,8 @@ def _window_lists(data, config):
         row = jnp.floor((local.astype(jnp.float32) + 0.5) / txt.astype(jnp.float32))
         row = row.astype(jnp.int32)
         col = local - row * txt
-        ox = jnp.where(live, d[:, 16].astype(jnp.int32) + col * s, 0)
-        oy = jnp.where(live, d[:, 17].astype(jnp.int32) + row * s, 0)
+        ox = jnp.where(live, d[:, _C_BOX].astype(jnp.int32) + col * s, 0)
+        oy = jnp.where(live, d[:, _C_BOX + 1].astype(jnp.int32) + row * s, 0)
         out.append((s, jnp.stack([oy, ox], -1), tri, d, live, total))
     return out
 
@@ -481,7 +532,7 @@ def _resolve(lists, dvals, bshape):
     return ibuf
 
 
-def _finish(data, ibuf, shape, block_capacity):
+def _finish(data, clip, triangles, ibuf, shape, block_capacity):
     """Raster fields: barycentrics and depth of the winners, computed only in the 8×8 pixel
     blocks that contain a visible triangle (a fixed-capacity list of blocks). Blocks of the
     last row/column are shifted inside the frame when H or W is not a multiple of 8 (they
@@ -510,14 +561,16 @@ def _finish(data, ibuf, shape, block_capacity):
     ids = lax.gather(ibuf, idx, dn, (bh, bw),
                      mode=lax.GatherScatterMode.PROMISE_IN_BOUNDS)  # (B, bh, bw)
     hit = ids != _INT_MAX
-    r = data[jnp.where(hit, ids, 0)]  # (B, bh, bw, 20)
+    tid = jnp.where(hit, ids, 0)
+    zplane = data[:, _C_DEPTH:_C_DEPTH + 5][tid]  # (B, bh, bw, 5)
     pxs = idx[:, 1].astype(jnp.float32)[:, None, None] + (jnp.arange(bw) + 0.5)[None, None, :]
     pys = idx[:, 0].astype(jnp.float32)[:, None, None] + (jnp.arange(bh) + 0.5)[None, :, None]
-    gam = [(r[..., 3 * i] * pxs + r[..., 3 * i + 1] * pys + r[..., 3 * i + 2]) * r[..., 9 + i]
-           for i in range(3)]
-    tot = jnp.where(hit, gam[0] + gam[1] + gam[2], 1.0)
-    bary_b = jnp.stack([jnp.where(hit, g / tot, 0.0) for g in gam], -1)  # (B, bh, bw, 3)
-    depth_b = jnp.where(hit, r[..., 12] * pxs + r[..., 13] * pys + r[..., 14], 1.0)
+    pxs = jnp.broadcast_to(pxs, ids.shape)
+    pys = jnp.broadcast_to(pys, ids.shape)
+    bary_b, _ = _bary_at(clip, triangles, jnp.where(hit, ids, -1).reshape(-1),
+                         pxs.reshape(-1), pys.reshape(-1), shape)
+    bary_b = bary_b.reshape(ids.shape + (3,))  # (B, bh, bw, 3)
+    depth_b = jnp.where(hit, _plane(zplane, pxs, pys), 1.0)
     # unused slots point outside the frame and are dropped
     sidx = jnp.where(live[:, None], idx, jnp.asarray([h, w], jnp.int32))
     mode = lax.GatherScatterMode.FILL_OR_DROP
@@ -536,7 +589,8 @@ def _raster_single(clip, triangles, shape, cull, config):
     lists = _window_lists(data, config)
     dvals = _evaluate(lists)
     ibuf = _resolve(lists, dvals, _buffer_shape(shape, config))
-    tri_id, bary, depth, nblocks = _finish(data, ibuf, shape, config.block_capacity)
+    tri_id, bary, depth, nblocks = _finish(data, clip, triangles, ibuf, shape,
+                                           config.block_capacity)
     needed = jnp.stack([lst[5] for lst in lists] + [nblocks]).astype(jnp.int32)
     caps = jnp.asarray((*config.capacities, config.block_capacity), jnp.int32)
     overflow = jnp.any(needed > caps)
@@ -544,10 +598,24 @@ def _raster_single(clip, triangles, shape, cull, config):
 
 
 def _count_single(clip, triangles, shape, cull, config):
-    """Windows needed per ladder size (no rasterisation): sizes the first configuration."""
+    """Windows needed per ladder size, then a bound on the 8×8 blocks holding visible
+    triangles (blocks touched by a valid triangle's pixel box), without rasterising."""
+    h, w = shape
     data = _triangle_setup(lax.stop_gradient(clip.astype(jnp.float32)), triangles, shape, cull)
     m, _ = _window_counts(data, config)
-    return jnp.sum(m, axis=1)
+    valid = data[:, _C_VALID] > 0
+    x0, y0 = data[:, _C_BOX].astype(jnp.int32), data[:, _C_BOX + 1].astype(jnp.int32)
+    x1 = x0 + data[:, _C_BOX + 2].astype(jnp.int32) - 1
+    y1 = y0 + data[:, _C_BOX + 3].astype(jnp.int32) - 1
+    th, tw = -(-h // _TILE), -(-w // _TILE)
+    bx0, by0, bx1, by1 = x0 // _TILE, y0 // _TILE, x1 // _TILE + 1, y1 // _TILE + 1
+    one = jnp.where(valid, 1, 0).astype(jnp.int32)
+    diff = jnp.zeros((th + 1, tw + 1), jnp.int32)
+    diff = diff.at[by0, bx0].add(one, mode="drop").at[by0, bx1].add(-one, mode="drop")
+    diff = diff.at[by1, bx0].add(-one, mode="drop").at[by1, bx1].add(one, mode="drop")
+    cover = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)[:th, :tw]
+    nblocks = jnp.sum(cover > 0)
+    return jnp.concatenate([jnp.sum(m, axis=1), nblocks[None]]).astype(jnp.int32)
 
 
 _count_jit = jax.jit(_count_single, static_argnames=("shape", "cull", "config"))
@@ -632,8 +700,7 @@ def _run(jitted, clip, triangles, shape, cull, config, check):
         elif traced:
             cfg = default_config(t, shape)
         else:
-            first = clip[0] if batched else clip
-            cfg = plan_config(first, triangles, shape, cull=cull)
+            cfg = plan_config(clip, triangles, shape, cull=cull)  # all views when batched
         if not traced:
             _LADDER[key] = cfg
     out = jitted(clip, triangles, shape=shape, cull=cull, config=cfg)
@@ -691,9 +758,12 @@ def _bary_at(clip, triangles, tri_id, px, py, shape):
     hit = tri_id >= 0
     idx = triangles[jnp.where(hit, tri_id, 0)]  # (N, 3)
     hv = clip_to_pixel(clip[idx], shape)  # (N, 3, 3)
-    p = jnp.stack([px, py, jnp.ones_like(px)], -1)
-    gam = jnp.stack([jnp.sum(jnp.cross(hv[:, (i + 1) % 3], hv[:, (i + 2) % 3]) * p, -1)
-                     for i in range(3)], -1)
+    # edge functions with the pixel moved to the origin (X − px·w, Y − py·w): no large
+    # cancelling terms, so the barycentrics keep float32 precision on small triangles
+    rx = hv[..., 0] - px[:, None] * hv[..., 2]
+    ry = hv[..., 1] - py[:, None] * hv[..., 2]
+    gam = jnp.stack([rx[:, (i + 1) % 3] * ry[:, (i + 2) % 3]
+                     - ry[:, (i + 1) % 3] * rx[:, (i + 2) % 3] for i in range(3)], -1)
     tot = jnp.sum(gam, -1)
     tot = jnp.where(hit & (tot != 0), tot, 1.0)
     return jnp.where(hit[:, None], gam / tot[:, None], 0.0), idx
@@ -708,6 +778,7 @@ def interpolate(attributes, raster: Raster, triangles, clip_xyzw=None) -> jax.Ar
     w.r.t. ``attributes`` AND ``clip_xyzw``; without it the (gradient-free) ``raster.bary`` is
     used and only the attributes are differentiated. Unbatched: ``jax.vmap`` it over views.
     """
+    _check_interp_args(attributes, triangles, clip_xyzw)
     attributes = jnp.asarray(attributes)
     triangles = jnp.asarray(triangles, jnp.int32)
     h, w = raster.tri_id.shape
@@ -723,6 +794,31 @@ def interpolate(attributes, raster: Raster, triangles, clip_xyzw=None) -> jax.Ar
     vals = jnp.einsum("nk,nkc->nc", bary, attributes[idx])
     vals = jnp.where(hit[:, None], vals, 0.0)
     return vals.reshape(h, w, -1)
+
+
+def _check_interp_args(attributes, triangles, clip_xyzw) -> None:
+    """Python-boundary checks of :func:`interpolate`'s concrete arguments."""
+    if not _is_tracer(attributes):
+        a = np.shape(attributes)
+        if len(a) != 2:
+            raise InputError(f"expected shape (V, C), got {a}", field="attributes")
+    if not _is_tracer(triangles):
+        t = np.asarray(triangles)
+        if t.ndim != 2 or t.shape[1] != 3 or not np.issubdtype(t.dtype, np.integer):
+            raise InputError(f"expected integer indices (T, 3), got {t.dtype} {t.shape}",
+                             field="triangles")
+    if clip_xyzw is not None and not _is_tracer(clip_xyzw):
+        c = np.shape(clip_xyzw)
+        if len(c) != 2 or c[1] != 4:
+            raise InputError(f"expected shape (V, 4), got {c}", field="clip_xyzw")
+        if not _is_tracer(attributes) and np.shape(attributes)[0] != c[0]:
+            raise InputError(f"{np.shape(attributes)[0]} rows for {c[0]} vertices",
+                             field="attributes")
+    if not _is_tracer(attributes) and not _is_tracer(triangles):
+        t = np.asarray(triangles)
+        if t.size and (t.min() < 0 or t.max() >= np.shape(attributes)[0]):
+            raise InputError(f"triangle indices reach {t.max()} but there are "
+                             f"{np.shape(attributes)[0]} rows", field="attributes")
 
 
 class PixelList(eqx.Module):
@@ -750,6 +846,8 @@ def covered_pixels(raster: Raster, capacity: int) -> PixelList:
     """Compact the covered pixels of ``raster`` into a list of ``capacity`` entries (static),
     so that shading runs only where there is geometry. Check ``overflow`` (or size the
     capacity from a bound, e.g. H·W)."""
+    if not isinstance(capacity, int | np.integer) or capacity < 1:
+        raise InputError(f"must be a positive int, got {capacity!r}", field="capacity")
     h, w = raster.tri_id.shape
     flat = raster.tri_id.reshape(-1)
     csum = _scan(jnp.add, (flat >= 0).astype(jnp.int32), 0)

@@ -327,7 +327,7 @@ class _Reader:
 def _reflectance(r: _Reader, wl: np.ndarray) -> tuple[np.ndarray, str]:
     v = r.raw("reflectance", 0.5)
     if isinstance(v, int | float) and not isinstance(v, bool):
-        x = r.number("reflectance", lo=0.0, hi=1.0)
+        x = r.number("reflectance", v, lo=0.0, hi=1.0)
         return np.full(wl.shape, x), f"constant {x:g}"
     if isinstance(v, list):
         vals = r.vector("reflectance", wl.size)

@@ -40,6 +40,26 @@ def test_cli_help_lists_commands(capsys):
         assert name in out
 
 
+def _bench_case_names() -> list[str]:
+    from spectral_fit.bench import discover_cases
+
+    return sorted(discover_cases())
+
+
+def test_bench_one_case_json_schema(capsys):
+    """One cheap benchmark case runs at its quick size and reports the DESIGN §7 schema (the
+    slow tier runs every case)."""
+    assert "raster_paper" in _bench_case_names()
+    assert main(["bench", "--quick", "--repeats", "2", "--json", "--cases", "raster_paper"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    figures = result["raster_paper"]
+    assert figures["n"] == 2
+    assert 0 < figures["min_ms"] <= figures["median_ms"] <= figures["max_ms"]
+    assert figures["compile_s"] > 0
+    assert result["_meta"]["quick"] is True
+
+
+@pytest.mark.slow
 def test_bench_quick_json_schema(capsys):
     """Every benchmark case runs at its quick size and reports the DESIGN §7 schema."""
     assert main(["bench", "--quick", "--repeats", "2", "--json"]) == 0

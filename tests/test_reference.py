@@ -98,7 +98,7 @@ def test_mirror_alone_is_fresnel_times_environment(rotation):
                         width=32, height=32, fov=16.0, rotation_y_deg=rotation)
     tex = smooth_environment()
     # the only noise is the random position inside the pixel (the delta lobe is deterministic)
-    r = render_spectral(scene, spp=2048 if JIT else 8, passes=1, depths=(2,), environment=tex,
+    r = render_spectral(scene, spp=2048 if JIT else 64, passes=1, depths=(2,), environment=tex,
                         analytic_spheres=True)
     img = r.mean(2)
     ys, xs = np.mgrid[0:32, 0:32]
@@ -340,3 +340,84 @@ def test_generator_smoke_run(tmp_path):
     assert set(ref.object_names) == {"yellow", "red"}
     assert np.all(np.isfinite(ref.spectra)) and np.all(ref.spectra > 0)
     assert ref.metadata["spp"] == 4 and ref.metadata["passes"] == 2
+
+
+# ------------------------------------------------------------------ spectroradiometer
+
+
+def test_simulated_spectroradiometer_session(tmp_path):
+    """Readings of the two-sphere scene (3 bands): the session folder's manifest and CSV files,
+    the white standard's mean vs R·E(N)/π from our exact irradiance, noise at the stated level."""
+    import json
+    import tomllib
+
+    from _reference_util import REPO
+
+    from spectral_fit.environment import EnvironmentMap, irradiance_exact
+    from spectral_fit.reference.export import environment_texels
+    from spectral_fit.reference.instrument import Spectroradiometer, simulate_readings
+    from spectral_fit.scene import load_scene
+    from spectral_fit.spectra import read_spectrum_csv
+
+    scene = load_scene(REPO / "configs" / "two_spheres.toml",
+                       lambda d: d["spectral"].update(start_nm=540, end_nm=560, step_nm=10))
+    inst = Spectroradiometer(pixels=8, repeats=4)
+    white = {"position": [0.0, 0.0, -0.275], "normal": [0.0, 0.0, 1.0], "reflectance": 0.99}
+    m = simulate_readings(scene, tmp_path / "sess", instrument=inst, spp=512 if JIT else 4,
+                          white=white)
+    man = tomllib.loads(m.read_text())
+    assert man["session"]["format"] == 1 and len(man["readings"]) == 10
+    assert (m.parent / man["session"]["scene"]).resolve() == (
+        REPO / "configs" / "two_spheres.toml").resolve()
+    truth = json.loads((m.parent / "truth.json").read_text())
+    wl = np.asarray(truth["wavelengths_nm"])
+    assert wl[0] == 540 and wl[-1] == 560 and np.allclose(np.diff(wl), 1.0)
+    r0 = man["readings"][0]
+    reps = np.stack([read_spectrum_csv(m.parent / f)[1] for f in r0["files"]])
+    mean = np.asarray(truth["readings"][r0["id"]]["mean"])
+    assert reps.shape == (4, wl.size) and np.all(reps >= 0)
+    rel_sd = (reps.std(axis=0, ddof=1) / mean).mean()
+    assert 0.001 < rel_sd < 0.02  # 0.4 % relative + 0.2 % gain + floor
+    gap = {r["id"]: r["kind"] for r in man["readings"]}
+    assert gap["red_gap"] == "interreflection" and gap["red_outer"] == "object"
+    # white standard: R E(N)/π, E from our exact texel-sum irradiance (nothing occludes it)
+    env = EnvironmentMap.from_array(environment_texels(scene), diffuse="exact",
+                                    rotation_y_deg=scene.environment.rotation_y_deg)
+    e = np.asarray(irradiance_exact(env, np.array([0.0, 0.0, 1.0], np.float32)), np.float64)
+    from spectral_fit.reference.instrument import instrument_response
+
+    expect = instrument_response(scene.wavelengths, 0.99 * e / math.pi, wl, 5.0)
+    got = np.asarray(truth["white"]["mean"])
+    assert np.allclose(got, expect, rtol=0.015 if JIT else 0.1)  # Monte Carlo noise ~0.5 %
+
+
+def test_instrument_band_pass_closed_forms():
+    from spectral_fit.reference.instrument import instrument_response
+
+    wl = np.arange(380.0, 781.0, 5.0)
+    out_wl = np.arange(400.0, 760.0, 1.0)
+    const = instrument_response(wl, np.full(wl.size, 2.5), out_wl, 5.0)
+    assert np.allclose(const, 2.5)
+    lin = instrument_response(wl, 0.01 * wl, out_wl, 5.0)  # symmetric slit keeps lines
+    assert np.allclose(lin, 0.01 * out_wl, rtol=1e-9)
+    spike = np.zeros(wl.size)
+    spike[wl == 550] = 1.0  # a 5 nm-wide triangle (piecewise linear) through a 5 nm slit
+    out = instrument_response(wl, spike, out_wl, 5.0)
+    assert np.isclose(out[out_wl == 550][0], 2.0 / 3.0, atol=2e-3)  # ∫ tri² / ∫ tri
+
+
+def test_bad_input_is_a_clear_error(tmp_path):
+    from spectral_fit.errors import InputError
+    from spectral_fit.reference.export import scene_dict
+    from spectral_fit.reference.render import render_spectral
+
+    other = "scalar_rgb" if JIT else "llvm_ad_rgb"
+    with pytest.raises(InputError, match="SPECTRAL_FIT_MI_VARIANT"):
+        init_mitsuba(other)
+    scene = small_scene(objects=[sphere_obj("a", (0, 0, -0.3))])
+    cam = scene.camera.__class__(intrinsics={"fx": 10.0, "fy": 10.0, "cx": 16.0, "cy": 16.0})
+    with pytest.raises(InputError, match="camera"):
+        scene_dict(scene.replace(camera=cam), env_rgb=1.0, reflectances={"a": np.ones(3)},
+                   spp=1)
+    with pytest.raises(InputError, match="environment"):
+        render_spectral(scene, spp=1, environment=np.ones((4, 8, 5)))

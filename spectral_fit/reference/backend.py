@@ -24,7 +24,7 @@ from typing import Any
 
 from ..errors import InputError
 
-__all__ = ["VARIANT_ENV", "find_llvm", "mitsuba_available", "init_mitsuba"]
+__all__ = ["VARIANT_ENV", "find_llvm", "mitsuba_available", "init_mitsuba", "current_variant"]
 
 VARIANT_ENV = "SPECTRAL_FIT_MI_VARIANT"
 _RGB_VARIANTS = ("llvm_ad_rgb", "scalar_rgb", "cuda_ad_rgb")

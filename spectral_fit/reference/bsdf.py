@@ -192,7 +192,8 @@ def register_bsdf(mi: Any, dr: Any) -> None:
             ok = active & (wi.z > 0)
             pd, pg, pm = self._weights(ctx, wi.z)
             pick_m = sample1 < pm
-            pick_d = (~pick_m) & (sample1 < pm + pd)
+            not_m = (not pick_m) if isinstance(pick_m, bool) else ~pick_m  # scalar variants
+            pick_d = not_m & (sample1 < pm + pd)
             # diffuse direction
             wo_d = mi.warp.square_to_cosine_hemisphere(sample2)
             # gloss direction: sample a half vector, reflect

@@ -50,8 +50,8 @@ def environment_texels(scene: Scene) -> np.ndarray:
     try:
         wl_in, img = read_spectral_exr(spec.file)
     except InputError as exc:
-        if "spectral" not in str(exc).lower() and "channel" not in str(exc).lower():
-            raise
+        if not exc.reason.startswith("no spectral channels"):
+            raise  # a broken spectral file stays an error; an RGB map is lifted below
         from ..upsampling import read_rgb_environment
 
         wl_in, img = read_rgb_environment(spec.file, wl, method=spec.upsampling)
@@ -129,9 +129,8 @@ def _mi_mesh(mi: Any, dr: Any, name: str, mesh: Any, bsdf: Any) -> Any:
     m = mi.Mesh(name, len(v), len(t), props=props, has_vertex_normals=True,
                 has_vertex_texcoords=False)
     params = mi.traverse(m)
-    params["vertex_positions"] = dr.ravel(mi.Point3f(v.T))
-    params["faces"] = dr.ravel(mi.Vector3u(t.T))
-    params["vertex_normals"] = dr.ravel(mi.Normal3f(n.T))
+    for key, arr in (("vertex_positions", v), ("faces", t), ("vertex_normals", n)):
+        params[key] = type(params[key])(np.ravel(arr))  # flat buffers (JIT or scalar types)
     params.update()
     return m
 
@@ -146,6 +145,9 @@ def scene_dict(
     crop: Crop | None = None,
     analytic_spheres: bool = False,
     meshes: dict[str, Any] | None = None,
+    sensors: list[dict[str, Any]] | None = None,
+    objects: bool = True,
+    extra_shapes: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """A Mitsuba scene dict for one band triple (Mitsuba must be initialised).
 
@@ -157,6 +159,10 @@ def scene_dict(
         crop: render only this window of the frame.
         analytic_spheres: render sphere objects as exact spheres instead of their meshes.
         meshes: object name -> world-space Mesh (default: :func:`object_mesh`), to reuse.
+        sensors: Mitsuba sensor dicts replacing the scene's camera (e.g. instruments);
+            ``mi.render(scene, sensor=i)`` picks one.
+        objects: False leaves the scene's objects out (e.g. a white standard read alone).
+        extra_shapes: further Mitsuba shapes by key (e.g. a white standard).
     """
     from ..environment import rotation_y
     from .backend import init_mitsuba
@@ -201,7 +207,12 @@ def scene_dict(
             "to_world": mi.ScalarTransform4f(to_world.tolist()),
             "scale": 1.0,
         }
-    for obj in scene.objects:
+    if sensors is not None:
+        del d["sensor"]
+        for i, sd in enumerate(sensors):
+            d[f"sensor_{i:03d}"] = sd
+    d.update(extra_shapes or {})
+    for obj in scene.objects if objects else ():
         m = obj.material
         s = np.asarray(reflectances[obj.name], np.float64)
         bsdf = {"type": PLUGIN, "alpha": m.alpha, "beta": m.beta, "chi": m.chi, "mu": m.mu,

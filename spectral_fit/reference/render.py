@@ -15,6 +15,7 @@ depth-2 and depth-16 renders (smooth spectra; a low-noise interreflection differ
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from typing import Any
@@ -139,13 +140,32 @@ def render_spectral(
 # Camera rays and sphere patches (NumPy, float64)
 
 
+@functools.lru_cache(maxsize=32)
+def _view_matrix(position: tuple, look: tuple, up: tuple) -> np.ndarray:
+    """gluLookAt view matrix (as :func:`spectral_fit.camera.look_at`, in NumPy float64 so that
+    data-only callers need not start JAX; the degenerate look-along-up case goes to JAX)."""
+    eye = np.asarray(position, np.float64)
+    f = np.asarray(look, np.float64) - eye
+    f /= np.linalg.norm(f)
+    u0 = np.asarray(up, np.float64) / np.linalg.norm(up)
+    s = np.cross(f, u0)
+    if np.linalg.norm(s) < 1e-6:
+        from ..camera import look_at
+
+        return np.asarray(look_at(position, look, up), np.float64)
+    s /= np.linalg.norm(s)
+    rot = np.stack([s, np.cross(s, f), -f])
+    m = np.eye(4)
+    m[:3, :3] = rot
+    m[:3, 3] = -rot @ eye
+    return m
+
+
 def camera_rays(scene: Scene, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World origin (3,) and unit directions (..., 3) through frame pixel coordinates (x, y)
     (pixel centres at integer + 0.5, row 0 on top; DESIGN §3), from :func:`camera.look_at`."""
-    from ..camera import look_at
-
     cam = scene.camera
-    view = np.asarray(look_at(cam.position, cam.look_at, cam.up), np.float64)
+    view = _view_matrix(tuple(cam.position), tuple(cam.look_at), tuple(cam.up))
     t = math.tan(math.radians(cam.fov_y_deg) / 2.0)
     aspect = scene.width / scene.height
     xn = 2.0 * np.asarray(x, np.float64) / scene.width - 1.0
@@ -236,20 +256,19 @@ def sphere_patches(scene: Scene, *, size: int = 5, step: int | None = None,
         others = np.delete(t_full_arr, si, axis=0)
         nearer = (others < t[None]).any(axis=0) if len(others) else np.zeros_like(t, bool)
         ok = np.isfinite(t).all(axis=0) & ~nearer.any(axis=0)
-        for yy, xx in zip(gy[ok], gx[ok], strict=True):
-            _, dc = camera_rays(scene, np.array(xx + size / 2), np.array(yy + size / 2))
-            th = sphere_hits(o, dc, c, r)
-            p = o + th * dc
-            nrm = (p - c) / r
-            boxes.append((xx, yy, xx + size, yy + size))
-            objs.append(oi)
-            normals.append(nrm)
-            points.append(p)
-            views.append(-dc)
+        xx, yy = gx[ok], gy[ok]
+        _, dc = camera_rays(scene, xx + size / 2, yy + size / 2)
+        th = sphere_hits(o, dc, c, r)
+        p = o + th[:, None] * dc
+        boxes.append(np.stack([xx, yy, xx + size, yy + size], -1))
+        objs.append(np.full(xx.size, oi))
+        normals.append((p - c) / r)
+        points.append(p)
+        views.append(-dc)
     return {
-        "boxes": np.asarray(boxes, np.int32).reshape(-1, 4),
-        "object": np.asarray(objs, np.int32),
-        "normal": np.asarray(normals, np.float64).reshape(-1, 3),
-        "point": np.asarray(points, np.float64).reshape(-1, 3),
-        "view": np.asarray(views, np.float64).reshape(-1, 3),
+        "boxes": np.concatenate(boxes).astype(np.int32).reshape(-1, 4),
+        "object": np.concatenate(objs).astype(np.int32),
+        "normal": np.concatenate(normals).reshape(-1, 3),
+        "point": np.concatenate(points).reshape(-1, 3),
+        "view": np.concatenate(views).reshape(-1, 3),
     }

@@ -1,0 +1,160 @@
+"""Gloss integral vs brute force on the benchmark's bundled spectral map; the exact spherical
+prefilter; behaviour below μ = 0.05; Beckmann and Smith options."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _lighting_util import brute_gloss, configs, unit
+
+from spectral_fit.environment import (
+    EnvironmentMap,
+    _sphere_blur,
+    gloss_integral,
+    lookup,
+    rotation_y,
+    synthetic_environment,
+    texel_directions,
+    texel_solid_angles,
+)
+from spectral_fit.exr import read_spectral_exr
+
+ANCHOR = Path(__file__).resolve().parents[1] / "measurements" / "benchmark" / \
+    "anchor_environment.exr"
+
+
+@pytest.fixture(scope="module")
+def anchor():
+    _, img = read_spectral_exr(ANCHOR)
+    img = np.asarray(img, np.float64)
+    env = EnvironmentMap.from_array(img, rotation_y_deg=180.0)
+    lum = img.sum(-1)
+    i, j = np.unravel_index(np.argmax(lum), lum.shape)
+    lamp = rotation_y(180.0) @ texel_directions(*img.shape[:2])[i, j]
+    return img, env, lamp
+
+
+def test_sphere_blur_is_the_direct_spherical_gaussian_sum():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0.0, 1.0, size=(12, 24, 2))
+    img[2, 5] = 30.0  # a bright texel near the pole
+    d = texel_directions(12, 24).reshape(-1, 3)
+    sa = texel_solid_angles(12, 24).reshape(-1)
+    for sigma in (0.15, 0.6):
+        ang = np.arccos(np.clip(d @ d.T, -1, 1))
+        w = np.exp(-0.5 * (ang / sigma) ** 2) * sa[None, :]
+        want = (w @ img.reshape(-1, 2)) / w.sum(axis=1, keepdims=True)
+        np.testing.assert_allclose(_sphere_blur(img, sigma).reshape(-1, 2), want, rtol=1e-10)
+
+
+def _relative_errors(env, img, lamp, mu, k, seed, quality):
+    f = jax.jit(jax.vmap(lambda n, v, m: gloss_integral(env, n, v, m, 1.5, quality=quality),
+                         in_axes=(0, 0, None)))
+    cfg = configs(lamp, mu, k, seed)
+    ns = np.array([c[0] for c in cfg])
+    vs = np.array([c[1] for c in cfg])
+    got = np.asarray(f(jnp.asarray(ns, jnp.float32), jnp.asarray(vs, jnp.float32),
+                       jnp.float32(mu)), np.float64)
+    ref = np.array([brute_gloss(img, n, v, mu, 1.5, rotation=rotation_y(180.0)) for n, v in cfg])
+    return np.abs(got / ref - 1.0).max(axis=1)  # worst band per configuration
+
+
+# measured on 16 configurations per μ (docs/lighting.md); the bounds leave a small margin
+EXACT_BOUNDS = {0.05: (0.005, 0.012), 0.1: (0.005, 0.012), 0.2: (0.008, 0.015),
+                0.3: (0.01, 0.03), 0.5: (0.045, 0.09)}
+
+
+@pytest.mark.parametrize("mu", sorted(EXACT_BOUNDS))
+def test_gloss_exact_vs_brute_force_bundled_map(anchor, mu):
+    img, env, lamp = anchor
+    rel = _relative_errors(env, img, lamp, mu, 8, seed=int(mu * 1000) + 1, quality="exact")
+    med, worst = EXACT_BOUNDS[mu]
+    print(f"exact mu={mu}: median {np.median(rel):.4f} max {rel.max():.4f}")
+    assert np.median(rel) < med and rel.max() < worst, rel
+
+
+@pytest.mark.parametrize("mu", [0.1, 0.3])
+def test_gloss_render_vs_brute_force_bundled_map(anchor, mu):
+    img, env, lamp = anchor
+    rel = _relative_errors(env, img, lamp, mu, 8, seed=int(mu * 1000) + 2, quality="render")
+    print(f"render mu={mu}: median {np.median(rel):.4f} max {rel.max():.4f}")
+    assert np.median(rel) < 0.02 and rel.max() < 0.1, rel
+
+
+def test_below_mu_005_tends_to_albedo_times_map(anchor):
+    """Below μ = 0.05 the same quadrature runs on the (bilinear) map itself: as μ → 0 the
+    gloss tends to A(θr)·L(R), A the lobe albedo, i.e. F(θr)·L(R) (a Fresnel mirror) — the
+    map resolves nothing finer than its texels. Continuous through 0.05."""
+    from _lighting_util import fresnel
+
+    img, env, lamp = anchor
+    g = jax.jit(lambda n, v, m: gloss_integral(env, n, v, m, 1.5))
+    for n, v in configs(lamp, 0.02, 6, seed=5)[1::2]:  # away from the lamp's edge
+        N, V = jnp.asarray(n, jnp.float32), jnp.asarray(v, jnp.float32)
+        r = 2 * (n @ v) * n - v
+        mirror = np.asarray(lookup(env, jnp.asarray(r, jnp.float32)))
+        tiny = np.asarray(g(N, V, jnp.float32(0.004)))
+        np.testing.assert_allclose(tiny, fresnel(n @ v, 1.5) * mirror, rtol=0.02)
+        a, b = (np.asarray(g(N, V, jnp.float32(m))) for m in (0.0499, 0.0501))
+        np.testing.assert_allclose(a, b, rtol=5e-3)
+
+
+@pytest.mark.parametrize("distribution, geometry", [("beckmann", "vcavity"),
+                                                    ("gaussian", "smith"),
+                                                    ("beckmann", "smith")])
+def test_gloss_options_vs_brute_force(distribution, geometry):
+    wl = np.array([450.0, 550.0, 650.0])
+    img = synthetic_environment(32, 64, wl, lamp_radius_deg=10.0, lamp_luminance_ratio=10.0)
+    env = EnvironmentMap.from_array(img)
+    lamp = unit([0.4, 0.8, -0.45])
+    f = jax.jit(jax.vmap(lambda n, v, m: gloss_integral(env, n, v, m, 1.5,
+                                                        distribution=distribution,
+                                                        geometry=geometry),
+                         in_axes=(0, 0, None)))
+    for mu in (0.1, 0.3):
+        cfg = configs(lamp, mu, 6, seed=3)
+        ns = jnp.asarray(np.array([c[0] for c in cfg]), jnp.float32)
+        vs = jnp.asarray(np.array([c[1] for c in cfg]), jnp.float32)
+        got = np.asarray(f(ns, vs, jnp.float32(mu)), np.float64)
+        ref = np.array([brute_gloss(img, n, v, mu, 1.5, ss=4, distribution=distribution,
+                                    geometry=geometry) for n, v in cfg])
+        rel = np.abs(got / ref - 1).max(axis=1)
+        assert np.median(rel) < 0.01 and rel.max() < 0.03, (mu, rel)
+
+
+def test_uniform_map_all_options_match_brute_force():
+    """Uniform map: only the lobe albedo and the node placement matter."""
+    img = np.ones((16, 32, 1))
+    env = EnvironmentMap.from_array(img)
+    cfg = configs(unit([0, 1, 0]), 0.2, 4, seed=9, theta_max_deg=75)
+    ns = jnp.asarray(np.array([c[0] for c in cfg]), jnp.float32)
+    vs = jnp.asarray(np.array([c[1] for c in cfg]), jnp.float32)
+    for distribution in ("gaussian", "beckmann"):
+        for geometry in ("vcavity", "smith"):
+            qualities = (("exact", "render") if (distribution, geometry) == ("gaussian", "vcavity")
+                         else ("exact",))
+            for quality in qualities:
+                f = jax.jit(jax.vmap(lambda n, v, m: gloss_integral(
+                    env, n, v, m, 1.5, distribution=distribution,  # noqa: B023
+                    geometry=geometry, quality=quality), in_axes=(0, 0, None)))  # noqa: B023
+                for mu in (0.03, 0.2, 0.5):
+                    got = np.asarray(f(ns, vs, jnp.float32(mu)))[:, 0]
+                    ref = np.array([brute_gloss(np.ones((64, 128, 1)), n, v, mu, 1.5, ss=2,
+                                                distribution=distribution,
+                                                geometry=geometry)[0] for n, v in cfg])
+                    np.testing.assert_allclose(got, ref, rtol=1e-2,
+                                               err_msg=f"{distribution} {geometry} {mu}")
+
+
+def test_unknown_quality_rejected(anchor):
+    from spectral_fit.errors import InputError
+
+    _, env, _ = anchor
+    with pytest.raises(InputError) as e:
+        gloss_integral(env, jnp.array([0.0, 1.0, 0.0]), jnp.array([0.0, 1.0, 0.0]), 0.1, 1.5,
+                       quality="fast")
+    assert e.value.field == "quality"
