@@ -136,7 +136,7 @@ class LiveSession:
                  sensitivities: str = "Nikon 5100 (NPL)", white_level: float = 0.85,
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
-                 headroom: float = 1.3) -> None:
+                 headroom: float = 1.6) -> None:
         from .markers import MarkerDetector, MarkerTracker
         from .renderer import load_environment
 
