@@ -136,7 +136,7 @@ class LiveSession:
                  sensitivities: str = "Nikon 5100 (NPL)", white_level: float = 0.85,
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
-                 headroom: float = 1.3) -> None:
+                 headroom: float = 1.6) -> None:
         from .markers import MarkerDetector, MarkerTracker
         from .renderer import load_environment
 
@@ -175,6 +175,7 @@ class LiveSession:
         self.headroom = float(headroom)
         self.recompiles = 0
         self.frames = 0
+        self._planned = False
         self.timings = FrameTimings()
         self.prep = self._prepare(self.headroom)
 
@@ -254,8 +255,10 @@ class LiveSession:
                      jnp.asarray(poses.view), jnp.asarray(poses.visible),
                      jnp.asarray(background), self.camera)
 
-    def process(self, frame: np.ndarray) -> np.ndarray:
-        """Composite one video frame (H, W, 3) uint8 RGB; returns (H, W, 3) uint8 RGB."""
+    def submit(self, frame: np.ndarray) -> _Pending:
+        """CPU stages of one frame (detect, track, undistort) and the DISPATCH of its compiled
+        step, which runs asynchronously: call :meth:`finish` on the result later. Submitting
+        frame n+1 before finishing frame n overlaps the CPU stages with the device (a GPU)."""
         if frame.shape != (*self.size, 3) or frame.dtype != np.uint8:
             raise InputError(f"frame must be {(*self.size, 3)} uint8, got {frame.shape} "
                              f"{frame.dtype}", field="frame")
@@ -264,9 +267,18 @@ class LiveSession:
         t1 = time.perf_counter()
         bg = self.undistort(frame)
         t2 = time.perf_counter()
-        if self.frames == 0 and poses.visible.any():
+        if not self._planned and poses.visible.any():
             self._replan(poses, self.headroom)  # size the buffers on the first real poses
+            self._planned = True
         out, stats = self.render(poses, bg)
+        return _Pending(poses, bg, out, stats, (t0, t1, t2))
+
+    def finish(self, pending: _Pending) -> np.ndarray:
+        """Wait for a submitted frame; re-plans, recompiles and re-renders it when its buffers
+        overflowed. Returns (H, W, 3) uint8 RGB. ``timings.render`` is dispatch → ready (with
+        frames in flight it includes the overlapped CPU work of the next frame)."""
+        poses, bg, out, stats = pending.poses, pending.background, pending.out, pending.stats
+        t0, t1, t2 = pending.times
         out = jax.block_until_ready(out)
         for _ in range(3):
             if not bool(stats["overflow"]):
@@ -285,6 +297,21 @@ class LiveSession:
         self.last_poses = poses
         self.last_object_id = stats["object_id"]
         return np.asarray(out)
+
+    def process(self, frame: np.ndarray) -> np.ndarray:
+        """Composite one video frame (H, W, 3) uint8 RGB; returns (H, W, 3) uint8 RGB."""
+        return self.finish(self.submit(frame))
+
+
+@dataclasses.dataclass
+class _Pending:
+    """A submitted frame (see :meth:`LiveSession.submit`)."""
+
+    poses: Any
+    background: np.ndarray
+    out: Any
+    stats: dict[str, Any]
+    times: tuple[float, float, float]
 
 
 def _default_markers():

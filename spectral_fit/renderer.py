@@ -746,10 +746,10 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     visible = jnp.asarray(visible, bool)
 
     # 1. geometry in the world; hidden objects collapse onto their centre (draw nothing)
-    world = _to_world(prep.vertices, prep.vertex_object, model)
+    world_full = _to_world(prep.vertices, prep.vertex_object, model)
     centres = model[:, :3, 3]
     vis_v = visible[prep.vertex_object]
-    world = jnp.where(vis_v[:, None], world, centres[prep.vertex_object])
+    world = jnp.where(vis_v[:, None], world_full, centres[prep.vertex_object])
     wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
     vp = prep.projection @ view
     clip = world @ vp[:, :3].T + vp[:, 3]
@@ -790,8 +790,12 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     # 3. shading + interreflection
     radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
                               prep.quality, prep.pixel_capacity)
-    geoms = [ObjectGeometry(vertices=world[a:b], normals=wnorm[a:b],
-                            triangles=prep.triangles[ta:tb] - a, centre=centres[i])
+    # interreflection sees a hidden object intact (no degenerate triangles, which gave NaN)
+    # but 1 km below the scene: its light and shadow on the others are ~1e-9 of a neighbour's
+    away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
+    world_ir = world_full + away[prep.vertex_object]
+    geoms = [ObjectGeometry(vertices=world_ir[a:b], normals=wnorm[a:b],
+                            triangles=prep.triangles[ta:tb] - a, centre=centres[i] + away[i])
              for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
                                                         prep.triangle_slices, strict=True))]
     ir, ir_overflow = _interreflection(prep, geoms, mats, gb)

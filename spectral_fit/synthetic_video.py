@@ -2,11 +2,12 @@
 
 A flat table (the plane world y = 0, +Y up, DESIGN §3) carries a texture: a photograph with
 ArUco markers pasted on it at known places. A pinhole camera with OpenCV intrinsics ``K`` and
-distortion (k1, k2, p1, p2[, k3]) looks at it from a known pose; every output pixel is traced
-exactly: its distorted pixel coordinate is undistorted (``cv2.undistortPoints``), the ray is
-intersected with the plane, and the texture is sampled bilinearly (after ``supersample``² rays
-per pixel are averaged). Optional Gaussian blur (σ in pixels) and Gaussian noise (σ in 8-bit
-levels) follow. Because the geometry is exact, the marker poses are known to float precision.
+distortion (k1, k2, p1, p2[, k3]) looks at it from a known pose; every output pixel is traced:
+its distorted pixel coordinate is undistorted (``cv2.undistortPoints``, exact every 4 pixels and
+bilinear in between, ~1e-3 px), the ray is intersected with the plane, and the texture is
+sampled bilinearly (``supersample``² rays per pixel are averaged). Optional Gaussian blur
+(σ in pixels) and Gaussian noise (σ in 8-bit levels) follow. Because the geometry is exact,
+the marker poses are known to float precision.
 
 Frames: (H, W, 3) uint8 RGB, row 0 at the top. OpenCV pixel convention inside (pixel (0, 0)'s
 centre at (0, 0)); our pixel-centre convention (+0.5) is applied where projections meet OpenGL

@@ -128,3 +128,18 @@ def test_composite_in_linear_light():
     bg_lin = colour.cctf_decoding(frame[2] / 255.0, function="sRGB")
     want2 = colour.cctf_encoding(0.5 * cg[2] + 0.5 * bg_lin, function="sRGB") * 255
     np.testing.assert_allclose(out[2], want2, atol=0.51)
+
+
+def test_white_reference_closed_forms():
+    """E(+Y)/π of a white Lambertian facing up: a uniform map of radiance L gives L; a map
+    bright only in the lower hemisphere gives 0; L ∝ cosθ (upper) gives (2/3)·L₀."""
+    from spectral_fit.live import white_reference
+
+    hm, wm = 64, 128
+    theta = (np.arange(hm) + 0.5) * np.pi / hm
+    uniform = np.full((hm, wm, 2), [0.3, 1.7])
+    np.testing.assert_allclose(white_reference(uniform), [0.3, 1.7], rtol=1e-3)
+    lower = np.where((theta > np.pi / 2)[:, None, None], 1.0, 0.0) * np.ones((hm, wm, 1))
+    np.testing.assert_allclose(white_reference(lower), [0.0], atol=1e-12)
+    cosine = np.clip(np.cos(theta), 0, None)[:, None, None] * np.ones((hm, wm, 1))
+    np.testing.assert_allclose(white_reference(cosine), [2 / 3], rtol=1e-3)

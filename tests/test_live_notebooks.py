@@ -40,3 +40,10 @@ def test_live_mr_notebook():
     text = _text(nb)
     assert "frames written and read back: 6" in text
     assert "recompiles 0" in text
+
+
+@pytest.mark.slow
+def test_fit_session_notebook():
+    nb = _run("fit_session.ipynb")
+    text = _text(nb)
+    assert "report files:" in text and "fit.json" in text

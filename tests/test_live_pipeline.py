@@ -100,6 +100,13 @@ def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, table
         assert np.any(out[oid >= 0] != bg[oid >= 0])
         if n == 0:
             traces = (STEP_TRACES["step"], TRACE_COUNT["render_frame"], session.recompiles)
+    # frames in flight (submit n+1 before finishing n) give the same pictures
+    a, _, _ = _frame(both, eyes[0], seed=0)
+    b, _, _ = _frame(both, eyes[2], seed=2)
+    seq = [session.process(a), session.process(b)]
+    pa, pb = session.submit(a), session.submit(b)
+    np.testing.assert_array_equal(session.finish(pa), seq[0])
+    np.testing.assert_array_equal(session.finish(pb), seq[1])
     # marker 7 lost: its sphere is masked out, same compiled program
     img, r, t = _frame(only3, eyes[1], seed=9)
     session.process(img)
@@ -137,7 +144,8 @@ def test_live_command_writes_complete_video(tmp_path, tables, capsys):
                   f'reflectance = "{o["material"]["reflectance"]}"', ""]
     cfg.write_text("\n".join(lines))
     out = tmp_path / "out.mp4"
-    rc = main(["live", str(cfg), "--video", str(src), "-o", str(out), "--json", "--quiet"])
+    rc = main(["live", str(cfg), "--video", str(src), "-o", str(out), "--json", "--quiet",
+               "--pipeline"])
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == 3 and summary["output_frames"] == 3
@@ -167,3 +175,34 @@ def test_resized_video_scales_the_intrinsics():
     np.testing.assert_allclose(k[1], [0, KS[1, 1] * 3, (KS[1, 2] + 0.5) * 3 - 0.5])
     np.testing.assert_allclose(k, K, atol=1e-9)
     np.testing.assert_allclose(dist, DIST)
+
+
+def test_lost_marker_object_leaves_no_interreflection():
+    """A hidden object (its marker lost) neither lights nor shadows the others: the visible
+    sphere renders as with interreflection off in "gather" mode (whose form factors turned the
+    collapsed geometry of a hidden object into NaN)."""
+    import jax.numpy as jnp
+
+    from spectral_fit.renderer import prepare, render_frame
+
+    d = scene_dict(markers=False, width=120, height=80, intrinsics=False)
+    for o, x in zip(d["objects"], (-0.045, 0.045), strict=True):
+        o.update(radius=0.0375, stacks=12, slices=12, position=[x, 0.0, -0.2])
+        del o["marker"], o["marker_offset"]
+    scene = parse_scene(d)
+    out = {}
+    for m in ("none", "gather"):
+        prep = prepare(scene, mode=m, texture_size=32)
+        for vis in ((True, False), (True, True)):
+            f = render_frame(prep, visible=jnp.asarray(vis))
+            out[m, vis] = (np.asarray(f.xyz), np.asarray(f.object_id))
+    x0, oid0 = out["none", (True, False)]
+    peak = np.abs(x0[oid0 == 0]).max()
+    for m in ("gather",):
+        x, oid = out[m, (True, False)]
+        assert not np.isnan(x).any() and not np.any(oid == 1)
+        np.testing.assert_array_equal(oid, oid0)
+        assert np.abs(x[oid == 0] - x0[oid0 == 0]).max() < 1e-5 * peak, m
+        # with both visible the interreflection is there (so the comparison can fail)
+        xb, oidb = out[m, (True, True)]
+        assert np.abs(xb[oidb == 0] - x0[oid0 == 0]).max() > 1e-2 * peak, m

@@ -91,3 +91,9 @@ def test_sink_rejects_bad_input(tmp_path):
     with pytest.raises(InputError, match=r"\(48, 64, 3\) uint8"), \
             VideoSink(tmp_path / "x.mp4", fps=24.0, size=(48, 64)) as sink:
         sink.write(np.zeros((48, 64, 3), np.float32))
+
+
+def test_missing_camera_is_a_clear_error():
+    with pytest.raises(InputError, match="cannot open camera 97") as e:
+        VideoSource(97, field="--camera")
+    assert e.value.field == "--camera"
