@@ -210,11 +210,13 @@ def _ortho_clip(view: jax.Array, vertices: jax.Array, extent: jax.Array, near: j
 
 def _pass1_config(num_triangles: int, side: int) -> RasterConfig:
     """Window capacities of a pass-1 raster (side², back faces culled, so at most half the
-    triangles are drawn) that hold for any pose: T/2 windows of 1 and 2 px, T/4 of 4 px, and
-    all 8×8 blocks of the target; larger windows for coarse meshes. Overflow is still flagged."""
+    triangles are drawn) that hold for any pose, one per size of the rasteriser's window
+    ladder (``raster.TILE_SIZES``): T/2 windows for the smaller sizes, T/4 plus four tilings
+    of the target for the largest, and all 8×8 blocks of the target. Overflow is still
+    flagged."""
     half = max(16, num_triangles // 2 + 16)
-    caps = (half, half, max(16, num_triangles // 4 + 16), min(half, 256), min(half, 64),
-            min(half, 16))
+    tiling = (-(-side // TILE_SIZES[-1])) ** 2
+    caps = (*([half] * (len(TILE_SIZES) - 1)), max(16, num_triangles // 4 + 16) + 4 * tiling)
     blocks = (-(-side // 8)) ** 2
     return RasterConfig(TILE_SIZES, tuple(int(c) for c in caps), int(blocks))
 

@@ -215,16 +215,21 @@ class LiveSession:
         world = np.einsum("vij,vj->vi", m[:, :3, :3], v) + m[:, :3, 3]
         vp = np.asarray(p.projection, np.float64) @ np.asarray(poses.view, np.float64)
         clip = world @ vp[:, :3].T + vp[:, 3]
-        cfg, bound = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom)
+        cfg, _ = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom)
         old = p.raster_config
         cfg = RasterConfig(old.tile_sizes, tuple(max(a, b) for a, b in zip(
             cfg.capacities, old.capacities, strict=True)),
             max(cfg.block_capacity, old.block_capacity))
         h, w = p.shape
-        cap = max(p.pixel_capacity, min(h * w, 1024 * -(-int(headroom * bound + 64) // 1024)))
+        tris = np.asarray(p.triangles)
+        caps = []
+        for (ta, tb), c in zip(p.triangle_slices, p.pixel_capacity, strict=True):
+            _, bound = plan_capacities(clip, tris[ta:tb], p.shape, headroom=headroom)
+            caps.append(max(c, min(h * w, 1024 * -(-int(headroom * bound + 64) // 1024))))
+        cap = tuple(caps)
         if cfg == old and cap == p.pixel_capacity:
             return False
-        self.prep = dataclasses.replace(p, raster_config=cfg, pixel_capacity=int(cap))
+        self.prep = dataclasses.replace(p, raster_config=cfg, pixel_capacity=cap)
         return True
 
     def _prepare(self, headroom: float) -> Any:
