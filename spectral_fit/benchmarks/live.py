@@ -113,7 +113,7 @@ def live_paper(opts: BenchOptions) -> dict[str, Any]:
         "end_to_end_pipelined_median_ms": statistics.median(piped) if piped else None,
         "end_to_end_pipelined_fps": 1e3 / statistics.median(piped) if piped else None,
         "covered_pixels": int(session.last_object_id.__ge__(0).sum()),
-        "pixel_capacity": int(session.prep.pixel_capacity),
+        "pixel_capacity": list(session.prep.pixel_capacity),
         "recompiles": int(session.recompiles),
         "size": [int(x) for x in session.size],
         "mode": extra.get("mode", scene.interreflection.mode),
