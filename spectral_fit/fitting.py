@@ -757,20 +757,28 @@ def _solve_batch(problem: FitProblem, y0: jax.Array, rw: jax.Array, solver: Any,
     Jacobian w.r.t. y (from the solver's last accepted step, so no second trace of the model
     is compiled) and the predicted readings (B, L) at y.
     """
-    import optimistix as optx
-
     def one(y0_: jax.Array, w: jax.Array) -> dict[str, jax.Array]:
-        sol = optx.least_squares(lambda y, ww: _residuals_aux(y, problem, ww), solver, y0_,
-                                 args=w, has_aux=True, max_steps=max_steps, throw=False)
-        info = sol.state.f_info
-        r = info.residual
-        cost = 0.5 * jnp.sum(r * r)
-        ok = (sol.result == optx.RESULTS.successful) & jnp.isfinite(cost)
-        return {"y": sol.value, "cost": jnp.where(jnp.isfinite(cost), cost, jnp.inf),
-                "converged": ok, "steps": sol.stats["num_steps"], "residual": r,
-                "jacobian": info.jac.as_matrix(), "predicted": sol.aux}
+        return _solve_one(problem, y0_, w, solver, max_steps)
 
     return jax.vmap(one)(y0, rw)
+
+
+def _solve_one(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Any,
+               max_steps: int) -> dict[str, jax.Array]:
+    """One least-squares solve from start ``y0`` with reading weights ``w`` (unbatched):
+    y, cost, converged, steps, residuals, their Jacobian at the last accepted step and the
+    predicted readings."""
+    import optimistix as optx
+
+    sol = optx.least_squares(lambda y, ww: _residuals_aux(y, problem, ww), solver, y0,
+                             args=w, has_aux=True, max_steps=max_steps, throw=False)
+    info = sol.state.f_info
+    r = info.residual
+    cost = 0.5 * jnp.sum(r * r)
+    ok = (sol.result == optx.RESULTS.successful) & jnp.isfinite(cost)
+    return {"y": sol.value, "cost": jnp.where(jnp.isfinite(cost), cost, jnp.inf),
+            "converged": ok, "steps": sol.stats["num_steps"], "residual": r,
+            "jacobian": info.jac.as_matrix(), "predicted": sol.aux}
 
 
 @eqx.filter_jit
@@ -1331,20 +1339,12 @@ def simulate_readings(scene: Any, spots: Sequence[dict[str, Any]], *,
 def _solve_measured(problem: FitProblem, y0: jax.Array, rw: jax.Array, measured: jax.Array,
                     sigma: jax.Array, solver: Any, max_steps: int) -> dict[str, jax.Array]:
     """Like :func:`_solve_batch` but each batch entry has its own readings (K, B, L) and σ."""
-    import optimistix as optx
-
     def one(y0_: jax.Array, w: jax.Array, meas: jax.Array, sig: jax.Array
             ) -> dict[str, jax.Array]:
         pr = eqx.tree_at(lambda q: (q.measured, q.sigma), problem, (meas, sig))
-        sol = optx.least_squares(lambda y, ww: _residuals_aux(y, pr, ww), solver, y0_, args=w,
-                                 has_aux=True, max_steps=max_steps, throw=False)
-        info = sol.state.f_info
-        r = info.residual
-        cost = 0.5 * jnp.sum(r * r)
-        ok = (sol.result == optx.RESULTS.successful) & jnp.isfinite(cost)
-        return {"y": sol.value, "cost": jnp.where(jnp.isfinite(cost), cost, jnp.inf),
-                "converged": ok, "steps": sol.stats["num_steps"], "residual": r,
-                "jacobian": info.jac.as_matrix()}
+        out = _solve_one(pr, y0_, w, solver, max_steps)
+        del out["predicted"]
+        return out
 
     return jax.vmap(one)(y0, rw, measured, sigma)
 
