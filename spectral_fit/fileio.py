@@ -53,3 +53,26 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
     """Write UTF-8 ``text`` to ``path`` atomically."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def read_text(path: str | os.PathLike[str], *, encoding: str = "utf-8",
+              max_bytes: int | None = None, what: str = "the file") -> str:
+    """A user's text file, decoded; every failure is an :class:`~spectral_fit.errors.
+    InputError` naming the file (unreadable, larger than ``max_bytes`` — ``what`` names the
+    expected content in that message — or not valid ``encoding``)."""
+    from .errors import InputError
+
+    p = Path(path)
+    try:
+        if max_bytes is not None:
+            size = p.stat().st_size
+            if size > max_bytes:
+                raise InputError(f"file is {size} bytes; {what} is expected to be small",
+                                 path=p)
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read ({exc.strerror or exc})", path=p) from None
+    try:
+        return raw.decode(encoding)
+    except UnicodeDecodeError:
+        raise InputError("not UTF-8 text", path=p) from None

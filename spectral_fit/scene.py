@@ -558,15 +558,12 @@ def load_scene(path: str | os.PathLike[str],
     ``overrides``, if given, may edit the parsed dict before validation (used by the CLI's
     ``--size``/``--mode`` options).
     """
+    from .fileio import read_text
+
     p = Path(path)
+    text = read_text(p)
     try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror or exc})", path=p) from None
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError:
-        raise InputError("not UTF-8 text", path=p) from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"TOML syntax error: {exc}", path=p) from None
     if overrides is not None:

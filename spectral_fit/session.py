@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .fileio import read_text
 
 __all__ = [
     "PARAMETERS",
@@ -345,17 +346,8 @@ def _read_spectra(path: Path, wl: np.ndarray, *, kind: str, units: str,
     reflectance fraction). ``kind``: "radiance" or "reflectance"."""
     from .spectra import parse_spectrum_text, resample
 
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror or exc})", path=path) from None
-    if len(raw) > 16 * 1024 * 1024:
-        raise InputError(f"file is {len(raw)} bytes; a spectrum is expected to be small",
-                         path=path)
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputError("not UTF-8 text", path=path) from None
+    text = read_text(path, encoding="utf-8-sig", max_bytes=16 * 1024 * 1024,
+                     what="a spectrum")
     unit, uline = _file_unit(text)
     if kind == "radiance":
         factor = RADIANCE_UNITS[units]
@@ -485,14 +477,7 @@ def load_session(path: str | os.PathLike[str], *, scene: Any = None) -> Session:
     p = Path(path)
     if p.is_dir():
         p = p / "session.toml"
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror or exc})", path=p) from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError("not UTF-8 text", path=p) from None
+    text = read_text(p)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -202,18 +202,10 @@ def read_spectrum_csv(
         (non-numeric cell, ragged rows, NaN, negative values unless ``allow_negative``,
         non-increasing wavelengths, fewer than 2 rows).
     """
+    from .fileio import read_text
+
     p = Path(path)
-    try:
-        size = p.stat().st_size
-        if size > _MAX_SPECTRUM_BYTES:
-            raise InputError(f"file is {size} bytes; a spectrum is expected to be small", path=p)
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read ({exc.strerror or exc})", path=p) from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputError("not UTF-8 text", path=p) from None
+    text = read_text(p, encoding="utf-8-sig", max_bytes=_MAX_SPECTRUM_BYTES, what="a spectrum")
     return parse_spectrum_text(text, path=p, allow_negative=allow_negative)
 
 
