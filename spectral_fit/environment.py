@@ -687,6 +687,50 @@ def _levels_for(env: EnvironmentMap, target: jax.Array
 _S_MAX = 4.5  # lobe truncation in s = θh/μ (Gaussian) or tanθh/m (Beckmann): e^-20 of the peak
 
 
+def _lobe_rings(nv: jax.Array, width: jax.Array, xr: np.ndarray, wr: np.ndarray, *,
+                distribution: str) -> tuple[jax.Array, ...]:
+    """Radial rings of a microfacet lobe of ``width``: s = θh/width (Gaussian) or tanθh/width
+    (Beckmann) at Gauss–Legendre nodes ``xr`` (weights ``wr``, both on [0, 1]) scaled to
+    [0, s_max], s_max from the horizon (θh <= π/4 + θr/2) and the truncation s <= 4.5.
+
+    Returns (R,) arrays: s, the ring weight s e^{−s²} ds, cosθh, sinθh and the Jacobian
+    factor sinθh/θh (Gaussian) or 1/cosθh (Beckmann) of dω_H in s ds dφ."""
+    dtype = nv.dtype
+    theta_r = jnp.arccos(jnp.clip(nv, 1e-7, 1.0 - 1e-7))
+    theta_max = jnp.minimum(0.25 * math.pi + 0.5 * theta_r, 0.5 * math.pi - 1e-4)
+    if distribution == "gaussian":
+        s_max = jnp.minimum(theta_max / width, _S_MAX)
+    elif distribution == "beckmann":
+        s_max = jnp.minimum(jnp.tan(theta_max) / width, _S_MAX)
+    else:
+        raise InputError(f"unknown distribution {distribution!r}", field="distribution")
+    s = s_max * jnp.asarray(xr, dtype)  # (R,)
+    ring = s_max * jnp.asarray(wr, dtype) * s * jnp.exp(-s * s)  # s e^{-s²} ds
+    if distribution == "gaussian":
+        th = width * s
+        cos_h, sin_h = jnp.cos(th), jnp.sin(th)
+        jac = jnp.where(th > 1e-4, sin_h / jnp.where(th > 1e-4, th, 1.0), 1.0 - th * th / 6.0)
+    else:
+        tan_h = width * s
+        cos_h = 1.0 / jnp.sqrt(1.0 + tan_h * tan_h)
+        sin_h = tan_h * cos_h
+        jac = 1.0 / cos_h
+    return s, ring, cos_h, sin_h, jac
+
+
+def _visible_arc(nv: jax.Array, cos_h: jax.Array, sin_h: jax.Array) -> jax.Array:
+    """φ_max (R,) of each ring θh: the half vectors at azimuth |φ'| <= φ_max (from V's
+    azimuth) reflect V above the surface, N·L > 0 ⟺ sin2θh sinθr cosφ' > −cosθr cos2θh
+    (π when the whole ring is visible, 0 when none of it is)."""
+    sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
+    a = 2.0 * sin_h * cos_h * sin_r
+    bnum = -nv * (cos_h * cos_h - sin_h * sin_h)
+    full = bnum < -jnp.abs(a) * (1.0 - 1e-6)
+    empty = bnum > jnp.abs(a) * (1.0 - 1e-6)
+    c = jnp.where(full | empty, 0.0, bnum / jnp.where(full | empty, 1.0, a))
+    return jnp.where(full, math.pi, jnp.where(empty, 0.0, jnp.arccos(c)))
+
+
 def _lobe_albedo(
     nv: jax.Array, width: jax.Array, n: jax.Array, mu: jax.Array, *, distribution: str,
     geometry: str, fresnel: bool, radial: int, azimuthal: int,
@@ -707,35 +751,15 @@ def _lobe_albedo(
     xr, wr = 0.5 * (xr + 1.0), 0.5 * wr
     xa = 0.5 * (xa + 1.0)  # [0, 1]; the weights (sum 2) double the half arc
     nv = jnp.clip(nv, 0.0, 1.0)
-    theta_r = jnp.arccos(jnp.clip(nv, 1e-7, 1.0 - 1e-7))
-    theta_max = jnp.minimum(0.25 * math.pi + 0.5 * theta_r, 0.5 * math.pi - 1e-4)
+    _, ws, cos_h, sin_h, jac = _lobe_rings(nv, width, xr, wr, distribution=distribution)
     if distribution == "gaussian":
-        s_max = jnp.minimum(theta_max / width, _S_MAX)
-    elif distribution == "beckmann":
-        s_max = jnp.minimum(jnp.tan(theta_max) / width, _S_MAX)
-    else:
-        raise InputError(f"unknown distribution {distribution!r}", field="distribution")
-    s = s_max * jnp.asarray(xr, dtype)  # (R,)
-    ws = s_max * jnp.asarray(wr, dtype) * s * jnp.exp(-s * s)  # s e^{-s²} ds
-    if distribution == "gaussian":
-        th = width * s
-        cos_h, sin_h = jnp.cos(th), jnp.sin(th)
-        sinc = jnp.where(th > 1e-4, sin_h / jnp.where(th > 1e-4, th, 1.0), 1.0 - th * th / 6.0)
         # D dω_H = K(μ) e^{−s²} sinθh dθh dφ = K μ² e^{−s²} s ds dφ · sinθh/θh
-        ws = ws * gaussian_normalisation(width) * width * width * sinc
+        ws = ws * gaussian_normalisation(width) * width * width * jac
     else:
-        tan_h = width * s
-        cos_h = 1.0 / jnp.sqrt(1.0 + tan_h * tan_h)
-        sin_h = tan_h * cos_h
         # D dω_H = e^{−s²} s ds dφ / (π cosθh)
-        ws = ws / (math.pi * cos_h)
+        ws = ws * jac / math.pi
     sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
-    a = 2.0 * sin_h * cos_h * sin_r
-    bnum = -nv * (cos_h * cos_h - sin_h * sin_h)
-    full = bnum < -jnp.abs(a) * (1.0 - 1e-6)
-    empty = bnum > jnp.abs(a) * (1.0 - 1e-6)
-    c = jnp.where(full | empty, 0.0, bnum / jnp.where(full | empty, 1.0, a))
-    phi_max = jnp.where(full, math.pi, jnp.where(empty, 0.0, jnp.arccos(c)))  # (R,)
+    phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
     cphi = jnp.cos(phi_max[:, None] * jnp.asarray(xa, dtype)[None, :])  # (R, A)
     w = (ws * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
     vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * cphi
@@ -843,32 +867,8 @@ def _visible_nodes(
     wt2 = jnp.maximum(mu * mu - 0.5 * var, floor)
     wb2 = jnp.maximum(mu * mu - 0.5 * var / jnp.maximum(nv * nv, 1e-4), floor)
     wt = jnp.sqrt(wt2)
-    theta_r = jnp.arccos(jnp.clip(nv, 1e-7, 1.0 - 1e-7))
-    theta_max = jnp.minimum(0.25 * math.pi + 0.5 * theta_r, 0.5 * math.pi - 1e-4)
-    if distribution == "gaussian":
-        s_max = jnp.minimum(theta_max / wt, _S_MAX)
-    elif distribution == "beckmann":
-        s_max = jnp.minimum(jnp.tan(theta_max) / wt, _S_MAX)
-    else:
-        raise InputError(f"unknown distribution {distribution!r}", field="distribution")
-    s = s_max * jnp.asarray(xr, dtype)  # (R,)
-    wring = s_max * jnp.asarray(wr, dtype) * s * jnp.exp(-s * s)  # s e^{-s²} ds
-    if distribution == "gaussian":
-        th = wt * s
-        cos_h, sin_h = jnp.cos(th), jnp.sin(th)
-        jac = jnp.where(th > 1e-4, sin_h / jnp.where(th > 1e-4, th, 1.0), 1.0 - th * th / 6.0)
-    else:
-        tan_h = wt * s
-        cos_h = 1.0 / jnp.sqrt(1.0 + tan_h * tan_h)
-        sin_h = tan_h * cos_h
-        jac = 1.0 / cos_h
-    sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
-    a = 2.0 * sin_h * cos_h * sin_r
-    bnum = -nv * (cos_h * cos_h - sin_h * sin_h)
-    full = bnum < -jnp.abs(a) * (1.0 - 1e-6)
-    empty = bnum > jnp.abs(a) * (1.0 - 1e-6)
-    c = jnp.where(full | empty, 0.0, bnum / jnp.where(full | empty, 1.0, a))
-    phi_max = jnp.where(full, math.pi, jnp.where(empty, 0.0, jnp.arccos(c)))  # (R,)
+    s, wring, cos_h, sin_h, jac = _lobe_rings(nv, wt, xr, wr, distribution=distribution)
+    phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
     phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A), xa in [-1, 1]
     wgt = (wring * jac * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
     sp = jnp.sin(phi)
