@@ -851,8 +851,8 @@ def _visible_nodes(
     The narrowed lobe is an anisotropic Gaussian in the lobe's tangent coordinates (θh for the
     Gaussian D, tanθh for Beckmann) with squared widths w_t² = μ² − var/2 along V's azimuth
     (reflection doubles angles in the plane of incidence) and w_b² = μ² − var/(2cos²θr) across
-    it. Nodes: rings at s = θh/w_t (or tanθh/w_t), Gauss–Legendre in t = 1 − e^{−s²} on
-    [0, t(s_max)] (so the radial weight s e^{−s²} ds = dt/2 is integrated exactly), s_max from
+    it. Nodes: rings at s = θh/w_t (or tanθh/w_t), Gauss–Legendre in s on [0, s_max] with the
+    radial weight s e^{−s²} ds (:func:`_lobe_rings`), s_max from
     the horizon (θh <= π/4 + θr/2) and the truncation s <= 4.5; on each ring Gauss–Legendre in
     the azimuth φ' (from V's azimuth) over the whole visible arc |φ'| <= φ_max(θh) (N·L > 0 ⟺
     sin2θh sinθr cosφ' > −cosθr cos2θh). The across-axis narrowing enters the weights as
