@@ -271,13 +271,22 @@ def composite(frame, cg_linear, coverage, model: CameraModel) -> jax.Array:
     Args:
         frame: (H, W, 3) uint8 encoded video frame.
         cg_linear: (H, W, 3) float linear frame RGB of the CG (from ``model.linear_from_*``).
-        coverage: (H, W) CG coverage in [0, 1] (bool accepted).
+        coverage: (H, W) CG coverage in [0, 1], or a bool mask.
         model: the camera model (its tone curve).
 
-    Returns (H, W, 3) uint8; uncovered pixels equal ``frame`` exactly.
+    Returns (H, W, 3) uint8; uncovered pixels equal ``frame`` exactly. A bool mask (the
+    renderer's coverage, no partial pixels) needs no decoding of the frame: covered pixels are
+    ``encode(cg)``; partial coverage decodes the frame through a 256-entry table of the inverse
+    tone curve (exact for uint8 input) and mixes ``cov · cg + (1 − cov) · frame`` linearly.
     """
-    bg = jnp.asarray(frame).astype(jnp.float32) / 255.0
-    cov = jnp.clip(jnp.asarray(coverage).astype(jnp.float32), 0.0, 1.0)[..., None]
-    mixed = cov * jnp.clip(cg_linear, 0.0, 1.0) + (1.0 - cov) * decode_frame(bg, model)
+    fr = jnp.asarray(frame, jnp.uint8)
+    cov = jnp.asarray(coverage)
+    cg = jnp.clip(cg_linear, 0.0, 1.0)
+    if cov.dtype == jnp.bool_:
+        enc = jnp.round(encode_frame(cg, model) * 255.0).astype(jnp.uint8)
+        return jnp.where(cov[..., None], enc, fr)
+    cov = jnp.clip(cov.astype(jnp.float32), 0.0, 1.0)[..., None]
+    lut = decode_frame(jnp.arange(256, dtype=jnp.float32) / 255.0, model)
+    mixed = cov * cg + (1.0 - cov) * lut[fr.astype(jnp.int32)]
     enc = jnp.round(encode_frame(mixed, model) * 255.0).astype(jnp.uint8)
-    return jnp.where(cov > 0, enc, jnp.asarray(frame, jnp.uint8))
+    return jnp.where(cov > 0, enc, fr)
