@@ -16,8 +16,9 @@ Colour: the renderer's radiance channels go straight to the camera's linear RGB:
 :class:`~spectral_fit.renderer.Prepared` matrix ``to_xyz`` (channels → XYZ) is replaced by
 channels → camera RGB (``to_spectrum @ camera.spectral_weights``), so the camera's spectral
 sensitivities act on the full spectra at no extra cost (``Frame.xyz`` then holds camera linear
-RGB). A camera model fitted from a ColorChecker shot (XYZ → RGB 3×3) uses ``to_xyz @ M.T``
-instead. The composite uses the renderer's coverage mask (see :mod:`spectral_fit.compositing`).
+RGB). A camera model fitted from a ColorChecker shot (XYZ → RGB 3×3; the config's
+``[camera_colour]``, see :func:`scene_camera_model`) uses ``to_xyz @ M.T`` instead. The
+composite uses the renderer's coverage mask (see :mod:`spectral_fit.compositing`).
 
 Compilation: the step is compiled once per session (poses, visibility and the background frame
 are traced inputs). Buffers (raster windows, covered pixels) are planned for the objects at
@@ -43,7 +44,7 @@ from .errors import InputError
 from .scene import Scene
 
 __all__ = ["LiveSession", "FrameTimings", "RunStats", "scene_intrinsics", "white_reference",
-           "STEP_TRACES"]
+           "scene_camera_model", "STEP_TRACES"]
 
 #: number of times the live step has been traced (compiled), for tests and reports
 STEP_TRACES = {"step": 0}
@@ -68,6 +69,24 @@ def scene_intrinsics(scene: Scene, size: tuple[int, int] | None = None
                   [0.0, i["fy"] * sy, (i["cy"] + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
     dist = None if cam.distortion is None else np.asarray(cam.distortion, np.float64)
     return k, dist
+
+
+def scene_camera_model(scene: Scene, *, sensitivities: str | None = None,
+                       white_level: float = 0.85) -> CameraModel:
+    """The video camera's colour model for ``scene``: its ``[camera_colour]`` table (a 3×3
+    from a ColorChecker shot, ``spectral-fit calibrate-colour``) unless ``sensitivities`` is
+    given; otherwise measured spectral sensitivities (default "Nikon 5100 (NPL)") white-
+    balanced on the environment's white reference (:func:`white_reference`) shown at linear
+    level ``white_level``."""
+    from .compositing import camera_model_from_spec
+    from .renderer import load_environment
+
+    if sensitivities is None and scene.camera_colour is not None:
+        return camera_model_from_spec(scene.camera_colour, scene.wavelengths)
+    env = load_environment(scene, scene.wavelengths)
+    return camera_model_from_sensitivities(
+        sensitivities or "Nikon 5100 (NPL)", scene.wavelengths, white_reference(env),
+        white_level=white_level)
 
 
 def white_reference(environment: np.ndarray) -> np.ndarray:
@@ -164,10 +183,10 @@ class LiveSession:
         size: (H, W) of the video frames. With ``[camera] intrinsics`` (calibrated at the
             ``[frame]`` size) the frames may be a uniform resize of that size (the intrinsics
             are scaled; pixel centres stay at +0.5); another aspect ratio is an error.
-        camera: the video camera's colour model (default: ``sensitivities`` with the
-            environment's white reference at ``white_level``).
-        sensitivities: colour-science camera name for the default model.
-        white_level: linear level of the white reference in the default model.
+        camera: the video camera's colour model (default: :func:`scene_camera_model`).
+        sensitivities: colour-science camera name for the default model (overrides the
+            config's ``[camera_colour]``).
+        white_level: linear level of the white reference in a sensitivities model.
         mode, spectral_mode, k: renderer options (interreflection mode, bands/basis).
         plan_distance: distance (m) in front of the camera at which buffers are planned.
         headroom: capacity headroom over the planned poses.
@@ -178,12 +197,11 @@ class LiveSession:
 
     def __init__(self, scene: Scene, *, size: tuple[int, int] | None = None,
                  camera: CameraModel | None = None,
-                 sensitivities: str = "Nikon 5100 (NPL)", white_level: float = 0.85,
+                 sensitivities: str | None = None, white_level: float = 0.85,
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
                  headroom: float = 1.6, detect_downscale: int | None = None) -> None:
         from .markers import MarkerDetector, MarkerTracker
-        from .renderer import load_environment
 
         h, w = size or (scene.height, scene.width)
         if scene.camera.intrinsics is not None and abs(
@@ -217,10 +235,8 @@ class LiveSession:
 
             self._maps = undistort_maps(self.k, self.dist, (h, w))
         if camera is None:
-            env = load_environment(scene, scene.wavelengths)
-            camera = camera_model_from_sensitivities(
-                sensitivities, scene.wavelengths, white_reference(env),
-                white_level=white_level)
+            camera = scene_camera_model(scene, sensitivities=sensitivities,
+                                        white_level=white_level)
         self.camera = camera
         self._options = {"mode": mode, "spectral_mode": spectral_mode, "k": k}
         self.plan_distance = float(plan_distance)

@@ -22,9 +22,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="interreflection mode (default: the config's)")
     p.add_argument("--spectral-mode", choices=("bands", "basis"), default=None)
     p.add_argument("--k", type=int, default=None, help="basis size for --spectral-mode basis")
-    p.add_argument("--sensitivities", default="Nikon 5100 (NPL)",
+    p.add_argument("--sensitivities", default=None,
                    help="camera spectral sensitivities (colour-science name) for colour "
-                   "matching (default: 'Nikon 5100 (NPL)')")
+                   "matching (default: the config's [camera_colour] from "
+                   "'spectral-fit calibrate-colour', else 'Nikon 5100 (NPL)')")
     p.add_argument("--white-level", type=float, default=0.85,
                    help="linear frame level of a white sheet on the table (exposure)")
     p.add_argument("--fps", type=float, default=None,
@@ -108,6 +109,9 @@ def run(args: argparse.Namespace) -> int:
         "output_frames": written,
         "pixel_capacity": session.prep.pixel_capacity,
         "pipeline": bool(args.pipeline),
+        "colour": ("sensitivities " + (args.sensitivities or "Nikon 5100 (NPL)")
+                   if args.sensitivities or scene.camera_colour is None
+                   else "[camera_colour]"),
     }
     if args.json:
         print(json.dumps(summary, indent=2))
