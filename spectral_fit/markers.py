@@ -132,43 +132,51 @@ def refine_corners_by_edges(grey: np.ndarray, corners, k, dist=None, *, samples:
     """
     cv2 = _cv2()
     c = np.asarray(corners, np.float64).reshape(4, 2)
-    g = np.asarray(grey, np.float32)
     centre = c.mean(0)
     ts = np.linspace(0.15, 0.85, samples)
     offs = np.linspace(-half_width, half_width, int(4 * half_width) + 1)
+    a, b = c, np.roll(c, -1, axis=0)  # edge e runs from corner e to corner e + 1
+    d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    n = np.stack([-d[:, 1], d[:, 0]], 1)
+    flip = np.sum(n * ((a + b) / 2 - centre), axis=1) < 0
+    n[flip] = -n[flip]  # outward normals: profiles go from black (inside) to white
+    base = a[:, None] + ts[None, :, None] * (b - a)[:, None]  # (4, S, 2)
+    pts = base[:, :, None, :] + offs[None, None, :, None] * n[:, None, None, :]  # (4, S, P, 2)
+    # sample a float copy of the marker's neighbourhood only (sub-level precision)
+    gh, gw = grey.shape[:2]
+    x0, y0 = (max(0, min(int(np.floor(pts[..., i].min())) - 2, lim - 1))
+              for i, lim in ((0, gw), (1, gh)))
+    x1, y1 = (max(int(np.ceil(pts[..., i].max())) + 3, v + 1)
+              for i, v in ((0, x0), (1, y0)))
+    g = np.asarray(grey[y0:y1, x0:x1], np.float32)
+    flat = (pts.reshape(4 * samples, offs.size, 2) - [x0, y0]).astype(np.float32)
+    prof = cv2.remap(g, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    prof = prof.reshape(4, samples, offs.size)
+    lo = prof[..., :3].mean(-1)
+    hi = prof[..., -3:].mean(-1)
+    level = (lo + hi) / 2
+    above = prof >= level[..., None]
+    rise = above[..., 1:] & ~above[..., :-1]
+    ok = ((hi - lo) > 20.0) & (rise.sum(-1) == 1)  # one clean black-to-white crossing
+    j = np.argmax(rise, axis=-1)
+    p0 = np.take_along_axis(prof, j[..., None], -1)[..., 0]
+    p1 = np.take_along_axis(prof, j[..., None] + 1, -1)[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = (level - p0) / (p1 - p0)
+    off = offs[j] + f * (offs[1] - offs[0])
+    edge_pts = base + off[..., None] * n[:, None, :]  # (4, S, 2)
+    if np.any(ok.sum(1) < 4):
+        raise ValueError("edge refinement failed")
+    kk = np.asarray(k, np.float64)
+    dd = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
+    und = cv2.undistortPoints(edge_pts[ok].reshape(-1, 1, 2), kk, dd).reshape(-1, 2)
+    which = np.nonzero(ok)[0]
     lines = []
     for e in range(4):
-        a, b = c[e], c[(e + 1) % 4]
-        d = (b - a) / np.linalg.norm(b - a)
-        n = np.array([-d[1], d[0]])
-        if np.dot(n, (a + b) / 2 - centre) < 0:
-            n = -n  # outward normal: profile goes from black (inside) to white
-        base = a[None] + ts[:, None] * (b - a)[None]  # (S, 2)
-        pts = base[:, None, :] + offs[None, :, None] * n[None, None, :]  # (S, P, 2)
-        prof = cv2.remap(g, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
-                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-        lo = prof[:, :3].mean(1, keepdims=True)
-        hi = prof[:, -3:].mean(1, keepdims=True)
-        level = (lo + hi) / 2
-        above = prof >= level
-        good = (hi[:, 0] - lo[:, 0]) > 20.0
-        edge_pts = []
-        for s in np.nonzero(good)[0]:
-            idx = np.nonzero(above[s, 1:] & ~above[s, :-1])[0]
-            if idx.size != 1:
-                continue
-            j = idx[0]
-            p0, p1 = prof[s, j], prof[s, j + 1]
-            f = (level[s, 0] - p0) / (p1 - p0)
-            edge_pts.append(base[s] + (offs[j] + f * (offs[j + 1] - offs[j])) * n)
-        if len(edge_pts) < 4:
-            raise ValueError("edge refinement failed")
-        ep = np.asarray(edge_pts).reshape(-1, 1, 2)
-        kk = np.asarray(k, np.float64)
-        dd = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
-        und = cv2.undistortPoints(ep, kk, dd).reshape(-1, 2)
-        m = und.mean(0)
-        _, _, vt = np.linalg.svd(und - m)
+        q = und[which == e]
+        m = q.mean(0)
+        _, _, vt = np.linalg.svd(q - m)
         normal = vt[1]
         lines.append(np.array([normal[0], normal[1], -normal @ m]))  # a x + b y + c = 0
     out = []
