@@ -201,6 +201,27 @@ class LiveSession:
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
                  headroom: float = 1.6, detect_downscale: int | None = None) -> None:
+        self._init_cpu(scene, size, detect_downscale=detect_downscale)
+        scene = self.scene
+        if camera is None:
+            camera = scene_camera_model(scene, sensitivities=sensitivities,
+                                        white_level=white_level)
+        self.camera = camera
+        self._options = {"mode": mode, "spectral_mode": spectral_mode, "k": k}
+        self.plan_distance = float(plan_distance)
+        self.headroom = float(headroom)
+        self.recompiles = 0
+        self.frames = 0
+        self._planned = False
+        self.timings = FrameTimings()
+        self.prep = self._prepare(self.headroom)
+
+    # ------------------------------------------------------------------ preparation
+
+    def _init_cpu(self, scene: Scene, size: tuple[int, int] | None, *,
+                  detect_downscale: int | None = None) -> None:
+        """The CPU side: intrinsics at the frame size, marker detector and tracker,
+        undistortion maps, frame buffers (``self.scene``, ``self.size``, ...)."""
         from .markers import MarkerDetector, MarkerTracker
 
         h, w = size or (scene.height, scene.width)
@@ -230,24 +251,11 @@ class LiveSession:
         self._maps = None
         self._ring = [np.empty((h, w, 3), np.uint8) for _ in range(_RING)]
         self._ring_next = 0
+        self._last_detect = 0.0
         if self.dist is not None and np.any(self.dist != 0):
             from .camera_calibration import undistort_maps
 
             self._maps = undistort_maps(self.k, self.dist, (h, w))
-        if camera is None:
-            camera = scene_camera_model(scene, sensitivities=sensitivities,
-                                        white_level=white_level)
-        self.camera = camera
-        self._options = {"mode": mode, "spectral_mode": spectral_mode, "k": k}
-        self.plan_distance = float(plan_distance)
-        self.headroom = float(headroom)
-        self.recompiles = 0
-        self.frames = 0
-        self._planned = False
-        self.timings = FrameTimings()
-        self.prep = self._prepare(self.headroom)
-
-    # ------------------------------------------------------------------ preparation
 
     def _planning_scene(self) -> Scene:
         """The scene with marker-attached objects side by side at ``plan_distance`` in front
@@ -343,6 +351,7 @@ class LiveSession:
         t0 = time.perf_counter()
         poses = self.tracker.update(self.detector.detect(frame))
         t1 = time.perf_counter()
+        self._last_detect = t1 - t0
         buf = self._ring[self._ring_next]
         self._ring_next = (self._ring_next + 1) % len(self._ring)
         bg = jax.device_put(self.undistort(frame, out=buf))

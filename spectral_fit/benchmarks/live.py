@@ -123,4 +123,67 @@ def live_paper(opts: BenchOptions) -> dict[str, Any]:
     return out
 
 
-CASES = {"live_paper": live_paper}
+def live_stages(opts: BenchOptions) -> dict[str, Any]:
+    """Case ``live_stages``: the live loop WITHOUT the renderer, per 720×480 frame of the sample
+    video: marker detection + tracking + poses, undistortion + upload, the compiled camera-RGB
+    composite (a fixed CG image and bool mask covering 10 % of the frame) with its transfers,
+    and MPEG-4 encoding; ``median_ms`` is the chain, ``stages_ms`` each stage's median. These
+    are the stages :meth:`LiveSession.run` overlaps with rendering. ``--quick``: 240×160."""
+    import cv2
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ..live import LiveSession
+    from ..scene import load_scene
+    from ..video import VideoSink, read_frames
+
+    scene = load_scene(CONFIG)
+    frames = read_frames(VIDEO, max_frames=48)
+    size = frames[0].shape[:2]
+    if opts.quick:
+        size = (size[0] // 3, size[1] // 3)
+        frames = [cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+                  for f in frames[:6]]
+    session = LiveSession.__new__(LiveSession)  # the CPU parts only: no renderer preparation
+    session._init_cpu(scene, size)
+    from ..live import scene_camera_model
+
+    camera = scene_camera_model(scene)
+    rng = np.random.default_rng(0)
+    cg = jnp.asarray(rng.random((*size, 3), dtype=np.float32))
+    mask = np.zeros(size, bool)
+    h, w = size
+    mask[int(0.35 * h):int(0.65 * h), int(0.33 * w):int(0.67 * w)] = True
+    mask = jnp.asarray(mask)
+    from ..compositing import composite
+
+    comp = jax.jit(lambda bg, c, m: composite(bg, c, m, camera))
+    times: dict[str, list[float]] = {k: [] for k in ("detect", "undistort", "composite",
+                                                     "encode")}
+    state = {"i": 0}
+    with tempfile.TemporaryDirectory() as tmp, VideoSink(Path(tmp) / "s.mp4", fps=25.0,
+                                                         size=size) as sink:
+        def chain():
+            f = frames[state["i"] % len(frames)]
+            state["i"] += 1
+            t0 = time.perf_counter()
+            (_poses, _inputs), bg, _ = session._cpu_stages(f)
+            t1 = time.perf_counter()
+            out = np.asarray(jax.block_until_ready(comp(bg, cg, mask)))
+            t2 = time.perf_counter()
+            sink.write(out)
+            t3 = time.perf_counter()
+            times["detect"].append(session._last_detect)
+            times["undistort"].append(t1 - t0 - session._last_detect)
+            times["composite"].append(t2 - t1)
+            times["encode"].append(t3 - t2)
+            return out
+
+        out = measure(chain, repeats=max(opts.repeats, len(frames)))
+    out["stages_ms"] = {k: statistics.median(v[1:]) * 1e3 for k, v in times.items()}
+    out["size"] = [int(x) for x in size]
+    return out
+
+
+CASES = {"live_paper": live_paper, "live_stages": live_stages}
