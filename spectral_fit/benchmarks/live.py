@@ -180,7 +180,7 @@ def live_stages(opts: BenchOptions) -> dict[str, Any]:
             times["encode"].append(t3 - t2)
             return out
 
-        out = measure(chain, repeats=max(opts.repeats, len(frames)))
+        out = measure(chain, repeats=opts.repeats)
     out["stages_ms"] = {k: statistics.median(v[1:]) * 1e3 for k, v in times.items()}
     out["size"] = [int(x) for x in size]
     return out
