@@ -198,8 +198,9 @@ class MarkerDetector:
             (``cv2.INTER_AREA``; ~5× cheaper at 2), then refine every corner on the
             full-resolution frame (``cv2.cornerSubPix``, then the edge lines when
             ``spec.refine == "edges"``), so the poses keep full-resolution accuracy. None
-            (default): 2 for frames whose shorter side is at least 400 px, else 1. Refinements
-            "contour" and "apriltag" (done inside OpenCV's detector) always detect at 1.
+            (default): 2 for frames whose shorter side is at least 400 px, else 1, and 1 with
+            ``refine = "none"``. Refinements "contour" and "apriltag" (done inside OpenCV's
+            detector) always detect at 1.
         track: markers found in the previous frame but missed by the downscaled detection
             are searched again at full resolution in a window around their last corners
             (small or distant markers), so downscaling loses no marker that full resolution
@@ -247,6 +248,8 @@ class MarkerDetector:
             return 1
         if self.downscale is not None:
             return self.downscale
+        if self.spec.refine == "none":  # nothing would recover full-resolution corners
+            return 1
         return 2 if min(shape[:2]) >= 400 else 1
 
     def _pose(self, grey: np.ndarray, c: np.ndarray
