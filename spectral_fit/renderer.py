@@ -697,6 +697,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
     mirror by one lookup along R and the diffuse irradiance from the irradiance map ``lut``
     (or ``env``), all points of an object at once (few lookups per point: no batching)."""
     from .environment import (
+        _materialise,
         fast_lookup,
         fresnel_dielectric,
         gloss_split_sum,
@@ -713,15 +714,18 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
         start += cap
         kw = dict(distribution=m.distribution, geometry=m.geometry)
         moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
-        gloss = jax.vmap(lambda nn, vv, m=m, t=moments, kw=kw: gloss_split_sum(
-            env, split_map, t, nn, vv, m.mu, m.n, settings=settings, **kw))(nrm, v)
+        gloss = gloss_split_sum(env, split_map, moments, nrm, v, m.mu, m.n,
+                                settings=settings, **kw)
         nv = (nrm[:, 0] * v[:, 0] + nrm[:, 1] * v[:, 1] + nrm[:, 2] * v[:, 2])[:, None]
         refl = 2.0 * nv * nrm - v
-        mirror = fresnel_dielectric(nv, m.n) * jax.vmap(lambda d: fast_lookup(env, d))(refl)
+        # per-point factors computed once (not inside each of the C channels' expressions)
+        fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
+        nv = fac[:, 1:2]
+        mirror = fac[:, 0:1] * fast_lookup(env, refl)
         if table is None:
             e = jax.vmap(lambda d: irradiance(env, d))(nrm)
         else:
-            e = jax.vmap(lambda d: fast_lookup(table, d))(nrm)
+            e = fast_lookup(table, nrm)
         if env.product_tensor is None:
             se = m.reflectance * e
         else:
@@ -795,7 +799,7 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     ray direction is an affine function of the pixel coordinates (one 3 × 3 matrix for the
     frame: inverse projection, camera rotation and map rotation), evaluated by components, then
     normalised; (u, v) by :func:`~spectral_fit.environment.fast_direction_to_uv`."""
-    from .environment import _bilinear_taps, _taps_sum, fast_direction_to_uv
+    from .environment import _bilinear_taps, _materialise, _taps_sum, fast_direction_to_uv
 
     h, w = prep.shape
     env = prep.env
@@ -818,8 +822,8 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     dm = [d[0] * rot[0, j] + d[1] * rot[1, j] + d[2] * rot[2, j] for j in range(3)]
     inv_len = jax.lax.rsqrt(dm[0] * dm[0] + dm[1] * dm[1] + dm[2] * dm[2])
     dmap = jnp.stack([c * inv_len for c in dm], axis=-1).reshape(-1, 3)
-    u, v = fast_direction_to_uv(dmap)
-    idx, wt = _bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm))
+    uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
+    idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm), jnp.int32(wm))
     return _taps_sum(flat, idx, wt)
 
 
@@ -827,8 +831,7 @@ def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:
     """Bilinear lookups (N, C') of a table laid out as the map's texels + 2 pole rows."""
     from .environment import fast_lookup
 
-    tab = _lut_env(env, flat, env.texels.shape[:2])
-    return jax.vmap(lambda d: fast_lookup(tab, d))(dirs)
+    return fast_lookup(_lut_env(env, flat, env.texels.shape[:2]), dirs)
 
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
