@@ -676,9 +676,18 @@ def _verbose(**kwargs: Any) -> None:
 
 
 def _solver(opts: FitOptions, progress: bool) -> Any:
+    """optimistix Levenberg–Marquardt whose damped steps solve the normal equations
+    (JᵀJ + λ D) δ = −Jᵀr by Cholesky (``lineax.Normal(lineax.Cholesky())``): with ~10
+    unknowns and ~1500 residuals this is a 10×10 factorisation per step, where the default
+    QR of the materialised (B·L + F) × F augmented operator made each iteration ~7× slower
+    here (0.49 s against 3.35 s for the bundled session's 21-22 iterations, same optimum).
+    Forming JᵀJ squares the condition number; the damping keeps it positive definite, and
+    the float64 exact-recovery test still reaches 1e-6."""
+    import lineax as lx
     import optimistix as optx
 
     return optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol,
+                                   linear_solver=lx.Normal(lx.Cholesky()),
                                    verbose=_verbose if progress else False)
 
 
