@@ -64,6 +64,8 @@ __all__ = [
 TRACE_COUNT = {"render_frame": 0}
 
 _IR_MODES = ("gather", "paper", "none")
+#: environment shading qualities of frames (see :func:`prepare`)
+QUALITIES = ("fast", "render", "exact")
 
 
 class Prepared(eqx.Module):
@@ -87,10 +89,13 @@ class Prepared(eqx.Module):
         materials: the config's materials, stacked (leading axis O).
         irradiance_lut: (Hl·Wl + 2, C) irradiance map over normal directions (map frame, the
             map's texel layout plus two pole rows), or None (irradiance from ``env``).
+        split_map: the :class:`~spectral_fit.environment.SplitSumMap` of quality "fast"
+            (finely spaced prefiltered levels), else None.
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
     ir_bounces, ir_texture_size, raster_config, pixel_capacity (covered-pixel list size per
     object), object_slices ((start, stop)
-    vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size.
+    vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size,
+    quality, split_settings (a :class:`~spectral_fit.environment.SplitSum`).
     """
 
     vertices: jax.Array
@@ -108,6 +113,7 @@ class Prepared(eqx.Module):
     exposure: jax.Array
     materials: Material
     irradiance_lut: jax.Array | None
+    split_map: Any
     shape: tuple[int, int] = eqx.field(static=True)
     wavelengths: tuple[float, ...] = eqx.field(static=True)
     spectral_mode: str = eqx.field(static=True)
@@ -124,7 +130,8 @@ class Prepared(eqx.Module):
     display: Any = eqx.field(static=True)
     scene_white_xy: tuple[float, float] | None = eqx.field(static=True)
     batch_size: int = eqx.field(static=True, default=32)
-    quality: str = eqx.field(static=True, default="render")
+    quality: str = eqx.field(static=True, default="fast")
+    split_settings: Any = eqx.field(static=True, default=None)
 
     @property
     def num_objects(self) -> int:
@@ -366,7 +373,8 @@ def prepare(
     environment: np.ndarray | None = None,
     diffuse: str = "map",
     irradiance_shape: tuple[int, int] = (32, 64),
-    quality: str = "render",
+    quality: str = "fast",
+    split_settings: Any = None,
 ) -> Prepared:
     """Precompute a scene for :func:`render_frame` (explicit precomputation, DESIGN §4).
 
@@ -390,14 +398,19 @@ def prepare(
             exact texel sum over the environment, looked up bilinearly), "sh" (order-2
             spherical harmonics: smooth but up to ~10 % of the peak off under a lamp) or
             "exact" (texel sum over the whole map per sample: the reference, slow).
-        quality: gloss quadrature of the environment shading, "render" (default, fewer
-            lookups) or "exact" (the fitter's; see ``environment.gloss_integral``).
+        quality: gloss of the environment shading: "fast" (default; the pre-integrated
+            split-sum approximation ``environment.gloss_split_sum``, a few prefiltered lookups
+            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the fitter's
+            16 × 32; see ``environment.gloss_integral``). Accuracy and cost of each:
+            docs/rendering.md.
+        split_settings: :class:`~spectral_fit.environment.SplitSum` for "fast" (default
+            settings when None).
     Raises:
         InputError: bad options (naming the option), unreadable files (naming the file).
     """
     from .basis import pca_basis
     from .colorimetry import xyz_weights
-    from .environment import EnvironmentMap
+    from .environment import EnvironmentMap, SplitSum, SplitSumMap
     from .scene import Scene, load_scene
 
     if not isinstance(scene, Scene):
@@ -413,8 +426,9 @@ def prepare(
             raise InputError(f"W and H must be in 1..16384, got {(w, h)}", field="size")
         shape = (h, w)
     ir_mode = scene.interreflection.mode if mode is None else mode
-    if quality not in ("render", "exact"):
-        raise InputError(f"must be 'render' or 'exact', got {quality!r}", field="quality")
+    if quality not in QUALITIES:
+        raise InputError(f"must be one of {list(QUALITIES)}, got {quality!r}",
+                         field="quality")
     if diffuse not in ("map", "sh", "exact"):
         raise InputError(f"must be 'map', 'sh' or 'exact', got {diffuse!r}", field="diffuse")
     if ir_mode not in _IR_MODES:
@@ -473,6 +487,15 @@ def prepare(
                                         diffuse="exact" if diffuse == "exact" else "sh")
         to_xyz = W
         to_spectrum = np.eye(wl.size)
+    split_map = None
+    if quality == "fast":
+        split_settings = SplitSum() if split_settings is None else split_settings
+        if not isinstance(split_settings, SplitSum):
+            raise InputError(f"expected a SplitSum, got {type(split_settings).__name__}",
+                             field="split_settings")
+        split_map = SplitSumMap.from_environment(
+            env, img if basis is None else basis.project(img),
+            per_octave=split_settings.per_octave)
     xyz_map = img @ W
     lut = None
     if diffuse == "map":
@@ -545,7 +568,8 @@ def prepare(
         object_slices=tuple(vsl), triangle_slices=tuple(tsl),
         names=tuple(o.name for o in scene.objects), display=display,
         scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy),
-        batch_size=int(batch_size), quality=quality,
+        batch_size=int(batch_size), quality=quality, split_map=split_map,
+        split_settings=split_settings if quality == "fast" else None,
     )
 
 
@@ -586,7 +610,8 @@ def _as_stacked(materials: Any, n_objects: int) -> list[Material]:
 
 def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
                    lut: jax.Array | None = None, quality: str = "render",
-                   capacities: tuple[int, ...] | None = None) -> jax.Array:
+                   capacities: tuple[int, ...] | None = None, split_map: Any = None,
+                   split_settings: Any = None) -> jax.Array:
     """Environment shading (eq. 5) of the G-buffer samples, (N, C): the samples are laid out
     object by object (``capacities[o]`` slots for object o), and each object's slice is shaded
     with its material by :func:`~spectral_fit.environment.shade_points`. With an irradiance map
@@ -599,6 +624,8 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
     if capacities is None:
         capacities = (gb.object.shape[0],)
         mats = mats[:1]
+    if quality == "fast":
+        return _shade_fast(mats, env, gb, lut, capacities, split_map, split_settings)
     table = None if lut is None else _lut_env(env, lut)
     out = []
     start = 0
@@ -619,6 +646,52 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
             se = jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
         front = jnp.sum(nrm * v, axis=-1, keepdims=True) > 0.0
         out.append(spec + jnp.where(front, m.alpha / math.pi, 0.0) * se)
+    return jnp.concatenate(out)
+
+
+def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | None,
+                capacities: tuple[int, ...], split_map: Any, settings: Any) -> jax.Array:
+    """Quality "fast" of :func:`_shade_samples`: eq. (5) with the split-sum gloss
+    (:func:`~spectral_fit.environment.gloss_split_sum`; one moment table per object), the
+    mirror by one lookup along R and the diffuse irradiance from the irradiance map ``lut``
+    (or ``env``), all points of an object at once (few lookups per point: no batching)."""
+    from .environment import (
+        _materialise,
+        fast_lookup,
+        fresnel_dielectric,
+        gloss_split_sum,
+        irradiance,
+        lobe_moment_table,
+    )
+
+    table = None if lut is None else _lut_env(env, lut)
+    out = []
+    start = 0
+    for m, cap in zip(mats, capacities, strict=True):
+        nrm = gb.normal[start:start + cap]
+        v = gb.view[start:start + cap]
+        start += cap
+        kw = dict(distribution=m.distribution, geometry=m.geometry)
+        moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
+        gloss = gloss_split_sum(env, split_map, moments, nrm, v, m.mu, m.n,
+                                settings=settings, **kw)
+        nv = (nrm[:, 0] * v[:, 0] + nrm[:, 1] * v[:, 1] + nrm[:, 2] * v[:, 2])[:, None]
+        refl = 2.0 * nv * nrm - v
+        # per-point factors computed once (not inside each of the C channels' expressions)
+        fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
+        nv = fac[:, 1:2]
+        mirror = fac[:, 0:1] * fast_lookup(env, refl)
+        if table is None:
+            e = jax.vmap(lambda d: irradiance(env, d))(nrm)
+        else:
+            e = fast_lookup(table, nrm)
+        if env.product_tensor is None:
+            se = m.reflectance * e
+        else:
+            se = jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
+        front = nv > 0.0
+        rad = (m.alpha / math.pi) * se + m.beta * gloss + m.chi * mirror
+        out.append(jnp.where(front, rad, 0.0))
     return jnp.concatenate(out)
 
 
@@ -679,10 +752,45 @@ def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
     return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
 
+def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
+    """The environment seen through each pixel centre: bilinear lookups (H·W, C') of a table
+    laid out as the map's texels + 2 pole rows (e.g. ``prep.env_xyz``). Per pixel the map-frame
+    ray direction is an affine function of the pixel coordinates (one 3 × 3 matrix for the
+    frame: inverse projection, camera rotation and map rotation), evaluated by components, then
+    normalised; (u, v) by :func:`~spectral_fit.environment.fast_direction_to_uv`."""
+    from .environment import _bilinear_taps, _materialise, _taps_sum, fast_direction_to_uv
+
+    h, w = prep.shape
+    env = prep.env
+    hm, wm = env.texels.shape[:2]
+    inv = jnp.linalg.inv(prep.projection @ view)
+    eye = jnp.linalg.inv(view)[:3, 3]
+    # a far-plane point of NDC (x, y, 1, 1) minus the eye, as a function of pixel (col, row):
+    # linear in (x, y) after the perspective division by w = inv[3] · (x, y, 1, 1), and
+    # w does not depend on (x, y) for a projection whose last row is (0, 0, −1, 0)
+    # (any OpenGL pinhole): so build the 3 × 3 map from (x, y, 1) to the map-frame direction
+    wrow = inv[3]
+    cols = [inv[:3, 0], inv[:3, 1], inv[:3, 2] + inv[:3, 3]]
+    wx, wy, w1 = wrow[0], wrow[1], wrow[2] + wrow[3]
+    xs = 2.0 * (jnp.arange(w, dtype=jnp.float32) + 0.5) / w - 1.0
+    ys = 1.0 - 2.0 * (jnp.arange(h, dtype=jnp.float32) + 0.5) / h
+    x, y = xs[None, :], ys[:, None]
+    den = x * wx + y * wy + w1  # (H, W)
+    rot = env.rotation
+    d = [(x * cols[0][i] + y * cols[1][i] + cols[2][i]) / den - eye[i] for i in range(3)]
+    dm = [d[0] * rot[0, j] + d[1] * rot[1, j] + d[2] * rot[2, j] for j in range(3)]
+    inv_len = jax.lax.rsqrt(dm[0] * dm[0] + dm[1] * dm[1] + dm[2] * dm[2])
+    dmap = jnp.stack([c * inv_len for c in dm], axis=-1).reshape(-1, 3)
+    uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
+    idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm), jnp.int32(wm))
+    return _taps_sum(flat, idx, wt)
+
+
 def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:
     """Bilinear lookups (N, C') of a table laid out as the map's texels + 2 pole rows."""
-    tab = _lut_env(env, flat, env.texels.shape[:2])
-    return jax.vmap(lambda d: _lookup(tab, d))(dirs)
+    from .environment import fast_lookup
+
+    return fast_lookup(_lut_env(env, flat, env.texels.shape[:2]), dirs)
 
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
@@ -748,7 +856,8 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
 
     # 3. shading + interreflection
     radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
-                              prep.quality, prep.pixel_capacity)
+                              prep.quality, prep.pixel_capacity, prep.split_map,
+                              prep.split_settings)
     # interreflection sees a hidden object intact (no degenerate triangles, which gave NaN)
     # but 1 km below the scene: its light and shadow on the others are ~1e-9 of a neighbour's
     away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
@@ -763,8 +872,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
 
     # 4. background and XYZ
-    dirs = _pixel_directions(prep, view)
-    bg_xyz = _env_lookup(prep.env, prep.env_xyz, dirs).reshape(h, w, 3)
+    bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
     xyz = scatter_pixels(radiance @ prep.to_xyz, pix, bg_xyz)
     mask = ras.tri_id >= 0
     object_id = obj_img
@@ -773,7 +881,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         env = prep.env
         hm, wm, c = env.texels.shape
         flat = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
-        bg = _env_lookup(env, flat, dirs) @ prep.to_spectrum
+        bg = _background(prep, flat, view) @ prep.to_spectrum
         spec = scatter_pixels(radiance @ prep.to_spectrum, pix, bg.reshape(h, w, -1))
 
     # 5. display
