@@ -51,7 +51,7 @@ def _bilinear_taps(h, w, ss):
     ra = np.floor(ty).astype(int)
     rb = ra + 1
     fy = ty - ra
-    north, south = ty < 0, ty > h - 1
+    north, south = ty < 0, ty >= h - 1
     ra, rb, fy = np.where(north, -1, ra), np.where(south, -2, rb), fy.copy()
     fy = np.where(north, (ty + 0.5) / 0.5, np.where(south, (ty - (h - 1)) / 0.5, fy))
 
