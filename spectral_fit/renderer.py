@@ -288,54 +288,13 @@ def _white_luminance(y_map: np.ndarray, rotation_y_deg: float, normal: np.ndarra
 def plan_capacities(clip: np.ndarray, triangles: np.ndarray, shape: tuple[int, int], *,
                     headroom: float = 1.5) -> tuple[Any, int]:
     """Rasteriser window capacities and a bound on the covered pixels for one pose, in NumPy
-    (no compilation): per triangle the pixel-centre box of its projection (the whole frame when
-    a vertex lies behind the near plane), the window count per ladder size as the rasteriser
-    lists them (:mod:`spectral_fit.raster`), the 8×8 blocks and pixels touched by the union
-    of the boxes (upper bounds of what the rasteriser needs). Returns (RasterConfig, pixel
-    bound); the capacities are ``headroom`` × the counts on the rasteriser's ladder."""
-    from .raster import TILE_SIZES, RasterConfig
-    from .raster import _ladder as raster_ladder
+    (no compilation): :func:`spectral_fit.raster.plan_counts` (the rasteriser's own window
+    counting). Returns (RasterConfig, pixel bound); the capacities are ``headroom`` × the
+    counts on the rasteriser's ladder."""
+    from .raster import RasterConfig, plan_counts
 
-    h, w = shape
-    c = np.asarray(clip, np.float64)[np.asarray(triangles)]  # (T, 3, 4)
-    wc = c[..., 3]
-    behind = np.any(c[..., 2] < -wc, axis=1) | np.any(wc <= 0, axis=1)
-    ws = np.where(wc > 0, wc, 1.0)
-    px = (c[..., 0] / ws + 1) * 0.5 * w
-    py = (1 - c[..., 1] / ws) * 0.5 * h
-    e1 = np.stack([px[:, 1] - px[:, 0], py[:, 1] - py[:, 0]], -1)
-    e2 = np.stack([px[:, 2] - px[:, 0], py[:, 2] - py[:, 0]], -1)
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    m = 1.0 / 64
-    x0 = np.where(behind, 0, np.ceil(px.min(1) - 0.5 - m))
-    x1 = np.where(behind, w - 1, np.floor(px.max(1) - 0.5 + m))
-    y0 = np.where(behind, 0, np.ceil(py.min(1) - 0.5 - m))
-    y1 = np.where(behind, h - 1, np.floor(py.max(1) - 0.5 + m))
-    x0, y0 = np.maximum(x0, 0), np.maximum(y0, 0)
-    x1, y1 = np.minimum(x1, w - 1), np.minimum(y1, h - 1)
-    nx, ny = (x1 - x0 + 1).astype(np.int64), (y1 - y0 + 1).astype(np.int64)
-    valid = (behind | (det != 0)) & (nx > 0) & (ny > 0)
-    shorter = np.minimum(nx, ny)
-    counts = []
-    for b, s in enumerate(TILE_SIZES):
-        sel = valid & (shorter <= s) if b == 0 else valid & (shorter > TILE_SIZES[b - 1])
-        if 0 < b < len(TILE_SIZES) - 1:
-            sel &= shorter <= s
-        counts.append(int(np.sum(np.where(sel, -(-nx // s) * -(-ny // s), 0))))
-
-    def union(scale: int) -> np.ndarray:
-        hh, ww = -(-h // scale), -(-w // scale)
-        diff = np.zeros((hh + 1, ww + 1), np.int64)
-        a0, a1 = (x0[valid] // scale).astype(int), (x1[valid] // scale).astype(int) + 1
-        b0, b1 = (y0[valid] // scale).astype(int), (y1[valid] // scale).astype(int) + 1
-        for yy, xx, sgn in ((b0, a0, 1), (b0, a1, -1), (b1, a0, -1), (b1, a1, 1)):
-            np.add.at(diff, (yy, xx), sgn)
-        return np.cumsum(np.cumsum(diff, 0), 1)[:hh, :ww] > 0
-
-    blocks = int(union(8).sum())
-    pixels = int(union(1).sum())
-    caps = tuple(raster_ladder(headroom * n + 16) for n in counts)
-    return RasterConfig(TILE_SIZES, caps, raster_ladder(headroom * blocks + 16)), pixels
+    counts = plan_counts(clip, triangles, shape)
+    return RasterConfig.from_counts(counts, headroom=headroom), counts.pixels
 
 
 def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),

@@ -116,6 +116,36 @@ def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, table
     assert (STEP_TRACES["step"], TRACE_COUNT["render_frame"], session.recompiles) == traces
 
 
+def test_threaded_run_gives_the_sequential_frames(session, tables):
+    """run(): reader/render/writer threads give the frames of process(), in order, with
+    per-stage timings; an error on the reader thread reaches the caller."""
+    from spectral_fit.errors import InputError
+
+    both, _ = tables
+    frames = [_frame(both, eye, seed=30 + n)[0]
+              for n, eye in enumerate([(0.0, 0.3, 0.25), (0.05, 0.3, 0.24), (-0.05, 0.31, 0.25),
+                                       (0.02, 0.29, 0.26)])]
+    want = [session.process(f) for f in frames]
+    for threads in (True, False):
+        got = []
+        st = session.run(iter(frames), got.append, threads=threads)
+        assert st.frames == 4 and len(got) == 4
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+        for name in ("decode", "detect", "undistort", "render", "encode", "interval"):
+            assert len(getattr(st, name)) == 4
+            assert all(x >= 0 for x in getattr(st, name))
+        assert st.render[1] > 0 and st.detect[1] > 0
+        med = st.medians_ms()
+        assert med["render"] > 0 and med["interval"] > 0
+    got = []
+    st = session.run(iter(frames), got.append, max_frames=2)
+    assert st.frames == 2 and len(got) == 2
+    bad = [frames[0], frames[1][:, :10]]
+    with pytest.raises(InputError, match="frame must be"):
+        session.run(iter(bad), lambda f: None)
+
+
 def test_live_command_writes_complete_video(tmp_path, tables, capsys):
     from spectral_fit.cli import main
     from spectral_fit.video import VideoSink, count_frames

@@ -5,8 +5,10 @@ spheres of radius 0.0375 m (100 stacks × 100 slices, 19,800 triangles each) cen
 (∓0.045, 0, z) with z = −0.275 (paper) or −0.100 (close-up). Times the jitted rasteriser on
 precomputed clip coordinates (visibility + barycentrics + depth), no culling, with capacities
 planned on the pose (headroom 1.5). Extra figures: ``covered_pixels``, ``first_call_s`` (the
-public ``rasterize`` in a fresh cache: plan + compile + run), the ladder, capacities and the
-windows/blocks each pose needed.
+public ``rasterize`` in a fresh cache: plan + compile + run), ``lower_s`` / ``xla_compile_s``
+(the compile split into tracing + lowering and XLA), ``compile_cpu_s`` (CPU seconds of both:
+robust to other processes' load), the ladder, capacities and the windows/blocks each pose
+needed.
 """
 
 from __future__ import annotations
@@ -57,6 +59,19 @@ def _case(z: float, opts: BenchOptions) -> dict[str, Any]:
     fn = jax.jit(lambda c, t: _raster_jit(c, t, shape=shape, cull="none", config=cfg))
     out = measure(fn, clip, tris, repeats=opts.repeats)
     r = fn(clip, tris)
+    # the compile alone, split into tracing + lowering and XLA's compilation, with the CPU
+    # seconds this process spent compiling (all its threads): on a shared machine the wall
+    # time also counts the other processes' load, the CPU time does not
+    jax.clear_caches()
+    t0, c0 = time.perf_counter(), time.process_time()
+    lowered = jax.jit(lambda c, t: _raster_jit(c, t, shape=shape, cull="none",
+                                               config=cfg)).lower(clip, tris)
+    t1 = time.perf_counter()
+    lowered.compile()
+    t2, c2 = time.perf_counter(), time.process_time()
+    out["lower_s"] = t1 - t0
+    out["xla_compile_s"] = t2 - t1
+    out["compile_cpu_s"] = c2 - c0
     out["first_call_s"] = first_call_s
     out["covered_pixels"] = int(np.sum(np.asarray(r.tri_id) >= 0))
     out["triangles"] = int(tris.shape[0])
