@@ -18,7 +18,8 @@ azimuth: equally spaced on fully visible rings, Gauss–Legendre over the visibl
 prefiltered residual map (:class:`~spectral_fit.environment.EnvironmentMap`, its own principal
 spectra) at a prefilter std matched to the node's footprint in reflected directions (limited
 near the horizon); the map's bright source texels are kept as explicit directions with their
-exact flux. Then
+exact flux (the 16 points of each one's footprint in the bilinear map, as the environment
+module's exact gloss). Then
 
     gloss(μ, n) = Σ_k D(μ, θh_k) F(n, (V·H)_k) G_k c_k L_k + Σ_s D F G /(4 N·V) Φ_s,
 
@@ -422,11 +423,16 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
     hit_info = {"node": hits, "sphere": hit_idx[hits],
                 "point": orig_h + hit_t[hits, None] * dirs[hits]}
     # explicit sources
-    sd = np.asarray(env.source_dirs, np.float64)
+    # (the points of each source texel's footprint in the bilinear map when the map has them,
+    # as the environment module's exact gloss does, else its sub-points)
+    k_sub = int(env.source_dirs.shape[1])
+    tent = getattr(env, "source_tent_dirs", None)
+    sd = np.asarray(env.source_dirs if tent is None else tent, np.float64)
     S = sd.shape[0] * sd.shape[1]
     if S:
         d = sd.reshape(-1, 3) @ np.asarray(env.rotation, np.float64).T
-        flux = np.repeat(np.asarray(env.source_flux, np.float64), sd.shape[1], axis=0)
+        flux = np.repeat(np.asarray(env.source_flux, np.float64) * (k_sub / sd.shape[1]),
+                         sd.shape[1], axis=0)
         Hs = _unit(d[None] + V[:, None])
         s_nh = np.einsum("psc,pc->ps", Hs, N)
         s_vh = np.einsum("psc,pc->ps", Hs, V)
