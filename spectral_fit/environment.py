@@ -489,6 +489,29 @@ def _sphere_blur(img: np.ndarray, sigma: float) -> np.ndarray:
     return out / norm[:, None, None]
 
 
+def _sphere_blur_many(img: np.ndarray, sigmas: list[float]) -> list[np.ndarray]:
+    """:func:`_sphere_blur` of one map at several stds, sharing the great-circle angles
+    between texel rows and the map's FFT (same result as separate calls)."""
+    h, w, c = img.shape
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2.0 * np.pi * np.arange(w) / w
+    ct, st = np.cos(theta), np.sin(theta)
+    cosg = (ct[:, None, None] * ct[None, :, None]
+            + st[:, None, None] * st[None, :, None] * np.cos(phi)[None, None, :])
+    gamma2 = np.arccos(np.clip(cosg, -1.0, 1.0)) ** 2
+    ff = np.fft.rfft(img, axis=1).transpose(1, 0, 2)  # (W/2+1, H, C)
+    out = []
+    for sigma in sigmas:
+        if sigma <= 0:
+            out.append(img)
+            continue
+        k = np.exp(-0.5 * gamma2 / (sigma * sigma)) * st[None, :, None]
+        norm = k.sum(axis=(1, 2))
+        of = np.matmul(np.fft.rfft(k, axis=2).transpose(2, 0, 1), ff)
+        out.append(np.fft.irfft(of.transpose(1, 0, 2), n=w, axis=1) / norm[:, None, None])
+    return out
+
+
 def _build_levels(img: np.ndarray, n_levels: int) -> tuple[list[np.ndarray], np.ndarray]:
     """Level 0 = the map; level k >= 1: blurred to std σ_k = Δ·2^(k−1) (Δ = π/H, one texel)
     by an exact spherical Gaussian (:func:`_sphere_blur`), stored at the coarsest resolution
@@ -1412,17 +1435,23 @@ class SplitSumMap(eqx.Module):
             cur = _downsample2(cur)
             var += d_new**2 / 16.0
             pyramid.append((cur, var))
+        # each level from the coarsest halving with texels <= σ/2, blurred by the rest of the
+        # variance; the levels sharing a halving share its kernel geometry and FFT
+        jobs: dict[int, list[tuple[int, float]]] = {}
+        for k, sigma in enumerate(sigmas[1:], start=1):
+            b = 0
+            for i, (cand, cvar) in enumerate(pyramid[1:], start=1):
+                if math.pi / cand.shape[0] <= sigma / 2.0 + 1e-12 and cvar <= sigma**2:
+                    b = i
+            jobs.setdefault(b, []).append((k, math.sqrt(max(sigma**2 - pyramid[b][1], 0.0))))
+        levels = {0: residual}
+        for b, todo in jobs.items():
+            blurred = _sphere_blur_many(pyramid[b][0], [sg for _, sg in todo])
+            levels.update({k: lev for (k, _), lev in zip(todo, blurred, strict=True)})
         flat, table = [], []
         off = 0
-        for sigma in sigmas:
-            if sigma == 0.0:
-                lev = residual
-            else:
-                base, bvar = pyramid[0]
-                for cand, cvar in pyramid[1:]:
-                    if math.pi / cand.shape[0] <= sigma / 2.0 + 1e-12 and cvar <= sigma**2:
-                        base, bvar = cand, cvar
-                lev = _sphere_blur(base, math.sqrt(max(sigma**2 - bvar, 0.0)))
+        for k in range(len(sigmas)):
+            lev = levels[k]
             h, w, c = lev.shape
             poles = np.stack([lev[0].mean(axis=0), lev[-1].mean(axis=0)])
             flat.append(np.concatenate([lev.reshape(h * w, c), poles]))

@@ -6,21 +6,23 @@ Pipeline (geometry and poses are fixed while materials are fitted):
    environment map, rasterises every reading's measuring field from the instrument's pose (a
    square camera whose field of view is the field angle; pixels inside the inscribed disc), and
    stores a :class:`~spectral_fit.gbuffer.GBuffer` of the surface points seen, their
-   parameter-independent lighting (exact irradiance E(λ, N) and the environment radiance
-   L(λ, R) in the mirror direction), the environment radiance of pixels that miss every
-   object, the environment calibration k(λ) and the reading weights. The result is a
+   material-independent radiance cache (:mod:`spectral_fit.radiance_cache`: exact visible
+   irradiance, mirror-direction radiance, fixed gloss nodes with their radiance, and the
+   interreflection probes on the neighbours), the environment radiance of pixels that miss
+   every object, the environment calibration k(λ) and the reading weights. The result is a
    :class:`FitProblem` pytree.
 2. :func:`predict` — the forward model, jit-compiled, per reading b (mean over its field):
 
        M_b(λ) = k(λ) · B ∘ mean_p∈field(b) [ α S(λ) E(λ, N_p)/π + β ∫ L F D G/(4 cosθr) dω
                                          + χ F(n, θr) L(λ, R_p) + I_p(λ) ]
 
-   (eq. 5 in DESIGN §2's reading; I_p the interreflection term of eq. 6, "gather" mode, when
-   the interreflection module is available; the gloss integral is the only part re-evaluated
-   for new μ, n; B the instrument's band-pass, :func:`band_matrix`). With ``geometry = "SCI"``
-   reflectance, S = max(S_SCI − F(n, 8°), 0).
+   (eq. 5 in DESIGN §2's reading; I_p the light of the neighbours, eq. 6 in the gather
+   reading, when the scene's interreflection mode is not "none" and every object is a
+   sphere; every term is a weighted sum of cached radiances with weights from F, D, G, so
+   the Jacobian is exact autodiff, interreflection included; B the instrument's band-pass,
+   :func:`band_matrix`). With ``geometry = "SCI"`` reflectance, S = max(S_SCI − F(n, 8°), 0).
 3. :func:`fit` — weighted least squares with optimistix Levenberg–Marquardt, several starts
-   solved together under ``jax.vmap``, uncertainties from the Jacobian, a bootstrap over
+   solved one after the other in one program, uncertainties from the Jacobian, a bootstrap over
    readings, identifiability warnings, the sensitivity of each reading to aiming error, and
    the hold-out prediction of interreflection readings from a fit on object-colour readings.
 
@@ -674,9 +676,18 @@ def _verbose(**kwargs: Any) -> None:
 
 
 def _solver(opts: FitOptions, progress: bool) -> Any:
+    """optimistix Levenberg–Marquardt whose damped steps solve the normal equations
+    (JᵀJ + λ D) δ = −Jᵀr by Cholesky (``lineax.Normal(lineax.Cholesky())``): with ~10
+    unknowns and ~1500 residuals this is a 10×10 factorisation per step, where the default
+    QR of the materialised (B·L + F) × F augmented operator made each iteration ~7× slower
+    here (0.49 s against 3.35 s for the bundled session's 21-22 iterations, same optimum).
+    Forming JᵀJ squares the condition number; the damping keeps it positive definite, and
+    the float64 exact-recovery test still reaches 1e-6."""
+    import lineax as lx
     import optimistix as optx
 
     return optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol,
+                                   linear_solver=lx.Normal(lx.Cholesky()),
                                    verbose=_verbose if progress else False)
 
 

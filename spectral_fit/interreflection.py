@@ -33,18 +33,25 @@ the axis c_i → c_j (so it covers the whole hemisphere of j that faces i, not o
 from c_i) at (4g)² and box-filters it into g × g surface samples y (g = ``gather_size``): area
 A_y, area-weighted mean position and normal, and coverage. The shading pass then:
 
-1. shades each sample with j's full model under the environment (eq. 5), towards the point of
-   i's bounding sphere nearest to it, and subtracts the environment radiance it hides
-   (looked up along the direction from that point to the sample): ΔL_y = L_j(y) − L_env;
-2. gathers at each receiver x on i, per fragment (no shared projection centre):
-   - diffuse: α S_i(λ) Σ_y F(x, y) ΔL_y(λ) with the point-to-patch form factor
-     F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²)) (the midpoint rule cos cos A/(π r²) to second
-     order, bounded by cos_x cos_y at contact), so S_i filters the neighbour's light;
-   - gloss: β A(x) ⟨ΔL⟩, A the receiver's lobe albedo ∫ D F G (V·H)/(N·V) dω_H and ⟨ΔL⟩ the
-     coverage-weighted ΔL around the point where the reflected ray R meets j's bounding sphere
-     (or passes closest to it), read from a mip pyramid of the samples at the level of the
-     lobe's footprint (std ≈ t √2 μ at distance t);
-   - mirror: χ F(n, θr) ΔL at that point (finest level);
+1. splits each sample's radiance into a view-independent part (j's diffuse α_j S_j E_irr/π,
+   plus what it receives itself on later bounces) and a view-dependent part (gloss and mirror,
+   :func:`_specular`: the lobe albedo times the environment prefiltered to the lobe width
+   around the mirror direction, plus the bright sources exactly), the latter tabulated towards
+   a 3 × 3 grid of directions spanning i's bounding sphere as seen from y;
+2. gathers at each receiver x on i, per fragment (no shared projection centre), always with
+   j's radiance towards x itself (view direction y → x, not towards the camera):
+   - diffuse: α S_i(λ) [Σ_y F(x, y) L_y(→x) − (Σ_y F) ⟨L_env⟩ − hidden sources/π] with the
+     point-to-patch form factor F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²)) (the midpoint
+     rule cos cos A/(π r²) to second order, bounded by cos_x cos_y at contact), L_y(→x) the
+     view-independent part plus the view-dependent part interpolated bilinearly on the view
+     grid, and ⟨L_env⟩ the cosine-weighted mean of the environment over the cone of j's
+     bounding sphere (a small cone quadrature): the light that j hides;
+   - gloss: β A(x) Σ_q w_q h_q [L_j(y_q → x) − L_env(ω_q)] over a quadrature ω_q of the
+     receiver's own lobe D F G (V·H)/(N·V) (weights w_q, albedo A), each node ray intersected
+     with j's bounding sphere (soft hit h_q, continuous at the silhouette) and j's radiance at
+     the hit read from a mip pyramid of the samples (view-independent part, normal) plus
+     :func:`_specular` evaluated there towards x;
+   - mirror: χ F(n, θr) times the same along R;
 3. ``bounces`` > 1: the samples themselves receive step 2 from the other objects' samples
    before the receivers gather (Jacobi iteration of the radiosity-like exchange).
 
@@ -71,13 +78,15 @@ from .environment import (
     EnvironmentMap,
     _levels_for,
     _lobe_albedo,
+    _lobe_factor,
+    _smootherstep,
     _to_map,
+    _visible_nodes,
     gloss_integral,
     irradiance,
     lookup,
     lookup_level,
     mirror_radiance,
-    shade,
 )
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
@@ -89,7 +98,7 @@ from .raster import (
     interpolate_pixels,
     rasterize,
 )
-from .reflectance import Material, fresnel_dielectric
+from .reflectance import Material, fresnel_dielectric, microfacet_d, microfacet_g
 
 __all__ = [
     "MODES",
@@ -454,7 +463,7 @@ def _mip_lookup(atlas: jax.Array, pair: jax.Array, g: int, tx: jax.Array, ty: ja
     level = jnp.clip(level, 0.0, nl - 1.0)
     lo = jnp.minimum(jnp.floor(level).astype(jnp.int32), nl - 1)
     hi = jnp.minimum(lo + 1, nl - 1)
-    wh = level - lo.astype(level.dtype)
+    wh = _smootherstep(level - lo.astype(level.dtype))  # C¹ across levels
     sizes_a = jnp.asarray(sizes, jnp.int32)
     offs_a = jnp.asarray(offs, jnp.int32)
 
@@ -465,7 +474,7 @@ def _mip_lookup(atlas: jax.Array, pair: jax.Array, g: int, tx: jax.Array, ty: ja
         x = tx * scale - 0.5 + 1.0  # +1: border
         y = ty * scale - 0.5 + 1.0
         x0f, y0f = jnp.floor(x), jnp.floor(y)
-        fx, fy = x - x0f, y - y0f
+        fx, fy = _smootherstep(x - x0f), _smootherstep(y - y0f)  # C¹ (gradients)
         x0 = jnp.clip(x0f.astype(jnp.int32), 0, s + 1)
         y0 = jnp.clip(y0f.astype(jnp.int32), 0, s + 1)
         x1 = jnp.clip(x0f.astype(jnp.int32) + 1, 0, s + 1)
@@ -480,13 +489,142 @@ def _mip_lookup(atlas: jax.Array, pair: jax.Array, g: int, tx: jax.Array, ty: ja
     return (1.0 - wh) * one(lo) + wh * one(hi)
 
 
-def _diffuse_gather(geom: IRGeometry, lum: jax.Array, env: EnvironmentMap, pos: jax.Array,
+def _blurred_env(env: EnvironmentMap, direction: jax.Array, sigma: jax.Array) -> jax.Array:
+    """Environment radiance (C,) along a world unit direction, prefiltered to angular std
+    ``sigma`` (radians; the map's residual without its bright sources)."""
+    lo, hi, w_hi, _ = _levels_for(env, sigma)
+    d = _to_map(env, direction)
+    r = (1.0 - w_hi) * lookup_level(env, lo, d) + w_hi * lookup_level(env, hi, d)
+    return r @ env.spectral_basis
+
+
+def _source_terms(env: EnvironmentMap) -> tuple[jax.Array, jax.Array] | None:
+    """World directions (S·k, 3) and flux (S·k, C) of the environment's bright-source
+    sub-points (None without sources)."""
+    if not env.source_flux.shape[0]:
+        return None
+    k = env.source_dirs.shape[1]
+    sdir = env.source_dirs.reshape(-1, 3) @ env.rotation.T
+    return sdir, jnp.repeat(env.source_flux @ env.spectral_basis, k, axis=0)
+
+
+def _gloss_weights(nrm: jax.Array, view: jax.Array, light: jax.Array, mu: jax.Array,
+                   eta: jax.Array, distribution: str, geometry: str) -> jax.Array:
+    """F D G / (4 cosθr) (the gloss BRDF times cosθi) for unit vectors (..., 3) (broadcast),
+    0 unless both directions are above the surface."""
+    nv = jnp.sum(nrm * view, -1)
+    nl = jnp.sum(nrm * light, -1)
+    h = _normalize(light + view)
+    nh = jnp.sum(nrm * h, -1)
+    vh = jnp.sum(view * h, -1)
+    d = microfacet_d(nh, mu, distribution)
+    g = microfacet_g(nh, nv, nl, vh, mu, geometry)
+    ok = (nl > 0.0) & (nv > 0.0)
+    return jnp.where(ok, fresnel_dielectric(vh, eta) * d * g / (4.0 * jnp.where(ok, nv, 1.0)),
+                     0.0)
+
+
+def _specular(env: EnvironmentMap, materials: Sequence[Material], obj: jax.Array,
+              nrm: jax.Array, view: jax.Array) -> jax.Array:
+    """View-dependent radiance (K, C) of object ``obj`` (K,) at normals ``nrm`` towards
+    ``view`` (K, 3): β (A(cosθr) L_σ(R) + Σ_sources F D G/(4cosθr) Φ) + χ F(θr) L(R).
+
+    The gloss is the split-sum reading of eq. (5)'s gloss term: the lobe's directional albedo A
+    (tabulated per object) times the environment prefiltered to the lobe's width
+    σ = √2 μ √cosθr around the mirror direction R (within ±20 % of the full quadrature of
+    :func:`~spectral_fit.environment.gloss_integral` at grazing angles, a few % near the
+    normal; unbiased on average), so that a neighbour's gloss can be evaluated towards every
+    receiver point instead of towards one."""
+    mats = _stack_materials(materials)
+    o = jnp.maximum(obj, 0)
+    beta, chi, mu, eta = mats["beta"][o], mats["chi"][o], mats["mu"][o], mats["n"][o]
+    nv = jnp.sum(nrm * view, -1)
+    nvc = jnp.clip(nv, 0.0, 1.0)
+    refl = 2.0 * nv[:, None] * nrm - view
+    albedo = _albedo(materials, obj, nv)
+    sigma = math.sqrt(2.0) * mu * jnp.sqrt(jnp.maximum(nvc, 0.05))
+    lres = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(refl, sigma)
+    gloss = albedo[:, None] * lres
+    src = _source_terms(env)
+    if src is not None:
+        sdir, sflux = src
+        for k, m in enumerate(materials):
+            w = _gloss_weights(nrm[:, None], view[:, None], sdir[None], mu[:, None],
+                               eta[:, None], m.distribution, m.geometry)
+            gloss = gloss + jnp.where((o == k)[:, None], w @ sflux, 0.0)
+    out = beta[:, None] * gloss
+    if any(not _is_zero(m.chi) for m in materials):
+        mirror = jax.vmap(lambda d_: lookup(env, d_))(refl)
+        out = out + (chi * fresnel_dielectric(nvc, eta))[:, None] * mirror
+    # faded out over the last few degrees above the horizon (continuous in N and V, so the
+    # neighbour's silhouette does not switch it on and off)
+    return out * _smootherstep(nv / _HORIZON_FADE)[:, None]
+
+
+def _is_zero(x: Any) -> bool:
+    """True only for a concrete zero (a traced value may be anything)."""
+    try:
+        return bool(np.all(np.asarray(x) == 0.0))
+    except (TypeError, jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+        return False
+
+
+#: cosθr below which a neighbour's view-dependent radiance fades to 0 at its horizon
+_HORIZON_FADE = 0.05
+
+#: the neighbour's view-dependent radiance is tabulated per sample towards a 3 × 3 grid of
+#: directions spanning the receiver's bounding sphere (gnomonic coordinates in −1, 0, 1 × tanθc)
+_VIEW_GRID = (-1.0, 0.0, 1.0)
+
+
+def _view_frames(geom: IRGeometry) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Per sample (P, M): the unit axis a towards the receiver's centre, a tangent frame e1, e2,
+    and T = tanθc of the receiver's bounding sphere seen from the sample."""
+    to_c = geom.centre_i[:, None, :] - geom.s_pos
+    dist = jnp.sqrt(jnp.maximum(jnp.sum(to_c * to_c, -1), 1e-30))
+    a = to_c / dist[..., None]
+    s = geom.frame[:, None, 0, :]
+    e1 = _normalize(s - jnp.sum(s * a, -1, keepdims=True) * a)
+    e2 = jnp.cross(a, e1)
+    sin_c = jnp.clip(geom.radius_i[:, None] / dist, 0.05, 0.95)
+    return a, e1, e2, sin_c / jnp.sqrt(1.0 - sin_c * sin_c)
+
+
+def _sample_specular(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                     frames: tuple[jax.Array, ...]) -> jax.Array:
+    """(P, M, 9, C): each sample's view-dependent radiance towards the 3 × 3 view grid."""
+    a, e1, e2, tan_c = frames
+    p_count, m_count = geom.s_area.shape
+    senders = np.asarray([j for _, j in geom.pairs], np.int32)
+    views = []
+    for gu in _VIEW_GRID:
+        for gv in _VIEW_GRID:
+            views.append(_normalize(a + tan_c[..., None] * (gu * e1 + gv * e2)))
+    v = jnp.stack(views, 2)  # (P, M, 9, 3)
+    nrm = jnp.broadcast_to(geom.s_nrm[:, :, None], v.shape)
+    # views below a rim sample's horizon: evaluated just above it
+    v = _normalize(v + jnp.maximum(0.0, _MIN_COS - jnp.sum(v * nrm, -1, keepdims=True)) * nrm)
+    obj = jnp.broadcast_to(jnp.asarray(senders)[:, None, None], v.shape[:3])
+    out = _specular(env, materials, obj.reshape(-1), nrm.reshape(-1, 3), v.reshape(-1, 3))
+    return out.reshape(p_count, m_count, len(_VIEW_GRID) ** 2, -1)
+
+
+def _tents(x: jax.Array) -> list[jax.Array]:
+    """Linear interpolation weights of x ∈ [−1, 1] on the nodes −1, 0, 1."""
+    x = jnp.clip(x, -1.0, 1.0)
+    return [jnp.maximum(-x, 0.0), 1.0 - jnp.abs(x), jnp.maximum(x, 0.0)]
+
+
+def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
+                    frames: tuple[jax.Array, ...], env: EnvironmentMap, pos: jax.Array,
                     nrm: jax.Array, obj: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array,
                                                           jax.Array]:
     """Form-factor sums over the samples of the receiver's pairs, with the point-to-patch form
     factor F = cos_x cos_y A / (π √(r⁴ + (A/π)²)):
 
-    - Σ_y F L_y (N, C), the senders' radiance;
+    - Σ_y F L_y(→x) (N, C), the senders' radiance towards x: the view-independent part
+      ``lum`` (P, M, C) plus the view-dependent part ``spec`` (P, M, 9, C) interpolated
+      (bilinearly in gnomonic coordinates) at the direction from y to x;
     - Σ_y F (N,) and Σ_y F (y − x)/r (N, 3): the solid angle the senders hide (cosine-weighted,
       over π) and its mean direction;
     - (1/π) Σ_s flux_s max(0, N·d_s) over the environment's bright sources whose direction hits
@@ -498,17 +636,20 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, env: EnvironmentMap, pos: 
     k_per = n_obj - 1
     p_count, m_count, c = lum.shape
     km = k_per * m_count
+    nv_grid = spec.shape[2]
     origin = jnp.mean(geom.centre_j, axis=0)
     ypos = (geom.s_pos - origin).reshape(n_obj, km, 3)
     ynrm = geom.s_nrm.reshape(n_obj, km, 3)
     yarea = geom.s_area.reshape(n_obj, km)
     ylum = lum.reshape(n_obj, km, c)
+    yspec = spec.reshape(n_obj, km, nv_grid, c)
+    fa, fe1, fe2, ftan = (f.reshape(n_obj, km, *f.shape[2:]) for f in frames)
     cj = (geom.centre_j - origin).reshape(n_obj, k_per, 3)
     rj = geom.radius_j.reshape(n_obj, k_per)
-    n_src = env.source_flux.shape[0] * 4
-    if n_src:
-        sdir = env.source_dirs.reshape(-1, 3) @ env.rotation.T
-        sflux = jnp.repeat(env.source_flux @ env.spectral_basis, 4, axis=0) / math.pi
+    src = _source_terms(env)
+    n_src = 0 if src is None else src[0].shape[0]
+    if src is not None:
+        sdir, sflux = src[0], src[1] / math.pi
     n = pos.shape[0]
     key = jnp.where(obj >= 0, obj, n_obj)
     order = jnp.argsort(key)
@@ -519,19 +660,31 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, env: EnvironmentMap, pos: 
     ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
     width = c + 4 + c
 
+    def proj(x0: jax.Array, y0: jax.Array, e: jax.Array) -> jax.Array:
+        return x0 @ e.T - jnp.sum(e * y0, -1)[None, :]  # e_y·(x − y)
+
     def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
         y0, ny, area = ypos[o], ynrm[o], yarea[o]
         r2 = jnp.maximum(jnp.sum(x0 * x0, -1)[:, None] + jnp.sum(y0 * y0, -1)[None, :]
                          - 2.0 * (x0 @ y0.T), 0.0)
         cx = nx @ y0.T - jnp.sum(nx * x0, -1)[:, None]       # N·(y − x)
-        cy = x0 @ ny.T - jnp.sum(ny * y0, -1)[None, :]       # n_y·(x − y)
+        cy = proj(x0, y0, ny)                                # n_y·(x − y)
         a = area / math.pi
         w = jnp.maximum(cx, 0.0) * jnp.maximum(cy, 0.0) * a / jnp.maximum(
             r2 * jnp.sqrt(r2 * r2 + a * a), 1e-30)
         w = jnp.where(sel[:, None], w, 0.0)
         wr = w / jnp.sqrt(jnp.maximum(r2, 1e-30))
         dsum = wr @ y0 - jnp.sum(wr, -1)[:, None] * x0
-        parts = [w @ ylum[o], jnp.sum(w, -1)[:, None], dsum]
+        # view-dependent part: gnomonic coordinates of the direction y → x in y's view frame
+        den = jnp.maximum(proj(x0, y0, fa[o]), 1e-9) * ftan[o][None, :]
+        tu = _tents(proj(x0, y0, fe1[o]) / den)
+        tv = _tents(proj(x0, y0, fe2[o]) / den)
+        lsum = w @ ylum[o]
+        for iu in range(3):
+            wu = w * tu[iu]
+            for iv in range(3):
+                lsum = lsum + (wu * tv[iv]) @ yspec[o][:, 3 * iu + iv]
+        parts = [lsum, jnp.sum(w, -1)[:, None], dsum]
         if n_src:
             occ = jnp.zeros((x0.shape[0], n_src), x0.dtype)
             for k in range(k_per):
@@ -559,20 +712,153 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, env: EnvironmentMap, pos: 
     return res[:, :c], res[:, c], res[:, c + 1:c + 4], res[:, c + 4:]
 
 
-def _blurred_env(env: EnvironmentMap, direction: jax.Array, sigma: jax.Array) -> jax.Array:
-    """Environment radiance (C,) along a world unit direction, prefiltered to angular std
-    ``sigma`` (radians; the map's residual without its bright sources)."""
-    lo, hi, w_hi, _ = _levels_for(env, sigma)
-    d = _to_map(env, direction)
-    r = (1.0 - w_hi) * lookup_level(env, lo, d) + w_hi * lookup_level(env, hi, d)
-    return r @ env.spectral_basis
+#: cone quadrature of the environment a neighbour hides: rings (uniform in solid angle) ×
+#: azimuths, plus the axis
+_CONE_NODES = (3, 6)
 
 
-def _gather(geom: IRGeometry, dl: jax.Array, atlas: jax.Array, materials: Sequence[Material],
-            env: EnvironmentMap, pos: jax.Array, nrm: jax.Array, view: jax.Array,
-            obj: jax.Array) -> jax.Array:
+def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
+                 o: jax.Array) -> jax.Array:
+    """Cosine-weighted mean environment radiance (N, C) over the cones of the receivers'
+    neighbours' bounding spheres (above the receiver's horizon): the radiance the neighbours
+    hide, per unit of their form factor. Nodes: ``_CONE_NODES`` rings × azimuths uniform in
+    solid angle, the map prefiltered to the node spacing."""
+    k_per = geom.n_objects - 1
+    nr, na = _CONE_NODES
+    ur = (np.arange(nr) + 0.5) / nr
+    ph = 2.0 * np.pi * (np.arange(na) + 0.5 * (np.arange(nr)[:, None] % 2)) / na  # (nr, na)
+    num = jnp.zeros((pos.shape[0], env.channels), pos.dtype)
+    den = jnp.zeros((pos.shape[0],), pos.dtype)
+    for k in range(k_per):
+        pair = o * k_per + k
+        oc = geom.centre_j[pair] - pos
+        d = jnp.sqrt(jnp.maximum(jnp.sum(oc * oc, -1), 1e-30))
+        a = oc / d[:, None]
+        sin_c = jnp.clip(geom.radius_j[pair] / d, 1e-3, 0.999)
+        cos_c = jnp.sqrt(1.0 - sin_c * sin_c)
+        t1 = _normalize(jnp.cross(a, jnp.where(jnp.abs(a[:, 1:2]) < 0.9,
+                                               jnp.array([0.0, 1.0, 0.0]),
+                                               jnp.array([1.0, 0.0, 0.0]))))
+        t2 = jnp.cross(a, t1)
+        u = 1.0 - (1.0 - cos_c)[:, None] * jnp.asarray(ur, pos.dtype)[None]  # (N, nr)
+        s = jnp.sqrt(jnp.maximum(1.0 - u * u, 0.0))
+        cp = jnp.asarray(np.cos(ph), pos.dtype)
+        sp = jnp.asarray(np.sin(ph), pos.dtype)
+        dirs = (u[..., None, None] * a[:, None, None]
+                + s[..., None, None] * (cp[None, ..., None] * t1[:, None, None]
+                                        + sp[None, ..., None] * t2[:, None, None]))
+        dirs = dirs.reshape(pos.shape[0], -1, 3)
+        w = jnp.maximum(jnp.einsum("nqk,nk->nq", dirs, nrm), 0.0) * (1.0 - cos_c)[:, None]
+        spacing = jnp.arccos(cos_c) / (2.0 * nr)
+        sig = jnp.broadcast_to(spacing[:, None], w.shape)
+        lv = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(dirs.reshape(-1, 3),
+                                                                sig.reshape(-1))
+        num = num + jnp.einsum("nq,nqc->nc", w, lv.reshape(*w.shape, -1))
+        den = den + jnp.sum(w, -1)
+    return num / jnp.maximum(den, 1e-30)[:, None]
+
+
+#: receiver's gloss lobe quadrature against the neighbour (radial × azimuthal nodes)
+_LOBE_NODES = (6, 8)
+#: soft edge of a lobe node's hit on the neighbour's bounding sphere, as a fraction of the
+#: lobe's angular std √2 μ (times the distance)
+_EDGE = 0.35
+
+
+def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, *,
+                distribution: str, geometry: str) -> tuple[jax.Array, jax.Array]:
+    """Reflected directions (Q, 3) and normalised weights (Q,) of a quadrature of the
+    receiver's gloss lobe D F G (V·H)/(N·V) dω_H over its visible part (one receiver)."""
+    nv = jnp.clip(jnp.dot(nrm, view), 0.0, 1.0)
+    h, w, ch = _visible_nodes(nrm, view, mu, jnp.zeros_like(mu), nv, distribution=distribution,
+                              radial=_LOBE_NODES[0], azimuthal=_LOBE_NODES[1])
+    g, light = _lobe_factor(nrm, view, h, ch, mu, eta, geometry=geometry, fresnel=True)
+    f = w * g
+    return light, f / jnp.maximum(jnp.sum(f), 1e-30)
+
+
+def _neighbour_along(geom: IRGeometry, lum_atlas: jax.Array, materials: Sequence[Material],
+                     env: EnvironmentMap, pair: jax.Array, sender: jax.Array, pos: jax.Array,
+                     dirs: jax.Array, edge: jax.Array, sigma_env: jax.Array) -> jax.Array:
+    """Net radiance (N, Q, C) that the sender of ``pair`` (N,) adds along the rays
+    (pos (N, 3), dirs (N, Q, 3)): soft hit h on its bounding sphere (edge width ``edge`` (N,)
+    radians) × (its radiance towards the ray's origin − the environment it hides, prefiltered
+    to ``sigma_env`` (N,)). The sender's radiance is the view-independent part from the sample
+    mip atlas (with its normal) plus :func:`_specular` towards the receiver point."""
+    nq = dirs.shape[1]
+    g = geom.gather_size
+    c = env.channels
+    cj = geom.centre_j[pair][:, None]  # (N, 1, 3)
+    rj = geom.radius_j[pair][:, None]
+    oc = cj - pos[:, None]
+    tp = jnp.sum(oc * dirs, -1)
+    b2 = jnp.maximum(jnp.sum(oc * oc, -1) - tp * tp, 1e-14)  # (floors keep gradients finite)
+    b = jnp.sqrt(b2)
+    half = jnp.maximum(edge[:, None] * tp, 1e-6)
+    hit = _smootherstep(0.5 + (rj - b) / (2.0 * half)) * (tp > 0.0)
+    t = jnp.maximum(tp - jnp.sqrt(jnp.maximum(rj * rj - b2, 1e-14)), 0.0)
+    y = pos[:, None] + t[..., None] * dirs
+    rel = _normalize(y - cj) * rj[..., None]  # on the bounding sphere (rim point if missed)
+    fr = geom.frame[pair]  # (N, 3, 3)
+    ext = geom.extent[pair][:, None]
+    ux = jnp.einsum("nqk,nk->nq", rel, fr[:, 0]) / ext
+    uy = jnp.einsum("nqk,nk->nq", rel, fr[:, 1]) / ext
+    tx = (ux + 1.0) * 0.5 * g
+    ty = (1.0 - uy) * 0.5 * g
+    texel = 2.0 * ext / g
+    level = 0.5 * jnp.log2(1.0 + (half / texel) ** 2)  # ≈ log2 of the footprint, smooth
+    look = jax.vmap(jax.vmap(lambda p_, a, b_, lv: _mip_lookup(lum_atlas, p_, g, a, b_, lv),
+                             in_axes=(None, 0, 0, 0)))
+    val = look(pair, tx, ty, level)  # (N, Q, C + 4): L·cov, n·cov, cov
+    cov = val[..., -1]
+    # the samples' normal where the atlas has coverage, the bounding sphere's elsewhere
+    ny = _normalize(val[..., c:c + 3] + (1.0 - jnp.clip(cov, 0.0, 1.0))[..., None] * rel / rj[
+        ..., None])
+    back = -dirs
+    spec = _specular(env, materials, jnp.broadcast_to(sender[:, None], (pos.shape[0], nq)
+                                                       ).reshape(-1), ny.reshape(-1, 3),
+                     back.reshape(-1, 3)).reshape(pos.shape[0], nq, c)
+    sig = jnp.broadcast_to(sigma_env[:, None], dirs.shape[:2])
+    hidden = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(dirs.reshape(-1, 3),
+                                                                 sig.reshape(-1))
+    hidden = hidden.reshape(pos.shape[0], nq, c)
+    return hit[..., None] * (val[..., :c] + cov[..., None] * (spec - hidden))
+
+
+def _hidden_source_gloss(env: EnvironmentMap, materials: Sequence[Material], geom: IRGeometry,
+                         obj: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array
+                         ) -> jax.Array | None:
+    """β Σ_s F D G/(4cosθr) Φ_s (N, C) over the bright sources hidden by a neighbour's bounding
+    sphere (the part of the receiver's environment gloss that the neighbour blocks)."""
+    src = _source_terms(env)
+    if src is None:
+        return None
+    sdir, sflux = src
+    k_per = geom.n_objects - 1
+    o = jnp.maximum(obj, 0)
+    mats = _stack_materials(materials)
+    occ = jnp.zeros((pos.shape[0], sdir.shape[0]), pos.dtype)
+    for k in range(k_per):
+        pair = o * k_per + k
+        oc = geom.centre_j[pair] - pos
+        tp = oc @ sdir.T
+        miss2 = jnp.sum(oc * oc, -1)[:, None] - tp * tp
+        occ = jnp.maximum(occ, ((tp > 0.0) & (miss2 < geom.radius_j[pair][:, None] ** 2)
+                                ).astype(pos.dtype))
+    out = jnp.zeros((pos.shape[0], env.channels), pos.dtype)
+    for k, m in enumerate(materials):
+        w = _gloss_weights(nrm[:, None], view[:, None], sdir[None], mats["mu"][o][:, None],
+                           mats["n"][o][:, None], m.distribution, m.geometry)
+        out = jnp.where((o == k)[:, None], (occ * w) @ sflux, out)
+    return mats["beta"][o][:, None] * out
+
+
+def _gather(geom: IRGeometry, dl: jax.Array, spec: jax.Array, frames: tuple[jax.Array, ...],
+            materials: Sequence[Material], env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
+            view: jax.Array, obj: jax.Array) -> jax.Array:
     """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) from the senders'
-    sample radiance ``dl`` (P, M, C) (mip ``atlas`` of [dl·coverage, coverage])."""
+    samples: view-independent radiance ``dl`` (P, M, C), view-dependent ``spec``
+    (P, M, 9, C) on the view grids ``frames``."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
     g = geom.gather_size
@@ -583,53 +869,66 @@ def _gather(geom: IRGeometry, dl: jax.Array, atlas: jax.Array, materials: Sequen
     alpha, beta, chi = mats["alpha"][o], mats["beta"][o], mats["chi"][o]
     mu, eta, refl = mats["mu"][o], mats["n"][o], mats["reflectance"][o]
 
-    # diffuse: the senders' radiance minus the environment they hide, through α S/π
-    net, fsum, dsum, src = _diffuse_gather(geom, dl, env, pos, nrm, obj)
-    dlen = jnp.sqrt(jnp.maximum(jnp.sum(dsum * dsum, -1), 1e-30))
-    mean_dir = jnp.where((dlen > 0)[:, None], dsum / dlen[:, None], nrm)
-    resultant = dlen / jnp.maximum(fsum, 1e-30)
-    spread = jnp.sqrt(jnp.clip(1.0 - resultant, 1e-6, 1.0))
-    hidden = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(mean_dir, spread)
+    # diffuse: the senders' radiance towards x minus the environment they hide, through α S/π
+    net, fsum, dsum, src = _diffuse_gather(geom, dl, spec, frames, env, pos, nrm, obj)
+    hidden = _hidden_mean(geom, env, pos, nrm, o)
     net = net - fsum[:, None] * hidden - src
     out = alpha[:, None] * _times_reflectance(env, refl, net)
 
-    # gloss and mirror: reflected ray against the sender's bounding sphere, mip lookup
+    # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
+    live = geom.s_area > 0
+    cov = geom.s_cov[..., None]
+    atlas = _build_mips(jnp.concatenate([dl * cov, geom.s_nrm * cov, cov], -1), g)
     nv = jnp.sum(nrm * view, -1)
     refl_dir = 2.0 * nv[:, None] * nrm - view
     albedo = _albedo(materials, obj, nv)
-    fres = fresnel_dielectric(nv, eta)
+    fres = fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), eta)
+    dist = materials[0].distribution
+    geo = materials[0].geometry
+    if len({(m.distribution, m.geometry) for m in materials}) == 1:
+        dirs, wts = jax.vmap(lambda a, b, m_, e_: _lobe_nodes(a, b, m_, e_, distribution=dist,
+                                                            geometry=geo))(nrm, view, mu, eta)
+    else:
+        dirs = wts = None
+        for k, m in enumerate(materials):
+            d_k, w_k = jax.vmap(lambda a, b, m_, e_, m=m: _lobe_nodes(
+                a, b, m_, e_, distribution=m.distribution, geometry=m.geometry))(
+                    nrm, view, mu, eta)
+            sel = (o == k)
+            dirs = d_k if dirs is None else jnp.where(sel[:, None, None], d_k, dirs)
+            wts = w_k if wts is None else jnp.where(sel[:, None], w_k, wts)
+    lobe_sigma = math.sqrt(2.0) * mu
+    use_mirror = any(not _is_zero(m.chi) for m in materials)
+    del live
     for k in range(k_per):
         pair = o * k_per + k
-        cj = geom.centre_j[pair]
-        rj = geom.radius_j[pair]
-        oc = cj - pos
-        tp = jnp.sum(oc * refl_dir, -1)
-        b2 = jnp.sum(oc * oc, -1) - tp * tp
-        t = tp - jnp.sqrt(jnp.maximum(rj * rj - b2, 0.0))
-        t = jnp.maximum(t, 0.0)
-        hitp = pos + t[:, None] * refl_dir - cj
-        fr = geom.frame[pair]  # (N, 3, 3)
-        ext = geom.extent[pair]
-        ux = jnp.sum(hitp * fr[:, 0], -1) / ext
-        uy = jnp.sum(hitp * fr[:, 1], -1) / ext
-        tx = (ux + 1.0) * 0.5 * g
-        ty = (1.0 - uy) * 0.5 * g
-        texel = 2.0 * ext / g
-        foot = _FOOTPRINT * t * math.sqrt(2.0) * mu
-        level = jnp.log2(jnp.maximum(foot / texel, 1.0))
-        look = jax.vmap(lambda p_, a, b, lv: _mip_lookup(atlas, p_, g, a, b, lv))
-        gl = look(pair, tx, ty, level)  # (N, C + 1): L·coverage, coverage
-        mr = look(pair, tx, ty, jnp.zeros_like(level))
-        env_lobe = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(
-            refl_dir, math.sqrt(2.0) * mu)
-        env_mirror = jax.vmap(lambda d_: lookup(env, d_))(refl_dir)
-        gl = gl[:, :c] - gl[:, c:] * env_lobe
-        mr = mr[:, :c] - mr[:, c:] * env_mirror
-        visible = ok & (nv > 0.0) & (tp > 0.0) & (jnp.sum(nrm * oc, -1) > -rj)
-        spec = (beta * albedo)[:, None] * gl + (chi * fres)[:, None] * mr
-        out = out + jnp.where(visible[:, None], spec, 0.0)
+        sender = jnp.asarray([j for _, j in geom.pairs], jnp.int32)[pair]
+        along = _neighbour_along(geom, atlas, materials, env, pair, sender, pos, dirs,
+                                 _EDGE * lobe_sigma, 0.5 * lobe_sigma)
+        out = out + (beta * albedo)[:, None] * jnp.einsum("nq,nqc->nc", wts, along)
+        if use_mirror:
+            m_along = _neighbour_along(geom, atlas, materials, env, pair, sender, pos,
+                                       refl_dir[:, None], jnp.full_like(mu, 0.02),
+                                       jnp.zeros_like(mu))[:, 0]
+            out = out + (chi * fres)[:, None] * m_along
+    hsrc = _hidden_source_gloss(env, materials, geom, obj, pos, nrm, view)
+    if hsrc is not None:
+        out = out - hsrc
     vis_any = ok & (nv > 0.0)
     return jnp.where(vis_any[:, None], out, 0.0)
+
+
+def _sample_diffuse(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap
+                    ) -> jax.Array:
+    """(P, M, C) view-independent radiance α_j S_j E_irr(n_y)/π of each sample."""
+    p_count, m_count = geom.s_area.shape
+    senders = [j for _, j in geom.pairs]
+    e = jax.vmap(lambda nn: irradiance(env, nn))(geom.s_nrm.reshape(-1, 3))
+    e = e.reshape(p_count, m_count, -1)
+    mats = _stack_materials(materials)
+    sid = jnp.asarray(senders, jnp.int32)
+    refl = mats["reflectance"][sid][:, None, :]
+    return (mats["alpha"][sid] / math.pi)[:, None, None] * _times_reflectance(env, refl, e)
 
 
 def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
@@ -637,34 +936,22 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
     pairs = geom.pairs
     senders = [j for _, j in pairs]
     p_count, m_count = geom.s_area.shape
-    nrm = geom.s_nrm.reshape(-1, 3)
-    view = geom.s_view.reshape(-1, 3)
-    if len({(m.distribution, m.geometry) for m in materials}) == 1:
-        # one batched shading call over all samples, materials gathered per sample
-        sid = jnp.asarray(np.repeat(senders, m_count), jnp.int32)
-        stacked = _stack_materials(materials)
-        per = {k: v[sid] for k, v in stacked.items()}
-        m0 = materials[0]
-        batch = Material(**per, distribution=m0.distribution, geometry=m0.geometry)
-        lj = jax.vmap(lambda m, nn, vv: shade(m, env, nn, vv))(batch, nrm, view)
-        lj = lj.reshape(p_count, m_count, -1)
-    else:
-        lj = jnp.stack([jax.vmap(lambda nn, vv, m=materials[j]: shade(m, env, nn, vv))(
-            geom.s_nrm[p], geom.s_view[p]) for p, j in enumerate(senders)])
     live = geom.s_area > 0
-    l0 = jnp.where(live[..., None], lj, 0.0)  # (P, M, C) senders' radiance towards i
-    cov = geom.s_cov[..., None]
+    frames = _view_frames(geom)
+    spec = _sample_specular(geom, materials, env, frames)
+    spec = jnp.where(live[..., None, None], spec, 0.0)
+    l0 = jnp.where(live[..., None], _sample_diffuse(geom, materials, env), 0.0)
     lum = l0
     if bounces > 1:
         sender = jnp.asarray(np.repeat(senders, m_count), jnp.int32)
+        nrm = geom.s_nrm.reshape(-1, 3)
+        view = geom.s_view.reshape(-1, 3)
         for _ in range(bounces - 1):
-            atlas = _build_mips(jnp.concatenate([lum * cov, cov], -1), geom.gather_size)
-            extra = _gather(geom, lum, atlas, materials, env, geom.s_pos.reshape(-1, 3), nrm,
-                            view, jnp.where(live.reshape(-1), sender, -1))
+            extra = _gather(geom, lum, spec, frames, materials, env, geom.s_pos.reshape(-1, 3),
+                            nrm, view, jnp.where(live.reshape(-1), sender, -1))
             lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
-    atlas = _build_mips(jnp.concatenate([lum * cov, cov], -1), geom.gather_size)
-    return _gather(geom, lum, atlas, materials, env, receivers.position, receivers.normal,
-                   receivers.view, receivers.object)
+    return _gather(geom, lum, spec, frames, materials, env, receivers.position,
+                   receivers.normal, receivers.view, receivers.object)
 
 
 # --------------------------------------------------------------------------------------------

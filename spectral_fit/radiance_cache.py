@@ -79,6 +79,9 @@ class CacheOptions:
         prefilter: a node's prefilter std = this × √(its solid angle in reflected directions).
         horizon_ratio: a node's prefilter std is at most this × its elevation above the
             surface's horizon (no light from behind the surface is blurred in).
+        subsamples: s; a node's radiance is the mean of s × s sub-samples over its cell
+            (1: one prefiltered lookup per node). 3 lowers the median gloss error at wide
+            lobes by ~40 % (docs/fitting.md) for 9× the lookups in the preparation.
         probes: probes per reading and neighbour (interreflection).
         probe_theta0, probe_ring_ratio, probe_azimuths: node layout of the probes' caches.
     """
@@ -88,6 +91,7 @@ class CacheOptions:
     azimuths: int = 16
     prefilter: float = 0.35
     horizon_ratio: float = 0.2
+    subsamples: int = 1
     probes: int = 64
     probe_theta0: float = 0.01
     probe_ring_ratio: float = 1.6
@@ -324,7 +328,8 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
                       *, objects: np.ndarray, spheres: Sequence[Sphere] = (),
                       theta0: float = 0.003, ring_ratio: float = 1.35, azimuths: int = 16,
                       prefilter: float = 0.35, horizon_ratio: float = 0.2,
-                      dtype: Any = jnp.float32) -> tuple[GlossNodes, dict[str, np.ndarray]]:
+                      subsamples: int = 1, dtype: Any = jnp.float32
+                      ) -> tuple[GlossNodes, dict[str, np.ndarray]]:
     """Gloss nodes of P shading points (see the module docstring), outside ``jit``.
 
     Args:
@@ -333,6 +338,8 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
             the observer.
         objects: (P,) object of each point (its own sphere never occludes it).
         spheres: occluders; node directions that hit one get no environment radiance.
+        subsamples: s; each node's radiance is the mean of s × s sub-samples over its cell
+            (1: one lookup at the node, prefiltered to the cell's size).
 
     Returns:
         (nodes, hits): ``hits`` holds, for the nodes that hit an occluder, flat node indices
@@ -382,8 +389,34 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
         hit_idx[sel], hit_t[sel] = hi_, ht
     look = flat_ok & (hit_idx < 0)
     sel = np.flatnonzero(look)
-    if sel.size:
+    if sel.size and subsamples <= 1:
         rad[sel] = _prefiltered(env, dirs[sel], sigma.reshape(-1)[sel])
+    elif sel.size:
+        # the mean radiance over each node's cell: s × s sub-samples spread over the cell
+        # (log θh × azimuth), each prefiltered to its own sub-cell
+        k = int(subsamples)
+        off = (np.arange(k) + 0.5) / k - 0.5
+        pi_, ji, mi = np.unravel_index(sel, (P, J, M))
+        dphi = np.where(full[pi_, ji], 2.0 * math.pi / M, aw[pi_, ji, mi])
+        th = theta[ji][:, None, None] * np.exp(math.log(ring_ratio) * off)[None, :, None]
+        ph = phi[pi_, ji, mi][:, None, None] + dphi[:, None, None] * off[None, None, :]
+        th, ph = np.broadcast_arrays(th, ph)
+        Ns, Ts, Bs, Vs = (a[pi_][:, None, None, :] for a in (N, T, B, V))
+        Hs = (np.cos(th)[..., None] * Ns + np.sin(th)[..., None]
+              * (np.cos(ph)[..., None] * Ts + np.sin(ph)[..., None] * Bs))
+        vhs = np.sum(Hs * Vs, -1)
+        Ls = _unit(2.0 * vhs[..., None] * Hs - Vs)
+        nls = np.sum(Ls * Ns, -1)
+        vis = (nls > 0.0) & (vhs > 0.0)
+        sig = np.minimum(sigma.reshape(-1)[sel][:, None, None] / k,
+                         horizon_ratio * np.arcsin(np.clip(nls, 0.0, 1.0)))
+        got = _prefiltered(env, Ls.reshape(-1, 3), sig.reshape(-1)).reshape(
+            sel.size, k * k, -1)
+        wv = vis.reshape(sel.size, k * k, 1).astype(np.float32)
+        mean = (got * wv).sum(1) / np.maximum(wv.sum(1), 1.0)
+        fallback = wv.sum(1)[:, 0] == 0
+        rad[sel] = np.where(fallback[:, None], _prefiltered(
+            env, dirs[sel], sigma.reshape(-1)[sel]) if fallback.any() else 0.0, mean)
     hits = np.flatnonzero(flat_ok & (hit_idx >= 0))
     orig_h = np.repeat(X, J * M, axis=0)[hits] if hits.size else np.zeros((0, 3))
     hit_info = {"node": hits, "sphere": hit_idx[hits],
@@ -726,7 +759,7 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     nodes, hits = build_gloss_nodes(
         env, X, N, V, objects=obj, spheres=spheres if spheres else (), theta0=opts.theta0,
         ring_ratio=opts.ring_ratio, azimuths=opts.azimuths, prefilter=opts.prefilter,
-        horizon_ratio=opts.horizon_ratio, dtype=dtype)
+        horizon_ratio=opts.horizon_ratio, subsamples=opts.subsamples, dtype=dtype)
     nv = np.sum(N * V, -1)
     R = _unit(2.0 * nv[:, None] * N - V)
     irr = np.zeros((P, C))

@@ -325,20 +325,19 @@ def _edge_setup(hv):
     corners, each a tuple (X, Y, w) of arrays.
 
     Returns ``n`` (3 edges × 3 components; edge i is opposite corner i, its edge function at
-    pixel p is ``o_i · n_i · (px, py, 1)``), ``o`` (3 arrays of ±1) and ``order`` (..., 6) int32:
-    per edge the corner numbers of its two vertices in canonical order (lo, hi).
+    pixel p is ``o_i · n_i · (px, py, 1)``), ``o`` (3 arrays of ±1) and the edges' vertices in
+    canonical order (3 × (lo, hi), each a tuple (X, Y, w)).
     """
-    ns, os_, order = [], [], []
+    ns, os_, ends = [], [], []
     for i in range(3):
-        ia, ib = (i + 1) % 3, (i + 2) % 3
-        a, b = hv[ia], hv[ib]
+        a, b = hv[(i + 1) % 3], hv[(i + 2) % 3]
         swap = _lex_less(b, a)
         lo = tuple(jnp.where(swap, bb, aa) for aa, bb in zip(a, b, strict=True))
         hi = tuple(jnp.where(swap, aa, bb) for aa, bb in zip(a, b, strict=True))
         ns.append(_cross(lo, hi))
         os_.append(jnp.where(swap, -1.0, 1.0).astype(a[0].dtype))
-        order += [jnp.where(swap, ib, ia), jnp.where(swap, ia, ib)]
-    return ns, os_, jnp.stack(order, -1).astype(jnp.int32)
+        ends.append((lo, hi))
+    return ns, os_, ends
 
 
 # columns of the per-triangle data rows (float32)
@@ -355,25 +354,20 @@ def _triangle_setup(clip, triangles, shape, cull):
     """Per-triangle data packed in one float32 array (T, _NCOL), computed component-wise
     (columns: see the ``_C_*`` constants)."""
     h, w = shape
-    # homogeneous pixel coordinates and z per vertex, gathered once per corner (materialised)
-    vert = jnp.stack([(clip[:, 0] + clip[:, 3]) * (0.5 * w), (clip[:, 3] - clip[:, 1]) * (0.5 * h),
-                      clip[:, 3], clip[:, 2]], -1)  # (V, 4): X, Y, w, z
-    g = lax.optimization_barrier(vert[triangles])  # (T, 3, 4)
-    hv = [(g[:, k, 0], g[:, k, 1], g[:, k, 2]) for k in range(3)]
-    z = [g[:, k, 3] for k in range(3)]
+    comp = [clip[:, j] for j in range(4)]
+    corners = [[comp[j][triangles[:, k]] for j in range(4)] for k in range(3)]
+    hv = [((c[0] + c[3]) * (0.5 * w), (c[3] - c[1]) * (0.5 * h), c[3]) for c in corners]
     # Dividing by a runtime 1.0 materialises a value: XLA:CPU does not duplicate an
     # "expensive" op (a divide) into several consumers, whereas it recomputes chains of cheap
     # ops inside every consumer kernel (measured: the setup ran several times slower).
     one = jnp.where(clip[0, 3] == clip[0, 3], jnp.float32(1.0), jnp.float32(2.0))
-    n, o, order = _edge_setup(hv)
-    # the edges' vertices in canonical order: one gather of the corners (T, 3 × 2 × 3)
-    edges = jnp.take_along_axis(g[..., :3], order[..., None], axis=1).reshape(-1, 18)
+    n, o, ends = _edge_setup(hv)
     # det = det[hv0; hv1; hv2], evaluated with the origin moved to the projection of the
     # corner with the largest w (a column operation: same value, no large cancelling terms).
     # Its sign decides which side of the edges is inside (and that the point seen is in
     # front of the eye), so it must be right even for edge-on slivers at a silhouette.
-    wmax = jnp.maximum(jnp.maximum(hv[0][2], hv[1][2]), hv[2][2])
-    anchor = [hv[k][2] == wmax for k in range(3)]
+    wmax = jnp.maximum(jnp.maximum(corners[0][3], corners[1][3]), corners[2][3])
+    anchor = [corners[k][3] == wmax for k in range(3)]
     xa = jnp.where(anchor[0], hv[0][0], jnp.where(anchor[1], hv[1][0], hv[2][0]))
     ya = jnp.where(anchor[0], hv[0][1], jnp.where(anchor[1], hv[1][1], hv[2][1]))
     inv_wa = 1.0 / jnp.where(wmax > 0, wmax, 1.0)
@@ -390,6 +384,7 @@ def _triangle_setup(clip, triangles, shape, cull):
         valid &= det > 0
     s = jnp.sign(det)
     inv_det = 1.0 / jnp.where(valid, det, 1.0)
+    z = [c[2] for c in corners]
     # NDC depth z/w is affine in pixel coordinates: z/w = d_a + a·(px − pxa) + b·(py − pya),
     # anchored at the projection of the corner with the largest w (exact to rounding there);
     # the gradient comes from edge normals of the anchored coordinates (little cancellation)
@@ -408,10 +403,10 @@ def _triangle_setup(clip, triangles, shape, cull):
     # tie rule: a centre exactly on an edge goes to the side the edge function takes at the
     # centre moved by +ε in x (then +ε² in y); n_i[0], n_i[1] are its x and y derivatives
     tie = [jnp.sign(sigma[i] * jnp.where(n[i][0] != 0, n[i][0], n[i][1])) for i in range(3)]
-    comps = sigma + tie + zc
+    comps = [c for lo, hi in ends for c in (*lo, *hi)] + sigma + tie + zc
 
     # conservative box: the polygon clipped to z >= -w
-    d = [z[k] + hv[k][2] for k in range(3)]
+    d = [c[2] + c[3] for c in corners]
     pts, ok = [], []
     for i in range(3):
         j = (i + 1) % 3
@@ -457,11 +452,10 @@ def _triangle_setup(clip, triangles, shape, cull):
     nx, ny = x1 - x0 + 1, y1 - y0 + 1
     valid &= (nx > 0) & (ny > 0)
     f32 = jnp.float32
-    data = jnp.concatenate([edges, jnp.stack(comps + [valid.astype(f32), x0.astype(f32),
-                                                      y0.astype(f32), nx.astype(f32),
-                                                      ny.astype(f32)], axis=1)], axis=1)
-    # materialised once, instead of recomputed in every consumer (a final divide by the runtime
-    # 1.0 would do the same at the cost of one more pass over the rows)
+    data = jnp.stack(comps + [valid.astype(f32), x0.astype(f32), y0.astype(f32), nx.astype(f32),
+                              ny.astype(f32)], axis=1)
+    # materialised once, instead of recomputed per gathered window (a barrier: a divide by
+    # the runtime 1.0 here would cost one more pass over the rows)
     return lax.optimization_barrier(data)
 
 

@@ -348,7 +348,7 @@ def test_paper_mode_matches_hand_built_eq6(paper_geom, linear_env):
 
 def test_gradients_float32_gather(gather_geom, linear_env):
     """Fast check: d(Σ IR)/d(each material parameter of both objects), gather mode, float32,
-    vs central differences with 1 % relative steps."""
+    vs central differences with 0.3 % relative steps."""
     x0, n0 = facing_points(C0, C1, [0.0, 20.0])
     x1, n1 = facing_points(C1, C0, [10.0])
     x, n = np.concatenate([x0, x1]), np.concatenate([n0, n1])
@@ -372,7 +372,7 @@ def test_gradients_float32_gather(gather_geom, linear_env):
             comps = [None] if k != "reflectance" else [0, 2]
             for c in comps:
                 v0 = float(params[o][k] if c is None else params[o][k][c])
-                h = 1e-2 * v0
+                h = 3e-3 * v0  # the soft edges of the lobe quadrature curve the loss in μ
 
                 def at(val, o=o, k=k, c=c):
                     p = [dict(q) for q in params]
