@@ -331,6 +331,9 @@ class EnvironmentMap(eqx.Module):
             raise InputError("need 0 < texel_sum_from < texel_sum_full, got "
                              f"{quad.texel_sum_from!r}, {quad.texel_sum_full!r}",
                              field="quadrature.texel_sum_from")
+        if not (isinstance(quad.tent_points, int) and quad.tent_points >= 1):
+            raise InputError(f"must be an integer >= 1, got {quad.tent_points!r}",
+                             field="quadrature.tent_points")
         if quad.source_subpoints not in (1, 4):
             raise InputError(f"must be 1 or 4, got {quad.source_subpoints!r}",
                              field="quadrature.source_subpoints")
