@@ -182,6 +182,8 @@ class GlossQuadrature:
             the direct texel sum over the unfiltered (residual) map for wide lobes: from μ =
             ``texel_sum_from`` the two are blended (C² in μ) until μ = ``texel_sum_full``,
             above which only the texel sum runs (see :func:`gloss_integral`).
+        tent_points: ``"exact"`` sums each source texel at tent_points² equal-weight points
+            of its footprint in the bilinear map (:func:`_tent_subpoints`).
     """
 
     radial: int = 16
@@ -201,6 +203,7 @@ class GlossQuadrature:
     nodes: str = "visible"
     texel_sum_from: float = 0.15
     texel_sum_full: float = 0.25
+    tent_points: int = 4
 
 
 QUALITIES = ("exact", "render")
@@ -328,6 +331,9 @@ class EnvironmentMap(eqx.Module):
             raise InputError("need 0 < texel_sum_from < texel_sum_full, got "
                              f"{quad.texel_sum_from!r}, {quad.texel_sum_full!r}",
                              field="quadrature.texel_sum_from")
+        if not (isinstance(quad.tent_points, int) and quad.tent_points >= 1):
+            raise InputError(f"must be an integer >= 1, got {quad.tent_points!r}",
+                             field="quadrature.tent_points")
         if quad.source_subpoints not in (1, 4):
             raise InputError(f"must be 1 or 4, got {quad.source_subpoints!r}",
                              field="quadrature.source_subpoints")
@@ -365,8 +371,8 @@ class EnvironmentMap(eqx.Module):
             level_offsets=tuple(offsets),
             quadrature=quad,
             diffuse=diffuse,
-            source_tent_dirs=jnp.asarray(_tent_subpoints(img.shape[0], img.shape[1], scells),
-                                         dtype),
+            source_tent_dirs=jnp.asarray(_tent_subpoints(img.shape[0], img.shape[1], scells,
+                                                         quad.tent_points), dtype),
         )
 
 
@@ -440,20 +446,22 @@ def _source_cells(img: np.ndarray, max_sources: int, threshold: float) -> np.nda
     return cand[np.argsort(-lum[cand[:, 0], cand[:, 1]])[:max_sources]]
 
 
-#: Equal-weight points of the tent (1 − |x|) on [−1, 1] (texels): the mid-quantiles
-#: (i + ½)/4 of its distribution, ±0.134 and ±0.5.
-_TENT_X = np.array([np.sqrt(2.0 * q) - 1.0 for q in (0.125, 0.375)] +
-                   [1.0 - np.sqrt(2.0 * (1.0 - q)) for q in (0.625, 0.875)])
+def _tent_points(m: int) -> np.ndarray:
+    """m equal-weight points of the tent (1 − |x|) on [−1, 1] (texels): the mid-quantiles
+    (i + ½)/m of its distribution (m = 4: ±0.134, ±0.5)."""
+    q = (np.arange(m) + 0.5) / m
+    return np.where(q < 0.5, np.sqrt(2.0 * q) - 1.0, 1.0 - np.sqrt(2.0 * (1.0 - q)))
 
 
-def _tent_subpoints(h: int, w: int, cells: np.ndarray) -> np.ndarray:
-    """(S, 16, 3) map-frame directions of 4 × 4 equal-weight points of each source texel's
+def _tent_subpoints(h: int, w: int, cells: np.ndarray, m: int = 4) -> np.ndarray:
+    """(S, m², 3) map-frame directions of m × m equal-weight points of each source texel's
     footprint in the bilinear reconstruction of the map (the tent over ±1 texel around its
     centre, in u and v): a texel's excess radiance E spreads as E·tent, whose integral is E
-    times about the texel's solid angle, so each point carries 1/16 of the excess flux."""
+    times about the texel's solid angle, so each point carries 1/m² of the excess flux."""
     if cells.shape[0] == 0:
-        return np.zeros((0, 16, 3))
-    dv, du = np.meshgrid(_TENT_X, _TENT_X, indexing="ij")
+        return np.zeros((0, m * m, 3))
+    x = _tent_points(m)
+    dv, du = np.meshgrid(x, x, indexing="ij")
     v = np.clip((cells[:, 0:1] + 0.5 + dv.reshape(1, -1)) / h, 0.0, 1.0)
     u = (cells[:, 1:2] + 0.5 + du.reshape(1, -1)) / w
     return uv_to_direction(u, v)
@@ -1085,7 +1093,11 @@ def gloss_integral(
             t = _smootherstep((mu - a) / (b - a))
             return (1.0 - t) * lobe() + t * texels()
 
-        mean = jax.lax.cond(mu <= a, lobe, lambda: jax.lax.cond(mu >= b, texels, blend))
+        if isinstance(mu, jax.core.Tracer):
+            mean = jax.lax.cond(mu <= a, lobe, lambda: jax.lax.cond(mu >= b, texels, blend))
+        else:  # a concrete μ (eager calls): choose here, so nothing is traced per call
+            mu_c = float(mu)
+            mean = lobe() if mu_c <= a else texels() if mu_c >= b else blend()
     out = albedo * mean
     if env.source_flux.shape[0]:
         out = out + _source_gloss(env, N, V, mu, n, distribution=distribution,

@@ -423,16 +423,15 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
     hit_info = {"node": hits, "sphere": hit_idx[hits],
                 "point": orig_h + hit_t[hits, None] * dirs[hits]}
     # explicit sources
-    # (the points of each source texel's footprint in the bilinear map when the map has them,
-    # as the environment module's exact gloss does, else its sub-points)
-    k_sub = int(env.source_dirs.shape[1])
-    tent = getattr(env, "source_tent_dirs", None)
-    sd = np.asarray(env.source_dirs if tent is None else tent, np.float64)
+    sd = np.asarray(env.source_dirs, np.float64)
+    scale = 1.0  # the footprint points of the bilinear map, as the exact gloss sums them
+    if env.source_tent_dirs is not None and env.source_tent_dirs.shape[0]:
+        scale = sd.shape[1] / env.source_tent_dirs.shape[1]
+        sd = np.asarray(env.source_tent_dirs, np.float64)
     S = sd.shape[0] * sd.shape[1]
     if S:
         d = sd.reshape(-1, 3) @ np.asarray(env.rotation, np.float64).T
-        flux = np.repeat(np.asarray(env.source_flux, np.float64) * (k_sub / sd.shape[1]),
-                         sd.shape[1], axis=0)
+        flux = np.repeat(np.asarray(env.source_flux, np.float64) * scale, sd.shape[1], axis=0)
         Hs = _unit(d[None] + V[:, None])
         s_nh = np.einsum("psc,pc->ps", Hs, N)
         s_vh = np.einsum("psc,pc->ps", Hs, V)

@@ -38,12 +38,14 @@ winning depth), so no 64-bit keys and no global ``jax_enable_x64``.
 Algorithm and fixed buffers
 ---------------------------
 Each triangle gets a conservative pixel bounding box (of its near-clipped polygon) and is
-tiled with square windows of side S from a ladder (default 1, 2, 4, 8, 16, 32): S is the
-smallest ladder size ≥ the shorter side of the box (capped at the largest), the box is covered
-by ⌈nx/S⌉·⌈ny/S⌉ windows. Culled, off-screen, degenerate and empty-box triangles get no
-window. Each ladder size has a fixed window CAPACITY (:class:`RasterConfig`); windows are
-listed with prefix sums + binary search (no sort), evaluated densely, and resolved with
-windowed scatter-min. Buffers never depend on the pose, so moving objects never recompiles.
+tiled with square windows of side S from a ladder (default 1, 4, 16): S is the smallest ladder
+size ≥ the shorter side of the box (capped at the largest), the box is covered by
+⌈nx/S⌉·⌈ny/S⌉ windows. Culled, off-screen, degenerate and empty-box triangles get no window.
+Each ladder size has a fixed window CAPACITY (:class:`RasterConfig`, planned in NumPy by
+:func:`plan_counts` without compiling anything); the windows of all sizes are listed together
+with prefix sums, one scatter and one running max (no sort), evaluated densely, and resolved
+with windowed scatter-min. Buffers never depend on the pose, so moving objects never
+recompiles.
 
 Overflow: ``Raster.overflow`` is True when some ladder size needed more windows than its
 capacity (``Raster.needed`` gives the counts). :func:`rasterize`, called outside ``jit``,
@@ -116,11 +118,17 @@ class RasterConfig(NamedTuple):
     block_capacity: int
 
     @classmethod
-    def from_counts(cls, counts: PlanCounts, *, headroom: float = 1.5) -> RasterConfig:
-        """Capacities ``headroom`` × the planned ``counts`` (+16), rounded up on the ladder,
-        for the ladder :data:`TILE_SIZES`."""
+    def from_counts(cls, counts: PlanCounts, *, headroom: float = 1.5,
+                    tile_sizes: tuple[int, ...] | None = None) -> RasterConfig:
+        """Capacities ``headroom`` × the planned ``counts`` (+16), rounded up on the
+        quarter-octave capacity ladder, for the window sizes ``tile_sizes`` the counts were
+        made with (default :data:`TILE_SIZES`)."""
+        sizes = TILE_SIZES if tile_sizes is None else tuple(tile_sizes)
+        if len(sizes) != len(counts.windows):
+            raise InputError(f"{len(counts.windows)} window counts for {len(sizes)} sizes",
+                             field="tile_sizes")
         caps = tuple(_ladder(headroom * n + 16) for n in counts.windows)
-        return cls(TILE_SIZES, caps, _ladder(headroom * counts.blocks + 16))
+        return cls(sizes, caps, _ladder(headroom * counts.blocks + 16))
 
     def grown(self, needed, headroom: float = 1.25) -> RasterConfig:
         """Capacities raised to the ladder value ≥ ``headroom`` × ``needed`` where

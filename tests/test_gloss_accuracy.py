@@ -215,6 +215,14 @@ def test_unknown_node_rule_rejected():
         EnvironmentMap.from_array(np.ones((8, 16, 1)),
                                   quadrature=GlossQuadrature(source_subpoints=2))
     assert e.value.field == "quadrature.source_subpoints"
+    with pytest.raises(InputError) as e:
+        EnvironmentMap.from_array(np.ones((8, 16, 1)), quadrature=GlossQuadrature(tent_points=0))
+    assert e.value.field == "quadrature.tent_points"
+    with pytest.raises(InputError) as e:
+        EnvironmentMap.from_array(np.ones((8, 16, 1)),
+                                  quadrature=GlossQuadrature(texel_sum_from=0.3,
+                                                             texel_sum_full=0.2))
+    assert e.value.field == "quadrature.texel_sum_from"
 
 
 def test_shade_points_batches_equal_vmap():

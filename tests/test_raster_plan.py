@@ -9,6 +9,7 @@ from _raster_util import MID, SMALL, camera, clip_of, rasterize_padded
 from test_raster import _two_spheres, soup
 
 from spectral_fit import raster
+from spectral_fit.errors import InputError
 from spectral_fit.mesh import translate
 from spectral_fit.renderer import plan_capacities
 
@@ -59,3 +60,5 @@ def test_plan_config_sizes_from_counts_and_renderer_shares_it():
     assert list(both.capacities) == want
     rcfg, pixels = plan_capacities(clip, mesh.triangles, MID, headroom=1.5)
     assert rcfg == cfg and pixels == counts.pixels
+    with pytest.raises(InputError, match="tile_sizes"):
+        raster.RasterConfig.from_counts(counts, tile_sizes=(1, 8))
