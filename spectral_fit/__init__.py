@@ -106,6 +106,13 @@ _EXPORTS: dict[str, str] = {
     "Prepared": "renderer",
     "write_frame": "outputs",
     "validate": "validation",
+    # live: colour calibration from a chart shot, per-stage run statistics (compositing, live)
+    "calibrate_colour": "compositing",
+    "chart_xyz": "compositing",
+    "write_colour_config": "compositing",
+    "camera_model_from_spec": "compositing",
+    "scene_camera_model": "live",
+    "RunStats": "live",
 }
 
 

@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "validate": "validate",
     "fit": "fit",
     "live": "live",
+    "calibrate-colour": "calibrate_colour",
 }
 
 

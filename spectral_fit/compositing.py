@@ -30,6 +30,12 @@ Two ways to get a model:
    itself: the patches' CG XYZ (rendered or computed under the scene light) against their
    decoded frame RGB (:func:`sample_chart`). It absorbs exposure, white balance and matrix.
 
+3. :func:`camera_model_from_spec`: the ``[camera_colour]`` table of a scene config, written
+   by ``spectral-fit calibrate-colour`` (:func:`calibrate_colour` + :func:`write_colour_config`):
+   ``linear = diag(white_balance) · matrix · XYZ``, where ``matrix`` maps the scene's white to
+   equal channels and ``white_balance`` holds the per-channel gains (exposure included);
+   optionally the tone curve's exponent fitted on the chart's six neutral patches.
+
 Compositing (:func:`composite`) mixes in LINEAR light with the renderer's coverage (0..1):
 ``out = encode(cov · cg + (1 − cov) · decode(frame))``; pixels without coverage are the frame's
 own values exactly (no round trip through the curve).
@@ -38,6 +44,8 @@ Everything after the model is built runs under ``jax.jit`` (float32).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import equinox as eqx
 import jax
@@ -57,6 +65,13 @@ __all__ = [
     "encode_frame",
     "decode_frame",
     "composite",
+    "camera_model_from_spec",
+    "chart_xyz",
+    "ChartCalibration",
+    "calibrate_colour",
+    "frame_delta_e00",
+    "colour_config_text",
+    "write_colour_config",
 ]
 
 
@@ -271,13 +286,224 @@ def composite(frame, cg_linear, coverage, model: CameraModel) -> jax.Array:
     Args:
         frame: (H, W, 3) uint8 encoded video frame.
         cg_linear: (H, W, 3) float linear frame RGB of the CG (from ``model.linear_from_*``).
-        coverage: (H, W) CG coverage in [0, 1] (bool accepted).
+        coverage: (H, W) CG coverage in [0, 1], or a bool mask.
         model: the camera model (its tone curve).
 
-    Returns (H, W, 3) uint8; uncovered pixels equal ``frame`` exactly.
+    Returns (H, W, 3) uint8; uncovered pixels equal ``frame`` exactly. A bool mask (the
+    renderer's coverage, no partial pixels) needs no decoding of the frame: covered pixels are
+    ``encode(cg)``; partial coverage decodes the frame through a 256-entry table of the inverse
+    tone curve (exact for uint8 input) and mixes ``cov · cg + (1 − cov) · frame`` linearly.
     """
-    bg = jnp.asarray(frame).astype(jnp.float32) / 255.0
-    cov = jnp.clip(jnp.asarray(coverage).astype(jnp.float32), 0.0, 1.0)[..., None]
-    mixed = cov * jnp.clip(cg_linear, 0.0, 1.0) + (1.0 - cov) * decode_frame(bg, model)
+    fr = jnp.asarray(frame, jnp.uint8)
+    cov = jnp.asarray(coverage)
+    cg = jnp.clip(cg_linear, 0.0, 1.0)
+    if cov.dtype == jnp.bool_:
+        enc = jnp.round(encode_frame(cg, model) * 255.0).astype(jnp.uint8)
+        return jnp.where(cov[..., None], enc, fr)
+    cov = jnp.clip(cov.astype(jnp.float32), 0.0, 1.0)[..., None]
+    lut = decode_frame(jnp.arange(256, dtype=jnp.float32) / 255.0, model)
+    mixed = cov * cg + (1.0 - cov) * lut[fr.astype(jnp.int32)]
     enc = jnp.round(encode_frame(mixed, model) * 255.0).astype(jnp.uint8)
-    return jnp.where(cov > 0, enc, jnp.asarray(frame, jnp.uint8))
+    return jnp.where(cov > 0, enc, fr)
+
+
+# --------------------------------------------------------------------------------------------
+# the camera model of a scene config ([camera_colour]) and its calibration from a chart shot
+
+
+def camera_model_from_spec(spec, wavelengths=None) -> CameraModel:
+    """:class:`CameraModel` of a :class:`~spectral_fit.scene.CameraColourSpec`:
+    ``xyz_matrix = diag(white_balance) · matrix`` (XYZ route only)."""
+    m = np.diag(np.asarray(spec.white_balance, np.float64)) @ np.asarray(spec.matrix,
+                                                                          np.float64)
+    wl = np.zeros(1) if wavelengths is None else np.asarray(wavelengths, np.float64)
+    return CameraModel(jnp.zeros((wl.size, 3), jnp.float32), jnp.asarray(m, jnp.float32),
+                       jnp.asarray(wl, jnp.float32), tone=spec.tone, gamma=float(spec.gamma),
+                       has_spectral=False)
+
+
+def chart_xyz(scene, *, chart: str = "BabelColor Average") -> tuple[np.ndarray, np.ndarray]:
+    """(24, 3) absolute XYZ (cd/m²) of a ColorChecker lying on the table (facing world +Y)
+    under the scene's environment, as the renderer would compute them (reflectance ×
+    :func:`spectral_fit.live.white_reference`, CIE 1931 2° at 683 lm/W), and the (3,) XYZ of
+    that light's white."""
+    from .colorimetry import xyz_weights
+    from .live import white_reference
+    from .renderer import load_environment
+
+    wl = scene.wavelengths
+    white = white_reference(load_environment(scene, wl))
+    w = xyz_weights(wl)
+    return (colorchecker_reflectances(wl, chart=chart) * white) @ w, white @ w
+
+
+def frame_delta_e00(a, b, *, tone: str = "srgb", gamma: float = 2.2) -> np.ndarray:
+    """CIEDE2000 between encoded frame colours ``a`` and ``b`` ((…, 3) in [0, 1]), both
+    decoded with the tone curve and read as linear sRGB (D65 white)."""
+    import colour
+
+    probe = CameraModel(jnp.zeros((1, 3)), jnp.eye(3), jnp.zeros(1), tone=tone, gamma=gamma,
+                        has_spectral=False)
+    wxy = colour.RGB_COLOURSPACES["sRGB"].whitepoint
+
+    def lab(x):
+        lin = np.asarray(decode_frame(jnp.asarray(np.asarray(x, np.float32)), probe),
+                         np.float64)
+        return colour.XYZ_to_Lab(colour.RGB_to_XYZ(lin, "sRGB"), wxy)
+
+    return np.asarray(colour.delta_E(lab(a), lab(b), method="CIE 2000"))
+
+
+def _fit_gamma(xyz: np.ndarray, enc: np.ndarray) -> float:
+    """Exponent γ of enc = (k·Y)^(1/γ) from the chart's neutral patches (19–24): a line
+    through (log Y, log enc), channels averaged; unclipped patches only."""
+    y = xyz[18:24, 1]
+    e = np.asarray(enc, np.float64)[18:24].mean(1)
+    ok = (e > 0.02) & (e < 0.98) & (y > 0)
+    if ok.sum() < 3:
+        raise InputError("fewer than 3 unclipped neutral patches to fit the tone curve",
+                         field="--tone")
+    slope = np.polyfit(np.log(y[ok]), np.log(e[ok]), 1)[0]
+    if not slope > 0:
+        raise InputError("the neutral patches do not get brighter with luminance",
+                         field="--tone")
+    return float(1.0 / slope)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ChartCalibration:
+    """Result of :func:`calibrate_colour`.
+
+    Attributes:
+        matrix: (3, 3) XYZ → white-balanced linear frame RGB (the scene's white → equal
+            channels, at its luminance Y).
+        white_balance: (3,) per-channel gains; the full map is ``diag(wb) · matrix``.
+        tone, gamma: the frame's tone curve ("gamma" with a fitted exponent for ``fit``).
+        model: the :class:`CameraModel`.
+        xyz: (24, 3) the patches' XYZ; frame_rgb: (24, 3) their sampled encoded values.
+        used: (24,) bool, patches in the fit (unclipped, not held out).
+        delta_e00: (24,) ΔE00 between each patch's predicted and sampled frame colour.
+    """
+
+    matrix: np.ndarray
+    white_balance: np.ndarray
+    tone: str
+    gamma: float
+    model: CameraModel
+    xyz: np.ndarray
+    frame_rgb: np.ndarray
+    used: np.ndarray
+    delta_e00: np.ndarray
+
+
+def calibrate_colour(image: np.ndarray, corners, xyz, white_xyz, *, tone: str = "srgb",
+                     gamma: float = 2.2, hold_out=()) -> ChartCalibration:
+    """Fit the video camera's colour model from a ColorChecker in a frame.
+
+    Args:
+        image: (H, W, 3) uint8 RGB frame showing the chart.
+        corners: (4, 2) pixel coordinates (x, y; OpenCV convention) of the chart's outer
+            patch corners, top-left, top-right, bottom-right, bottom-left (patch 1, dark
+            skin, at the top-left; see :func:`sample_chart`).
+        xyz: (24, 3) absolute XYZ of the patches under the scene's light (:func:`chart_xyz`).
+        white_xyz: (3,) XYZ of that light's white (for the white-balance decomposition).
+        tone: "srgb", "gamma" (exponent ``gamma``), "linear", or "fit" (a "gamma" curve whose
+            exponent is fitted on the neutral patches).
+        hold_out: patch indices (0-based) left out of the fit (to validate it).
+    """
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise InputError(f"need an (H, W, 3) uint8 image, got {img.shape} {img.dtype}",
+                         field="image")
+    c = np.asarray(corners, np.float64)
+    if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+        raise InputError(f"need 4 (x, y) corners, got shape {c.shape}", field="--corners")
+    h, w = img.shape[:2]
+    if np.any(c < 0) or np.any(c[:, 0] > w) or np.any(c[:, 1] > h):
+        raise InputError(f"corners must lie inside the {w}x{h} image", field="--corners")
+    if tone not in ("srgb", "gamma", "linear", "fit"):
+        raise InputError(f"unknown tone curve {tone!r}", field="--tone")
+    xyz = np.asarray(xyz, np.float64)
+    enc = sample_chart(img, c) / 255.0
+    if tone == "fit":
+        tone, gamma = "gamma", _fit_gamma(xyz, enc)
+    keep = np.ones(24, bool)
+    keep[list(hold_out)] = False
+    fitted = camera_model_from_colorchecker(xyz[keep], enc[keep], tone=tone, gamma=gamma)
+    full = np.asarray(fitted.xyz_matrix, np.float64)
+    ok = np.all((enc < 0.98) & (enc > 0.02), axis=1) & keep
+    wrgb = full @ np.asarray(white_xyz, np.float64)
+    if np.any(wrgb <= 0):
+        raise InputError("the fitted camera sees the scene's white with a non-positive "
+                         "channel; check the corners (patch 1 = dark skin at the top-left)",
+                         field="--corners")
+    wb = wrgb / white_xyz[1]
+    matrix = full / wb[:, None]
+    pred = np.asarray(encode_frame(fitted.linear_from_xyz(jnp.asarray(xyz, jnp.float32)),
+                                   fitted), np.float64)
+    de = frame_delta_e00(pred, enc, tone=tone, gamma=gamma)
+    return ChartCalibration(matrix=matrix, white_balance=wb, tone=tone, gamma=float(gamma),
+                            model=fitted, xyz=xyz, frame_rgb=enc, used=ok, delta_e00=de)
+
+
+def _colour_lines(cal: ChartCalibration, note: str) -> list[str]:
+    rows = ", ".join("[" + ", ".join(f"{x:.9g}" for x in r) + "]" for r in cal.matrix)
+    used = cal.delta_e00[cal.used]
+    return [
+        f"# calibrated: {note}; {int(cal.used.sum())} patches, ΔE00 mean "
+        f"{used.mean():.2f} max {used.max():.2f}",
+        f"matrix = [{rows}]",
+        "white_balance = [" + ", ".join(f"{x:.9g}" for x in cal.white_balance) + "]",
+        f'tone = "{cal.tone}"',
+        f"gamma = {cal.gamma:.6g}",
+    ]
+
+
+def colour_config_text(text: str, cal: ChartCalibration, note: str = "ColorChecker") -> str:
+    """The config ``text`` with its ``[camera_colour]`` table replaced by (or, when missing,
+    appended with) the calibration; every other line is kept."""
+    import re
+
+    header = re.compile(r"^\s*\[\[?\s*([A-Za-z0-9_.\"' -]+?)\s*\]\]?\s*(#.*)?$")
+    out: list[str] = []
+    skipping = False
+    for line in text.splitlines():
+        m = header.match(line)
+        if m:
+            skipping = m.group(1).strip() == "camera_colour"
+            if skipping:
+                continue
+        if not skipping:
+            out.append(line)
+    while out and not out[-1].strip():
+        out.pop()
+    out += ["", "[camera_colour]", *_colour_lines(cal, note)]
+    return "\n".join(out) + "\n"
+
+
+def write_colour_config(config, cal: ChartCalibration, output=None, *,
+                        overwrite: bool = False, note: str = "ColorChecker"):
+    """Write ``config`` with ``[camera_colour]`` from ``cal`` into ``output`` (default
+    ``<name>.colour.toml`` next to it), atomically, validated before it is written; an
+    existing file is kept unless ``overwrite``. Returns the path."""
+    import tomllib
+    from pathlib import Path
+
+    from .fileio import atomic_write_text, read_text
+    from .scene import parse_scene
+
+    src = Path(config)
+    text = read_text(src)
+    dest = Path(output) if output is not None else src.with_name(src.stem + ".colour.toml")
+    if dest.exists() and not overwrite:
+        raise InputError("exists; pass --overwrite to replace it", path=dest, field="--output")
+    if dest.resolve().parent != src.resolve().parent:
+        raise InputError("write the new config next to the original (relative paths in it "
+                         "stay valid)", path=dest, field="--output")
+    new = colour_config_text(text, cal, note)
+    try:
+        parse_scene(tomllib.loads(new), path=src)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"could not insert the colour calibration: {exc}", path=src) from None
+    atomic_write_text(dest, new)
+    return dest

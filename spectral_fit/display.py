@@ -160,7 +160,8 @@ def encode(linear: Any, display: Display | None = None) -> Any:
         safe = xp.maximum(x, 1e-12)
         return xp.where(x > 0, safe ** (1.0 / display.gamma), 0.0)
     safe = xp.maximum(x, 0.0031308)
-    return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * safe ** (1 / 2.4) - 0.055)
+    # L^(1/2.4) as exp(log L / 2.4): XLA:CPU vectorises exp and log, not pow (~8× faster)
+    return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * xp.exp(xp.log(safe) / 2.4) - 0.055)
 
 
 def decode(drive: Any, display: Display | None = None) -> Any:
@@ -213,7 +214,9 @@ def to_display(
     if scene_white_xy is not None:
         M = M @ _adaptation_matrix(scene_white_xy, display)
     rel = xyz / exposure_luminance
-    target = rel @ xp.asarray(M.T, dtype=getattr(xyz, "dtype", np.float64))
+    Mt = xp.asarray(M.T, dtype=getattr(xyz, "dtype", np.float64))
+    # rel @ Mt by components (a (..., 3) @ (3, 3) product is a slow loop on XLA:CPU)
+    target = rel[..., 0:1] * Mt[0] + rel[..., 1:2] * Mt[1] + rel[..., 2:3] * Mt[2]
     b = display.black_level
     linear = (target - b) / (1.0 - b)
     below = xp.any(linear < -tol, axis=-1)

@@ -16,8 +16,9 @@ Colour: the renderer's radiance channels go straight to the camera's linear RGB:
 :class:`~spectral_fit.renderer.Prepared` matrix ``to_xyz`` (channels → XYZ) is replaced by
 channels → camera RGB (``to_spectrum @ camera.spectral_weights``), so the camera's spectral
 sensitivities act on the full spectra at no extra cost (``Frame.xyz`` then holds camera linear
-RGB). A camera model fitted from a ColorChecker shot (XYZ → RGB 3×3) uses ``to_xyz @ M.T``
-instead. The composite uses the renderer's coverage mask (see :mod:`spectral_fit.compositing`).
+RGB). A camera model fitted from a ColorChecker shot (XYZ → RGB 3×3; the config's
+``[camera_colour]``, see :func:`scene_camera_model`) uses ``to_xyz @ M.T`` instead. The
+composite uses the renderer's coverage mask (see :mod:`spectral_fit.compositing`).
 
 Compilation: the step is compiled once per session (poses, visibility and the background frame
 are traced inputs). Buffers (raster windows, covered pixels) are planned for the objects at
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import equinox as eqx
@@ -41,8 +43,8 @@ from .compositing import CameraModel, camera_model_from_sensitivities, composite
 from .errors import InputError
 from .scene import Scene
 
-__all__ = ["LiveSession", "FrameTimings", "scene_intrinsics", "white_reference",
-           "STEP_TRACES"]
+__all__ = ["LiveSession", "FrameTimings", "RunStats", "scene_intrinsics", "white_reference",
+           "scene_camera_model", "STEP_TRACES"]
 
 #: number of times the live step has been traced (compiled), for tests and reports
 STEP_TRACES = {"step": 0}
@@ -69,6 +71,24 @@ def scene_intrinsics(scene: Scene, size: tuple[int, int] | None = None
     return k, dist
 
 
+def scene_camera_model(scene: Scene, *, sensitivities: str | None = None,
+                       white_level: float = 0.85) -> CameraModel:
+    """The video camera's colour model for ``scene``: its ``[camera_colour]`` table (a 3×3
+    from a ColorChecker shot, ``spectral-fit calibrate-colour``) unless ``sensitivities`` is
+    given; otherwise measured spectral sensitivities (default "Nikon 5100 (NPL)") white-
+    balanced on the environment's white reference (:func:`white_reference`) shown at linear
+    level ``white_level``."""
+    from .compositing import camera_model_from_spec
+    from .renderer import load_environment
+
+    if sensitivities is None and scene.camera_colour is not None:
+        return camera_model_from_spec(scene.camera_colour, scene.wavelengths)
+    env = load_environment(scene, scene.wavelengths)
+    return camera_model_from_sensitivities(
+        sensitivities or "Nikon 5100 (NPL)", scene.wavelengths, white_reference(env),
+        white_level=white_level)
+
+
 def white_reference(environment: np.ndarray) -> np.ndarray:
     """(L,) radiance of a white Lambertian facing world +Y (the table) under an
     equirectangular map (Hm, Wm, L) (DESIGN §3 mapping: row k at polar angle π(k + ½)/Hm):
@@ -85,12 +105,53 @@ def white_reference(environment: np.ndarray) -> np.ndarray:
 
 @dataclasses.dataclass
 class FrameTimings:
-    """Seconds spent per stage of the last frame."""
+    """Seconds spent per stage of the last frame (``detect`` includes tracking)."""
 
     detect: float = 0.0
     undistort: float = 0.0
     render: float = 0.0
     total: float = 0.0
+
+
+@dataclasses.dataclass
+class RunStats:
+    """Per-frame seconds of each stage of :meth:`LiveSession.run` (lists in frame order).
+
+    ``decode``, ``detect`` (+ tracking), ``undistort`` (+ upload) run on the reader thread,
+    ``render`` (the compiled step, dispatch to ready) on the calling thread, ``encode`` (the
+    ``write`` callback) on the writer thread; ``interval`` is the time between consecutive
+    finished frames (the end-to-end frame time; its first entry is the first frame's
+    latency, compilation included); ``recompiled`` flags frames that re-planned buffers.
+    """
+
+    decode: list[float] = dataclasses.field(default_factory=list)
+    detect: list[float] = dataclasses.field(default_factory=list)
+    undistort: list[float] = dataclasses.field(default_factory=list)
+    render: list[float] = dataclasses.field(default_factory=list)
+    encode: list[float] = dataclasses.field(default_factory=list)
+    interval: list[float] = dataclasses.field(default_factory=list)
+    recompiled: list[bool] = dataclasses.field(default_factory=list)
+    visible: list[np.ndarray] = dataclasses.field(default_factory=list)
+
+    @property
+    def frames(self) -> int:
+        return len(self.interval)
+
+    def medians_ms(self) -> dict[str, float | None]:
+        """Steady-state medians (ms) per stage: frames after the first, without re-plans."""
+        import statistics
+
+        keep = [i for i in range(1, self.frames) if not self.recompiled[i]]
+        out: dict[str, float | None] = {}
+        for name in ("decode", "detect", "undistort", "render", "encode", "interval"):
+            vals = [getattr(self, name)[i] for i in keep if i < len(getattr(self, name))]
+            out[name] = statistics.median(vals) * 1e3 if vals else None
+        return out
+
+
+#: background buffers in the ring (frames queued + in flight + being written, with margin)
+_RING = 6
+_QUEUE = 2
 
 
 def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
@@ -122,23 +183,46 @@ class LiveSession:
         size: (H, W) of the video frames. With ``[camera] intrinsics`` (calibrated at the
             ``[frame]`` size) the frames may be a uniform resize of that size (the intrinsics
             are scaled; pixel centres stay at +0.5); another aspect ratio is an error.
-        camera: the video camera's colour model (default: ``sensitivities`` with the
-            environment's white reference at ``white_level``).
-        sensitivities: colour-science camera name for the default model.
-        white_level: linear level of the white reference in the default model.
+        camera: the video camera's colour model (default: :func:`scene_camera_model`).
+        sensitivities: colour-science camera name for the default model (overrides the
+            config's ``[camera_colour]``).
+        white_level: linear level of the white reference in a sensitivities model.
         mode, spectral_mode, k: renderer options (interreflection mode, bands/basis).
         plan_distance: distance (m) in front of the camera at which buffers are planned.
         headroom: capacity headroom over the planned poses.
+        detect_downscale: marker detection on the frame shrunk by this factor, corners
+            refined at full resolution (:class:`~spectral_fit.markers.MarkerDetector`; None:
+            2 for frames of 400 px and more).
     """
 
     def __init__(self, scene: Scene, *, size: tuple[int, int] | None = None,
                  camera: CameraModel | None = None,
-                 sensitivities: str = "Nikon 5100 (NPL)", white_level: float = 0.85,
+                 sensitivities: str | None = None, white_level: float = 0.85,
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
-                 headroom: float = 1.6) -> None:
+                 headroom: float = 1.6, detect_downscale: int | None = None) -> None:
+        self._init_cpu(scene, size, detect_downscale=detect_downscale)
+        scene = self.scene
+        if camera is None:
+            camera = scene_camera_model(scene, sensitivities=sensitivities,
+                                        white_level=white_level)
+        self.camera = camera
+        self._options = {"mode": mode, "spectral_mode": spectral_mode, "k": k}
+        self.plan_distance = float(plan_distance)
+        self.headroom = float(headroom)
+        self.recompiles = 0
+        self.frames = 0
+        self._planned = False
+        self.timings = FrameTimings()
+        self.prep = self._prepare(self.headroom)
+
+    # ------------------------------------------------------------------ preparation
+
+    def _init_cpu(self, scene: Scene, size: tuple[int, int] | None, *,
+                  detect_downscale: int | None = None) -> None:
+        """The CPU side: intrinsics at the frame size, marker detector and tracker,
+        undistortion maps, frame buffers (``self.scene``, ``self.size``, ...)."""
         from .markers import MarkerDetector, MarkerTracker
-        from .renderer import load_environment
 
         h, w = size or (scene.height, scene.width)
         if scene.camera.intrinsics is not None and abs(
@@ -157,29 +241,21 @@ class LiveSession:
         scene = scene.replace(width=w, height=h)
         self.scene = scene
         self.size = (h, w)
-        self.detector = MarkerDetector(scene.markers or _default_markers(), self.k, self.dist)
+        spec = scene.markers or _default_markers()
+        expect = {o.marker for o in scene.objects if o.marker is not None}
+        if spec.world is not None:
+            expect.add(spec.world)
+        self.detector = MarkerDetector(spec, self.k, self.dist, expect=expect,
+                                       downscale=detect_downscale)
         self.tracker = MarkerTracker(scene)
         self._maps = None
+        self._ring = [np.empty((h, w, 3), np.uint8) for _ in range(_RING)]
+        self._ring_next = 0
+        self._last_detect = 0.0
         if self.dist is not None and np.any(self.dist != 0):
             from .camera_calibration import undistort_maps
 
             self._maps = undistort_maps(self.k, self.dist, (h, w))
-        if camera is None:
-            env = load_environment(scene, scene.wavelengths)
-            camera = camera_model_from_sensitivities(
-                sensitivities, scene.wavelengths, white_reference(env),
-                white_level=white_level)
-        self.camera = camera
-        self._options = {"mode": mode, "spectral_mode": spectral_mode, "k": k}
-        self.plan_distance = float(plan_distance)
-        self.headroom = float(headroom)
-        self.recompiles = 0
-        self.frames = 0
-        self._planned = False
-        self.timings = FrameTimings()
-        self.prep = self._prepare(self.headroom)
-
-    # ------------------------------------------------------------------ preparation
 
     def _planning_scene(self) -> Scene:
         """The scene with marker-attached objects side by side at ``plan_distance`` in front
@@ -246,37 +322,58 @@ class LiveSession:
 
     # ------------------------------------------------------------------ per frame
 
-    def undistort(self, frame: np.ndarray) -> np.ndarray:
-        """The frame resampled onto the pinhole intrinsics (identity without distortion)."""
+    def undistort(self, frame: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """The frame resampled onto the pinhole intrinsics (identity without distortion),
+        into ``out`` when given ((H, W, 3) uint8)."""
         if self._maps is None:
-            return frame
+            if out is None:
+                return frame
+            np.copyto(out, frame)
+            return out
         import cv2
 
-        return cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR)
+        return cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR, dst=out)
 
-    def render(self, poses: Any, background: np.ndarray) -> tuple[jax.Array, dict[str, Any]]:
+    def render(self, poses: Any, background: Any) -> tuple[jax.Array, dict[str, Any]]:
         """Dispatch the compiled step (asynchronous; block on the result to time it)."""
         return _step(self.prep, self.prep.materials, jnp.asarray(poses.model),
                      jnp.asarray(poses.view), jnp.asarray(poses.visible),
                      jnp.asarray(background), self.camera)
 
-    def submit(self, frame: np.ndarray) -> _Pending:
-        """CPU stages of one frame (detect, track, undistort) and the DISPATCH of its compiled
-        step, which runs asynchronously: call :meth:`finish` on the result later. Submitting
-        frame n+1 before finishing frame n overlaps the CPU stages with the device (a GPU)."""
+    def _check(self, frame: np.ndarray) -> None:
         if frame.shape != (*self.size, 3) or frame.dtype != np.uint8:
             raise InputError(f"frame must be {(*self.size, 3)} uint8, got {frame.shape} "
                              f"{frame.dtype}", field="frame")
+
+    def _cpu_stages(self, frame: np.ndarray) -> tuple[Any, Any, tuple[float, float, float]]:
+        """Detect + track, then undistort into the next ring buffer and upload it."""
+        self._check(frame)
         t0 = time.perf_counter()
         poses = self.tracker.update(self.detector.detect(frame))
         t1 = time.perf_counter()
-        bg = self.undistort(frame)
+        self._last_detect = t1 - t0
+        buf = self._ring[self._ring_next]
+        self._ring_next = (self._ring_next + 1) % len(self._ring)
+        bg = jax.device_put(self.undistort(frame, out=buf))
+        inputs = (jax.device_put(poses.model), jax.device_put(poses.view),
+                  jax.device_put(poses.visible))
         t2 = time.perf_counter()
+        return (poses, inputs), bg, (t0, t1, t2)
+
+    def _dispatch(self, poses: Any, inputs: Any, bg: Any) -> tuple[Any, Any]:
         if not self._planned and poses.visible.any():
             self._replan(poses, self.headroom)  # size the buffers on the first real poses
             self._planned = True
-        out, stats = self.render(poses, bg)
-        return _Pending(poses, bg, out, stats, (t0, t1, t2))
+        return _step(self.prep, self.prep.materials, *inputs, bg, self.camera)
+
+    def submit(self, frame: np.ndarray) -> _Pending:
+        """CPU stages of one frame (detect, track, undistort) and the DISPATCH of its compiled
+        step, which runs asynchronously: call :meth:`finish` on the result later. Submitting
+        frame n+1 before finishing frame n overlaps the CPU stages with the device (a GPU);
+        :meth:`run` overlaps them with threads on any device."""
+        (poses, inputs), bg, times = self._cpu_stages(frame)
+        out, stats = self._dispatch(poses, inputs, bg)
+        return _Pending(poses, bg, out, stats, times)
 
     def finish(self, pending: _Pending) -> np.ndarray:
         """Wait for a submitted frame; re-plans, recompiles and re-renders it when its buffers
@@ -307,7 +404,141 @@ class LiveSession:
         """Composite one video frame (H, W, 3) uint8 RGB; returns (H, W, 3) uint8 RGB."""
         return self.finish(self.submit(frame))
 
+    def run(self, frames: Iterable[np.ndarray], write: Callable[[np.ndarray], Any] | None = None,
+            *, threads: bool = True, max_frames: int | None = None,
+            on_frame: Callable[[int, RunStats], Any] | None = None) -> RunStats:
+        """Composite a stream of frames; returns per-stage timings (:class:`RunStats`).
 
+        Args:
+            frames: (H, W, 3) uint8 RGB frames (e.g. a :class:`~spectral_fit.video.VideoSource`;
+                its decoding is timed as ``decode``).
+            write: called with each composited frame, in order (e.g. ``VideoSink.write``).
+            threads: overlap the stages: a reader thread decodes, detects, tracks, undistorts
+                and uploads frame n+1 (and further, up to 2 queued) while this thread renders
+                frame n, and a writer thread encodes frame n−1. OpenCV and JAX release the
+                Python lock while they work, so the stages run in parallel. False: one stage
+                after the other (each stage's own cost, for comparisons).
+            max_frames: stop after this many frames.
+            on_frame: called after each rendered frame with (index, stats so far).
+
+        The output frames are identical either way (tracking stays in frame order on the
+        reader thread; the compiled step is the same).
+        """
+        import queue
+        import threading
+
+        stats = RunStats()
+        limit = None if max_frames is None else int(max_frames)
+        done = object()
+
+        def produce(put: Callable[[Any], Any], stop: threading.Event | None) -> None:
+            it = iter(frames)
+            n = 0
+            while limit is None or n < limit:
+                if stop is not None and stop.is_set():
+                    return
+                t = time.perf_counter()
+                frame = next(it, None)
+                if frame is None:
+                    break
+                t_dec = time.perf_counter() - t
+                item = self._cpu_stages(frame)
+                put((t_dec, *item))
+                n += 1
+            put(done)
+
+        def render_one(item: Any) -> np.ndarray:
+            t_dec, (poses, inputs), bg, (t0, t1, t2) = item
+            t3 = time.perf_counter()
+            out, st = self._dispatch(poses, inputs, bg)
+            before = self.recompiles
+            img = self.finish(_Pending(poses, bg, out, st, (t3, t3, t3)))
+            stats.decode.append(t_dec)
+            stats.detect.append(t1 - t0)
+            stats.undistort.append(t2 - t1)
+            stats.render.append(time.perf_counter() - t3)
+            stats.recompiled.append(self.recompiles != before)
+            stats.visible.append(np.asarray(poses.visible).copy())
+            return img
+
+        def emit(img: np.ndarray, put_out: Callable[[Any], Any]) -> None:
+            nonlocal t_prev
+            put_out(img)
+            now = time.perf_counter()
+            stats.interval.append(now - t_prev)
+            t_prev = now
+            if on_frame is not None:
+                on_frame(stats.frames - 1, stats)
+
+        def encode(img: np.ndarray) -> None:
+            t = time.perf_counter()
+            if write is not None:
+                write(img)
+            stats.encode.append(time.perf_counter() - t)
+
+        t_prev = time.perf_counter()
+        if not threads:
+            def step(item: Any) -> None:
+                if item is not done:
+                    emit(render_one(item), encode)
+
+            produce(step, None)
+            return stats
+
+        q_in: queue.Queue[Any] = queue.Queue(maxsize=_QUEUE)
+        q_out: queue.Queue[Any] = queue.Queue(maxsize=_QUEUE)
+        stop = threading.Event()
+        errors: list[BaseException] = []
+
+        def put_in(item: Any) -> None:
+            while not stop.is_set():
+                try:
+                    q_in.put(item, timeout=0.1)
+                    return
+                except queue.Full:
+                    continue
+
+        def reader() -> None:
+            try:
+                produce(put_in, stop)
+            except BaseException as exc:  # noqa: BLE001 - re-raised on the calling thread
+                errors.append(exc)
+                put_in(done)
+
+        def writer() -> None:
+            while True:
+                img = q_out.get()
+                if img is done:
+                    return
+                if errors:
+                    continue  # drain: the run is failing, write nothing more
+                try:
+                    encode(img)
+                except BaseException as exc:  # noqa: BLE001 - re-raised on the calling thread
+                    errors.append(exc)
+                    stop.set()
+
+        threads_ = [threading.Thread(target=reader, name="live-reader", daemon=True),
+                    threading.Thread(target=writer, name="live-writer", daemon=True)]
+        for th in threads_:
+            th.start()
+        try:
+            while not errors:
+                try:
+                    item = q_in.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+                if item is done:
+                    break
+                emit(render_one(item), q_out.put)
+        finally:
+            stop.set()
+            q_out.put(done)
+            for th in threads_:
+                th.join()
+        if errors:
+            raise errors[0]
+        return stats
 @dataclasses.dataclass
 class _Pending:
     """A submitted frame (see :meth:`LiveSession.submit`)."""

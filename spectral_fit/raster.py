@@ -38,12 +38,14 @@ winning depth), so no 64-bit keys and no global ``jax_enable_x64``.
 Algorithm and fixed buffers
 ---------------------------
 Each triangle gets a conservative pixel bounding box (of its near-clipped polygon) and is
-tiled with square windows of side S from a ladder (default 1, 2, 4, 8, 16, 32): S is the
-smallest ladder size ≥ the shorter side of the box (capped at the largest), the box is covered
-by ⌈nx/S⌉·⌈ny/S⌉ windows. Culled, off-screen, degenerate and empty-box triangles get no
-window. Each ladder size has a fixed window CAPACITY (:class:`RasterConfig`); windows are
-listed with prefix sums + binary search (no sort), evaluated densely, and resolved with
-windowed scatter-min. Buffers never depend on the pose, so moving objects never recompiles.
+tiled with square windows of side S from a ladder (default 1, 4, 16): S is the smallest ladder
+size ≥ the shorter side of the box (capped at the largest), the box is covered by
+⌈nx/S⌉·⌈ny/S⌉ windows. Culled, off-screen, degenerate and empty-box triangles get no window.
+Each ladder size has a fixed window CAPACITY (:class:`RasterConfig`, planned in NumPy by
+:func:`plan_counts` without compiling anything); the windows of all sizes are listed together
+with prefix sums, one scatter and one running max (no sort), evaluated densely, and resolved
+with windowed scatter-min. Buffers never depend on the pose, so moving objects never
+recompiles.
 
 Overflow: ``Raster.overflow`` is True when some ladder size needed more windows than its
 capacity (``Raster.needed`` gives the counts). :func:`rasterize`, called outside ``jit``,
@@ -78,6 +80,8 @@ __all__ = [
     "rasterize_batch",
     "default_config",
     "plan_config",
+    "plan_counts",
+    "PlanCounts",
     "interpolate",
     "covered_pixels",
     "interpolate_pixels",
@@ -113,6 +117,19 @@ class RasterConfig(NamedTuple):
     capacities: tuple[int, ...]
     block_capacity: int
 
+    @classmethod
+    def from_counts(cls, counts: PlanCounts, *, headroom: float = 1.5,
+                    tile_sizes: tuple[int, ...] | None = None) -> RasterConfig:
+        """Capacities ``headroom`` × the planned ``counts`` (+16), rounded up on the
+        quarter-octave capacity ladder, for the window sizes ``tile_sizes`` the counts were
+        made with (default :data:`TILE_SIZES`)."""
+        sizes = TILE_SIZES if tile_sizes is None else tuple(tile_sizes)
+        if len(sizes) != len(counts.windows):
+            raise InputError(f"{len(counts.windows)} window counts for {len(sizes)} sizes",
+                             field="tile_sizes")
+        caps = tuple(_ladder(headroom * n + 16) for n in counts.windows)
+        return cls(sizes, caps, _ladder(headroom * counts.blocks + 16))
+
     def grown(self, needed, headroom: float = 1.25) -> RasterConfig:
         """Capacities raised to the ladder value ≥ ``headroom`` × ``needed`` where
         ``needed`` (windows per ladder size, then blocks) exceeds them."""
@@ -142,15 +159,110 @@ def default_config(num_triangles: int, shape: tuple[int, int]) -> RasterConfig:
     return RasterConfig(TILE_SIZES, tuple(_ladder(c) for c in caps), _ladder(blocks))
 
 
+class PlanCounts(NamedTuple):
+    """What one pose (or the worst of several) needs from the rasteriser's buffers.
+
+    Attributes:
+        windows: windows per ladder size (``tile_sizes`` of :func:`plan_counts`).
+        blocks: 8×8 pixel blocks touched by the pixel boxes of the drawable triangles (a bound
+            on the blocks holding visible triangles).
+        pixels: pixels inside those boxes (a bound on the covered pixels).
+    """
+
+    windows: tuple[int, ...]
+    blocks: int
+    pixels: int
+
+
+def _union_area(x0, y0, x1, y1, shape, scale):
+    """Cells of side ``scale`` touched by the inclusive pixel boxes (x0..x1, y0..y1)."""
+    h, w = shape
+    hh, ww = -(-h // scale), -(-w // scale)
+    diff = np.zeros((hh + 1, ww + 1), np.int64)
+    a0, a1 = x0 // scale, x1 // scale + 1
+    b0, b1 = y0 // scale, y1 // scale + 1
+    for yy, xx, sgn in ((b0, a0, 1), (b0, a1, -1), (b1, a0, -1), (b1, a1, 1)):
+        np.add.at(diff, (yy, xx), sgn)
+    return int(np.sum(np.cumsum(np.cumsum(diff, 0), 1)[:hh, :ww] > 0))
+
+
+def plan_counts(clip_xyzw, triangles, shape: tuple[int, int], *, cull: str = "none",
+                tile_sizes: tuple[int, ...] = TILE_SIZES) -> PlanCounts:
+    """Windows, blocks and pixels one pose needs, in NumPy (float64, no compilation).
+
+    Per triangle: the rasteriser's drawability test (non-degenerate, culling, in front of the
+    near plane) and its conservative pixel-centre box of the polygon clipped to z ≥ −w (the
+    whole frame when part of it lies behind the eye), with the rasteriser's rounding margin;
+    then the same ladder choice and window tiling as the rasteriser (:func:`_ladder_masks`).
+    Float64 here against float32 there: a box could differ by one pixel when a bound lies
+    within rounding of a pixel centre (the counts were identical to the rasteriser's own
+    ``needed`` on the benchmark scenes, near-plane-crossing poses and random soups); the
+    ``+16`` and the headroom of :func:`plan_config` absorb that, and overflow stays detected.
+    Used by :func:`plan_config` and by the renderer's capacity planning.
+
+    Args:
+        clip_xyzw: ``(V, 4)`` clip positions.
+        triangles: ``(T, 3)`` int indices.
+        shape: ``(H, W)``.
+        cull: as in :func:`rasterize`.
+        tile_sizes: the ladder (default :data:`TILE_SIZES`).
+    """
+    h, w = _check_shape(shape)
+    if cull not in _CULL:
+        raise InputError(f"unknown cull mode {cull!r} (one of {_CULL})", field="cull")
+    clip, tris = _validate(clip_xyzw, triangles, False)
+    x, y, z, wc = np.asarray(clip, np.float64).T[:, np.asarray(tris).T]  # 4 × (3, T)
+    hv = np.stack([(x + wc) * (0.5 * w), (wc - y) * (0.5 * h), wc])  # (3 comps, 3 corners, T)
+    # det[hv0; hv1; hv2]: its sign gives the facing (front faces have det < 0)
+    det = np.sum(hv[:, 0] * np.cross(hv[:, 1], hv[:, 2], axis=0), axis=0)
+    valid = np.isfinite(det) & (det != 0)
+    if cull == "back":
+        valid &= det < 0
+    elif cull == "front":
+        valid &= det > 0
+    # the polygon clipped to z >= -w: corners in front of the near plane and edge crossings
+    d = z + wc
+    dn = np.roll(d, -1, axis=0)
+    den = d - dn
+    t = d / np.where(den != 0, den, 1.0)
+    cross = hv + t * (np.roll(hv, -1, axis=1) - hv)
+    pts = np.concatenate([hv, cross], axis=1)  # (3 comps, 6 points, T)
+    ok = np.concatenate([d >= 0, d * dn < 0], axis=0)
+    front = pts[2] > 0
+    full = np.any(ok & ~front, axis=0)
+    valid &= np.any(ok, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv = 1.0 / np.where(ok & front, pts[2], 1.0)
+        xy = pts[:2] * inv
+        lo = np.min(np.where(ok, xy, np.inf), axis=1)  # (2, T)
+        hi = np.max(np.where(ok, xy, -np.inf), axis=1)
+    full |= ~np.all(np.isfinite(lo) & np.isfinite(hi), axis=0)
+    size = np.asarray([[w], [h]], np.float64)
+    lo = np.where(full, 0.0, lo)
+    hi = np.where(full, size, hi)
+    m = 1.0 / 64 + 1e-6 * np.maximum(np.abs(lo), np.abs(hi))
+    i0 = np.maximum(np.ceil(np.clip(lo - 0.5 - m, -1.0, 1 << 15)), 0).astype(np.int64)
+    i1 = np.minimum(np.floor(np.clip(hi - 0.5 + m, -2.0, 1 << 15)), size - 1).astype(np.int64)
+    n = i1 - i0 + 1
+    valid &= np.all(n > 0, axis=0)
+    nx, ny = n
+    masks = _ladder_masks(np.minimum(nx, ny), valid, tile_sizes)
+    windows = tuple(int(np.sum(np.where(sel, -(-nx // s) * -(-ny // s), 0)))
+                    for s, sel in zip(tile_sizes, masks, strict=True))
+    x0, y0, x1, y1 = i0[0, valid], i0[1, valid], i1[0, valid], i1[1, valid]
+    return PlanCounts(windows, _union_area(x0, y0, x1, y1, (h, w), _TILE),
+                      _union_area(x0, y0, x1, y1, (h, w), 1))
+
+
 def plan_config(clip_xyzw, triangles, shape: tuple[int, int], *, cull: str = "none",
                 headroom: float = 1.5) -> RasterConfig:
     """Capacities measured on one or several poses, with ``headroom`` for motion.
 
-    Runs the cheap setup pass only (no rasterisation): counts the windows per ladder size and
-    the 8×8 pixel blocks touched by the triangles' bounding boxes (a bound on the blocks the
-    final stage visits), takes the maximum over the poses, and sizes each list to
-    ``headroom`` × that, rounded up on the ladder. Pass the result as ``config=`` inside a live
-    loop or a ``jit``; overflow is still detected.
+    Runs :func:`plan_counts` (NumPy, no rasterisation, no compilation) on each pose: the
+    windows per ladder size and the 8×8 pixel blocks touched by the triangles' bounding boxes
+    (a bound on the blocks the final stage visits); takes the maximum over the poses and sizes
+    each list to ``headroom`` × that (+16), rounded up on the ladder. Pass the result as
+    ``config=`` inside a live loop or a ``jit``; overflow is still detected.
 
     Args:
         clip_xyzw: ``(V, 4)`` clip positions of one pose, or ``(P, V, 4)`` for P poses
@@ -160,18 +272,13 @@ def plan_config(clip_xyzw, triangles, shape: tuple[int, int], *, cull: str = "no
         cull: as in :func:`rasterize`.
         headroom: factor ≥ 1 on the measured counts.
     """
-    shape = _check_shape(shape)
-    if cull not in _CULL:
-        raise InputError(f"unknown cull mode {cull!r} (one of {_CULL})", field="cull")
     poses = np.ndim(clip_xyzw) == 3
-    clip, tris = _validate(clip_xyzw, triangles, poses)
-    if not poses:
-        clip = clip[None]
-    probe = default_config(int(tris.shape[0]), shape)
-    counts = np.max(np.stack([np.asarray(_count_jit(c, tris, shape=shape, cull=cull,
-                                                    config=probe)) for c in clip]), axis=0)
-    caps = tuple(_ladder(headroom * n + 16) for n in counts.tolist())
-    return RasterConfig(TILE_SIZES, caps[:-1], caps[-1])
+    clips = clip_xyzw if poses else [clip_xyzw]
+    counts = [plan_counts(c, triangles, shape, cull=cull) for c in clips]
+    return RasterConfig.from_counts(
+        PlanCounts(tuple(np.max([c.windows for c in counts], axis=0).tolist()),
+                   max(c.blocks for c in counts), max(c.pixels for c in counts)),
+        headroom=headroom)
 
 
 class Raster(eqx.Module):
@@ -263,8 +370,6 @@ def _triangle_setup(clip, triangles, shape, cull):
     # ops inside every consumer kernel (measured: the setup ran several times slower).
     one = jnp.where(clip[0, 3] == clip[0, 3], jnp.float32(1.0), jnp.float32(2.0))
     n, o, ends = _edge_setup(hv)
-    n = [[nk / one for nk in ni] for ni in n]
-    o = [oi / one for oi in o]
     # det = det[hv0; hv1; hv2], evaluated with the origin moved to the projection of the
     # corner with the largest w (a column operation: same value, no large cancelling terms).
     # Its sign decides which side of the edges is inside (and that the point seen is in
@@ -357,8 +462,9 @@ def _triangle_setup(clip, triangles, shape, cull):
     f32 = jnp.float32
     data = jnp.stack(comps + [valid.astype(f32), x0.astype(f32), y0.astype(f32), nx.astype(f32),
                               ny.astype(f32)], axis=1)
-    # materialised once (see above) instead of recomputed per gathered window
-    return data / one
+    # materialised once, instead of recomputed per gathered window (a barrier: a divide by
+    # the runtime 1.0 here would cost one more pass over the rows)
+    return lax.optimization_barrier(data)
 
 
 def _plane(zp, px, py):
@@ -436,7 +542,42 @@ def _scan(op, x, identity, block: int = 64):
     return op(off[..., None], inner).reshape(x.shape[:-1] + (nb * block,))[..., :n]
 
 
+def _count_cumsum(x, block: int = 64):
+    """Inclusive prefix sum of non-negative int32 counts ``x`` along the last axis.
+
+    Blocked triangular matrix products in float32 (a library dot: no generated loop, cheap to
+    compile): sums below 2^24 are exact (every partial sum of non-negative terms is at most
+    the total); larger sums (only reached by lists far beyond any capacity) are rounded,
+    which can only move them further beyond the capacity.
+    """
+    n = x.shape[-1]
+    lead = x.shape[:-1]
+    nb = -(-n // block)
+    xp = jnp.pad(x.astype(jnp.float32), [(0, 0)] * len(lead) + [(0, nb * block - n)])
+    upper = (lax.broadcasted_iota(jnp.int32, (block, block), 0)
+             <= lax.broadcasted_iota(jnp.int32, (block, block), 1)).astype(jnp.float32)
+    inner = jnp.matmul(xp.reshape(lead + (nb, block)), upper,
+                       precision=lax.Precision.HIGHEST)
+    if nb > 1:
+        tot = _count_cumsum(inner[..., -1], block)
+        off = jnp.concatenate([jnp.zeros(lead + (1,), jnp.float32), tot[..., :-1]], -1)
+        inner = inner + off[..., None]
+    return inner.reshape(lead + (nb * block,))[..., :n].astype(jnp.int32)
+
+
 _TILE = 8  # side of the square pixel blocks of the final (barycentric/depth) stage
+
+
+def _ladder_masks(shorter, valid, sizes):
+    """Which ladder size tiles each triangle (NumPy or JAX arrays): the smallest S ≥ the
+    shorter side of its pixel box, the largest size for longer sides."""
+    masks = []
+    for b, s in enumerate(sizes):
+        sel = valid & (shorter <= s) if b == 0 else valid & (shorter > sizes[b - 1])
+        if 0 < b < len(sizes) - 1:
+            sel &= shorter <= s
+        masks.append(sel)
+    return masks
 
 
 def _window_counts(data, config):
@@ -444,15 +585,12 @@ def _window_counts(data, config):
     valid = data[:, _C_VALID] > 0
     nx = data[:, _C_BOX + 2].astype(jnp.int32)
     ny = data[:, _C_BOX + 3].astype(jnp.int32)
-    shorter = jnp.minimum(nx, ny)
     sizes = config.tile_sizes
     ms, txs = [], []
-    for b, s in enumerate(sizes):
+    masks = _ladder_masks(jnp.minimum(nx, ny), valid, sizes)
+    for s, sel in zip(sizes, masks, strict=True):
         tx = lax.div(nx + (s - 1), jnp.int32(s))
         ty = lax.div(ny + (s - 1), jnp.int32(s))
-        sel = valid & (shorter <= s) if b == 0 else valid & (shorter > sizes[b - 1])
-        if 0 < b < len(sizes) - 1:
-            sel &= shorter <= s
         ms.append(jnp.where(sel, tx * ty, 0))
         txs.append(tx)
     return jnp.stack(ms), jnp.stack(txs)
@@ -460,36 +598,55 @@ def _window_counts(data, config):
 
 def _window_lists(data, config):
     """Per ladder size: (S, window origins (C, 2) (y, x), triangle ids (C,), triangle data
-    (C, 20), live (C,), windows needed).
+    (C, _NCOL), live (C,), windows needed).
 
-    Listing without sorting: an inclusive prefix sum of the window counts gives each triangle
-    its first slot; one scatter writes the triangle id there and a running max fills the slots
-    of its further windows.
+    Listing without sorting, for all ladder sizes at once (one list of Σ capacities slots,
+    size b's slots after those of the smaller sizes): an inclusive prefix sum of the window
+    counts gives each triangle its first slot; one scatter writes the key b·T + id there and
+    a running max fills the slots of its further windows (keys grow along the list, so one
+    scan serves every size). The sizes' lists are static slices of the result.
     """
     t = data.shape[0]
-    m, tx = _window_counts(data, config)
-    csum = _scan(jnp.add, m, 0)
-    ids = jnp.arange(t, dtype=jnp.int32)
+    sizes, caps = config.tile_sizes, config.capacities
+    nb = len(sizes)
+    offs = [sum(caps[:b]) for b in range(nb + 1)]
+    m, tx = _window_counts(data, config)  # (NB, T)
+    csum = _count_cumsum(m)
+    start = csum - m  # first slot of each triangle within its size's list
+    total = csum[:, -1]  # (NB,)
+    slot0 = jnp.asarray(offs[:-1], jnp.int32)[:, None]
+    keep = (m > 0) & (start < jnp.asarray(caps, jnp.int32)[:, None])
+    pos = jnp.where(keep, start + slot0, offs[-1]).reshape(-1)
+    keys = lax.broadcasted_iota(jnp.int32, (nb, t), 0) * t + lax.broadcasted_iota(
+        jnp.int32, (nb, t), 1)
+    first = jnp.zeros((offs[-1],), jnp.int32).at[pos].max(keys.reshape(-1), mode="drop")
+    key = _scan(jnp.maximum, first, 0)
+    # per slot: its ladder size b, the slot number within that size's list, S and the total
+    k = jnp.arange(offs[-1], dtype=jnp.int32)
+    b = sum((k >= o).astype(jnp.int32) for o in offs[1:-1])
+    local_slot = k - sum(jnp.where(b == i, o, 0) for i, o in enumerate(offs[:-1]))
+    s_slot = sum(jnp.where(b == i, s, 0) for i, s in enumerate(sizes))
+    live = local_slot < sum(jnp.where(b == i, total[i], 0) for i in range(nb))
+    key = jnp.clip(key, b * t, b * t + (t - 1))  # dead slots: any triangle of the size
+    tri = key - b * t
+    box = data[:, _C_BOX:_C_BOX + 2].astype(jnp.int32)[tri]  # (ΣC, 2) x0, y0
+    local = local_slot - start.reshape(-1)[key]  # window number within its triangle
+    txt = jnp.maximum(tx.reshape(-1)[key], 1)
+    # row = local // txt in float32: exact while row·txt < 2^22 (always here: at most
+    # 16384 windows per triangle below the largest size, 513² at the largest)
+    row = jnp.floor((local.astype(jnp.float32) + 0.5) / txt.astype(jnp.float32))
+    row = row.astype(jnp.int32)
+    col = local - row * txt
+    ox = jnp.where(live, box[:, 0] + col * s_slot, 0)
+    oy = jnp.where(live, box[:, 1] + row * s_slot, 0)
+    # materialised once: otherwise XLA recomputes the chain above in every window pixel
+    idx = jnp.stack([oy, ox], -1)
     out = []
-    for b, (s, cap) in enumerate(zip(config.tile_sizes, config.capacities, strict=True)):
-        mb, cb = m[b], csum[b]
-        total = cb[-1]
-        pos = jnp.where(mb > 0, cb - mb, cap)
-        first = jnp.zeros((cap,), jnp.int32).at[pos].max(ids, mode="drop")
-        tri = _scan(jnp.maximum, first, 0)
-        k = jnp.arange(cap, dtype=jnp.int32)
-        live = k < total
-        d = data[tri]  # (C, _NCOL)
-        local = k - (cb[tri] - mb[tri])  # window number within its triangle
-        txt = jnp.maximum(tx[b][tri], 1)
-        # row = local // txt in float32: exact while row·txt < 2^22 (always here: at most
-        # 16384 windows per triangle below the largest size, 513² at the largest)
-        row = jnp.floor((local.astype(jnp.float32) + 0.5) / txt.astype(jnp.float32))
-        row = row.astype(jnp.int32)
-        col = local - row * txt
-        ox = jnp.where(live, d[:, _C_BOX].astype(jnp.int32) + col * s, 0)
-        oy = jnp.where(live, d[:, _C_BOX + 1].astype(jnp.int32) + row * s, 0)
-        out.append((s, jnp.stack([oy, ox], -1), tri, d, live, total))
+    for i, s in enumerate(sizes):
+        tri_b = tri[offs[i]:offs[i + 1]]
+        # the rows are gathered by each consumer (fused; not materialised)
+        out.append((s, idx[offs[i]:offs[i + 1]], tri_b, data[tri_b], live[offs[i]:offs[i + 1]],
+                    total[i]))
     return out
 
 
@@ -547,7 +704,7 @@ def _finish(data, clip, triangles, ibuf, shape, block_capacity):
     xx = lax.broadcasted_iota(jnp.int32, occ.shape, 1)
     occ &= (yy < h) & (xx < w)
     occupied = jnp.any(occ.reshape(th, _TILE, tw, _TILE), axis=(1, 3)).reshape(-1)
-    csum = _scan(jnp.add, occupied.astype(jnp.int32), 0)
+    csum = _count_cumsum(occupied.astype(jnp.int32))
     nblocks = csum[-1]
     slot = jnp.where(occupied, csum - 1, block_capacity)
     blocks = jnp.full((block_capacity,), th * tw, jnp.int32).at[slot].set(
@@ -597,28 +754,6 @@ def _raster_single(clip, triangles, shape, cull, config):
     return Raster(tri_id, bary, depth, overflow, needed)
 
 
-def _count_single(clip, triangles, shape, cull, config):
-    """Windows needed per ladder size, then a bound on the 8×8 blocks holding visible
-    triangles (blocks touched by a valid triangle's pixel box), without rasterising."""
-    h, w = shape
-    data = _triangle_setup(lax.stop_gradient(clip.astype(jnp.float32)), triangles, shape, cull)
-    m, _ = _window_counts(data, config)
-    valid = data[:, _C_VALID] > 0
-    x0, y0 = data[:, _C_BOX].astype(jnp.int32), data[:, _C_BOX + 1].astype(jnp.int32)
-    x1 = x0 + data[:, _C_BOX + 2].astype(jnp.int32) - 1
-    y1 = y0 + data[:, _C_BOX + 3].astype(jnp.int32) - 1
-    th, tw = -(-h // _TILE), -(-w // _TILE)
-    bx0, by0, bx1, by1 = x0 // _TILE, y0 // _TILE, x1 // _TILE + 1, y1 // _TILE + 1
-    one = jnp.where(valid, 1, 0).astype(jnp.int32)
-    diff = jnp.zeros((th + 1, tw + 1), jnp.int32)
-    diff = diff.at[by0, bx0].add(one, mode="drop").at[by0, bx1].add(-one, mode="drop")
-    diff = diff.at[by1, bx0].add(-one, mode="drop").at[by1, bx1].add(one, mode="drop")
-    cover = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)[:th, :tw]
-    nblocks = jnp.sum(cover > 0)
-    return jnp.concatenate([jnp.sum(m, axis=1), nblocks[None]]).astype(jnp.int32)
-
-
-_count_jit = jax.jit(_count_single, static_argnames=("shape", "cull", "config"))
 
 
 _raster_jit = jax.jit(_raster_single, static_argnames=("shape", "cull", "config"))

@@ -78,8 +78,13 @@ def fresnel_dielectric(cos_theta: Any, n: Any) -> jax.Array:
     Returns:
         F with the broadcast shape, in [0, 1].
     """
-    c = jnp.clip(jnp.abs(jnp.asarray(cos_theta)), 0.0, 1.0)
-    n = jnp.asarray(n, dtype=c.dtype if jnp.issubdtype(c.dtype, jnp.floating) else None)
+    c = jnp.asarray(cos_theta)
+    n = jnp.asarray(n)
+    # promote, never demote: a float64 n keeps its precision under a float32 cosine (finite
+    # differences in n); a Python float n keeps the cosine's dtype; integers become floats
+    dtype = jnp.result_type(c, n, float)
+    c = jnp.clip(jnp.abs(c.astype(dtype)), 0.0, 1.0)
+    n = n.astype(dtype)
     g = jnp.sqrt(n * n + c * c - 1.0)  # > 0 for n > 1, so no singular sqrt gradient
     a = (g - c) / (g + c)
     b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)

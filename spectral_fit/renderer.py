@@ -64,6 +64,8 @@ __all__ = [
 TRACE_COUNT = {"render_frame": 0}
 
 _IR_MODES = ("gather", "paper", "none")
+#: environment shading qualities of frames (see :func:`prepare`)
+QUALITIES = ("fast", "render", "exact")
 
 
 class Prepared(eqx.Module):
@@ -87,10 +89,13 @@ class Prepared(eqx.Module):
         materials: the config's materials, stacked (leading axis O).
         irradiance_lut: (Hl·Wl + 2, C) irradiance map over normal directions (map frame, the
             map's texel layout plus two pole rows), or None (irradiance from ``env``).
+        split_map: the :class:`~spectral_fit.environment.SplitSumMap` of quality "fast"
+            (finely spaced prefiltered levels), else None.
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
     ir_bounces, ir_texture_size, raster_config, pixel_capacity (covered-pixel list size per
     object), object_slices ((start, stop)
-    vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size.
+    vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size,
+    quality, split_settings (a :class:`~spectral_fit.environment.SplitSum`).
     """
 
     vertices: jax.Array
@@ -108,6 +113,7 @@ class Prepared(eqx.Module):
     exposure: jax.Array
     materials: Material
     irradiance_lut: jax.Array | None
+    split_map: Any
     shape: tuple[int, int] = eqx.field(static=True)
     wavelengths: tuple[float, ...] = eqx.field(static=True)
     spectral_mode: str = eqx.field(static=True)
@@ -124,7 +130,8 @@ class Prepared(eqx.Module):
     display: Any = eqx.field(static=True)
     scene_white_xy: tuple[float, float] | None = eqx.field(static=True)
     batch_size: int = eqx.field(static=True, default=32)
-    quality: str = eqx.field(static=True, default="render")
+    quality: str = eqx.field(static=True, default="fast")
+    split_settings: Any = eqx.field(static=True, default=None)
 
     @property
     def num_objects(self) -> int:
@@ -281,54 +288,13 @@ def _white_luminance(y_map: np.ndarray, rotation_y_deg: float, normal: np.ndarra
 def plan_capacities(clip: np.ndarray, triangles: np.ndarray, shape: tuple[int, int], *,
                     headroom: float = 1.5) -> tuple[Any, int]:
     """Rasteriser window capacities and a bound on the covered pixels for one pose, in NumPy
-    (no compilation): per triangle the pixel-centre box of its projection (the whole frame when
-    a vertex lies behind the near plane), the window count per ladder size as the rasteriser
-    lists them (:mod:`spectral_fit.raster`), the 8×8 blocks and pixels touched by the union
-    of the boxes (upper bounds of what the rasteriser needs). Returns (RasterConfig, pixel
-    bound); the capacities are ``headroom`` × the counts on the rasteriser's ladder."""
-    from .raster import TILE_SIZES, RasterConfig
-    from .raster import _ladder as raster_ladder
+    (no compilation): :func:`spectral_fit.raster.plan_counts` (the rasteriser's own window
+    counting). Returns (RasterConfig, pixel bound); the capacities are ``headroom`` × the
+    counts on the rasteriser's ladder."""
+    from .raster import RasterConfig, plan_counts
 
-    h, w = shape
-    c = np.asarray(clip, np.float64)[np.asarray(triangles)]  # (T, 3, 4)
-    wc = c[..., 3]
-    behind = np.any(c[..., 2] < -wc, axis=1) | np.any(wc <= 0, axis=1)
-    ws = np.where(wc > 0, wc, 1.0)
-    px = (c[..., 0] / ws + 1) * 0.5 * w
-    py = (1 - c[..., 1] / ws) * 0.5 * h
-    e1 = np.stack([px[:, 1] - px[:, 0], py[:, 1] - py[:, 0]], -1)
-    e2 = np.stack([px[:, 2] - px[:, 0], py[:, 2] - py[:, 0]], -1)
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    m = 1.0 / 64
-    x0 = np.where(behind, 0, np.ceil(px.min(1) - 0.5 - m))
-    x1 = np.where(behind, w - 1, np.floor(px.max(1) - 0.5 + m))
-    y0 = np.where(behind, 0, np.ceil(py.min(1) - 0.5 - m))
-    y1 = np.where(behind, h - 1, np.floor(py.max(1) - 0.5 + m))
-    x0, y0 = np.maximum(x0, 0), np.maximum(y0, 0)
-    x1, y1 = np.minimum(x1, w - 1), np.minimum(y1, h - 1)
-    nx, ny = (x1 - x0 + 1).astype(np.int64), (y1 - y0 + 1).astype(np.int64)
-    valid = (behind | (det != 0)) & (nx > 0) & (ny > 0)
-    shorter = np.minimum(nx, ny)
-    counts = []
-    for b, s in enumerate(TILE_SIZES):
-        sel = valid & (shorter <= s) if b == 0 else valid & (shorter > TILE_SIZES[b - 1])
-        if 0 < b < len(TILE_SIZES) - 1:
-            sel &= shorter <= s
-        counts.append(int(np.sum(np.where(sel, -(-nx // s) * -(-ny // s), 0))))
-
-    def union(scale: int) -> np.ndarray:
-        hh, ww = -(-h // scale), -(-w // scale)
-        diff = np.zeros((hh + 1, ww + 1), np.int64)
-        a0, a1 = (x0[valid] // scale).astype(int), (x1[valid] // scale).astype(int) + 1
-        b0, b1 = (y0[valid] // scale).astype(int), (y1[valid] // scale).astype(int) + 1
-        for yy, xx, sgn in ((b0, a0, 1), (b0, a1, -1), (b1, a0, -1), (b1, a1, 1)):
-            np.add.at(diff, (yy, xx), sgn)
-        return np.cumsum(np.cumsum(diff, 0), 1)[:hh, :ww] > 0
-
-    blocks = int(union(8).sum())
-    pixels = int(union(1).sum())
-    caps = tuple(raster_ladder(headroom * n + 16) for n in counts)
-    return RasterConfig(TILE_SIZES, caps, raster_ladder(headroom * blocks + 16)), pixels
+    counts = plan_counts(clip, triangles, shape)
+    return RasterConfig.from_counts(counts, headroom=headroom), counts.pixels
 
 
 def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
@@ -407,7 +373,8 @@ def prepare(
     environment: np.ndarray | None = None,
     diffuse: str = "map",
     irradiance_shape: tuple[int, int] = (32, 64),
-    quality: str = "render",
+    quality: str = "fast",
+    split_settings: Any = None,
 ) -> Prepared:
     """Precompute a scene for :func:`render_frame` (explicit precomputation, DESIGN §4).
 
@@ -431,14 +398,19 @@ def prepare(
             exact texel sum over the environment, looked up bilinearly), "sh" (order-2
             spherical harmonics: smooth but up to ~10 % of the peak off under a lamp) or
             "exact" (texel sum over the whole map per sample: the reference, slow).
-        quality: gloss quadrature of the environment shading, "render" (default, fewer
-            lookups) or "exact" (the fitter's; see ``environment.gloss_integral``).
+        quality: gloss of the environment shading: "fast" (default; the pre-integrated
+            split-sum approximation ``environment.gloss_split_sum``, a few prefiltered lookups
+            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the fitter's
+            16 × 32; see ``environment.gloss_integral``). Accuracy and cost of each:
+            docs/rendering.md.
+        split_settings: :class:`~spectral_fit.environment.SplitSum` for "fast" (default
+            settings when None).
     Raises:
         InputError: bad options (naming the option), unreadable files (naming the file).
     """
     from .basis import pca_basis
     from .colorimetry import xyz_weights
-    from .environment import EnvironmentMap
+    from .environment import EnvironmentMap, SplitSum, SplitSumMap
     from .scene import Scene, load_scene
 
     if not isinstance(scene, Scene):
@@ -454,8 +426,9 @@ def prepare(
             raise InputError(f"W and H must be in 1..16384, got {(w, h)}", field="size")
         shape = (h, w)
     ir_mode = scene.interreflection.mode if mode is None else mode
-    if quality not in ("render", "exact"):
-        raise InputError(f"must be 'render' or 'exact', got {quality!r}", field="quality")
+    if quality not in QUALITIES:
+        raise InputError(f"must be one of {list(QUALITIES)}, got {quality!r}",
+                         field="quality")
     if diffuse not in ("map", "sh", "exact"):
         raise InputError(f"must be 'map', 'sh' or 'exact', got {diffuse!r}", field="diffuse")
     if ir_mode not in _IR_MODES:
@@ -514,6 +487,15 @@ def prepare(
                                         diffuse="exact" if diffuse == "exact" else "sh")
         to_xyz = W
         to_spectrum = np.eye(wl.size)
+    split_map = None
+    if quality == "fast":
+        split_settings = SplitSum() if split_settings is None else split_settings
+        if not isinstance(split_settings, SplitSum):
+            raise InputError(f"expected a SplitSum, got {type(split_settings).__name__}",
+                             field="split_settings")
+        split_map = SplitSumMap.from_environment(
+            env, img if basis is None else basis.project(img),
+            per_octave=split_settings.per_octave)
     xyz_map = img @ W
     lut = None
     if diffuse == "map":
@@ -586,7 +568,8 @@ def prepare(
         object_slices=tuple(vsl), triangle_slices=tuple(tsl),
         names=tuple(o.name for o in scene.objects), display=display,
         scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy),
-        batch_size=int(batch_size), quality=quality,
+        batch_size=int(batch_size), quality=quality, split_map=split_map,
+        split_settings=split_settings if quality == "fast" else None,
     )
 
 
@@ -627,7 +610,8 @@ def _as_stacked(materials: Any, n_objects: int) -> list[Material]:
 
 def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
                    lut: jax.Array | None = None, quality: str = "render",
-                   capacities: tuple[int, ...] | None = None) -> jax.Array:
+                   capacities: tuple[int, ...] | None = None, split_map: Any = None,
+                   split_settings: Any = None) -> jax.Array:
     """Environment shading (eq. 5) of the G-buffer samples, (N, C): the samples are laid out
     object by object (``capacities[o]`` slots for object o), and each object's slice is shaded
     with its material by :func:`~spectral_fit.environment.shade_points`. With an irradiance map
@@ -640,6 +624,8 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
     if capacities is None:
         capacities = (gb.object.shape[0],)
         mats = mats[:1]
+    if quality == "fast":
+        return _shade_fast(mats, env, gb, lut, capacities, split_map, split_settings)
     table = None if lut is None else _lut_env(env, lut)
     out = []
     start = 0
@@ -660,6 +646,52 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
             se = jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
         front = jnp.sum(nrm * v, axis=-1, keepdims=True) > 0.0
         out.append(spec + jnp.where(front, m.alpha / math.pi, 0.0) * se)
+    return jnp.concatenate(out)
+
+
+def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | None,
+                capacities: tuple[int, ...], split_map: Any, settings: Any) -> jax.Array:
+    """Quality "fast" of :func:`_shade_samples`: eq. (5) with the split-sum gloss
+    (:func:`~spectral_fit.environment.gloss_split_sum`; one moment table per object), the
+    mirror by one lookup along R and the diffuse irradiance from the irradiance map ``lut``
+    (or ``env``), all points of an object at once (few lookups per point: no batching)."""
+    from .environment import (
+        _materialise,
+        fast_lookup,
+        fresnel_dielectric,
+        gloss_split_sum,
+        irradiance,
+        lobe_moment_table,
+    )
+
+    table = None if lut is None else _lut_env(env, lut)
+    out = []
+    start = 0
+    for m, cap in zip(mats, capacities, strict=True):
+        nrm = gb.normal[start:start + cap]
+        v = gb.view[start:start + cap]
+        start += cap
+        kw = dict(distribution=m.distribution, geometry=m.geometry)
+        moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
+        gloss = gloss_split_sum(env, split_map, moments, nrm, v, m.mu, m.n,
+                                settings=settings, **kw)
+        nv = (nrm[:, 0] * v[:, 0] + nrm[:, 1] * v[:, 1] + nrm[:, 2] * v[:, 2])[:, None]
+        refl = 2.0 * nv * nrm - v
+        # per-point factors computed once (not inside each of the C channels' expressions)
+        fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
+        nv = fac[:, 1:2]
+        mirror = fac[:, 0:1] * fast_lookup(env, refl)
+        if table is None:
+            e = jax.vmap(lambda d: irradiance(env, d))(nrm)
+        else:
+            e = fast_lookup(table, nrm)
+        if env.product_tensor is None:
+            se = m.reflectance * e
+        else:
+            se = jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
+        front = nv > 0.0
+        rad = (m.alpha / math.pi) * se + m.beta * gloss + m.chi * mirror
+        out.append(jnp.where(front, rad, 0.0))
     return jnp.concatenate(out)
 
 
@@ -720,10 +752,45 @@ def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
     return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
 
+def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
+    """The environment seen through each pixel centre: bilinear lookups (H·W, C') of a table
+    laid out as the map's texels + 2 pole rows (e.g. ``prep.env_xyz``). Per pixel the map-frame
+    ray direction is an affine function of the pixel coordinates (one 3 × 3 matrix for the
+    frame: inverse projection, camera rotation and map rotation), evaluated by components, then
+    normalised; (u, v) by :func:`~spectral_fit.environment.fast_direction_to_uv`."""
+    from .environment import _bilinear_taps, _materialise, _taps_sum, fast_direction_to_uv
+
+    h, w = prep.shape
+    env = prep.env
+    hm, wm = env.texels.shape[:2]
+    inv = jnp.linalg.inv(prep.projection @ view)
+    eye = jnp.linalg.inv(view)[:3, 3]
+    # a far-plane point of NDC (x, y, 1, 1) minus the eye, as a function of pixel (col, row):
+    # linear in (x, y) after the perspective division by w = inv[3] · (x, y, 1, 1), and
+    # w does not depend on (x, y) for a projection whose last row is (0, 0, −1, 0)
+    # (any OpenGL pinhole): so build the 3 × 3 map from (x, y, 1) to the map-frame direction
+    wrow = inv[3]
+    cols = [inv[:3, 0], inv[:3, 1], inv[:3, 2] + inv[:3, 3]]
+    wx, wy, w1 = wrow[0], wrow[1], wrow[2] + wrow[3]
+    xs = 2.0 * (jnp.arange(w, dtype=jnp.float32) + 0.5) / w - 1.0
+    ys = 1.0 - 2.0 * (jnp.arange(h, dtype=jnp.float32) + 0.5) / h
+    x, y = xs[None, :], ys[:, None]
+    den = x * wx + y * wy + w1  # (H, W)
+    rot = env.rotation
+    d = [(x * cols[0][i] + y * cols[1][i] + cols[2][i]) / den - eye[i] for i in range(3)]
+    dm = [d[0] * rot[0, j] + d[1] * rot[1, j] + d[2] * rot[2, j] for j in range(3)]
+    inv_len = jax.lax.rsqrt(dm[0] * dm[0] + dm[1] * dm[1] + dm[2] * dm[2])
+    dmap = jnp.stack([c * inv_len for c in dm], axis=-1).reshape(-1, 3)
+    uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
+    idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm), jnp.int32(wm))
+    return _taps_sum(flat, idx, wt)
+
+
 def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:
     """Bilinear lookups (N, C') of a table laid out as the map's texels + 2 pole rows."""
-    tab = _lut_env(env, flat, env.texels.shape[:2])
-    return jax.vmap(lambda d: _lookup(tab, d))(dirs)
+    from .environment import fast_lookup
+
+    return fast_lookup(_lut_env(env, flat, env.texels.shape[:2]), dirs)
 
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
@@ -789,7 +856,8 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
 
     # 3. shading + interreflection
     radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
-                              prep.quality, prep.pixel_capacity)
+                              prep.quality, prep.pixel_capacity, prep.split_map,
+                              prep.split_settings)
     # interreflection sees a hidden object intact (no degenerate triangles, which gave NaN)
     # but 1 km below the scene: its light and shadow on the others are ~1e-9 of a neighbour's
     away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
@@ -804,8 +872,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
 
     # 4. background and XYZ
-    dirs = _pixel_directions(prep, view)
-    bg_xyz = _env_lookup(prep.env, prep.env_xyz, dirs).reshape(h, w, 3)
+    bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
     xyz = scatter_pixels(radiance @ prep.to_xyz, pix, bg_xyz)
     mask = ras.tri_id >= 0
     object_id = obj_img
@@ -814,7 +881,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         env = prep.env
         hm, wm, c = env.texels.shape
         flat = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
-        bg = _env_lookup(env, flat, dirs) @ prep.to_spectrum
+        bg = _background(prep, flat, view) @ prep.to_spectrum
         spec = scatter_pixels(radiance @ prep.to_spectrum, pix, bg.reshape(h, w, -1))
 
     # 5. display

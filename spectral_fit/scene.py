@@ -37,6 +37,10 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
                        (exponential pose smoothing in [0, 1)), hold_frames [0] (frames a lost
                        marker's object stays at its last pose before it is masked out),
                        refine ["edges" | "subpix" | "contour" | "apriltag" | "none"]
+    [camera_colour]    (optional; live compositing, from ``spectral-fit calibrate-colour``)
+                       matrix (3×3 rows: absolute XYZ → white-balanced linear frame RGB),
+                       white_balance [[1, 1, 1]] (per-channel gains after the matrix),
+                       tone ["srgb" | "gamma" | "linear"], gamma [2.2]
 """
 
 from __future__ import annotations
@@ -63,6 +67,7 @@ __all__ = [
     "ObjectSpec",
     "MaterialSpec",
     "MarkerSpec",
+    "CameraColourSpec",
     "MARKER_DICTIONARIES",
     "load_scene",
     "parse_scene",
@@ -207,6 +212,25 @@ class MarkerSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class CameraColourSpec:
+    """The video camera's colour model of a live session (the ``[camera_colour]`` table), a
+    3×3 fitted from a ColorChecker shot: linear frame RGB = diag(white_balance) · matrix · XYZ
+    (XYZ absolute, cd/m²), then the frame's tone curve (see :mod:`spectral_fit.compositing`).
+
+    Attributes:
+        matrix: 3×3 rows, absolute XYZ → white-balanced linear RGB (the scene's white maps to
+            equal channels).
+        white_balance: per-channel gains (exposure included).
+        tone: "srgb", "gamma" or "linear"; gamma: exponent of "gamma".
+    """
+
+    matrix: tuple[tuple[float, float, float], ...]
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    tone: str = "srgb"
+    gamma: float = 2.2
+
+
+@dataclasses.dataclass(frozen=True)
 class Scene:
     """A validated scene description (see the module docstring for the file format)."""
 
@@ -220,6 +244,7 @@ class Scene:
     interreflection: InterreflectionSpec
     objects: tuple[ObjectSpec, ...]
     markers: MarkerSpec | None = None
+    camera_colour: CameraColourSpec | None = None
 
     @property
     def wavelengths(self) -> np.ndarray:
@@ -521,10 +546,38 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
     if dup:
         raise root.err("objects", f"object names must be unique; repeated: {sorted(dup)}")
     markers = _markers(root, objects) if "markers" in data else None
+    camera_colour = _camera_colour(root) if "camera_colour" in data else None
     root.finish()
     return Scene(path=p, width=width, height=height, camera=camera, environment=environment,
                  display=display, spectral=spectral, interreflection=inter, objects=objects,
-                 markers=markers)
+                 markers=markers, camera_colour=camera_colour)
+
+
+def _camera_colour(root: _Reader) -> CameraColourSpec:
+    """The ``[camera_colour]`` table."""
+    cr = root.sub("camera_colour")
+    m = cr.raw("matrix")
+    if not isinstance(m, list) or len(m) != 3:
+        raise cr.err("matrix", f"must be 3 rows of 3 numbers, got {m!r}")
+    rows = []
+    for i, row in enumerate(m):
+        if (not isinstance(row, list) or len(row) != 3 or not all(
+                isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+                for x in row)):
+            raise cr.err("matrix", f"row {i} must be 3 finite numbers, got {row!r}")
+        rows.append(tuple(float(x) for x in row))
+    if abs(np.linalg.det(np.asarray(rows))) < 1e-12:
+        raise cr.err("matrix", "is singular")
+    wb = cr.vector("white_balance", 3, [1.0, 1.0, 1.0])
+    if min(wb) <= 0:
+        raise cr.err("white_balance", f"gains must be > 0, got {list(wb)}")
+    spec = CameraColourSpec(
+        matrix=tuple(rows), white_balance=wb,  # type: ignore[arg-type]
+        tone=cr.choice("tone", ("srgb", "gamma", "linear"), "srgb"),
+        gamma=cr.number("gamma", 2.2, lo=0.1, hi=10.0),
+    )
+    cr.finish()
+    return spec
 
 
 def _markers(root: _Reader, objects: tuple[ObjectSpec, ...]) -> MarkerSpec:

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _lighting_util import brute_gloss, configs, unit
+from _lighting_util import brute_gloss, configs, grazing_configs, unit
 
 from spectral_fit.environment import (
     EnvironmentMap,
@@ -51,38 +51,82 @@ def test_sphere_blur_is_the_direct_spherical_gaussian_sum():
         np.testing.assert_allclose(_sphere_blur(img, sigma).reshape(-1, 2), want, rtol=1e-10)
 
 
-def _relative_errors(env, img, lamp, mu, k, seed, quality):
-    f = jax.jit(jax.vmap(lambda n, v, m: gloss_integral(env, n, v, m, 1.5, quality=quality),
-                         in_axes=(0, 0, None)))
-    cfg = configs(lamp, mu, k, seed)
-    ns = np.array([c[0] for c in cfg])
-    vs = np.array([c[1] for c in cfg])
-    got = np.asarray(f(jnp.asarray(ns, jnp.float32), jnp.asarray(vs, jnp.float32),
-                       jnp.float32(mu)), np.float64)
-    ref = np.array([brute_gloss(img, n, v, mu, 1.5, rotation=rotation_y(180.0)) for n, v in cfg])
-    return np.abs(got / ref - 1.0).max(axis=1)  # worst band per configuration
+_JITTED = {}
 
 
-# measured on 16 configurations per μ (docs/lighting.md); the bounds leave a small margin
-EXACT_BOUNDS = {0.05: (0.005, 0.012), 0.1: (0.005, 0.012), 0.2: (0.008, 0.015),
-                0.3: (0.01, 0.03), 0.5: (0.045, 0.09)}
+def _gloss_fn(env, quality):
+    """One compiled, point-vmapped gloss per (map, quality): μ is traced."""
+    key = (id(env), quality)
+    if key not in _JITTED:
+        _JITTED[key] = (env, jax.jit(jax.vmap(
+            lambda n, v, m: gloss_integral(env, n, v, m, 1.5, quality=quality),
+            in_axes=(0, 0, None))))
+    return _JITTED[key][1]
 
 
-@pytest.mark.parametrize("mu", sorted(EXACT_BOUNDS))
+def _relative_errors(env, img, mu, cfg, quality, rotation):
+    """Worst band's relative error (per configuration) vs the brute-force oracle on the map
+    upsampled 4× bilinearly (the map as the library's lookup defines it)."""
+    ns = jnp.asarray(np.array([c[0] for c in cfg]), jnp.float32)
+    vs = jnp.asarray(np.array([c[1] for c in cfg]), jnp.float32)
+    got = np.asarray(_gloss_fn(env, quality)(ns, vs, jnp.float32(mu)), np.float64)
+    ref = np.array([brute_gloss(img, n, v, mu, 1.5, rotation=rotation, ss=4) for n, v in cfg])
+    return np.abs(got / ref - 1.0).max(axis=1)
+
+
+def _grid(lamp, mu, seed, k=8, grazing=(70.0, 80.0)):
+    """k configurations with θr <= 60° (half with the lobe on the lamp's edge), then two per
+    grazing angle."""
+    return configs(lamp, mu, k, seed) + grazing_configs(lamp, mu, seed + 1, grazing)
+
+
+@pytest.mark.parametrize("mu", [0.05, 0.1, 0.2, 0.3, 0.5])
 def test_gloss_exact_vs_brute_force_bundled_map(anchor, mu):
+    """The issue's bound: < 1 % (every band) for μ in [0.05, 0.5], θr <= 60°. Grazing views
+    (70°, 80°) with the lobe on the lamp's edge reach a few per cent (measured up to 5.7 % at
+    μ = 0.14, 80°; docs/lighting.md has the full tables): bounded at 6 %."""
     img, env, lamp = anchor
-    rel = _relative_errors(env, img, lamp, mu, 8, seed=int(mu * 1000) + 1, quality="exact")
-    med, worst = EXACT_BOUNDS[mu]
+    rel = _relative_errors(env, img, mu, _grid(lamp, mu, int(mu * 1000) + 1), "exact",
+                           rotation_y(180.0))
     print(f"exact mu={mu}: median {np.median(rel):.4f} max {rel.max():.4f}")
-    assert np.median(rel) < med and rel.max() < worst, rel
+    assert rel[:8].max() < 0.01 and rel[8:].max() < 0.06, rel
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mu", [0.05, 0.07, 0.1, 0.14, 0.2, 0.25, 0.3, 0.4, 0.5])
+def test_gloss_exact_vs_brute_force_dense(anchor, mu):
+    """A denser grid on the benchmark map (16 configurations with θr <= 60° and 8 grazing ones
+    up to 80° per μ; the grid of scripts/gloss_accuracy.py). Measured worst: 1.09 % at
+    μ = 0.07 (θr <= 60°), 5.7 % at μ = 0.14 (grazing)."""
+    img, env, lamp = anchor
+    cfg = _grid(lamp, mu, int(mu * 1000) + 7, k=16, grazing=(65.0, 70.0, 75.0, 80.0))
+    rel = _relative_errors(env, img, mu, cfg, "exact", rotation_y(180.0))
+    assert rel[:16].max() < 0.012 and rel[16:].max() < 0.06, rel
 
 
 @pytest.mark.parametrize("mu", [0.1, 0.3])
 def test_gloss_render_vs_brute_force_bundled_map(anchor, mu):
     img, env, lamp = anchor
-    rel = _relative_errors(env, img, lamp, mu, 8, seed=int(mu * 1000) + 2, quality="render")
+    rel = _relative_errors(env, img, mu, configs(lamp, mu, 8, int(mu * 1000) + 2), "render",
+                           rotation_y(180.0))
     print(f"render mu={mu}: median {np.median(rel):.4f} max {rel.max():.4f}")
     assert np.median(rel) < 0.02 and rel.max() < 0.1, rel
+
+
+def test_oracle_bilinear_model_is_the_library_lookup():
+    """The oracle's own bilinear upsampling (tests/_lighting_util) reproduces the library's
+    lookup at the fine texel centres, poles and seam included: both define the same map."""
+    from _lighting_util import _bilinear_taps
+
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0.0, 1.0, size=(6, 12, 2))
+    env = EnvironmentMap.from_array(img)
+    idx, wt = _bilinear_taps(6, 12, 3)
+    flat = np.concatenate([img.reshape(-1, 2), img[0].mean(0)[None], img[-1].mean(0)[None]])
+    want = np.einsum("fk,fkc->fc", wt, flat[idx])
+    d = jnp.asarray(texel_directions(18, 36).reshape(-1, 3), jnp.float32)
+    got = np.asarray(jax.vmap(lambda x: lookup(env, x))(d))
+    np.testing.assert_allclose(got, want, atol=2e-6)
 
 
 def test_below_mu_005_tends_to_albedo_times_map(anchor):
@@ -171,6 +215,14 @@ def test_unknown_node_rule_rejected():
         EnvironmentMap.from_array(np.ones((8, 16, 1)),
                                   quadrature=GlossQuadrature(source_subpoints=2))
     assert e.value.field == "quadrature.source_subpoints"
+    with pytest.raises(InputError) as e:
+        EnvironmentMap.from_array(np.ones((8, 16, 1)), quadrature=GlossQuadrature(tent_points=0))
+    assert e.value.field == "quadrature.tent_points"
+    with pytest.raises(InputError) as e:
+        EnvironmentMap.from_array(np.ones((8, 16, 1)),
+                                  quadrature=GlossQuadrature(texel_sum_from=0.3,
+                                                             texel_sum_full=0.2))
+    assert e.value.field == "quadrature.texel_sum_from"
 
 
 def test_shade_points_batches_equal_vmap():

@@ -130,6 +130,24 @@ def test_composite_in_linear_light():
     np.testing.assert_allclose(out[2], want2, atol=0.51)
 
 
+def test_composite_bool_mask_matches_full_coverage():
+    """The renderer's bool mask takes the no-decode path: covered pixels are encode(cg) as with
+    coverage 1.0, the rest the frame's own bytes."""
+    white = illuminant("D65", WL) / 100.0
+    m = camera_model_from_sensitivities("Nikon 5100 (NPL)", WL, white)
+    rng = np.random.default_rng(1)
+    frame = rng.integers(0, 256, (7, 9, 3), dtype=np.uint8)
+    cg = rng.uniform(-0.1, 1.2, (7, 9, 3)).astype(np.float32)
+    mask = rng.random((7, 9)) < 0.4
+    out = np.asarray(composite(jnp.asarray(frame), jnp.asarray(cg), jnp.asarray(mask), m))
+    ref = np.asarray(composite(jnp.asarray(frame), jnp.asarray(cg),
+                               jnp.asarray(mask.astype(np.float32)), m))
+    np.testing.assert_array_equal(out, ref)
+    np.testing.assert_array_equal(out[~mask], frame[~mask])
+    want = colour.cctf_encoding(np.clip(cg[mask], 0, 1).astype(np.float64), function="sRGB")
+    np.testing.assert_allclose(out[mask], want * 255, atol=0.51)
+
+
 def test_white_reference_closed_forms():
     """E(+Y)/π of a white Lambertian facing up: a uniform map of radiance L gives L; a map
     bright only in the lower hemisphere gives 0; L ∝ cosθ (upper) gives (2/3)·L₀."""

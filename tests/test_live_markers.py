@@ -63,6 +63,40 @@ def test_ignoring_distortion_is_measurably_worse(frames):
     assert err["bad"] > 2 * err["good"]
 
 
+def test_downscaled_detection_keeps_full_resolution_accuracy(frames):
+    """Detection on the frame shrunk 2× with corners refined at full resolution gives the
+    poses of full-resolution detection (the 1°/2 mm test above runs at the default, 2×)."""
+    full = MarkerDetector(MarkerSpec(size=MARKER_SIZE), K, DIST, downscale=1)
+    half = MarkerDetector(MarkerSpec(size=MARKER_SIZE), K, DIST, downscale=2)
+    for img, _r, _t in frames:
+        a, b = full.detect(img), half.detect(img)
+        assert sorted(a) == sorted(b) == [3, 7]
+        for i in a:
+            assert np.linalg.norm(a[i].translation - b[i].translation) < 2e-4
+            assert rotation_angle_deg(a[i].rotation, b[i].rotation) < 0.1
+
+
+def test_distant_markers_found_by_full_scan_then_tracked():
+    """At ~2 m (markers ~20 px) the 2×-shrunk frame shows no marker; with the scene's ids
+    expected, one full-resolution scan finds them and the next frames track them in windows
+    around their last corners, without another full scan."""
+    eyes = [(0.0, 1.6, 1.2), (0.02, 1.6, 1.22), (0.04, 1.62, 1.24), (0.06, 1.64, 1.24)]
+    shots = [frame(eye, seed=20 + n) for n, eye in enumerate(eyes)]
+    blind = MarkerDetector(MarkerSpec(size=MARKER_SIZE), K, DIST, downscale=2, track=False)
+    assert blind.detect(shots[0][0]) == {}
+    det = MarkerDetector(MarkerSpec(size=MARKER_SIZE), K, DIST, downscale=2, expect=(3, 7))
+    full = MarkerDetector(MarkerSpec(size=MARKER_SIZE), K, DIST, downscale=1)
+    for img, r, t in shots:
+        found, ref = det.detect(img), full.detect(img)
+        assert sorted(found) == sorted(ref) == [3, 7]
+        for i, d in found.items():
+            # the same pose as full-resolution detection, near the truth (20 px markers)
+            np.testing.assert_allclose(d.translation, ref[i].translation, atol=1e-4)
+            tt = marker_pose_in_camera(table(), i, r, t)[1]
+            assert np.linalg.norm(tt - d.translation) < 0.05 * np.linalg.norm(tt)
+    assert det.full_scans == 1
+
+
 def test_world_marker_frame_gives_table_coordinates(frames):
     """With marker 3 as the world, the sphere on marker 7 sits at the marker's table position
     relative to marker 3 (plus its offset), whatever the camera pose."""

@@ -69,6 +69,20 @@ def test_fresnel_hemispherical_mean_and_float32():
     assert f32.dtype == np.float32 and float(f32) == pytest.approx(0.089187, abs=2e-6)
 
 
+def test_fresnel_keeps_the_precision_of_n():
+    """A float32 cosine must not round a float64 n: central differences in n with h = 1e-7
+    are then smooth (the float32 rounding of n would make them noise)."""
+    with jax.enable_x64(True):
+        c = jnp.float32(0.6)
+        n = jnp.float64(1.5)
+        assert fresnel_dielectric(c, n).dtype == jnp.float64
+        assert fresnel_dielectric(c, 1.5).dtype == jnp.float32  # weak n keeps the cosine's
+        h = 1e-7
+        fd = float((fresnel_dielectric(c, n + h) - fresnel_dielectric(c, n - h)) / (2 * h))
+        exact = float(jax.grad(lambda m: fresnel_dielectric(jnp.float64(c), m))(n))
+        assert fd == pytest.approx(exact, rel=1e-6)
+
+
 def test_fresnel_gradient_in_n_finite_difference():
     with jax.enable_x64(True):
         for c in (1.0, 0.7, 0.2, 0.0):

@@ -9,16 +9,20 @@ Figures:
 
 * ``median_ms`` / ``min_ms`` / ``max_ms`` / ``compile_s``: RENDER-ONLY, the compiled step
   (render with interreflection → camera RGB → composite over the frame) at the first frame's
-  poses, blocking on the result;
-* ``end_to_end_median_ms`` / ``end_to_end_fps``: the whole loop per frame: decode, detect
-  markers, track, undistort, render, composite, encode (MPEG-4 into a temporary file), over
-  ``n_end_to_end`` consecutive frames after the first (compiling) one;
-* ``end_to_end_pipelined_median_ms`` / ``_fps``: the same with frame n+1's CPU stages
-  overlapping frame n's rendering (``LiveSession.submit`` / ``finish``);
+  poses, blocking on the result (``compile_s``: the first frame, planning and compilation);
+* ``end_to_end_median_ms`` / ``end_to_end_fps``: the whole loop, one stage after the other
+  (``LiveSession.run(threads=False)``): decode, detect markers, track, undistort, render,
+  composite, encode (MPEG-4 into a temporary file), median frame interval over
+  ``n_end_to_end`` frames after the first; ``stages_ms``: each stage's median there;
+* ``end_to_end_pipelined_median_ms`` / ``_fps``: the same frames with the stages overlapped
+  by threads (``run(threads=True)``, the ``live`` command's default): reader (decode, detect,
+  undistort) ‖ render ‖ writer (encode); ``stages_pipelined_ms``: per stage there (stages
+  running side by side share the CPU, so each may take longer than alone);
+* ``non_render_ms``: sequential end-to-end minus render (what the overlap can hide);
 * ``render_fps``, ``covered_pixels``, ``pixel_capacity``, ``recompiles`` (must stay 0).
 
 ``--quick``: frames at a third of the size (240×160, intrinsics scaled), interreflection
-"none", K = 8 basis, 2 end-to-end frames (figures not comparable).
+"none", K = 8 basis, 3 end-to-end frames (figures not comparable).
 """
 
 from __future__ import annotations
@@ -53,20 +57,21 @@ def live_paper(opts: BenchOptions) -> dict[str, Any]:
     extra: dict[str, Any] = {}
     if opts.quick:
         extra = {"mode": "none", "spectral_mode": "basis", "k": 8}
-    n_e2e = 2 if opts.quick else max(1, min(opts.repeats, 25))
+    n_e2e = 3 if opts.quick else max(2, min(opts.repeats, 12))
     with VideoSource(VIDEO, field="video") as src:
         div = 3 if opts.quick else 1
         size = (src.height // div, src.width // div)
 
-        def read():
-            f = src.read()
-            if f is None or div == 1:
-                return f
-            import cv2
+        def frames():
+            while (f := src.read()) is not None:
+                if div != 1:
+                    import cv2
 
-            return cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+                    f = cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+                yield f
 
-        first = read()
+        stream = frames()
+        first = next(stream)
         session = LiveSession(scene, size=size, **extra)
         t0 = time.perf_counter()
         session.process(first)  # plans buffers on the first poses, compiles
@@ -79,39 +84,36 @@ def live_paper(opts: BenchOptions) -> dict[str, Any]:
 
         out = measure(step, repeats=opts.repeats)
         out["compile_s"] = first_frame_s  # the first frame: planning + compilation + render
+        runs = {}
         with tempfile.TemporaryDirectory() as tmp:
-            times = []
-            with VideoSink(Path(tmp) / "out.mp4", fps=25.0, size=size) as sink:
-                for _ in range(n_e2e):
-                    t = time.perf_counter()
-                    frame = read()
-                    if frame is None:
-                        break
-                    sink.write(session.process(frame))
-                    times.append((time.perf_counter() - t) * 1e3)
-                # pipelined: frame n+1's CPU stages overlap frame n's rendering
-                piped, pending, t_prev = [], None, None
-                for _ in range(n_e2e + 1):
-                    frame = read()
-                    nxt = session.submit(frame) if frame is not None else None
-                    if pending is not None:
-                        sink.write(session.finish(pending))
-                        now = time.perf_counter()
-                        if t_prev is not None:
-                            piped.append((now - t_prev) * 1e3)
-                        t_prev = now
-                    pending = nxt
-                    if pending is None:
-                        break
+            for threads in (False, True):
+                with VideoSink(Path(tmp) / f"out{int(threads)}.mp4", fps=25.0,
+                               size=size) as sink:
+                    # +1: the first interval includes the wait for the pipeline to fill
+                    runs[threads] = session.run(stream, sink.write, threads=threads,
+                                                max_frames=n_e2e + 1)
     jax.block_until_ready(step())
-    e2e = statistics.median(times)
+
+    def stage_medians(st) -> dict[str, float | None]:
+        # every frame after the first (which also waits for the queue to fill)
+        vals = {}
+        for name in ("decode", "detect", "undistort", "render", "encode", "interval"):
+            xs = getattr(st, name)[1:]
+            vals[name] = statistics.median(xs) * 1e3 if xs else None
+        return vals
+
+    seq, piped = stage_medians(runs[False]), stage_medians(runs[True])
+    e2e, e2e_p = seq.pop("interval"), piped.pop("interval")
     out.update({
         "render_fps": 1e3 / out["median_ms"],
         "end_to_end_median_ms": e2e,
-        "end_to_end_fps": 1e3 / e2e,
-        "n_end_to_end": len(times),
-        "end_to_end_pipelined_median_ms": statistics.median(piped) if piped else None,
-        "end_to_end_pipelined_fps": 1e3 / statistics.median(piped) if piped else None,
+        "end_to_end_fps": 1e3 / e2e if e2e else None,
+        "n_end_to_end": runs[False].frames - 1,
+        "stages_ms": seq,
+        "non_render_ms": e2e - seq["render"] if e2e and seq["render"] else None,
+        "end_to_end_pipelined_median_ms": e2e_p,
+        "end_to_end_pipelined_fps": 1e3 / e2e_p if e2e_p else None,
+        "stages_pipelined_ms": piped,
         "covered_pixels": int(session.last_object_id.__ge__(0).sum()),
         "pixel_capacity": list(session.prep.pixel_capacity),
         "recompiles": int(session.recompiles),
@@ -121,4 +123,67 @@ def live_paper(opts: BenchOptions) -> dict[str, Any]:
     return out
 
 
-CASES = {"live_paper": live_paper}
+def live_stages(opts: BenchOptions) -> dict[str, Any]:
+    """Case ``live_stages``: the live loop WITHOUT the renderer, per 720×480 frame of the sample
+    video: marker detection + tracking + poses, undistortion + upload, the compiled camera-RGB
+    composite (a fixed CG image and bool mask covering 10 % of the frame) with its transfers,
+    and MPEG-4 encoding; ``median_ms`` is the chain, ``stages_ms`` each stage's median. These
+    are the stages :meth:`LiveSession.run` overlaps with rendering. ``--quick``: 240×160."""
+    import cv2
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ..live import LiveSession
+    from ..scene import load_scene
+    from ..video import VideoSink, read_frames
+
+    scene = load_scene(CONFIG)
+    frames = read_frames(VIDEO, max_frames=48)
+    size = frames[0].shape[:2]
+    if opts.quick:
+        size = (size[0] // 3, size[1] // 3)
+        frames = [cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+                  for f in frames[:6]]
+    session = LiveSession.__new__(LiveSession)  # the CPU parts only: no renderer preparation
+    session._init_cpu(scene, size)
+    from ..live import scene_camera_model
+
+    camera = scene_camera_model(scene)
+    rng = np.random.default_rng(0)
+    cg = jnp.asarray(rng.random((*size, 3), dtype=np.float32))
+    mask = np.zeros(size, bool)
+    h, w = size
+    mask[int(0.35 * h):int(0.65 * h), int(0.33 * w):int(0.67 * w)] = True
+    mask = jnp.asarray(mask)
+    from ..compositing import composite
+
+    comp = jax.jit(lambda bg, c, m: composite(bg, c, m, camera))
+    times: dict[str, list[float]] = {k: [] for k in ("detect", "undistort", "composite",
+                                                     "encode")}
+    state = {"i": 0}
+    with tempfile.TemporaryDirectory() as tmp, VideoSink(Path(tmp) / "s.mp4", fps=25.0,
+                                                         size=size) as sink:
+        def chain():
+            f = frames[state["i"] % len(frames)]
+            state["i"] += 1
+            t0 = time.perf_counter()
+            (_poses, _inputs), bg, _ = session._cpu_stages(f)
+            t1 = time.perf_counter()
+            out = np.asarray(jax.block_until_ready(comp(bg, cg, mask)))
+            t2 = time.perf_counter()
+            sink.write(out)
+            t3 = time.perf_counter()
+            times["detect"].append(session._last_detect)
+            times["undistort"].append(t1 - t0 - session._last_detect)
+            times["composite"].append(t2 - t1)
+            times["encode"].append(t3 - t2)
+            return out
+
+        out = measure(chain, repeats=opts.repeats)
+    out["stages_ms"] = {k: statistics.median(v[1:]) * 1e3 for k, v in times.items()}
+    out["size"] = [int(x) for x in size]
+    return out
+
+
+CASES = {"live_paper": live_paper, "live_stages": live_stages}

@@ -5,8 +5,10 @@ spheres of radius 0.0375 m (100 stacks × 100 slices, 19,800 triangles each) cen
 (∓0.045, 0, z) with z = −0.275 (paper) or −0.100 (close-up). Times the jitted rasteriser on
 precomputed clip coordinates (visibility + barycentrics + depth), no culling, with capacities
 planned on the pose (headroom 1.5). Extra figures: ``covered_pixels``, ``first_call_s`` (the
-public ``rasterize`` in a fresh cache: plan + compile + run), the ladder, capacities and the
-windows/blocks each pose needed.
+public ``rasterize`` in a fresh cache: plan + compile + run), ``lower_s`` / ``xla_compile_s``
+(the compile split into tracing + lowering and XLA) and ``compile_cpu_s`` (CPU seconds of
+both, robust to other processes' load; these three not with ``--quick``), the ladder,
+capacities and the windows/blocks each pose needed.
 """
 
 from __future__ import annotations
@@ -38,6 +40,24 @@ def scene_clip(z: float, *, quick: bool = False):
     return project(cam, both.vertices), jnp.asarray(both.triangles), (h, w)
 
 
+def _compile_split(clip, tris, shape, cfg) -> dict[str, float]:
+    """The compile alone, split into tracing + lowering and XLA's compilation, with the CPU
+    seconds this process spent on both (all its threads): on a shared machine the wall time
+    also counts the other processes' load, the CPU time does not."""
+    import jax
+
+    from ..raster import _raster_jit
+
+    jax.clear_caches()
+    t0, c0 = time.perf_counter(), time.process_time()
+    lowered = jax.jit(lambda c, t: _raster_jit(c, t, shape=shape, cull="none",
+                                               config=cfg)).lower(clip, tris)
+    t1 = time.perf_counter()
+    lowered.compile()
+    t2, c2 = time.perf_counter(), time.process_time()
+    return {"lower_s": t1 - t0, "xla_compile_s": t2 - t1, "compile_cpu_s": c2 - c0}
+
+
 def _case(z: float, opts: BenchOptions) -> dict[str, Any]:
     import jax
 
@@ -45,7 +65,7 @@ def _case(z: float, opts: BenchOptions) -> dict[str, Any]:
     from ..raster import _raster_jit, plan_config
 
     clip, tris, shape = scene_clip(z, quick=opts.quick)
-    # first call of the public entry point in a fresh cache: plan (setup pass, its compile)
+    # first call of the public entry point in a fresh cache: plan (NumPy, no compile)
     # + compile + one run: the latency a user sees once per (T, frame size, cull)
     jax.clear_caches()
     raster._LADDER.clear()
@@ -57,6 +77,8 @@ def _case(z: float, opts: BenchOptions) -> dict[str, Any]:
     fn = jax.jit(lambda c, t: _raster_jit(c, t, shape=shape, cull="none", config=cfg))
     out = measure(fn, clip, tris, repeats=opts.repeats)
     r = fn(clip, tris)
+    if not opts.quick:  # (one more compile: left out of the quick smoke run)
+        out.update(_compile_split(clip, tris, shape, cfg))
     out["first_call_s"] = first_call_s
     out["covered_pixels"] = int(np.sum(np.asarray(r.tri_id) >= 0))
     out["triangles"] = int(tris.shape[0])

@@ -12,7 +12,8 @@ FOV; 6,944 pixels, normals and view directions from exact ray–sphere intersect
 benchmark environment (``measurements/benchmark/anchor_environment.exr``, 31 bands, rotated
 180° about +Y), materials of the benchmark (α = β = 1, χ = 0, μ = 0.1, n = 1.5, ColorChecker
 N Ohta yellow / red), one :func:`shade_points` call per sphere; gloss quality "render" or
-"exact".
+"exact". ``shade_frame_exact_wide``: the same with μ = 0.4 (a wide lobe: "exact" then sums the
+map's texels directly), quality "exact".
 """
 
 from __future__ import annotations
@@ -101,7 +102,7 @@ def _case(opts: BenchOptions, k: int | None) -> dict[str, Any]:
     return out
 
 
-def _frame_case(opts: BenchOptions, quality: str) -> dict[str, Any]:
+def _frame_case(opts: BenchOptions, quality: str, mu: float = 0.1) -> dict[str, Any]:
     import colour
     import jax
     import jax.numpy as jnp
@@ -117,7 +118,7 @@ def _frame_case(opts: BenchOptions, quality: str) -> dict[str, Any]:
         keep = np.arange(0, normals.shape[0], 16)
         normals, views, obj = normals[keep], views[keep], obj[keep]
     cc = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
-    mats = [make_material(alpha=1.0, beta=1.0, chi=0.0, mu=0.1, n=1.5,
+    mats = [make_material(alpha=1.0, beta=1.0, chi=0.0, mu=mu, n=1.5,
                           reflectance=np.interp(wl, cc[name].wavelengths, cc[name].values))
             for name in ("yellow", "red")]
     parts = [(jnp.asarray(normals[obj == i]), jnp.asarray(views[obj == i])) for i in (0, 1)]
@@ -131,7 +132,7 @@ def _frame_case(opts: BenchOptions, quality: str) -> dict[str, Any]:
     q = env.quadrature
     nodes = (q.render_radial * q.render_azimuthal if quality == "render"
              else q.radial * q.azimuthal)
-    out.update(points=int(normals.shape[0]), channels=int(env.channels), quality=quality,
+    out.update(points=int(normals.shape[0]), channels=int(env.channels), quality=quality, mu=mu,
                gloss_nodes=nodes, gloss_channels=int(env.atlas.shape[1]))
     return out
 
@@ -152,5 +153,10 @@ def shade_frame_exact(opts: BenchOptions) -> dict[str, Any]:
     return _frame_case(opts, "exact")
 
 
+def shade_frame_exact_wide(opts: BenchOptions) -> dict[str, Any]:
+    return _frame_case(opts, "exact", mu=0.4)
+
+
 CASES = {"shade_100k_bands": shade_100k_bands, "shade_100k_k8": shade_100k_k8,
-         "shade_frame_render": shade_frame_render, "shade_frame_exact": shade_frame_exact}
+         "shade_frame_render": shade_frame_render, "shade_frame_exact": shade_frame_exact,
+         "shade_frame_exact_wide": shade_frame_exact_wide}

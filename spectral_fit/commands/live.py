@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 import time
 
@@ -23,16 +22,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="interreflection mode (default: the config's)")
     p.add_argument("--spectral-mode", choices=("bands", "basis"), default=None)
     p.add_argument("--k", type=int, default=None, help="basis size for --spectral-mode basis")
-    p.add_argument("--sensitivities", default="Nikon 5100 (NPL)",
+    p.add_argument("--sensitivities", default=None,
                    help="camera spectral sensitivities (colour-science name) for colour "
-                   "matching (default: 'Nikon 5100 (NPL)')")
+                   "matching (default: the config's [camera_colour] from "
+                   "'spectral-fit calibrate-colour', else 'Nikon 5100 (NPL)')")
     p.add_argument("--white-level", type=float, default=0.85,
                    help="linear frame level of a white sheet on the table (exposure)")
     p.add_argument("--fps", type=float, default=None,
                    help="output frame rate (default: the input's, or 25)")
-    p.add_argument("--pipeline", action="store_true",
-                   help="overlap the CPU stages of frame n+1 with the rendering of frame n "
-                   "(faster end to end on a GPU; 'render' then times dispatch to ready)")
+    p.add_argument("--pipeline", action=argparse.BooleanOptionalAction, default=True,
+                   help="overlap the stages with threads (decode, detection and undistortion "
+                   "of frame n+1 and encoding of frame n-1 run while frame n renders; the "
+                   "default); --no-pipeline runs them one after the other")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -70,66 +71,47 @@ def run(args: argparse.Namespace) -> int:
             total = min(total, args.max_frames) if total else args.max_frames
         sink = (VideoSink(args.output, fps=fps_out, size=(source.height, source.width))
                 if args.output else None)
-        render_ms, e2e_ms, first_s = [], [], None
-        lost = [0] * len(scene.objects)
-        n = 0
-        compiles_seen = 0
+
+        def progress(i: int, st) -> None:
+            if args.quiet:
+                return
+            med = st.medians_ms() if i > 0 else {}
+            rf = 1e3 / med["render"] if med.get("render") else 0.0
+            ef = 1e3 / med["interval"] if med.get("interval") else 0.0
+            print(_bar(i + 1, total, rf, ef), end="", file=sys.stderr, flush=True)
+
         ctx = sink if sink is not None else _Null()
+        t_run = time.perf_counter()
         with ctx:
-            t_prev = time.perf_counter()
-            pending = None
-            submitted = 0
-            while True:
-                frame = None
-                if args.max_frames is None or submitted < args.max_frames:
-                    frame = source.read()
-                nxt = None
-                if frame is not None:
-                    nxt = session.submit(frame)
-                    submitted += 1
-                    if not args.pipeline:
-                        pending, nxt = nxt, None
-                if pending is not None:
-                    out = session.finish(pending)
-                    if sink is not None:
-                        sink.write(out)
-                    now = time.perf_counter()
-                    steady = n > 0 and session.recompiles == compiles_seen
-                    compiles_seen = session.recompiles
-                    if n == 0:
-                        first_s = now - t_start
-                    elif steady:
-                        render_ms.append(session.timings.render * 1e3)
-                        e2e_ms.append((now - t_prev) * 1e3)
-                    t_prev = now
-                    for j, v in enumerate(session.last_poses.visible):
-                        lost[j] += int(not v)
-                    n += 1
-                    if not args.quiet:
-                        rf = 1e3 / statistics.median(render_ms) if render_ms else 0.0
-                        ef = 1e3 / statistics.median(e2e_ms) if e2e_ms else 0.0
-                        print(_bar(n, total, rf, ef), end="", file=sys.stderr, flush=True)
-                pending = nxt
-                if frame is None and pending is None:
-                    break
+            stats = session.run(source, sink.write if sink is not None else None,
+                                threads=args.pipeline, max_frames=args.max_frames,
+                                on_frame=progress)
         if not args.quiet:
             print(file=sys.stderr)
+    n = stats.frames
+    first_s = (t_run - t_start) + stats.interval[0] if n else None
+    lost = [sum(int(not v[j]) for v in stats.visible) for j in range(len(scene.objects))]
+    med = stats.medians_ms()
     if n == 0:
         raise InputError("no frames read", field="--video")
     written = count_frames(args.output) if args.output else None
     summary = {
         "frames": n,
         "first_frame_s": first_s,
-        "render_median_ms": statistics.median(render_ms) if render_ms else None,
-        "end_to_end_median_ms": statistics.median(e2e_ms) if e2e_ms else None,
-        "render_fps": 1e3 / statistics.median(render_ms) if render_ms else None,
-        "end_to_end_fps": 1e3 / statistics.median(e2e_ms) if e2e_ms else None,
+        "render_median_ms": med["render"],
+        "end_to_end_median_ms": med["interval"],
+        "render_fps": 1e3 / med["render"] if med["render"] else None,
+        "end_to_end_fps": 1e3 / med["interval"] if med["interval"] else None,
+        "stage_median_ms": {k: v for k, v in med.items() if k != "interval"},
         "recompiles": session.recompiles,
         "frames_masked": {o.name: c for o, c in zip(scene.objects, lost, strict=True)},
         "output": args.output,
         "output_frames": written,
         "pixel_capacity": session.prep.pixel_capacity,
         "pipeline": bool(args.pipeline),
+        "colour": ("sensitivities " + (args.sensitivities or "Nikon 5100 (NPL)")
+                   if args.sensitivities or scene.camera_colour is None
+                   else "[camera_colour]"),
     }
     if args.json:
         print(json.dumps(summary, indent=2))
