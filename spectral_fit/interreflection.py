@@ -721,7 +721,7 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
 
 #: cone quadrature of the environment a neighbour hides: rings (uniform in solid angle) ×
 #: azimuths, plus the axis
-_CONE_NODES = (3, 6)
+_CONE_NODES = (2, 6)
 
 
 def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
@@ -766,7 +766,7 @@ def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax
 
 
 #: receiver's gloss lobe quadrature against the neighbour (radial × azimuthal nodes)
-_LOBE_NODES = (6, 8)
+_LOBE_NODES = (4, 6)
 #: soft edge of a lobe node's hit on the neighbour's bounding sphere, as a fraction of the
 #: lobe's angular std √2 μ (times the distance)
 _EDGE = 0.35
