@@ -707,11 +707,12 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
 
     def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
         x0, nx, kk = args
-        acc = jnp.zeros((_CHUNK, width), lum.dtype)
+        shape = jax.eval_shape(lambda s: block(0, x0, nx, s), kk == 0)
+        acc = jnp.zeros(shape.shape, shape.dtype)
         for o in range(n_obj):
             sel = kk == o
             acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
-                                     lambda s: jnp.zeros((_CHUNK, width), lum.dtype), sel)
+                                     lambda s: jnp.zeros(shape.shape, shape.dtype), sel)
         return acc
 
     res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, width)[:n]
@@ -943,8 +944,9 @@ def _lobe_gather(geom: IRGeometry, atlas: jax.Array, materials: Sequence[Materia
         return jnp.where(act[:, None], acc, 0.0)
 
     def chunk(args: tuple[jax.Array, ...]) -> jax.Array:
+        shape = jax.eval_shape(run, args)
         return jax.lax.cond(jnp.any(args[-1]), run,
-                            lambda a: jnp.zeros((_GLOSS_CHUNK, c), pos.dtype), args)
+                            lambda a: jnp.zeros(shape.shape, shape.dtype), args)
 
     z = (0.0, 0.0, 1.0)
     res = jax.lax.map(chunk, (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z),
