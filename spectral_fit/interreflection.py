@@ -625,13 +625,14 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
     - Σ_y F L_y(→x) (N, C), the senders' radiance towards x: the view-independent part
       ``lum`` (P, M, C) plus the view-dependent part ``spec`` (P, M, 9, C) interpolated
       (bilinearly in gnomonic coordinates) at the direction from y to x;
-    - Σ_y F (N,) and Σ_y F (y − x)/r (N, 3): the solid angle the senders hide (cosine-weighted,
-      over π) and its mean direction;
+    - Σ_y F (N,): the solid angle the senders hide (cosine-weighted, over π), and the mean
+      environment radiance over it (N, C) (:func:`_hidden_mean`);
     - (1/π) Σ_s flux_s max(0, N·d_s) over the environment's bright sources whose direction hits
       a sender's bounding sphere (N, C): the source light the senders hide.
 
     Receivers are sorted by object and processed in chunks of ``_CHUNK``; a chunk evaluates only
-    the blocks of the objects it holds."""
+    the blocks of the objects it holds, and receivers that cannot see any neighbour are sorted
+    last into chunks that are skipped."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
     p_count, m_count, c = lum.shape
@@ -651,14 +652,21 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
     if src is not None:
         sdir, sflux = src[0], src[1] / math.pi
     n = pos.shape[0]
-    key = jnp.where(obj >= 0, obj, n_obj)
+    # receivers whose tangent plane hides every neighbour's bounding sphere get nothing: their
+    # chunks are skipped
+    sees = jnp.zeros(obj.shape, bool)
+    for k in range(k_per):
+        pair = jnp.maximum(obj, 0) * k_per + k
+        sees = sees | (jnp.sum(nrm * (geom.centre_j[pair] - pos), -1) > -geom.radius_j[pair])
+    key = jnp.where((obj >= 0) & sees, obj, n_obj)
     order = jnp.argsort(key)
     nc = -(-n // _CHUNK)
     pad = nc * _CHUNK - n
     xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
-    ns = jnp.pad(nrm[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
+    ns = jnp.concatenate([nrm[order], jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], nrm.dtype),
+                                                       (pad, 3))]).reshape(nc, _CHUNK, 3)
     ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
-    width = c + 4 + c
+    width = c + 1 + c + c
 
     def proj(x0: jax.Array, y0: jax.Array, e: jax.Array) -> jax.Array:
         return x0 @ e.T - jnp.sum(e * y0, -1)[None, :]  # e_y·(x − y)
@@ -673,8 +681,6 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
         w = jnp.maximum(cx, 0.0) * jnp.maximum(cy, 0.0) * a / jnp.maximum(
             r2 * jnp.sqrt(r2 * r2 + a * a), 1e-30)
         w = jnp.where(sel[:, None], w, 0.0)
-        wr = w / jnp.sqrt(jnp.maximum(r2, 1e-30))
-        dsum = wr @ y0 - jnp.sum(wr, -1)[:, None] * x0
         # view-dependent part: gnomonic coordinates of the direction y → x in y's view frame
         den = jnp.maximum(proj(x0, y0, fa[o]), 1e-9) * ftan[o][None, :]
         tu = _tents(proj(x0, y0, fe1[o]) / den)
@@ -684,7 +690,8 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
             wu = w * tu[iu]
             for iv in range(3):
                 lsum = lsum + (wu * tv[iv]) @ yspec[o][:, 3 * iu + iv]
-        parts = [lsum, jnp.sum(w, -1)[:, None], dsum]
+        hm = _hidden_mean(geom, env, x0 + origin, nx, jnp.full(x0.shape[:1], o, jnp.int32))
+        parts = [lsum, jnp.sum(w, -1)[:, None], hm]
         if n_src:
             occ = jnp.zeros((x0.shape[0], n_src), x0.dtype)
             for k in range(k_per):
@@ -700,21 +707,22 @@ def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
 
     def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
         x0, nx, kk = args
-        acc = jnp.zeros((_CHUNK, width), lum.dtype)
+        shape = jax.eval_shape(lambda s: block(0, x0, nx, s), kk == 0)
+        acc = jnp.zeros(shape.shape, shape.dtype)
         for o in range(n_obj):
             sel = kk == o
             acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
-                                     lambda s: jnp.zeros((_CHUNK, width), lum.dtype), sel)
+                                     lambda s: jnp.zeros(shape.shape, shape.dtype), sel)
         return acc
 
     res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, width)[:n]
     res = jnp.zeros((n, width), lum.dtype).at[order].set(res)
-    return res[:, :c], res[:, c], res[:, c + 1:c + 4], res[:, c + 4:]
+    return res[:, :c], res[:, c], res[:, c + 1:2 * c + 1], res[:, 2 * c + 1:]
 
 
 #: cone quadrature of the environment a neighbour hides: rings (uniform in solid angle) ×
 #: azimuths, plus the axis
-_CONE_NODES = (3, 6)
+_CONE_NODES = (2, 6)
 
 
 def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
@@ -759,7 +767,7 @@ def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax
 
 
 #: receiver's gloss lobe quadrature against the neighbour (radial × azimuthal nodes)
-_LOBE_NODES = (6, 8)
+_LOBE_NODES = (4, 6)
 #: soft edge of a lobe node's hit on the neighbour's bounding sphere, as a fraction of the
 #: lobe's angular std √2 μ (times the distance)
 _EDGE = 0.35
@@ -853,64 +861,122 @@ def _hidden_source_gloss(env: EnvironmentMap, materials: Sequence[Material], geo
     return mats["beta"][o][:, None] * out
 
 
+#: receivers per chunk of the gloss quadrature (only chunks with a lobe near a neighbour run)
+_GLOSS_CHUNK = 128
+#: a receiver's lobe is evaluated against a neighbour when its mirror direction is within the
+#: neighbour's angular radius plus this many lobe widths μ (D < 1e-10 beyond)
+_LOBE_REACH = 7.0
+
+
+def _lobe_gather(geom: IRGeometry, atlas: jax.Array, materials: Sequence[Material],
+                 env: EnvironmentMap, pos: jax.Array, nrm: jax.Array, view: jax.Array,
+                 obj: jax.Array) -> jax.Array:
+    """Gloss and mirror interreflection (N, C): β A(x) Σ_q w_q (neighbour − hidden environment)
+    over the receiver's lobe nodes, χ F(θr) (…) along R. Receivers whose lobe cannot reach a
+    neighbour are sorted into chunks of ``_GLOSS_CHUNK`` that are skipped."""
+    k_per = geom.n_objects - 1
+    c = env.channels
+    mats = _stack_materials(materials)
+    o_all = jnp.maximum(obj, 0)
+    nv_all = jnp.sum(nrm * view, -1)
+    refl_all = 2.0 * nv_all[:, None] * nrm - view
+    reach = jnp.zeros(obj.shape, bool)
+    for k in range(k_per):
+        pair = o_all * k_per + k
+        oc = geom.centre_j[pair] - pos
+        d = jnp.sqrt(jnp.maximum(jnp.sum(oc * oc, -1), 1e-30))
+        ang = jnp.arccos(jnp.clip(jnp.sum(oc * refl_all, -1) / d, -1.0, 1.0))
+        half = jnp.arcsin(jnp.clip(geom.radius_j[pair] / d, 0.0, 1.0))
+        reach = reach | (ang < half + _LOBE_REACH * mats["mu"][o_all] + 0.05)
+    active = (obj >= 0) & (nv_all > 0.0) & reach
+    n = pos.shape[0]
+    order = jnp.argsort(jnp.where(active, 0, 1))
+    nc = -(-n // _GLOSS_CHUNK)
+    pad = nc * _GLOSS_CHUNK - n
+
+    def padded(x: jax.Array, fill: Any = 0) -> jax.Array:
+        x = x[order]
+        if x.ndim == 2:  # unit vectors: a harmless N = V = +Z (no NaN in any gradient)
+            x = jnp.concatenate([x, jnp.broadcast_to(jnp.asarray(fill, x.dtype), (pad, 3))])
+        else:
+            x = jnp.pad(x, (0, pad), constant_values=fill)
+        return x.reshape(nc, _GLOSS_CHUNK, *x.shape[1:])
+
+    use_mirror = any(not _is_zero(m.chi) for m in materials)
+    senders = jnp.asarray([j for _, j in geom.pairs], jnp.int32)
+    same = len({(m.distribution, m.geometry) for m in materials}) == 1
+
+    def run(args: tuple[jax.Array, ...]) -> jax.Array:
+        x, nn, vv, ob, act = args
+        o = jnp.maximum(ob, 0)
+        mu, eta = mats["mu"][o], mats["n"][o]
+        beta, chi = mats["beta"][o], mats["chi"][o]
+        nv = jnp.sum(nn * vv, -1)
+        if same:
+            m0 = materials[0]
+            dirs, wts = jax.vmap(lambda a, b, m_, e_: _lobe_nodes(
+                a, b, m_, e_, distribution=m0.distribution, geometry=m0.geometry))(
+                    nn, vv, mu, eta)
+        else:
+            dirs = wts = None
+            for k, m in enumerate(materials):
+                d_k, w_k = jax.vmap(lambda a, b, m_, e_, m=m: _lobe_nodes(
+                    a, b, m_, e_, distribution=m.distribution, geometry=m.geometry))(
+                        nn, vv, mu, eta)
+                sel = o == k
+                dirs = d_k if dirs is None else jnp.where(sel[:, None, None], d_k, dirs)
+                wts = w_k if wts is None else jnp.where(sel[:, None], w_k, wts)
+        albedo = _albedo(materials, ob, nv)
+        lobe_sigma = math.sqrt(2.0) * mu
+        acc = jnp.zeros((x.shape[0], c), x.dtype)
+        for k in range(k_per):
+            pair = o * k_per + k
+            along = _neighbour_along(geom, atlas, materials, env, pair, senders[pair], x, dirs,
+                                     _EDGE * lobe_sigma, 0.5 * lobe_sigma)
+            acc = acc + (beta * albedo)[:, None] * jnp.einsum("nq,nqc->nc", wts, along)
+            if use_mirror:
+                rdir = 2.0 * nv[:, None] * nn - vv
+                m_along = _neighbour_along(geom, atlas, materials, env, pair, senders[pair], x,
+                                           rdir[:, None], jnp.full_like(mu, 0.02),
+                                           jnp.zeros_like(mu))[:, 0]
+                fres = fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), eta)
+                acc = acc + (chi * fres)[:, None] * m_along
+        return jnp.where(act[:, None], acc, 0.0)
+
+    def chunk(args: tuple[jax.Array, ...]) -> jax.Array:
+        shape = jax.eval_shape(run, args)
+        return jax.lax.cond(jnp.any(args[-1]), run,
+                            lambda a: jnp.zeros(shape.shape, shape.dtype), args)
+
+    z = (0.0, 0.0, 1.0)
+    res = jax.lax.map(chunk, (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z),
+                              padded(obj, -1), padded(active, False)))
+    res = res.reshape(nc * _GLOSS_CHUNK, c)[:n]
+    return jnp.zeros((n, c), res.dtype).at[order].set(res)
+
+
 def _gather(geom: IRGeometry, dl: jax.Array, spec: jax.Array, frames: tuple[jax.Array, ...],
             materials: Sequence[Material], env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
             view: jax.Array, obj: jax.Array) -> jax.Array:
     """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) from the senders'
     samples: view-independent radiance ``dl`` (P, M, C), view-dependent ``spec``
     (P, M, 9, C) on the view grids ``frames``."""
-    n_obj = geom.n_objects
-    k_per = n_obj - 1
     g = geom.gather_size
-    p_count, m_count, c = dl.shape
     ok = obj >= 0
     o = jnp.maximum(obj, 0)
     mats = _stack_materials(materials)
-    alpha, beta, chi = mats["alpha"][o], mats["beta"][o], mats["chi"][o]
-    mu, eta, refl = mats["mu"][o], mats["n"][o], mats["reflectance"][o]
+    alpha, refl = mats["alpha"][o], mats["reflectance"][o]
 
     # diffuse: the senders' radiance towards x minus the environment they hide, through α S/π
-    net, fsum, dsum, src = _diffuse_gather(geom, dl, spec, frames, env, pos, nrm, obj)
-    hidden = _hidden_mean(geom, env, pos, nrm, o)
+    net, fsum, hidden, src = _diffuse_gather(geom, dl, spec, frames, env, pos, nrm, obj)
     net = net - fsum[:, None] * hidden - src
     out = alpha[:, None] * _times_reflectance(env, refl, net)
 
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
-    live = geom.s_area > 0
     cov = geom.s_cov[..., None]
     atlas = _build_mips(jnp.concatenate([dl * cov, geom.s_nrm * cov, cov], -1), g)
     nv = jnp.sum(nrm * view, -1)
-    refl_dir = 2.0 * nv[:, None] * nrm - view
-    albedo = _albedo(materials, obj, nv)
-    fres = fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), eta)
-    dist = materials[0].distribution
-    geo = materials[0].geometry
-    if len({(m.distribution, m.geometry) for m in materials}) == 1:
-        dirs, wts = jax.vmap(lambda a, b, m_, e_: _lobe_nodes(a, b, m_, e_, distribution=dist,
-                                                            geometry=geo))(nrm, view, mu, eta)
-    else:
-        dirs = wts = None
-        for k, m in enumerate(materials):
-            d_k, w_k = jax.vmap(lambda a, b, m_, e_, m=m: _lobe_nodes(
-                a, b, m_, e_, distribution=m.distribution, geometry=m.geometry))(
-                    nrm, view, mu, eta)
-            sel = (o == k)
-            dirs = d_k if dirs is None else jnp.where(sel[:, None, None], d_k, dirs)
-            wts = w_k if wts is None else jnp.where(sel[:, None], w_k, wts)
-    lobe_sigma = math.sqrt(2.0) * mu
-    use_mirror = any(not _is_zero(m.chi) for m in materials)
-    del live
-    for k in range(k_per):
-        pair = o * k_per + k
-        sender = jnp.asarray([j for _, j in geom.pairs], jnp.int32)[pair]
-        along = _neighbour_along(geom, atlas, materials, env, pair, sender, pos, dirs,
-                                 _EDGE * lobe_sigma, 0.5 * lobe_sigma)
-        out = out + (beta * albedo)[:, None] * jnp.einsum("nq,nqc->nc", wts, along)
-        if use_mirror:
-            m_along = _neighbour_along(geom, atlas, materials, env, pair, sender, pos,
-                                       refl_dir[:, None], jnp.full_like(mu, 0.02),
-                                       jnp.zeros_like(mu))[:, 0]
-            out = out + (chi * fres)[:, None] * m_along
+    out = out + _lobe_gather(geom, atlas, materials, env, pos, nrm, view, obj)
     hsrc = _hidden_source_gloss(env, materials, geom, obj, pos, nrm, view)
     if hsrc is not None:
         out = out - hsrc

@@ -144,6 +144,139 @@ def gradient_check() -> dict:
     return results
 
 
+
+
+# --------------------------------------------------------------------------------------------
+# brute-force single bounce (float64 quadrature over the receiver's hemisphere, rays cast
+# against the neighbour's triangle mesh)
+
+
+def _frame(a):
+    t = np.cross(a, [0.0, 1.0, 0.0] if abs(a[1]) < 0.9 else [1.0, 0.0, 0.0])
+    t /= np.linalg.norm(t)
+    return t, np.cross(a, t)
+
+
+def ray_mesh(origin, dirs, vertices, normals, triangles, chunk: int = 256):
+    """Nearest hits of rays (origin (3,), dirs (K, 3)) on a triangle mesh (Möller–Trumbore,
+    float64): (hit (K,) bool, distance (K,), interpolated unit normal (K, 3))."""
+    v = np.asarray(vertices, np.float64)
+    nv = np.asarray(normals, np.float64)
+    tri = np.asarray(triangles)
+    p0, p1, p2 = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+    e1, e2 = p1 - p0, p2 - p0
+    s = origin - p0  # (T, 3)
+    q = np.cross(s, e1)  # (T, 3)
+    hit = np.zeros(len(dirs), bool)
+    dist = np.full(len(dirs), np.inf)
+    nrm = np.zeros((len(dirs), 3))
+    for a in range(0, len(dirs), chunk):
+        d = dirs[a:a + chunk]
+        pv = np.cross(d[:, None, :], e2[None])  # (K, T, 3)
+        det = np.sum(pv * e1[None], -1)
+        inv = 1.0 / np.where(np.abs(det) > 1e-18, det, 1e-18)
+        u = np.sum(pv * s[None], -1) * inv
+        w = (d @ q.T) * inv
+        t = np.sum(e2 * q, -1)[None] * inv
+        ok = (np.abs(det) > 1e-18) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 1e-9)
+        t = np.where(ok, t, np.inf)
+        k = np.argmin(t, axis=1)
+        tk = t[np.arange(len(d)), k]
+        h = np.isfinite(tk)
+        uk, wk = u[np.arange(len(d)), k], w[np.arange(len(d)), k]
+        n = ((1 - uk - wk)[:, None] * nv[tri[k, 0]] + uk[:, None] * nv[tri[k, 1]]
+             + wk[:, None] * nv[tri[k, 2]])
+        hit[a:a + chunk], dist[a:a + chunk] = h, tk
+        nrm[a:a + chunk] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return hit, dist, nrm
+
+
+_PAD = 4096
+_BF_EVAL = []
+
+
+def _bf_eval(mat_j, receiver, env, dirs, normals, n, v):
+    """Jitted (once) neighbour radiance towards the receiver, environment along the rays and the
+    receiver's gloss BRDF, for padded ray lists."""
+    if not _BF_EVAL:
+        import jax
+
+        from spectral_fit.environment import lookup, shade
+        from spectral_fit.reflectance import gloss_brdf
+
+        def f(mj, mi, e, d, ny, nn, vv):
+            lj = jax.vmap(lambda a, b: shade(mj, e, a, b))(ny, -d)
+            le = jax.vmap(lambda a: lookup(e, a))(d)
+            g = jax.vmap(lambda a: gloss_brdf(mi, nn, vv, a))(d)
+            return lj, le, g
+
+        _BF_EVAL.append(jax.jit(f))
+    return _BF_EVAL[0](mat_j, receiver, env, dirs, normals, n, v)
+
+
+def brute_force_single_bounce(x, n, v, receiver, neighbour, centre, radius, env, *,
+                              cone=(40, 64), lobe=(40, 48), lobe_angle: float = 0.8):
+    """Radiance (C,) that ONE bounce off the neighbour adds at receiver point x (normal n,
+    view v), float64 quadrature: Σ f_x(ω) [L_j(y(ω) → x) − L_env(ω)] cosθ dω over the rays
+    that hit the neighbour's mesh, L_j = ``shade`` of the neighbour at the hit (interpolated
+    normal, view towards x). The diffuse lobe is integrated over a grid uniform in solid angle
+    on the cone of the neighbour's bounding sphere, the gloss lobe over a polar grid around
+    the mirror direction. ``neighbour``: (ObjectGeometry, Material); ``receiver``: Material.
+    Returns (diffuse part, gloss part), each (C,)."""
+    import jax.numpy as jnp
+
+    geo, mat_j = neighbour
+    x, n, v = (np.asarray(a, np.float64) for a in (x, n, v))
+    c = np.asarray(centre, np.float64)
+    dc = np.linalg.norm(c - x)
+    a = (c - x) / dc
+    cmax = math.sqrt(max(1.0 - (1.02 * radius / dc) ** 2, 0.0))
+    na, nphi = cone
+    u = cmax + (1 - cmax) * (np.arange(na) + 0.5) / na
+    ph = 2 * np.pi * (np.arange(nphi) + 0.5) / nphi
+    t1, t2 = _frame(a)
+    U, PH = np.meshgrid(u, ph, indexing="ij")
+    sn = np.sqrt(1 - U ** 2)
+    w_cone = (U[..., None] * a + sn[..., None] * (np.cos(PH)[..., None] * t1
+                                                 + np.sin(PH)[..., None] * t2)).reshape(-1, 3)
+    dw_cone = np.full(len(w_cone), (1 - cmax) * 2 * np.pi / (na * nphi))
+    r = 2 * (n @ v) * n - v
+    q1, q2 = _frame(r)
+    npsi, nph2 = lobe
+    psi = lobe_angle * (np.arange(npsi) + 0.5) / npsi
+    ph2 = 2 * np.pi * (np.arange(nph2) + 0.5) / nph2
+    PS, PH2 = np.meshgrid(psi, ph2, indexing="ij")
+    w_lobe = (np.cos(PS)[..., None] * r + np.sin(PS)[..., None] * (
+        np.cos(PH2)[..., None] * q1 + np.sin(PH2)[..., None] * q2)).reshape(-1, 3)
+    dw_lobe = (np.sin(PS) * (lobe_angle / npsi) * (2 * np.pi / nph2)).reshape(-1)
+    rays, weights, parts = [], [], []
+    for dirs, dw, part in ((w_cone, dw_cone, 0), (w_lobe, dw_lobe, 1)):
+        cos = dirs @ n
+        keep = cos > 0
+        hit, _, ny = ray_mesh(x, dirs[keep], geo.vertices, geo.normals, geo.triangles)
+        rays.append(np.concatenate([dirs[keep][hit], ny[hit]], 1))
+        weights.append(dw[keep][hit])
+        parts.append(np.full(int(hit.sum()), part))
+    rays, dw, part = np.concatenate(rays), np.concatenate(weights), np.concatenate(parts)
+    k = len(rays)
+    size = max(_PAD, -(-k // _PAD) * _PAD)  # one compilation for every call
+    pad = np.tile([[0.0, 0.0, 1.0, 0.0, 0.0, 1.0]], (size - k, 1))
+    arr = jnp.asarray(np.concatenate([rays, pad]), jnp.float32)
+    lj, le, g = (np.asarray(a, np.float64)[:k] for a in _bf_eval(
+        mat_j, receiver, env, arr[:, :3], arr[:, 3:], jnp.asarray(n, jnp.float32),
+        jnp.asarray(v, jnp.float32)))
+    dirs = rays[:, :3]
+    cos = dirs @ n
+    diffuse = (float(receiver.alpha) / math.pi) * np.asarray(receiver.reflectance,
+                                                               np.float64)[None] * cos[:, None]
+    gloss = (float(receiver.beta) * g * cos)[:, None]
+    out = []
+    for p_, f in ((0, diffuse), (1, gloss)):
+        sel = part == p_
+        out.append((f[sel] * (lj[sel] - le[sel]) * dw[sel, None]).sum(0))
+    return out[0], out[1]
+
+
 if __name__ == "__main__":
     if sys.argv[1:] == ["gradients"]:
         print(json.dumps(gradient_check()))
