@@ -5,13 +5,12 @@ directions, its gradients against central differences, and the vectorisable atan
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _lighting_util import brute_gloss, configs, fresnel, gaussian_k, unit
+from _lighting_util import anchor_map, brute_gloss, configs, fresnel, gaussian_k, unit
 
 from spectral_fit.environment import (
     EnvironmentMap,
@@ -25,24 +24,14 @@ from spectral_fit.environment import (
     lobe_moment_table,
     lookup,
     rotation_y,
-    texel_directions,
 )
 from spectral_fit.errors import InputError
-from spectral_fit.exr import read_spectral_exr
-
-ANCHOR = Path(__file__).resolve().parents[1] / "measurements" / "benchmark" / \
-    "anchor_environment.exr"
 
 
 @pytest.fixture(scope="module")
 def anchor():
-    _, img = read_spectral_exr(ANCHOR)
-    img = np.asarray(img, np.float64)
-    env = EnvironmentMap.from_array(img, rotation_y_deg=180.0)
+    img, env, lamp = anchor_map()
     pre = SplitSumMap.from_environment(env, img)
-    lum = img.sum(-1)
-    i, j = np.unravel_index(np.argmax(lum), lum.shape)
-    lamp = rotation_y(180.0) @ texel_directions(*img.shape[:2])[i, j]
     return img, env, pre, lamp
 
 

@@ -3,13 +3,11 @@ prefilter; behaviour below μ = 0.05; Beckmann and Smith options."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _lighting_util import brute_gloss, configs, grazing_configs, unit
+from _lighting_util import anchor_map, brute_gloss, configs, grazing_configs, unit
 
 from spectral_fit.environment import (
     EnvironmentMap,
@@ -21,21 +19,11 @@ from spectral_fit.environment import (
     texel_directions,
     texel_solid_angles,
 )
-from spectral_fit.exr import read_spectral_exr
-
-ANCHOR = Path(__file__).resolve().parents[1] / "measurements" / "benchmark" / \
-    "anchor_environment.exr"
 
 
 @pytest.fixture(scope="module")
 def anchor():
-    _, img = read_spectral_exr(ANCHOR)
-    img = np.asarray(img, np.float64)
-    env = EnvironmentMap.from_array(img, rotation_y_deg=180.0)
-    lum = img.sum(-1)
-    i, j = np.unravel_index(np.argmax(lum), lum.shape)
-    lamp = rotation_y(180.0) @ texel_directions(*img.shape[:2])[i, j]
-    return img, env, lamp
+    return anchor_map()
 
 
 def test_sphere_blur_is_the_direct_spherical_gaussian_sum():
