@@ -628,11 +628,7 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
         return _shade_fast(mats, env, gb, lut, capacities, split_map, split_settings)
     table = None if lut is None else _lut_env(env, lut)
     out = []
-    start = 0
-    for m, cap in zip(mats, capacities, strict=True):
-        nrm = gb.normal[start:start + cap]
-        v = gb.view[start:start + cap]
-        start += cap
+    for m, cap, (nrm, v) in zip(mats, capacities, _object_slices(gb, capacities), strict=True):
         bs = max(1, min(batch, cap))
         if table is None:
             out.append(shade_points(m, env, nrm, v, batch_size=bs, quality=quality))
@@ -640,13 +636,27 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
         spec = shade_points(dataclasses.replace(m, alpha=jnp.zeros_like(m.alpha)), env, nrm, v,
                             batch_size=bs, quality=quality)
         e = jax.vmap(lambda d: _lookup(table, d))(nrm)
-        if env.product_tensor is None:
-            se = m.reflectance * e
-        else:
-            se = jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
+        se = _filtered_irradiance(m, env, e)
         front = jnp.sum(nrm * v, axis=-1, keepdims=True) > 0.0
         out.append(spec + jnp.where(front, m.alpha / math.pi, 0.0) * se)
     return jnp.concatenate(out)
+
+
+def _object_slices(gb: GBuffer, capacities: tuple[int, ...]):
+    """Yield each object's (normals, views), both (capacity, 3), from the G-buffer whose samples
+    are laid out object after object with the given capacities."""
+    start = 0
+    for cap in capacities:
+        yield gb.normal[start:start + cap], gb.view[start:start + cap]
+        start += cap
+
+
+def _filtered_irradiance(m: Material, env: Any, e: jax.Array) -> jax.Array:
+    """S(λ)·E (N, C): the irradiance ``e`` (N, C) filtered by the material's reflectance, per band
+    or through the basis product tensor when the map is in K coefficients."""
+    if env.product_tensor is None:
+        return m.reflectance * e
+    return jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
 
 
 def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | None,
@@ -666,11 +676,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
 
     table = None if lut is None else _lut_env(env, lut)
     out = []
-    start = 0
-    for m, cap in zip(mats, capacities, strict=True):
-        nrm = gb.normal[start:start + cap]
-        v = gb.view[start:start + cap]
-        start += cap
+    for m, (nrm, v) in zip(mats, _object_slices(gb, capacities), strict=True):
         kw = dict(distribution=m.distribution, geometry=m.geometry)
         moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
         gloss = gloss_split_sum(env, split_map, moments, nrm, v, m.mu, m.n,
@@ -685,10 +691,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
             e = jax.vmap(lambda d: irradiance(env, d))(nrm)
         else:
             e = fast_lookup(table, nrm)
-        if env.product_tensor is None:
-            se = m.reflectance * e
-        else:
-            se = jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
+        se = _filtered_irradiance(m, env, e)
         front = nv > 0.0
         rad = (m.alpha / math.pi) * se + m.beta * gloss + m.chi * mirror
         out.append(jnp.where(front, rad, 0.0))
