@@ -45,7 +45,10 @@ A_y, area-weighted mean position and normal, and coverage. The shading pass then
      rule cos cos A/(π r²) to second order, bounded by cos_x cos_y at contact), L_y(→x) the
      view-independent part plus the view-dependent part interpolated bilinearly on the view
      grid, and ⟨L_env⟩ the cosine-weighted mean of the environment over the cone of j's
-     bounding sphere (a small cone quadrature): the light that j hides;
+     bounding sphere (a small cone quadrature): the light that j hides. The sums run at i's
+     own pass-1 samples facing j (pair (j, i)); a receiver projects onto that grid and
+     interpolates the ratio of the bracket to the form factor of j's bounding sphere, times
+     that form factor at the receiver (``diffuse_at="receivers"``: sums at every receiver);
    - gloss: β A(x) Σ_q w_q h_q [L_j(y_q → x) − L_env(ω_q)] over a quadrature ω_q of the
      receiver's own lobe D F G (V·H)/(N·V) (weights w_q, albedo A), each node ray intersected
      with j's bounding sphere (soft hit h_q, continuous at the silhouette) and j's radiance at
@@ -978,7 +981,6 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
                                -1))
     tx, ty, level, hit, rel = m[..., 0], m[..., 1], m[..., 2], m[..., 3], m[..., 4:]
     idx, w = _mip_taps(jnp.broadcast_to(pair[:, None], tx.shape), tx, ty, level, g)
-
     # two atlases, each tap sum consumed whole by one contraction: XLA:CPU then fuses the
     # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all
     # (N, Q, 8, C + 4) taps: 10× slower)
