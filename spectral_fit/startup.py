@@ -57,7 +57,7 @@ CACHE_STATS: dict[str, int] = {"prepared_hit": 0, "prepared_miss": 0, "program_h
                                "program_miss": 0, "program_memory_hit": 0}
 
 # entries kept per cache folder (oldest removed first)
-_MAX_ENTRIES = 32
+_MAX_ENTRIES = 8
 
 
 def cache_root() -> Path | None:
