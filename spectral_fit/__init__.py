@@ -113,6 +113,10 @@ _EXPORTS: dict[str, str] = {
     "camera_model_from_spec": "compositing",
     "scene_camera_model": "live",
     "RunStats": "live",
+    # cold start: persistent caches of compiled programs and prepared scenes (startup)
+    "enable_compilation_cache": "startup",
+    "prepare_cached": "startup",
+    "render_frame_cached": "startup",
 }
 
 

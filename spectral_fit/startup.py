@@ -47,6 +47,7 @@ __all__ = [
     "enable_compilation_cache",
     "prepare_cached",
     "render_frame_cached",
+    "single_threaded_blas",
     "CACHE_STATS",
 ]
 
@@ -237,6 +238,51 @@ def _write_entry(folder: Path, key: str, value: Any) -> None:
 # prepared scenes
 
 
+_BLAS_SYMBOLS = (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+                 ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
+                 ("openblas_get_num_threads64_", "openblas_set_num_threads64_"),
+                 ("openblas_get_num_threads", "openblas_set_num_threads"))
+
+
+@contextlib.contextmanager
+def single_threaded_blas() -> Any:
+    """Run NumPy's OpenBLAS on one thread inside the block (restored afterwards).
+
+    OpenBLAS threads busy-wait for work. On a small, shared machine (2 cores, other processes
+    running) its second thread competes with everything else, and :func:`prepare`'s matrix
+    products (the environment's spherical blurs and principal spectra) took 1.7–8 s of CPU
+    instead of 0.8 s on one thread, in paired runs (docs/rendering.md, "Cold start"). Only
+    OpenBLAS libraries already loaded by the process are changed (found in /proc/self/maps);
+    elsewhere this does nothing."""
+    import ctypes
+
+    saved = []
+    try:
+        with open("/proc/self/maps") as fh:
+            libs = sorted({line.split()[-1] for line in fh
+                           if "openblas" in line.lower() and line.split()[-1].startswith("/")})
+    except OSError:
+        libs = []
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for get_name, set_name in _BLAS_SYMBOLS:
+            get, put = getattr(lib, get_name, None), getattr(lib, set_name, None)
+            if get is not None and put is not None:
+                get.restype = ctypes.c_int
+                saved.append((put, int(get())))
+                put(ctypes.c_int(1))
+                break
+    try:
+        yield
+    finally:
+        for put, n in saved:
+            put(ctypes.c_int(n))
+
+
+
 def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = None,
                    **options: Any) -> Any:
     """:func:`~spectral_fit.renderer.prepare` with a disk cache of its result.
@@ -248,6 +294,8 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
         cache_dir: cache root (default :func:`cache_root`); entries go to ``<root>/prepared``.
         **options: passed to ``prepare`` (size, mode, spectral_mode, k, ...).
 
+    ``prepare`` runs with NumPy's BLAS on one thread (:func:`single_threaded_blas`).
+
     Returns:
         The :class:`~spectral_fit.renderer.Prepared` scene, identical to ``prepare``'s (the
         stored arrays are float32 as prepared; pickled, not recomputed).
@@ -257,12 +305,12 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
     from .renderer import prepare
 
     root = Path(cache_dir) if cache_dir is not None else cache_root()
-    if root is None or not isinstance(scene, str | os.PathLike):
-        return prepare(scene, **options)
     texts = {k: _plain_repr(v) for k, v in options.items()}
-    digest = _config_digest(Path(scene))
+    digest = (_config_digest(Path(scene)) if root is not None
+              and isinstance(scene, str | os.PathLike) else None)
     if digest is None or any(t is None for t in texts.values()):
-        return prepare(scene, **options)
+        with single_threaded_blas():
+            return prepare(scene, **options)
     text = "\n".join([_environment_digest(), digest,
                       *(f"{k}={texts[k]}" for k in sorted(texts))])
     key = hashlib.sha256(text.encode()).hexdigest()[:40]
@@ -272,7 +320,8 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
         CACHE_STATS["prepared_hit"] += 1
         return hit
     CACHE_STATS["prepared_miss"] += 1
-    prep = prepare(scene, **options)
+    with single_threaded_blas():
+        prep = prepare(scene, **options)
     _write_entry(folder, key, prep)
     return prep
 

@@ -210,3 +210,22 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     assert "'prepared_hit': 1" in r.stdout and "'program_hit': 1" in r.stdout
     assert "'program_miss': 0" in r.stdout
     assert np.array_equal(np.load(tmp_path / "xyz.npy"), np.asarray(ref.xyz))
+
+
+def test_single_threaded_blas_sets_and_restores_openblas_threads():
+    import ctypes
+
+    x = np.random.default_rng(0).random((300, 40))
+    ref = x.T @ x  # loads NumPy's BLAS
+    with open("/proc/self/maps") as fh:
+        libs = sorted({line.split()[-1] for line in fh if "openblas" in line.lower()
+                       and "numpy" in line})
+    if not libs:
+        pytest.skip("NumPy is not linked to a loadable OpenBLAS here")
+    lib = ctypes.CDLL(libs[0])
+    get = getattr(lib, "scipy_openblas_get_num_threads64_", None) or lib.openblas_get_num_threads
+    before = get()
+    with startup.single_threaded_blas():
+        assert get() == 1
+        np.testing.assert_allclose(x.T @ x, ref, rtol=1e-12)
+    assert get() == before
