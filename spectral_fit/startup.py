@@ -438,13 +438,30 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     return Frame(**out)
 
 
-def _initialize_custom_calls() -> None:
-    """Load the LAPACK kernels that XLA:CPU programs call (``jnp.linalg``). JAX does this
-    lazily while lowering such a program; an executable loaded from disk is never lowered, and
-    calling an uninitialised kernel crashes the process."""
-    from jax._src.lax import linalg
+def _custom_call_targets(compiled: Any) -> list[str] | None:
+    """The custom-call targets (external kernels) of a compiled program; None if unknown."""
+    import re
 
-    linalg.initialize_lapack()
+    try:
+        return sorted(set(re.findall(r'custom_call_target="([^"]+)"', compiled.as_text())))
+    except Exception:
+        return None
+
+
+def _prepare_custom_calls(targets: list[str] | None) -> bool:
+    """Make the external kernels of a program loaded from disk callable; False when it calls
+    one that this module does not know how to prepare (then the program is recompiled).
+
+    JAX initialises the LAPACK kernels (``jnp.linalg``) lazily, while lowering a program that
+    uses them; a program loaded from disk is never lowered, and calling an uninitialised
+    kernel crashed the process."""
+    if targets is None or any(not t.startswith("lapack_") for t in targets):
+        return False
+    if targets:
+        from jax._src.lax import linalg
+
+        linalg.initialize_lapack()
+    return True
 
 
 def _load_or_compile(key: str, fn: Any, arrays: list[Any],
@@ -460,9 +477,8 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
     folder = None if root is None else root / "programs"
     if folder is not None:
         entry = _read_entry(folder, key)
-        if entry is not None:
+        if entry is not None and _prepare_custom_calls(entry.get("custom_calls")):
             try:
-                _initialize_custom_calls()
                 compiled = deserialize_and_load(entry["payload"], entry["in_tree"],
                                                 entry["out_tree"])
                 CACHE_STATS["program_hit"] += 1
@@ -475,9 +491,11 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
                 else lowered.compile())
     if folder is not None:
         try:
-            payload, in_tree, out_tree = serialize(compiled)
-            _write_entry(folder, key, {"payload": payload, "in_tree": in_tree,
-                                       "out_tree": out_tree})
+            targets = _custom_call_targets(compiled)
+            if _prepare_custom_calls(targets):  # else: a kernel a new process could not call
+                payload, in_tree, out_tree = serialize(compiled)
+                _write_entry(folder, key, {"payload": payload, "in_tree": in_tree,
+                                           "out_tree": out_tree, "custom_calls": targets})
         except Exception:  # a backend without executable serialisation: memory only
             pass
     return compiled

@@ -160,6 +160,17 @@ def test_program_loads_in_a_fresh_process(tmp_path):
     m = np.array([[4.0, 1.0, 0.5], [0.0, 3.0, 1.0], [1.0, 0.0, 2.0]])
     for o in outs:
         np.testing.assert_allclose(o["inv"], np.linalg.inv(m), rtol=1e-5, atol=1e-6)
+    import pickle
+
+    entry = pickle.loads((tmp_path / "cache" / "programs" / "k.pkl").read_bytes())
+    assert any(t.startswith("lapack_") for t in entry["custom_calls"])
+
+
+def test_programs_with_unknown_kernels_are_not_loaded():
+    assert startup._prepare_custom_calls([]) is True
+    assert startup._prepare_custom_calls(["lapack_sgetrf_ffi"]) is True
+    assert startup._prepare_custom_calls(["lapack_sgetrf_ffi", "ducc_fft"]) is False
+    assert startup._prepare_custom_calls(None) is False
 
 
 _FRAME = """
