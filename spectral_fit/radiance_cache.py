@@ -533,28 +533,38 @@ def _make_gloss(distribution: str, geometry: str) -> Any:
         dm, dn, _ = tangents  # the cache is constant
         one = jnp.ones_like(m)
         zero = jnp.zeros_like(m)
-        # sources: generic (few nodes)
-        ws, wsm = jax.jvp(lambda a: _src_weights(nodes, a, nn, distribution, geometry),
-                          (m,), (one,))
-        _, wsn = jax.jvp(lambda b: _src_weights(nodes, m, b, distribution, geometry),
-                         (nn,), (one,))
-        sv, sm, sn = (x @ nodes.src_flux for x in (ws, wsm, wsn))
         if geometry == "smith":  # G depends on μ: no factoring
+            ws, wsm = jax.jvp(lambda a: _src_weights(nodes, a, nn, distribution, geometry),
+                              (m,), (one,))
+            _, wsn = jax.jvp(lambda b: _src_weights(nodes, m, b, distribution, geometry),
+                             (nn,), (one,))
             f = lambda a, b: _gloss_weights(nodes, a, b, distribution, geometry)[0]  # noqa: E731
             w, wm = jax.jvp(f, (m, nn), (one, zero))
             _, wn = jax.jvp(f, (m, nn), (zero, one))
             out = _contract(nodes, jnp.stack([w, wm, wn], axis=1))
         else:
-            D, Dm = jax.jvp(lambda a: microfacet_d(nodes.cos_h[None, :], a[:, None],
-                                                   distribution), (m,), (one,))  # (P, J)
-            F, Fn = jax.jvp(lambda b: fresnel_dielectric(nodes.vh, b[:, None, None]), (nn,),
+            # G is μ-independent: D(μ) and F(n) and their derivatives factor out. One D
+            # over the rings and the sources' half vectors, one F over every node's V·H.
+            P, J = nodes.vh.shape[0], nodes.vh.shape[1]
+            cos_all = jnp.concatenate([jnp.broadcast_to(nodes.cos_h[None, :], (P, J)),
+                                       nodes.src_nh], axis=1)  # (P, J + S)
+            D, Dm = jax.jvp(lambda a: microfacet_d(cos_all, a[:, None], distribution), (m,),
                             (one,))
+            vh_all = jnp.concatenate([nodes.vh.reshape(P, -1), nodes.src_vh], axis=1)
+            F, Fn = jax.jvp(lambda b: fresnel_dielectric(vh_all, b[:, None]), (nn,), (one,))
+            nk = nodes.vh.shape[1] * nodes.vh.shape[2]
             G = microfacet_g(nodes.cos_h[None, :, None], nodes.nv[:, None, None], nodes.nl,
                              nodes.vh, m[:, None, None], geometry)
-            gb = G * nodes.base
-            D3, Dm3 = D[:, :, None], Dm[:, :, None]
-            out = _contract(nodes, jnp.stack([D3 * F * gb, Dm3 * F * gb, D3 * Fn * gb],
-                                             axis=1))
+            gb = (G * nodes.base).reshape(P, nk)
+            gbs = microfacet_g(nodes.src_nh, nodes.nv[:, None], nodes.src_nl, nodes.src_vh,
+                               m[:, None], geometry) * nodes.src_base
+            shp = nodes.vh.shape
+            D3, Dm3 = D[:, :J, None], Dm[:, :J, None]
+            Fk, Fnk = (F[:, :nk] * gb).reshape(shp), (Fn[:, :nk] * gb).reshape(shp)
+            out = _contract(nodes, jnp.stack([D3 * Fk, Dm3 * Fk, D3 * Fnk], axis=1))
+            Fs, Fns = F[:, nk:] * gbs, Fn[:, nk:] * gbs
+            ws, wsm, wsn = D[:, J:] * Fs, Dm[:, J:] * Fs, D[:, J:] * Fns
+        sv, sm, sn = (x @ nodes.src_flux for x in (ws, wsm, wsn))
         val, d_mu, d_n = out[:, 0], out[:, 1], out[:, 2]
         return val + sv, (d_mu + sm) * dm[:, None] + (d_n + sn) * dn[:, None]
 
