@@ -113,6 +113,17 @@ _EXPORTS: dict[str, str] = {
     "camera_model_from_spec": "compositing",
     "scene_camera_model": "live",
     "RunStats": "live",
+    # radiance_cache (the fit's material-independent precomputation)
+    "CacheOptions": "radiance_cache",
+    "GlossNodes": "radiance_cache",
+    "RadianceCache": "radiance_cache",
+    "Sphere": "radiance_cache",
+    "build_gloss_nodes": "radiance_cache",
+    "build_radiance_cache": "radiance_cache",
+    "gloss_from_nodes": "radiance_cache",
+    "cached_radiance": "radiance_cache",
+    "field_radiance": "radiance_cache",
+    "probe_radiance": "radiance_cache",
 }
 
 
