@@ -305,7 +305,7 @@ def sample_radiance(problem: FitProblem, values: jax.Array) -> jax.Array:
     S = _reflectances(problem, values)  # (O, L)
     out, _ = cached_radiance(problem.cache, values, S, obj, problem.models,
                              interreflection=problem.interreflection)
-    ok = g.valid & (problem.cache.nodes.nv > 0.0)
+    ok = g.valid & (problem.cache.sample_nodes.nv > 0.0)
     return jnp.where(ok[:, None], out, 0.0)
 
 
