@@ -21,8 +21,10 @@ Pipeline (geometry and poses are fixed while materials are fitted):
    sphere; every term is a weighted sum of cached radiances with weights from F, D, G, so
    the Jacobian is exact autodiff, interreflection included; B the instrument's band-pass,
    :func:`band_matrix`). With ``geometry = "SCI"`` reflectance, S = max(S_SCI − F(n, 8°), 0).
-3. :func:`fit` — weighted least squares with optimistix Levenberg–Marquardt, several starts
-   solved one after the other in one program, uncertainties from the Jacobian, a bootstrap over
+3. :func:`fit` — weighted least squares by Levenberg–Marquardt (:class:`CompactLM`, the
+   iteration of ``optimistix.LevenbergMarquardt`` in one small compiled loop, or optimistix
+   itself with ``solver="optimistix"``), several starts solved one after the other in one
+   program, uncertainties from the Jacobian, a bootstrap over
    readings, identifiability warnings, the sensitivity of each reading to aiming error, and
    the hold-out prediction of interreflection readings from a fit on object-colour readings.
 

@@ -30,7 +30,9 @@ direction and every environment texel of the irradiance sum is ray-cast once aga
 objects (spheres, analytically). Directions that hit a neighbour take the neighbour's outgoing
 radiance instead of the environment: for each reading and neighbour a fixed set of probes
 (directions from the spot's centre spread over the neighbour's silhouette) holds the hit point,
-its normal and the direction back to the spot, with their own (coarser) gloss node caches,
+its normal and the direction back to the spot, with their own gloss nodes (the samples'
+layout, stored after the samples' in one :class:`GlossNodes`, so one evaluation of the node
+weights serves samples, probes and the sample nodes that hit a neighbour),
 visible-environment irradiance and mirror radiance, so the neighbour's radiance
 α' S' E'/π + β' gloss'(μ', n') + χ' F L' is a function of the neighbour's parameters and its
 derivative is in the Jacobian. A hit takes the radiance of the nearest probe (one bounce: the
