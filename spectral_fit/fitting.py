@@ -59,6 +59,8 @@ from .gbuffer import GBuffer, ObjectGeometry
 from .session import PARAMETERS, Session
 
 __all__ = [
+    "CompactLM",
+    "SOLVERS",
     "FitProblem",
     "FitResult",
     "FitOptions",
@@ -851,8 +853,9 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
     F = y0.shape[0]
     eps = jnp.finfo(dt).eps
     big = jnp.finfo(dt).max
-    shapes = jax.eval_shape(lambda yy: _residuals_jacobian(yy, problem, w), y0)
-    r0, j0, p0 = (jnp.zeros(s.shape, s.dtype) for s in shapes)
+    B, L = problem.measured.shape  # residuals (B·L,), Jacobian (B·L, F), predictions (B, L)
+    rdt = problem.measured.dtype
+    r0, j0, p0 = (jnp.zeros((B * L,), rdt), jnp.zeros((B * L, F), rdt), jnp.zeros((B, L), rdt))
 
     def cond(s: dict[str, jax.Array]) -> jax.Array:
         return jnp.logical_not(s["done"]) & (s["steps"] < max_steps)
