@@ -196,6 +196,28 @@ def test_removed_and_unknown_options_are_named(small):
         assert exc.value.field == word and word in str(exc.value)
 
 
+def test_physical_from_y_matches_the_per_parameter_maps(small):
+    """The vectorised map y → (O, 6) physical values equals to_physical applied one free
+    parameter at a time (α, β, μ = e^y; χ = y²; n = 1 + e^y); fixed entries keep their
+    values; to_unconstrained inverts it."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    scene, session, prep, env, clean = small
+    pr = dataclasses.replace(prep.problem, free=prep.problem.free[:-1])  # one more fixed
+    y = np.random.default_rng(1).normal(size=len(pr.free)) * 0.7
+    vals, scale = fitting._physical_from_y(pr, jnp.asarray(y, jnp.float32))
+    want = np.array(pr.values, np.float64)
+    for j, (o, k) in enumerate(pr.free):
+        want[o, k] = float(fitting.to_physical(y[j], fitting.PARAMETERS[k]))
+    np.testing.assert_allclose(np.asarray(vals, np.float64), want, rtol=1e-6)
+    assert float(scale) == 1.0
+    for j, (o, k) in enumerate(pr.free):
+        back = fitting.to_unconstrained(want[o, k], fitting.PARAMETERS[k])
+        assert abs(back - (abs(y[j]) if fitting.PARAMETERS[k] == "chi" else y[j])) < 1e-6
+
+
 def test_single_blas_thread_restores_the_count():
     """The preparation's BLAS limiter sets every loaded OpenBLAS to one thread and restores
     the previous count; matrix products inside are unchanged."""
