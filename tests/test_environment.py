@@ -262,8 +262,8 @@ def test_shade_gradients_match_finite_differences(img3, quality, mus):
     prefilter levels' switch points (level boundaries fall at σ = π/H·2^k with
     σ = r·√2·μ·cosθr, r = 0.2 ("exact") or 0.3 ("render"), i.e. μ ≈ 0.174·2^k/cosθr or
     0.116·2^k/cosθr for this 64-row map); "exact" also inside
-    the blend of the lobe quadrature with the texel sum (μ = 0.19) and on the texel sum alone
-    (0.26, 0.41)."""
+    the blend of the lobe quadrature with the texel sum (μ = 0.137) and on the texel sum
+    alone (0.19, 0.26, 0.41)."""
     with jax.enable_x64(True):
         env = EnvironmentMap.from_array(img3, dtype=jnp.float64)
         cfg = _configs(0.2, 4, seed=11)
