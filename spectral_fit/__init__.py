@@ -124,6 +124,10 @@ _EXPORTS: dict[str, str] = {
     "cached_radiance": "radiance_cache",
     "field_radiance": "radiance_cache",
     "probe_radiance": "radiance_cache",
+    # cold start: persistent caches of compiled programs and prepared scenes (startup)
+    "enable_compilation_cache": "startup",
+    "prepare_cached": "startup",
+    "render_frame_cached": "startup",
 }
 
 
