@@ -113,6 +113,12 @@ _EXPORTS: dict[str, str] = {
     "camera_model_from_spec": "compositing",
     "scene_camera_model": "live",
     "RunStats": "live",
+    # frame program: covered pixels without background, output channels, pixel composite
+    # (renderer, compositing)
+    "PixelFrame": "renderer",
+    "render_pixels": "renderer",
+    "with_output": "renderer",
+    "composite_pixels": "compositing",
 }
 
 
