@@ -128,6 +128,12 @@ _EXPORTS: dict[str, str] = {
     "enable_compilation_cache": "startup",
     "prepare_cached": "startup",
     "render_frame_cached": "startup",
+    # frame program: covered pixels without background, output channels, pixel composite
+    # (renderer, compositing)
+    "PixelFrame": "renderer",
+    "render_pixels": "renderer",
+    "with_output": "renderer",
+    "composite_pixels": "compositing",
 }
 
 
