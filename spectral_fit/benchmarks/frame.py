@@ -9,6 +9,7 @@ call, ``median_ms`` the steady state.
   ``frame_paper_none`` / ``frame_paper_paper``: without interreflection / eq. (6) literally;
 * ``frame_paper_81``: 81 bands (400–700 nm at 3.75 nm); ``frame_paper_k8``: K = 8 basis;
 * ``frame_closeup``: the spheres at z = −0.100 m (~19 % coverage), gather;
+  ``frame_closeup_none``: the same without interreflection;
 * ``cold_start_s``: fresh Python processes (import + prepare + compile + first frame of the
   paper scene) with caches in a temporary folder: first run (cold caches) and second run (warm
   caches), for the cached path of :mod:`spectral_fit.startup` (the headline figures) and for
@@ -183,6 +184,10 @@ def frame_closeup(opts: BenchOptions) -> dict[str, Any]:
     return _case(opts, mode="gather", z=-0.100)
 
 
+def frame_closeup_none(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="none", z=-0.100)
+
+
 CASES = {
     "frame_paper": frame_paper,
     "frame_paper_none": frame_paper_none,
@@ -190,5 +195,6 @@ CASES = {
     "frame_paper_81": frame_paper_81,
     "frame_paper_k8": frame_paper_k8,
     "frame_closeup": frame_closeup,
+    "frame_closeup_none": frame_closeup_none,
     "cold_start_s": cold_start_s,
 }
