@@ -123,6 +123,7 @@ def test_program_key_ignores_numpy_print_options():
     with np.printoptions(legacy="1.13", precision=3):
         assert startup._program_key(td, leaves, False, None) == k0
     assert startup._program_key(td, leaves, True, None) != k0
+    assert startup._program_key(td, leaves, False, None, background=False) != k0
     assert startup._program_key(td, [jnp.ones(4)], False, None) != k0
 
 
