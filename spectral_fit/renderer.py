@@ -49,6 +49,7 @@ import numpy as np
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
 from .reflectance import Material
+from .startup import single_threaded_blas
 
 __all__ = [
     "Prepared",
@@ -362,6 +363,7 @@ def _look_at_impl(eye, target, up):
 _look_at_jit = jax.jit(_look_at_impl)
 
 
+@single_threaded_blas()  # NumPy's BLAS threads busy-wait: docs/rendering.md "Cold start"
 def prepare(
     scene: Any,
     *,

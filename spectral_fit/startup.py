@@ -294,8 +294,6 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
         cache_dir: cache root (default :func:`cache_root`); entries go to ``<root>/prepared``.
         **options: passed to ``prepare`` (size, mode, spectral_mode, k, ...).
 
-    ``prepare`` runs with NumPy's BLAS on one thread (:func:`single_threaded_blas`).
-
     Returns:
         The :class:`~spectral_fit.renderer.Prepared` scene, identical to ``prepare``'s (the
         stored arrays are float32 as prepared; pickled, not recomputed).
@@ -309,8 +307,7 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
     digest = (_config_digest(Path(scene)) if root is not None
               and isinstance(scene, str | os.PathLike) else None)
     if digest is None or any(t is None for t in texts.values()):
-        with single_threaded_blas():
-            return prepare(scene, **options)
+        return prepare(scene, **options)
     text = "\n".join([_environment_digest(), digest,
                       *(f"{k}={texts[k]}" for k in sorted(texts))])
     key = hashlib.sha256(text.encode()).hexdigest()[:40]
@@ -320,8 +317,7 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
         CACHE_STATS["prepared_hit"] += 1
         return hit
     CACHE_STATS["prepared_miss"] += 1
-    with single_threaded_blas():
-        prep = prepare(scene, **options)
+    prep = prepare(scene, **options)
     _write_entry(folder, key, prep)
     return prep
 
