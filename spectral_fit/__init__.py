@@ -124,6 +124,16 @@ _EXPORTS: dict[str, str] = {
     "cached_radiance": "radiance_cache",
     "field_radiance": "radiance_cache",
     "probe_radiance": "radiance_cache",
+    # cold start: persistent caches of compiled programs and prepared scenes (startup)
+    "enable_compilation_cache": "startup",
+    "prepare_cached": "startup",
+    "render_frame_cached": "startup",
+    # frame program: covered pixels without background, output channels, pixel composite
+    # (renderer, compositing)
+    "PixelFrame": "renderer",
+    "render_pixels": "renderer",
+    "with_output": "renderer",
+    "composite_pixels": "compositing",
 }
 
 
