@@ -1229,8 +1229,8 @@ def _grid_nodes(
     then spaced 4·extent·w_t/along along the plane of incidence and
     4·extent·w_b·cosθr/across across it, so at grazing views, where the isotropic prefilter
     must be as narrow as the lobe across (∝ cosθr), the many nodes along keep the spacing
-    within ~1.7 prefilter stds up to θr ≈ 80° (an isotropic grid in the half-vector domain,
-    as :func:`_visible_nodes`, aliases there). Half vectors that reflect V below the surface
+    at 0.44/cosθr prefilter stds (r = 0.2; 2.5 at θr = 80°; the polar rule of
+    :func:`_visible_nodes` had ~10 there and aliased). Half vectors that reflect V below the surface
     get zero weight from G in the caller's lobe factor (the integrand goes to zero
     continuously at the horizon). Nodes move smoothly with μ, N and V."""
     dtype = N.dtype
