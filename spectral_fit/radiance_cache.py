@@ -18,7 +18,7 @@ azimuth: equally spaced on fully visible rings, Gauss–Legendre over the visibl
 prefiltered residual map (:class:`~spectral_fit.environment.EnvironmentMap`, its own principal
 spectra) at a prefilter std matched to the node's footprint in reflected directions (limited
 near the horizon); the map's bright source texels are kept as explicit directions with their
-exact flux (the 16 points of each one's footprint in the bilinear map, as the environment
+exact flux (the Gauss points of each one's footprint in the bilinear map, as the environment
 module's exact gloss). Then
 
     gloss(μ, n) = Σ_k D(μ, θh_k) F(n, (V·H)_k) G_k c_k L_k + Σ_s D F G /(4 N·V) Φ_s,
@@ -424,14 +424,17 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
                 "point": orig_h + hit_t[hits, None] * dirs[hits]}
     # explicit sources
     sd = np.asarray(env.source_dirs, np.float64)
-    scale = 1.0  # the footprint points of the bilinear map, as the exact gloss sums them
-    if env.source_tent_dirs is not None and env.source_tent_dirs.shape[0]:
-        scale = sd.shape[1] / env.source_tent_dirs.shape[1]
-        sd = np.asarray(env.source_tent_dirs, np.float64)
+    # the Gauss points of each source's footprint in the bilinear map, as the exact gloss
+    # sums them (each point its weight's share of the texel's flux)
+    pw = np.full(sd.shape[:2], 1.0)
+    if env.source_fine_dirs is not None and env.source_fine_dirs.shape[0]:
+        pw = sd.shape[1] * np.asarray(env.source_fine_weights, np.float64)
+        sd = np.asarray(env.source_fine_dirs, np.float64)
     S = sd.shape[0] * sd.shape[1]
     if S:
         d = sd.reshape(-1, 3) @ np.asarray(env.rotation, np.float64).T
-        flux = np.repeat(np.asarray(env.source_flux, np.float64) * scale, sd.shape[1], axis=0)
+        flux = (np.asarray(env.source_flux, np.float64)[:, None, :] * pw[:, :, None]
+                ).reshape(S, -1)
         Hs = _unit(d[None] + V[:, None])
         s_nh = np.einsum("psc,pc->ps", Hs, N)
         s_vh = np.einsum("psc,pc->ps", Hs, V)
