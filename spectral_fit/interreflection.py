@@ -76,16 +76,21 @@ import numpy as np
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
+    _atan2_poly,
+    _bilinear_taps,
+    _dot3,
     _levels_for,
     _lobe_albedo,
     _lobe_factor,
+    _materialise,
     _smootherstep,
-    _to_map,
+    _taps_sum,
+    _to_map_fast,
     _visible_nodes,
+    fast_direction_to_uv,
+    fast_lookup,
     gloss_integral,
     irradiance,
-    lookup,
-    lookup_level,
     mirror_radiance,
 )
 from .errors import InputError
@@ -409,10 +414,9 @@ def _times_reflectance(env: EnvironmentMap, s: jax.Array, x: jax.Array) -> jax.A
     return jnp.einsum("...i,...j,ijk->...k", s, x, env.product_tensor)
 
 
-def _albedo(materials: Sequence[Material], obj: jax.Array, nv: jax.Array) -> jax.Array:
-    """Receiver lobe albedo A(cosθr) = ∫ D F G (V·H)/(N·V) dω_H per receiver (N,): tabulated
-    per object at ``_ALBEDO_TABLE`` cosines with the object's μ, n, D and G (differentiable)
-    and interpolated linearly in cosθr."""
+def _albedo_tables(materials: Sequence[Material]) -> jax.Array:
+    """(n, T) receiver lobe albedos A(cosθr) = ∫ D F G (V·H)/(N·V) dω_H per object, at
+    ``_ALBEDO_TABLE`` cosines in [0, 1], with the object's μ, n, D and G (differentiable)."""
     nodes = np.linspace(0.0, 1.0, _ALBEDO_TABLE)
     nodes[0] = 1e-3
     rows = []
@@ -420,17 +424,30 @@ def _albedo(materials: Sequence[Material], obj: jax.Array, nv: jax.Array) -> jax
         rows.append(jax.vmap(lambda c, m=m: _lobe_albedo(
             c, m.mu, m.n, m.mu, distribution=m.distribution, geometry=m.geometry,
             fresnel=True, radial=_ALBEDO_NODES[0], azimuthal=_ALBEDO_NODES[1]))(
-                jnp.asarray(nodes, jnp.result_type(m.mu))))
-    table = jnp.stack(rows)  # (n, T)
-    x = jnp.clip(nv, 0.0, 1.0) * (_ALBEDO_TABLE - 1)
-    i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, _ALBEDO_TABLE - 2)
+                jnp.asarray(nodes, jnp.result_type(m.mu, jnp.float32))))
+    return jnp.stack(rows)
+
+
+def _albedo_at(table: jax.Array, obj: jax.Array, nv: jax.Array) -> jax.Array:
+    """Lobe albedo (...) of object ``obj`` at cosθr ``nv``: :func:`_albedo_tables` interpolated
+    linearly in cosθr."""
+    size = table.shape[1]
+    x = jnp.clip(nv, 0.0, 1.0) * (size - 1)
+    i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, size - 2)
     f = x - i0.astype(x.dtype)
-    o = jnp.maximum(obj, 0)
-    return (1.0 - f) * table[o, i0] + f * table[o, i0 + 1]
+    flat = table.reshape(-1)
+    base = jnp.maximum(obj, 0) * size + i0
+    return (1.0 - f) * flat[base] + f * flat[base + 1]
 
 
 # --------------------------------------------------------------------------------------------
 # gather mode
+#
+# Every per-point quantity is computed batched and by components (no per-point vmapped
+# gathers, no arctan2/arccos per lookup, unrolled tap sums: XLA:CPU runs those as slow loops,
+# see docs/rendering.md), and everything that comes from the environment alone (the senders'
+# gloss, the hidden environment) stays in the map's r principal channels
+# (``env.spectral_basis``) until it has been summed.
 
 
 def _mip_levels(g: int) -> list[int]:
@@ -440,9 +457,17 @@ def _mip_levels(g: int) -> list[int]:
     return sizes
 
 
+def _mip_layout(g: int) -> tuple[list[int], list[int], int]:
+    """Sizes, offsets and total texels per pair of the padded mip atlas of a g × g grid."""
+    sizes = _mip_levels(g)
+    offs = [int(o) for o in np.cumsum([0] + [(s + 2) ** 2 for s in sizes])]
+    return sizes, offs[:-1], offs[-1]
+
+
 def _build_mips(values: jax.Array, g: int) -> jax.Array:
-    """(P, g², C) premultiplied texels → (P, T, C) atlas of all mip levels, each padded by a
-    one-texel zero border (so bilinear lookups fade to 0 outside j)."""
+    """(P, g², C) premultiplied texels → (P·T, C) atlas of all mip levels of every pair (T
+    texels per pair), each level padded by a one-texel zero border (so bilinear lookups fade
+    to 0 outside j)."""
     p, _, c = values.shape
     lev = values.reshape(p, g, g, c)
     flat = []
@@ -450,62 +475,82 @@ def _build_mips(values: jax.Array, g: int) -> jax.Array:
         if lev.shape[1] != s:
             lev = lev.reshape(p, s, 2, s, 2, c).mean(axis=(2, 4))
         flat.append(jnp.pad(lev, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(p, -1, c))
-    return jnp.concatenate(flat, axis=1)
+    return jnp.concatenate(flat, axis=1).reshape(-1, c)
 
 
-def _mip_lookup(atlas: jax.Array, pair: jax.Array, g: int, tx: jax.Array, ty: jax.Array,
-                level: jax.Array) -> jax.Array:
-    """Trilinear lookup (C,) of pair ``pair``'s mip atlas at level-0 texel coordinates
-    (tx, ty) (texel centres at integer + 0.5), fractional ``level`` (clamped)."""
-    sizes = _mip_levels(g)
-    offs = np.cumsum([0] + [(s + 2) ** 2 for s in sizes])[:-1]
+def _select(table: Sequence[Any], index: jax.Array) -> jax.Array:
+    """``table[index]`` for a short static table, as masked constants (elementwise: fuses into
+    the surrounding arithmetic instead of becoming a gather)."""
+    out = jnp.full(index.shape, table[0])
+    for k in range(1, len(table)):
+        out = jnp.where(index == k, table[k], out)
+    return out
+
+
+def _mip_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, level: jax.Array, g: int
+              ) -> tuple[jax.Array, jax.Array]:
+    """Atlas rows (..., 8) and weights (..., 8) of the trilinear lookup of pair ``pair``'s mip
+    atlas (:func:`_build_mips`) at level-0 texel coordinates (tx, ty) (texel centres at
+    integer + 0.5) and fractional ``level`` (clamped); C¹ smoothstep weights within and across
+    levels (gradients). Elementwise in all arguments."""
+    sizes, offs, per_pair = _mip_layout(g)
     nl = len(sizes)
     level = jnp.clip(level, 0.0, nl - 1.0)
     lo = jnp.minimum(jnp.floor(level).astype(jnp.int32), nl - 1)
     hi = jnp.minimum(lo + 1, nl - 1)
-    wh = _smootherstep(level - lo.astype(level.dtype))  # C¹ across levels
-    sizes_a = jnp.asarray(sizes, jnp.int32)
-    offs_a = jnp.asarray(offs, jnp.int32)
-
-    def one(k: jax.Array) -> jax.Array:
-        s = sizes_a[k]
-        sf = s.astype(tx.dtype)
-        scale = sf / g
-        x = tx * scale - 0.5 + 1.0  # +1: border
-        y = ty * scale - 0.5 + 1.0
+    wh = _smootherstep(level - lo.astype(level.dtype))
+    idx, wts = [], []
+    for lev, wl in ((lo, 1.0 - wh), (hi, wh)):
+        si = _select([np.int32(s) for s in sizes], lev)
+        scale = _select([np.float32(s / g) for s in sizes], lev).astype(tx.dtype)
+        base = pair * per_pair + _select([np.int32(o) for o in offs], lev)
+        x = tx * scale + 0.5  # −0.5 (texel centres) + 1 (border)
+        y = ty * scale + 0.5
         x0f, y0f = jnp.floor(x), jnp.floor(y)
-        fx, fy = _smootherstep(x - x0f), _smootherstep(y - y0f)  # C¹ (gradients)
-        x0 = jnp.clip(x0f.astype(jnp.int32), 0, s + 1)
-        y0 = jnp.clip(y0f.astype(jnp.int32), 0, s + 1)
-        x1 = jnp.clip(x0f.astype(jnp.int32) + 1, 0, s + 1)
-        y1 = jnp.clip(y0f.astype(jnp.int32) + 1, 0, s + 1)
-        row = s + 2
-        idx = offs_a[k] + jnp.stack([y0 * row + x0, y0 * row + x1, y1 * row + x0,
-                                     y1 * row + x1])
-        w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx])
-        vals = atlas[pair, idx]  # (4, C)
-        return w @ vals
-
-    return (1.0 - wh) * one(lo) + wh * one(hi)
+        fx, fy = _smootherstep(x - x0f), _smootherstep(y - y0f)
+        x0 = jnp.clip(x0f.astype(jnp.int32), 0, si + 1)
+        y0 = jnp.clip(y0f.astype(jnp.int32), 0, si + 1)
+        x1 = jnp.minimum(x0 + 1, si + 1)
+        y1 = jnp.minimum(y0 + 1, si + 1)
+        row = si + 2
+        idx += [base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
+                base + y1 * row + x1]
+        wts += [wl * (1 - fy) * (1 - fx), wl * (1 - fy) * fx, wl * fy * (1 - fx), wl * fy * fx]
+    return jnp.stack(idx, -1), jnp.stack(wts, -1)
 
 
-def _blurred_env(env: EnvironmentMap, direction: jax.Array, sigma: jax.Array) -> jax.Array:
-    """Environment radiance (C,) along a world unit direction, prefiltered to angular std
-    ``sigma`` (radians; the map's residual without its bright sources)."""
-    lo, hi, w_hi, _ = _levels_for(env, sigma)
-    d = _to_map(env, direction)
-    r = (1.0 - w_hi) * lookup_level(env, lo, d) + w_hi * lookup_level(env, hi, d)
-    return r @ env.spectral_basis
+def _env_blur(env: EnvironmentMap, dirs: jax.Array, sigma: jax.Array) -> jax.Array:
+    """Environment radiance (..., r) along world unit directions ``dirs`` (..., 3), prefiltered
+    to angular std ``sigma`` (...) (radians; the residual map without its bright sources), in
+    the r channels of ``env.spectral_basis``: two adjacent prefiltered levels blended, eight
+    bilinear taps gathered at once."""
+    lead = dirs.shape[:-1]
+    d = _to_map_fast(env, dirs.reshape(-1, 3))
+    u, v = fast_direction_to_uv(d)
+    uv = _materialise(jnp.stack([u, v], -1))
+    u, v = uv[:, 0], uv[:, 1]
+    lo, hi, w_hi, _ = _levels_for(env, jnp.broadcast_to(sigma, lead).reshape(-1))
+    shapes = env.level_shapes
+    idx, wts = [], []
+    for lev, wl in ((lo, 1.0 - w_hi), (hi, w_hi)):
+        hk = _select([np.int32(h) for h, _ in shapes], lev)
+        wk = _select([np.int32(w) for _, w in shapes], lev)
+        off = _select([np.int32(o) for o in env.level_offsets], lev)
+        i, w = _bilinear_taps(u, v, off, hk, wk)
+        idx.append(i)
+        wts.append(w * wl[:, None])
+    out = _taps_sum(env.atlas, jnp.concatenate(idx, -1), jnp.concatenate(wts, -1))
+    return out.reshape(*lead, -1)
 
 
 def _source_terms(env: EnvironmentMap) -> tuple[jax.Array, jax.Array] | None:
-    """World directions (S·k, 3) and flux (S·k, C) of the environment's bright-source
-    sub-points (None without sources)."""
+    """World directions (S·k, 3) and flux (S·k, r) (``env.spectral_basis`` channels) of the
+    environment's bright-source sub-points (None without sources)."""
     if not env.source_flux.shape[0]:
         return None
     k = env.source_dirs.shape[1]
     sdir = env.source_dirs.reshape(-1, 3) @ env.rotation.T
-    return sdir, jnp.repeat(env.source_flux @ env.spectral_basis, k, axis=0)
+    return sdir, jnp.repeat(env.source_flux, k, axis=0)
 
 
 def _gloss_weights(nrm: jax.Array, view: jax.Array, light: jax.Array, mu: jax.Array,
@@ -524,10 +569,33 @@ def _gloss_weights(nrm: jax.Array, view: jax.Array, light: jax.Array, mu: jax.Ar
                      0.0)
 
 
-def _specular(env: EnvironmentMap, materials: Sequence[Material], obj: jax.Array,
-              nrm: jax.Array, view: jax.Array) -> jax.Array:
-    """View-dependent radiance (K, C) of object ``obj`` (K,) at normals ``nrm`` towards
-    ``view`` (K, 3): β (A(cosθr) L_σ(R) + Σ_sources F D G/(4cosθr) Φ) + χ F(θr) L(R).
+class _Shading(eqx.Module):
+    """Per-call shading context of the gather: the objects' materials (stacked per object and
+    as given), the environment, and the receivers' lobe-albedo tables."""
+
+    mats: dict[str, jax.Array]
+    env: EnvironmentMap
+    albedo: jax.Array
+    materials: tuple[Material, ...]
+    mirror: bool = eqx.field(static=True)
+
+    @property
+    def basis(self) -> jax.Array:
+        return self.env.spectral_basis
+
+
+def _shading(materials: Sequence[Material], env: EnvironmentMap) -> _Shading:
+    return _Shading(mats=_stack_materials(materials), env=env,
+                    albedo=_albedo_tables(materials), materials=tuple(materials),
+                    mirror=any(not _is_zero(m.chi) for m in materials))
+
+
+def _specular(sh: _Shading, obj: jax.Array, nrm: jax.Array, view: jax.Array
+              ) -> tuple[jax.Array, jax.Array | None]:
+    """View-dependent radiance of object ``obj`` (K,) at normals ``nrm`` towards ``view``
+    (K, 3): the gloss β (A(cosθr) L_σ(R) + Σ_sources F D G/(4cosθr) Φ) (K, r) in the r channels
+    of ``env.spectral_basis``, and the mirror χ F(θr) L(R) (K, C) (None when every χ is a
+    concrete 0).
 
     The gloss is the split-sum reading of eq. (5)'s gloss term: the lobe's directional albedo A
     (tabulated per object) times the environment prefiltered to the lobe's width
@@ -535,30 +603,31 @@ def _specular(env: EnvironmentMap, materials: Sequence[Material], obj: jax.Array
     :func:`~spectral_fit.environment.gloss_integral` at grazing angles, a few % near the
     normal; unbiased on average), so that a neighbour's gloss can be evaluated towards every
     receiver point instead of towards one."""
-    mats = _stack_materials(materials)
+    mats = sh.mats
     o = jnp.maximum(obj, 0)
     beta, chi, mu, eta = mats["beta"][o], mats["chi"][o], mats["mu"][o], mats["n"][o]
-    nv = jnp.sum(nrm * view, -1)
+    nv = _dot3(nrm, view)
     nvc = jnp.clip(nv, 0.0, 1.0)
     refl = 2.0 * nv[:, None] * nrm - view
-    albedo = _albedo(materials, obj, nv)
+    albedo = _albedo_at(sh.albedo, obj, nv)
     sigma = math.sqrt(2.0) * mu * jnp.sqrt(jnp.maximum(nvc, 0.05))
-    lres = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(refl, sigma)
-    gloss = albedo[:, None] * lres
-    src = _source_terms(env)
+    gloss = albedo[:, None] * _env_blur(sh.env, refl, sigma)
+    src = _source_terms(sh.env)
     if src is not None:
         sdir, sflux = src
-        for k, m in enumerate(materials):
+        for k, m in enumerate(sh.materials):
             w = _gloss_weights(nrm[:, None], view[:, None], sdir[None], mu[:, None],
                                eta[:, None], m.distribution, m.geometry)
             gloss = gloss + jnp.where((o == k)[:, None], w @ sflux, 0.0)
-    out = beta[:, None] * gloss
-    if any(not _is_zero(m.chi) for m in materials):
-        mirror = jax.vmap(lambda d_: lookup(env, d_))(refl)
-        out = out + (chi * fresnel_dielectric(nvc, eta))[:, None] * mirror
     # faded out over the last few degrees above the horizon (continuous in N and V, so the
     # neighbour's silhouette does not switch it on and off)
-    return out * _smootherstep(nv / _HORIZON_FADE)[:, None]
+    fade = _smootherstep(nv / _HORIZON_FADE)
+    out = (beta * fade)[:, None] * gloss
+    mirror = None
+    if sh.mirror:
+        mirror = (chi * fresnel_dielectric(nvc, eta) * fade)[:, None] * fast_lookup(sh.env,
+                                                                                 refl)
+    return out, mirror
 
 
 def _is_zero(x: Any) -> bool:
@@ -590,9 +659,10 @@ def _view_frames(geom: IRGeometry) -> tuple[jax.Array, jax.Array, jax.Array, jax
     return a, e1, e2, sin_c / jnp.sqrt(1.0 - sin_c * sin_c)
 
 
-def _sample_specular(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
-                     frames: tuple[jax.Array, ...]) -> jax.Array:
-    """(P, M, 9, C): each sample's view-dependent radiance towards the 3 × 3 view grid."""
+def _sample_specular(geom: IRGeometry, sh: _Shading, frames: tuple[jax.Array, ...]
+                     ) -> tuple[jax.Array, jax.Array | None]:
+    """Each sample's view-dependent radiance towards the 3 × 3 view grid: gloss (P, M, 9, r)
+    in the map's r channels and mirror (P, M, 9, C) (or None)."""
     a, e1, e2, tan_c = frames
     p_count, m_count = geom.s_area.shape
     senders = np.asarray([j for _, j in geom.pairs], np.int32)
@@ -605,8 +675,13 @@ def _sample_specular(geom: IRGeometry, materials: Sequence[Material], env: Envir
     # views below a rim sample's horizon: evaluated just above it
     v = _normalize(v + jnp.maximum(0.0, _MIN_COS - jnp.sum(v * nrm, -1, keepdims=True)) * nrm)
     obj = jnp.broadcast_to(jnp.asarray(senders)[:, None, None], v.shape[:3])
-    out = _specular(env, materials, obj.reshape(-1), nrm.reshape(-1, 3), v.reshape(-1, 3))
-    return out.reshape(p_count, m_count, len(_VIEW_GRID) ** 2, -1)
+    g, m = _specular(sh, obj.reshape(-1), nrm.reshape(-1, 3), v.reshape(-1, 3))
+    shape = (p_count, m_count, len(_VIEW_GRID) ** 2)
+    live = (geom.s_area > 0)[..., None, None]
+    g = jnp.where(live, g.reshape(*shape, -1), 0.0)
+    if m is not None:
+        m = jnp.where(live, m.reshape(*shape, -1), 0.0)
+    return g, m
 
 
 def _tents(x: jax.Array) -> list[jax.Array]:
@@ -615,127 +690,75 @@ def _tents(x: jax.Array) -> list[jax.Array]:
     return [jnp.maximum(-x, 0.0), 1.0 - jnp.abs(x), jnp.maximum(x, 0.0)]
 
 
-def _diffuse_gather(geom: IRGeometry, lum: jax.Array, spec: jax.Array,
-                    frames: tuple[jax.Array, ...], env: EnvironmentMap, pos: jax.Array,
-                    nrm: jax.Array, obj: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array,
-                                                          jax.Array]:
-    """Form-factor sums over the samples of the receiver's pairs, with the point-to-patch form
-    factor F = cos_x cos_y A / (π √(r⁴ + (A/π)²)):
+class _Senders(eqx.Module):
+    """The senders' samples as seen by the gather: per pair (P, M, ...) position, normal, area,
+    view frames (axis, e1, e2, tanθc), view-independent radiance (C) and view-dependent gloss
+    (9 view directions, r channels) and mirror (9, C, or None)."""
 
-    - Σ_y F L_y(→x) (N, C), the senders' radiance towards x: the view-independent part
-      ``lum`` (P, M, C) plus the view-dependent part ``spec`` (P, M, 9, C) interpolated
-      (bilinearly in gnomonic coordinates) at the direction from y to x;
-    - Σ_y F (N,): the solid angle the senders hide (cosine-weighted, over π), and the mean
-      environment radiance over it (N, C) (:func:`_hidden_mean`);
-    - (1/π) Σ_s flux_s max(0, N·d_s) over the environment's bright sources whose direction hits
-      a sender's bounding sphere (N, C): the source light the senders hide.
+    pos: jax.Array
+    nrm: jax.Array
+    area: jax.Array
+    frames: tuple[jax.Array, ...]
+    lum: jax.Array
+    spec: jax.Array
+    mirror: jax.Array | None
 
-    Receivers are sorted by object and processed in chunks of ``_CHUNK``; a chunk evaluates only
-    the blocks of the objects it holds, and receivers that cannot see any neighbour are sorted
-    last into chunks that are skipped."""
-    n_obj = geom.n_objects
-    k_per = n_obj - 1
-    p_count, m_count, c = lum.shape
-    km = k_per * m_count
-    nv_grid = spec.shape[2]
-    origin = jnp.mean(geom.centre_j, axis=0)
-    ypos = (geom.s_pos - origin).reshape(n_obj, km, 3)
-    ynrm = geom.s_nrm.reshape(n_obj, km, 3)
-    yarea = geom.s_area.reshape(n_obj, km)
-    ylum = lum.reshape(n_obj, km, c)
-    yspec = spec.reshape(n_obj, km, nv_grid, c)
-    fa, fe1, fe2, ftan = (f.reshape(n_obj, km, *f.shape[2:]) for f in frames)
-    cj = (geom.centre_j - origin).reshape(n_obj, k_per, 3)
-    rj = geom.radius_j.reshape(n_obj, k_per)
-    src = _source_terms(env)
-    n_src = 0 if src is None else src[0].shape[0]
-    if src is not None:
-        sdir, sflux = src[0], src[1] / math.pi
-    n = pos.shape[0]
-    # receivers whose tangent plane hides every neighbour's bounding sphere get nothing: their
-    # chunks are skipped
-    sees = jnp.zeros(obj.shape, bool)
-    for k in range(k_per):
-        pair = jnp.maximum(obj, 0) * k_per + k
-        sees = sees | (jnp.sum(nrm * (geom.centre_j[pair] - pos), -1) > -geom.radius_j[pair])
-    key = jnp.where((obj >= 0) & sees, obj, n_obj)
-    order = jnp.argsort(key)
-    nc = -(-n // _CHUNK)
-    pad = nc * _CHUNK - n
-    xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
-    ns = jnp.concatenate([nrm[order], jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], nrm.dtype),
-                                                       (pad, 3))]).reshape(nc, _CHUNK, 3)
-    ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
-    width = c + 1 + c + c
 
-    def proj(x0: jax.Array, y0: jax.Array, e: jax.Array) -> jax.Array:
-        return x0 @ e.T - jnp.sum(e * y0, -1)[None, :]  # e_y·(x − y)
+def _form_factor_block(x: jax.Array, nx: jax.Array, snd: tuple[jax.Array, ...]
+                       ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Point-to-patch form factors F (..., R, S) = cos_x cos_y A/(π √(r⁴ + (A/π)²)) between
+    receivers (x, nx (..., R, 3)) and sender samples ``snd`` = (pos, nrm, area, axis, e1, e2,
+    tanθc) (..., S, ...), and the view-grid tents (u, v: 3 each) of the direction y → x in each
+    sample's view frame. Computed by components (elementwise, fused)."""
+    ypos, ynrm, yarea, fa, fe1, fe2, ftan = snd
+    d = [ypos[..., None, :, c] - x[..., :, None, c] for c in range(3)]  # y − x
+    r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    cx = sum(nx[..., :, None, c] * d[c] for c in range(3))
+    cy = -sum(ynrm[..., None, :, c] * d[c] for c in range(3))
+    a = yarea[..., None, :] / math.pi
+    w = jnp.maximum(cx, 0.0) * jnp.maximum(cy, 0.0) * a / jnp.maximum(
+        r2 * jnp.sqrt(r2 * r2 + a * a), 1e-30)
+    # view-dependent part: gnomonic coordinates of the direction y → x in y's view frame
+    along = -sum(fa[..., None, :, c] * d[c] for c in range(3))
+    den = jnp.maximum(along, 1e-9) * ftan[..., None, :]
+    tu = _tents(-sum(fe1[..., None, :, c] * d[c] for c in range(3)) / den)
+    tv = _tents(-sum(fe2[..., None, :, c] * d[c] for c in range(3)) / den)
+    return w, tu, tv
 
-    def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
-        y0, ny, area = ypos[o], ynrm[o], yarea[o]
-        r2 = jnp.maximum(jnp.sum(x0 * x0, -1)[:, None] + jnp.sum(y0 * y0, -1)[None, :]
-                         - 2.0 * (x0 @ y0.T), 0.0)
-        cx = nx @ y0.T - jnp.sum(nx * x0, -1)[:, None]       # N·(y − x)
-        cy = proj(x0, y0, ny)                                # n_y·(x − y)
-        a = area / math.pi
-        w = jnp.maximum(cx, 0.0) * jnp.maximum(cy, 0.0) * a / jnp.maximum(
-            r2 * jnp.sqrt(r2 * r2 + a * a), 1e-30)
-        w = jnp.where(sel[:, None], w, 0.0)
-        # view-dependent part: gnomonic coordinates of the direction y → x in y's view frame
-        den = jnp.maximum(proj(x0, y0, fa[o]), 1e-9) * ftan[o][None, :]
-        tu = _tents(proj(x0, y0, fe1[o]) / den)
-        tv = _tents(proj(x0, y0, fe2[o]) / den)
-        lsum = w @ ylum[o]
-        for iu in range(3):
-            wu = w * tu[iu]
-            for iv in range(3):
-                lsum = lsum + (wu * tv[iv]) @ yspec[o][:, 3 * iu + iv]
-        hm = _hidden_mean(geom, env, x0 + origin, nx, jnp.full(x0.shape[:1], o, jnp.int32))
-        parts = [lsum, jnp.sum(w, -1)[:, None], hm]
-        if n_src:
-            occ = jnp.zeros((x0.shape[0], n_src), x0.dtype)
-            for k in range(k_per):
-                oc = cj[o, k] - x0
-                tp = oc @ sdir.T
-                miss2 = jnp.sum(oc * oc, -1)[:, None] - tp * tp
-                occ = jnp.maximum(occ, ((tp > 0.0) & (miss2 < rj[o, k] ** 2)).astype(x0.dtype))
-            cosn = jnp.maximum(nx @ sdir.T, 0.0)
-            parts.append(jnp.where(sel[:, None], (occ * cosn) @ sflux, 0.0))
-        else:
-            parts.append(jnp.zeros((x0.shape[0], c), lum.dtype))
-        return jnp.concatenate(parts, -1)
 
-    def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
-        x0, nx, kk = args
-        shape = jax.eval_shape(lambda s: block(0, x0, nx, s), kk == 0)
-        acc = jnp.zeros(shape.shape, shape.dtype)
-        for o in range(n_obj):
-            sel = kk == o
-            acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
-                                     lambda s: jnp.zeros(shape.shape, shape.dtype), sel)
-        return acc
-
-    res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, width)[:n]
-    res = jnp.zeros((n, width), lum.dtype).at[order].set(res)
-    return res[:, :c], res[:, c], res[:, c + 1:2 * c + 1], res[:, 2 * c + 1:]
+def _transfer(w: jax.Array, tu: list[jax.Array], tv: list[jax.Array], lum: jax.Array,
+              spec: jax.Array, mirror: jax.Array | None, basis: jax.Array
+              ) -> tuple[jax.Array, jax.Array]:
+    """Σ_y F L_y(→x) (..., R, C) and Σ_y F (..., R): the senders' view-independent radiance
+    ``lum`` (..., S, C) plus their view-dependent part (``spec`` (..., S, 9, r), ``mirror``
+    (..., S, 9, C)) interpolated on the view grid, weighted by the form factors ``w``."""
+    ein = "...rs,...sc->...rc"
+    lsum = jnp.einsum(ein, w, lum)
+    ws = jnp.concatenate([w * tu[iu] * tv[iv] for iu in range(3) for iv in range(3)], -1)
+    sp = jnp.swapaxes(spec, -3, -2).reshape(*spec.shape[:-3], -1, spec.shape[-1])
+    lsum = lsum + jnp.einsum(ein, ws, sp) @ basis
+    if mirror is not None:
+        mp = jnp.swapaxes(mirror, -3, -2).reshape(*mirror.shape[:-3], -1, mirror.shape[-1])
+        lsum = lsum + jnp.einsum(ein, ws, mp)
+    return lsum, jnp.sum(w, -1)
 
 
 #: cone quadrature of the environment a neighbour hides: rings (uniform in solid angle) ×
-#: azimuths, plus the axis
+#: azimuths
 _CONE_NODES = (2, 6)
 
 
 def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
                  o: jax.Array) -> jax.Array:
-    """Cosine-weighted mean environment radiance (N, C) over the cones of the receivers'
-    neighbours' bounding spheres (above the receiver's horizon): the radiance the neighbours
-    hide, per unit of their form factor. Nodes: ``_CONE_NODES`` rings × azimuths uniform in
-    solid angle, the map prefiltered to the node spacing."""
+    """Cosine-weighted mean environment radiance (N, r) (map channels) over the cones of the
+    receivers' neighbours' bounding spheres (above the receiver's horizon): the radiance the
+    neighbours hide, per unit of their form factor. Nodes: ``_CONE_NODES`` rings × azimuths
+    uniform in solid angle, the map prefiltered to the node spacing."""
     k_per = geom.n_objects - 1
     nr, na = _CONE_NODES
     ur = (np.arange(nr) + 0.5) / nr
     ph = 2.0 * np.pi * (np.arange(na) + 0.5 * (np.arange(nr)[:, None] % 2)) / na  # (nr, na)
-    num = jnp.zeros((pos.shape[0], env.channels), pos.dtype)
+    num = jnp.zeros((pos.shape[0], env.atlas.shape[-1]), pos.dtype)
     den = jnp.zeros((pos.shape[0],), pos.dtype)
     for k in range(k_per):
         pair = o * k_per + k
@@ -756,21 +779,157 @@ def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax
                 + s[..., None, None] * (cp[None, ..., None] * t1[:, None, None]
                                         + sp[None, ..., None] * t2[:, None, None]))
         dirs = dirs.reshape(pos.shape[0], -1, 3)
-        w = jnp.maximum(jnp.einsum("nqk,nk->nq", dirs, nrm), 0.0) * (1.0 - cos_c)[:, None]
-        spacing = jnp.arccos(cos_c) / (2.0 * nr)
-        sig = jnp.broadcast_to(spacing[:, None], w.shape)
-        lv = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(dirs.reshape(-1, 3),
-                                                                sig.reshape(-1))
-        num = num + jnp.einsum("nq,nqc->nc", w, lv.reshape(*w.shape, -1))
+        w = jnp.maximum(_dot3(dirs, nrm[:, None]), 0.0) * (1.0 - cos_c)[:, None]
+        spacing = _atan2_poly(sin_c, cos_c) / (2.0 * nr)
+        lv = _env_blur(env, dirs, jnp.broadcast_to(spacing[:, None], w.shape))
+        num = num + jnp.sum(w[..., None] * lv, 1)
         den = den + jnp.sum(w, -1)
     return num / jnp.maximum(den, 1e-30)[:, None]
 
 
+def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: jax.Array
+                    ) -> jax.Array | None:
+    """(N, S·k) 1 where a bright-source sub-point's direction hits a neighbour's bounding
+    sphere seen from ``pos`` (None without sources)."""
+    src = _source_terms(env)
+    if src is None:
+        return None
+    sdir = src[0]
+    occ = jnp.zeros((pos.shape[0], sdir.shape[0]), pos.dtype)
+    for k in range(geom.n_objects - 1):
+        pair = o * (geom.n_objects - 1) + k
+        oc = geom.centre_j[pair] - pos
+        tp = oc @ sdir.T
+        miss2 = jnp.sum(oc * oc, -1)[:, None] - tp * tp
+        occ = jnp.maximum(occ, ((tp > 0.0) & (miss2 < geom.radius_j[pair][:, None] ** 2)
+                                ).astype(pos.dtype))
+    return occ
+
+
+def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, fsum: jax.Array,
+                 pos: jax.Array, nrm: jax.Array, o: jax.Array) -> jax.Array:
+    """The light the neighbours add at receivers, before the receiver's α S/π (N, C):
+    Σ_y F L_y(→x) − (Σ_y F) ⟨L_env⟩_hidden − (1/π) Σ hidden sources flux max(0, N·d_s)."""
+    hm = _hidden_mean(geom, env, pos, nrm, o)
+    net = lsum - fsum[:, None] * (hm @ env.spectral_basis)
+    occ = _hidden_sources(geom, env, pos, o)
+    if occ is not None:
+        sdir, sflux = _source_terms(env)
+        cosn = jnp.maximum(nrm @ sdir.T, 0.0)
+        net = net - ((occ * cosn) @ sflux) @ env.spectral_basis / math.pi
+    return net
+
+
+def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap) -> jax.Array:
+    """:func:`_diffuse_net` (P, M, C) at every sample, gathered from all samples of the
+    sample's own object's neighbours (dense, batched over pairs: P × M × (n − 1)M form
+    factors)."""
+    n_obj = geom.n_objects
+    k_per = n_obj - 1
+    p_count, m_count = geom.s_area.shape
+    recv = np.asarray([j for _, j in geom.pairs], np.int32)  # the samples' own object
+    src = (recv[:, None] * k_per + np.arange(k_per)[None, :])  # (P, k_per) sender pairs
+
+    def senders(x: jax.Array) -> jax.Array:
+        s = x[src]  # (P, k_per, M, ...)
+        return s.reshape(p_count, k_per * m_count, *x.shape[2:])
+
+    origin = jnp.mean(geom.centre_j, axis=0)
+    blk = (senders(snd.pos - origin), senders(snd.nrm), senders(snd.area),
+           *(senders(f) for f in snd.frames))
+    w, tu, tv = _form_factor_block(geom.s_pos - origin, geom.s_nrm, blk)
+    lsum, fsum = _transfer(w, tu, tv, senders(snd.lum), senders(snd.spec),
+                           None if snd.mirror is None else senders(snd.mirror),
+                           env.spectral_basis)
+    obj = jnp.asarray(np.repeat(recv, m_count), jnp.int32)
+    net = _diffuse_net(geom, env, lsum.reshape(-1, lsum.shape[-1]), fsum.reshape(-1),
+                       geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3), obj)
+    return net.reshape(p_count, m_count, -1)
+
+
+def _reverse_pairs(n: int) -> np.ndarray:
+    """Index of pair (j, i) for every pair p = (i, j) (storage order of :func:`pair_list`)."""
+    index = {pq: k for k, pq in enumerate(pair_list(n))}
+    return np.asarray([index[(j, i)] for i, j in pair_list(n)], np.int32)
+
+
+def _sphere_form_factor(pos: jax.Array, nrm: jax.Array, centre: jax.Array, radius: jax.Array
+                        ) -> jax.Array:
+    """Form factor (...) from a differential area (pos, unit nrm (..., 3)) to a sphere
+    (centre (..., 3), radius (...)): sin²α cosθ while the sphere is wholly above the tangent
+    plane (sinα = r/d, θ the centre's angle from the normal), and the C¹ horizon-clipped
+    approximation sin²α (cosθ + sinα)²/(4 sinα) while it straddles it."""
+    oc = centre - pos
+    d2 = jnp.maximum(_dot3(oc, oc), 1e-30)
+    sin2 = jnp.minimum(radius * radius / d2, 1.0)
+    sin_a = jnp.sqrt(sin2)
+    cos_t = _dot3(nrm, oc) * jax.lax.rsqrt(d2)
+    part = (cos_t + sin_a) ** 2 / (4.0 * jnp.maximum(sin_a, 1e-12))
+    return sin2 * jnp.where(cos_t >= sin_a, cos_t, jnp.where(cos_t > -sin_a, part, 0.0))
+
+
+def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.Array,
+                     obj: jax.Array) -> jax.Array:
+    """The samples' diffuse net light (P, M, C) at receivers on the samples' objects (N, C).
+
+    For each neighbour j of the receiver's object i, the receiver is projected orthographically
+    along j → i onto the g × g samples of i that face j (pair (j, i)); there the ratio of the
+    net light to the form factor F_j of j's bounding sphere (:func:`_sphere_form_factor`, the
+    geometric part, which varies fast next to j) is interpolated bilinearly, weighted by
+    coverage × F_j (so each sample stands for its covered part and samples that barely see j
+    count little), and multiplied by F_j at the receiver. Receivers facing several neighbours
+    blend their grids with weights ∝ N·(c_j − c_i)⁺ (each grid holds the light from all
+    neighbours)."""
+    g = geom.gather_size
+    k_per = geom.n_objects - 1
+    p_count, m_count, c = net.shape
+    # pair q = (j, i) holds samples on i; the sphere they look at is j's (centre_i[q])
+    ff_s = _sphere_form_factor(geom.s_pos, geom.s_nrm, geom.centre_i[:, None],
+                               geom.radius_i[:, None])
+    cov = geom.s_cov * (geom.s_area > 0)
+    # Σ w cov F_s (net_s/F_s) / Σ w cov F_s
+    tex = jnp.concatenate([net * cov[..., None], (cov * ff_s)[..., None]], -1).reshape(
+        p_count, g, g, c + 1)
+    tex = jnp.pad(tex, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, c + 1)
+    rev = jnp.asarray(_reverse_pairs(geom.n_objects))
+    o = jnp.maximum(obj, 0)
+    acc = jnp.zeros((pos.shape[0], c), net.dtype)
+    wsum = jnp.zeros((pos.shape[0],), net.dtype)
+    for k in range(k_per):
+        q = rev[o * k_per + k]  # pair (j, i): samples on i facing j
+        fr = geom.frame[q]
+        rel = pos - geom.centre_j[q]
+        ext = geom.extent[q]
+        tx = (_dot3(rel, fr[:, 0]) / ext + 1.0) * 0.5 * g + 0.5  # +1 border −0.5 centres
+        ty = (1.0 - _dot3(rel, fr[:, 1]) / ext) * 0.5 * g + 0.5
+        x0f, y0f = jnp.floor(tx), jnp.floor(ty)
+        fx, fy = tx - x0f, ty - y0f
+        x0 = jnp.clip(x0f.astype(jnp.int32), 0, g + 1)
+        y0 = jnp.clip(y0f.astype(jnp.int32), 0, g + 1)
+        x1 = jnp.minimum(x0 + 1, g + 1)
+        y1 = jnp.minimum(y0 + 1, g + 1)
+        base = q * (g + 2) ** 2
+        row = g + 2
+        idx = jnp.stack([base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
+                         base + y1 * row + x1], -1)
+        w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
+        val = _taps_sum(tex, idx, w)
+        ff = _sphere_form_factor(pos, nrm, geom.centre_i[q], geom.radius_i[q])
+        lum = val[:, :c] * (ff / jnp.maximum(val[:, c], 1e-30))[:, None]
+        # the grid holds the hemisphere of i facing j (its axis is −fr[:, 2] = c_i − c_j)
+        face = jnp.maximum(_dot3(nrm, fr[:, 2]), 0.0)
+        acc = acc + face[:, None] * lum
+        wsum = wsum + face
+    return acc / jnp.maximum(wsum, 1e-30)[:, None]
+
+
 #: receiver's gloss lobe quadrature against the neighbour (radial × azimuthal nodes)
-_LOBE_NODES = (4, 6)
+_LOBE_NODES = (3, 4)
 #: soft edge of a lobe node's hit on the neighbour's bounding sphere, as a fraction of the
-#: lobe's angular std √2 μ (times the distance)
+#: lobe's angular std √2 μ (times the distance), capped at ``_EDGE_CAP`` × the neighbour's
+#: radius (so a tiny or far neighbour's soft edge shrinks with it: no leak)
 _EDGE = 0.35
+_EDGE_CAP = 0.5
 
 
 def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, *,
@@ -785,114 +944,123 @@ def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, 
     return light, f / jnp.maximum(jnp.sum(f), 1e-30)
 
 
-def _neighbour_along(geom: IRGeometry, lum_atlas: jax.Array, materials: Sequence[Material],
-                     env: EnvironmentMap, pair: jax.Array, sender: jax.Array, pos: jax.Array,
-                     dirs: jax.Array, edge: jax.Array, sigma_env: jax.Array) -> jax.Array:
-    """Net radiance (N, Q, C) that the sender of ``pair`` (N,) adds along the rays
-    (pos (N, 3), dirs (N, Q, 3)): soft hit h on its bounding sphere (edge width ``edge`` (N,)
-    radians) × (its radiance towards the ray's origin − the environment it hides, prefiltered
-    to ``sigma_env`` (N,)). The sender's radiance is the view-independent part from the sample
-    mip atlas (with its normal) plus :func:`_specular` towards the receiver point."""
-    nq = dirs.shape[1]
+def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+                     pair: jax.Array, sender: jax.Array, pos: jax.Array, dirs: jax.Array,
+                     wts: jax.Array, edge: jax.Array, sigma_env: jax.Array) -> jax.Array:
+    """Σ_q wts_q h_q [L_j(y_q → x) − L_env(ω_q)] (N, C): the net radiance that the sender of
+    ``pair`` (N,) adds along the rays (pos (N, 3), dirs (N, Q, 3)), weighted by ``wts``
+    (N, Q). h: soft hit on its bounding sphere (edge half-width ``edge`` (N,) radians times the
+    distance, at most ``_EDGE_CAP`` × its radius). The sender's radiance is the view-independent
+    part from the sample mip atlas (with its normal) plus :func:`_specular` towards the
+    receiver point; the environment it hides is prefiltered to ``sigma_env`` (N,)."""
+    n, nq = dirs.shape[:2]
     g = geom.gather_size
-    c = env.channels
-    cj = geom.centre_j[pair][:, None]  # (N, 1, 3)
+    c = sh.env.channels
+    cj = geom.centre_j[pair]  # (N, 3)
     rj = geom.radius_j[pair][:, None]
-    oc = cj - pos[:, None]
-    tp = jnp.sum(oc * dirs, -1)
-    b2 = jnp.maximum(jnp.sum(oc * oc, -1) - tp * tp, 1e-14)  # (floors keep gradients finite)
+    oc = cj - pos
+    tp = _dot3(oc[:, None], dirs)
+    b2 = jnp.maximum(_dot3(oc, oc)[:, None] - tp * tp, 1e-14)  # (floors keep gradients finite)
     b = jnp.sqrt(b2)
-    half = jnp.maximum(edge[:, None] * tp, 1e-6)
+    half = jnp.maximum(jnp.minimum(edge[:, None] * tp, _EDGE_CAP * rj), 1e-6)
     hit = _smootherstep(0.5 + (rj - b) / (2.0 * half)) * (tp > 0.0)
     t = jnp.maximum(tp - jnp.sqrt(jnp.maximum(rj * rj - b2, 1e-14)), 0.0)
     y = pos[:, None] + t[..., None] * dirs
-    rel = _normalize(y - cj) * rj[..., None]  # on the bounding sphere (rim point if missed)
+    rel = _normalize(y - cj[:, None]) * rj[..., None]  # on the bounding sphere (rim if missed)
     fr = geom.frame[pair]  # (N, 3, 3)
     ext = geom.extent[pair][:, None]
-    ux = jnp.einsum("nqk,nk->nq", rel, fr[:, 0]) / ext
-    uy = jnp.einsum("nqk,nk->nq", rel, fr[:, 1]) / ext
-    tx = (ux + 1.0) * 0.5 * g
-    ty = (1.0 - uy) * 0.5 * g
+    tx = (_dot3(rel, fr[:, None, 0]) / ext + 1.0) * 0.5 * g
+    ty = (1.0 - _dot3(rel, fr[:, None, 1]) / ext) * 0.5 * g
     texel = 2.0 * ext / g
     level = 0.5 * jnp.log2(1.0 + (half / texel) ** 2)  # ≈ log2 of the footprint, smooth
-    look = jax.vmap(jax.vmap(lambda p_, a, b_, lv: _mip_lookup(lum_atlas, p_, g, a, b_, lv),
-                             in_axes=(None, 0, 0, 0)))
-    val = look(pair, tx, ty, level)  # (N, Q, C + 4): L·cov, n·cov, cov
-    cov = val[..., -1]
+    # computed once (XLA would otherwise recompute them inside every consumer)
+    m = _materialise(jnp.stack([tx, ty, level, hit, rel[..., 0], rel[..., 1], rel[..., 2]],
+                               -1))
+    tx, ty, level, hit, rel = m[..., 0], m[..., 1], m[..., 2], m[..., 3], m[..., 4:]
+    idx, w = _mip_taps(jnp.broadcast_to(pair[:, None], tx.shape), tx, ty, level, g)
+    w = _materialise(w)
+    # two atlases, each tap sum consumed whole by one contraction: XLA:CPU then fuses the
+    # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all
+    # (N, Q, 8, C + 4) taps: 10× slower)
+    lum_atlas, geo_atlas = atlas
+    geo = _materialise(_taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
+    cov = geo[..., 3]
     # the samples' normal where the atlas has coverage, the bounding sphere's elsewhere
-    ny = _normalize(val[..., c:c + 3] + (1.0 - jnp.clip(cov, 0.0, 1.0))[..., None] * rel / rj[
-        ..., None])
-    back = -dirs
-    spec = _specular(env, materials, jnp.broadcast_to(sender[:, None], (pos.shape[0], nq)
-                                                       ).reshape(-1), ny.reshape(-1, 3),
-                     back.reshape(-1, 3)).reshape(pos.shape[0], nq, c)
-    sig = jnp.broadcast_to(sigma_env[:, None], dirs.shape[:2])
-    hidden = jax.vmap(lambda d_, s_: _blurred_env(env, d_, s_))(dirs.reshape(-1, 3),
-                                                                 sig.reshape(-1))
-    hidden = hidden.reshape(pos.shape[0], nq, c)
-    return hit[..., None] * (val[..., :c] + cov[..., None] * (spec - hidden))
+    ny = _normalize(geo[..., :3] + (1.0 - jnp.clip(cov, 0.0, 1.0))[..., None] * rel
+                    / rj[..., None])
+    spec, mirror = _specular(sh, jnp.broadcast_to(sender[:, None], (n, nq)).reshape(-1),
+                             ny.reshape(-1, 3), -dirs.reshape(-1, 3))
+    hidden = _env_blur(sh.env, dirs, jnp.broadcast_to(sigma_env[:, None], (n, nq)))
+    wq = wts * hit
+    wc = wq * cov
+    ein = "nq,nqc->nc"
+    out = jnp.einsum(ein, wq, _taps_sum(lum_atlas, idx, w))  # L·cov
+    out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1) - hidden) @ sh.basis
+    if mirror is not None:
+        out = out + jnp.einsum(ein, wc, mirror.reshape(n, nq, c))
+    return out
 
 
-def _hidden_source_gloss(env: EnvironmentMap, materials: Sequence[Material], geom: IRGeometry,
-                         obj: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array
-                         ) -> jax.Array | None:
+def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: jax.Array,
+                         nrm: jax.Array, view: jax.Array) -> jax.Array | None:
     """β Σ_s F D G/(4cosθr) Φ_s (N, C) over the bright sources hidden by a neighbour's bounding
     sphere (the part of the receiver's environment gloss that the neighbour blocks)."""
-    src = _source_terms(env)
-    if src is None:
-        return None
-    sdir, sflux = src
-    k_per = geom.n_objects - 1
     o = jnp.maximum(obj, 0)
-    mats = _stack_materials(materials)
-    occ = jnp.zeros((pos.shape[0], sdir.shape[0]), pos.dtype)
-    for k in range(k_per):
-        pair = o * k_per + k
-        oc = geom.centre_j[pair] - pos
-        tp = oc @ sdir.T
-        miss2 = jnp.sum(oc * oc, -1)[:, None] - tp * tp
-        occ = jnp.maximum(occ, ((tp > 0.0) & (miss2 < geom.radius_j[pair][:, None] ** 2)
-                                ).astype(pos.dtype))
-    out = jnp.zeros((pos.shape[0], env.channels), pos.dtype)
-    for k, m in enumerate(materials):
+    occ = _hidden_sources(geom, sh.env, pos, o)
+    if occ is None:
+        return None
+    sdir, sflux = _source_terms(sh.env)
+    mats = sh.mats
+    out = jnp.zeros((pos.shape[0], sflux.shape[-1]), pos.dtype)
+    for k, m in enumerate(sh.materials):
         w = _gloss_weights(nrm[:, None], view[:, None], sdir[None], mats["mu"][o][:, None],
                            mats["n"][o][:, None], m.distribution, m.geometry)
         out = jnp.where((o == k)[:, None], (occ * w) @ sflux, out)
-    return mats["beta"][o][:, None] * out
+    return mats["beta"][o][:, None] * (out @ sh.basis)
 
 
 #: receivers per chunk of the gloss quadrature (only chunks with a lobe near a neighbour run)
 _GLOSS_CHUNK = 128
+#: receivers evaluated in one batch before the chunks: this fraction of the slots, at least
+#: ``_GLOSS_MAIN`` (the active ones come first)
+_GLOSS_FRACTION = 0.15
+_GLOSS_MAIN = 1024
 #: a receiver's lobe is evaluated against a neighbour when its mirror direction is within the
 #: neighbour's angular radius plus this many lobe widths μ (D < 1e-10 beyond)
 _LOBE_REACH = 7.0
 
 
-def _lobe_gather(geom: IRGeometry, atlas: jax.Array, materials: Sequence[Material],
-                 env: EnvironmentMap, pos: jax.Array, nrm: jax.Array, view: jax.Array,
-                 obj: jax.Array) -> jax.Array:
+def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading, pos: jax.Array,
+                 nrm: jax.Array, view: jax.Array, obj: jax.Array) -> jax.Array:
     """Gloss and mirror interreflection (N, C): β A(x) Σ_q w_q (neighbour − hidden environment)
     over the receiver's lobe nodes, χ F(θr) (…) along R. Receivers whose lobe cannot reach a
     neighbour are sorted into chunks of ``_GLOSS_CHUNK`` that are skipped."""
     k_per = geom.n_objects - 1
-    c = env.channels
-    mats = _stack_materials(materials)
+    c = sh.env.channels
+    mats = sh.mats
+    materials = sh.materials
     o_all = jnp.maximum(obj, 0)
-    nv_all = jnp.sum(nrm * view, -1)
+    nv_all = _dot3(nrm, view)
     refl_all = 2.0 * nv_all[:, None] * nrm - view
     reach = jnp.zeros(obj.shape, bool)
     for k in range(k_per):
         pair = o_all * k_per + k
         oc = geom.centre_j[pair] - pos
-        d = jnp.sqrt(jnp.maximum(jnp.sum(oc * oc, -1), 1e-30))
-        ang = jnp.arccos(jnp.clip(jnp.sum(oc * refl_all, -1) / d, -1.0, 1.0))
-        half = jnp.arcsin(jnp.clip(geom.radius_j[pair] / d, 0.0, 1.0))
-        reach = reach | (ang < half + _LOBE_REACH * mats["mu"][o_all] + 0.05)
+        d2 = jnp.maximum(_dot3(oc, oc), 1e-30)
+        # angle(R, c_j − x) < asin(r_j/d) + reach, by cosines (no arccos per receiver)
+        lim = jnp.minimum(_atan2_poly(geom.radius_j[pair],
+                                      jnp.sqrt(jnp.maximum(d2 - geom.radius_j[pair] ** 2,
+                                                           1e-30)))
+                          + _LOBE_REACH * mats["mu"][o_all] + 0.05, math.pi)
+        reach = reach | (_dot3(oc, refl_all) > jnp.cos(lim) * jnp.sqrt(d2))
     active = (obj >= 0) & (nv_all > 0.0) & reach
     n = pos.shape[0]
     order = jnp.argsort(jnp.where(active, 0, 1))
-    nc = -(-n // _GLOSS_CHUNK)
-    pad = nc * _GLOSS_CHUNK - n
+    # the first ``main`` receivers in that order (all the active ones, normally) are
+    # evaluated in one batch; the rest in chunks that are skipped unless active
+    main = min(n, -(-max(_GLOSS_MAIN, int(_GLOSS_FRACTION * n)) // _GLOSS_CHUNK) * _GLOSS_CHUNK)
+    nc = -(-(n - main) // _GLOSS_CHUNK)
+    pad = main + nc * _GLOSS_CHUNK - n
 
     def padded(x: jax.Array, fill: Any = 0) -> jax.Array:
         x = x[order]
@@ -900,9 +1068,8 @@ def _lobe_gather(geom: IRGeometry, atlas: jax.Array, materials: Sequence[Materia
             x = jnp.concatenate([x, jnp.broadcast_to(jnp.asarray(fill, x.dtype), (pad, 3))])
         else:
             x = jnp.pad(x, (0, pad), constant_values=fill)
-        return x.reshape(nc, _GLOSS_CHUNK, *x.shape[1:])
+        return x
 
-    use_mirror = any(not _is_zero(m.chi) for m in materials)
     senders = jnp.asarray([j for _, j in geom.pairs], jnp.int32)
     same = len({(m.distribution, m.geometry) for m in materials}) == 1
 
@@ -911,7 +1078,7 @@ def _lobe_gather(geom: IRGeometry, atlas: jax.Array, materials: Sequence[Materia
         o = jnp.maximum(ob, 0)
         mu, eta = mats["mu"][o], mats["n"][o]
         beta, chi = mats["beta"][o], mats["chi"][o]
-        nv = jnp.sum(nn * vv, -1)
+        nv = _dot3(nn, vv)
         if same:
             m0 = materials[0]
             dirs, wts = jax.vmap(lambda a, b, m_, e_: _lobe_nodes(
@@ -926,19 +1093,22 @@ def _lobe_gather(geom: IRGeometry, atlas: jax.Array, materials: Sequence[Materia
                 sel = o == k
                 dirs = d_k if dirs is None else jnp.where(sel[:, None, None], d_k, dirs)
                 wts = w_k if wts is None else jnp.where(sel[:, None], w_k, wts)
-        albedo = _albedo(materials, ob, nv)
+        # computed once (XLA would otherwise recompute the nodes inside every consumer)
+        dw = _materialise(jnp.concatenate([dirs, wts[..., None]], -1))
+        dirs, wts = dw[..., :3], dw[..., 3]
+        albedo = _albedo_at(sh.albedo, ob, nv)
         lobe_sigma = math.sqrt(2.0) * mu
         acc = jnp.zeros((x.shape[0], c), x.dtype)
         for k in range(k_per):
             pair = o * k_per + k
-            along = _neighbour_along(geom, atlas, materials, env, pair, senders[pair], x, dirs,
+            along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x, dirs, wts,
                                      _EDGE * lobe_sigma, 0.5 * lobe_sigma)
-            acc = acc + (beta * albedo)[:, None] * jnp.einsum("nq,nqc->nc", wts, along)
-            if use_mirror:
+            acc = acc + (beta * albedo)[:, None] * along
+            if sh.mirror:
                 rdir = 2.0 * nv[:, None] * nn - vv
-                m_along = _neighbour_along(geom, atlas, materials, env, pair, senders[pair], x,
-                                           rdir[:, None], jnp.full_like(mu, 0.02),
-                                           jnp.zeros_like(mu))[:, 0]
+                m_along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x,
+                                           rdir[:, None], jnp.ones_like(mu)[:, None],
+                                           jnp.full_like(mu, 0.02), jnp.zeros_like(mu))
                 fres = fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), eta)
                 acc = acc + (chi * fres)[:, None] * m_along
         return jnp.where(act[:, None], acc, 0.0)
@@ -949,75 +1119,150 @@ def _lobe_gather(geom: IRGeometry, atlas: jax.Array, materials: Sequence[Materia
                             lambda a: jnp.zeros(shape.shape, shape.dtype), args)
 
     z = (0.0, 0.0, 1.0)
-    res = jax.lax.map(chunk, (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z),
-                              padded(obj, -1), padded(active, False)))
-    res = res.reshape(nc * _GLOSS_CHUNK, c)[:n]
-    return jnp.zeros((n, c), res.dtype).at[order].set(res)
+    args = (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z), padded(obj, -1),
+            padded(active, False))
+    res = run(tuple(a[:main] for a in args))
+    if nc:
+        rest = jax.lax.map(chunk, tuple(a[main:].reshape(nc, _GLOSS_CHUNK, *a.shape[1:])
+                                        for a in args))
+        res = jnp.concatenate([res, rest.reshape(nc * _GLOSS_CHUNK, c)])
+    return jnp.zeros((n, c), res.dtype).at[order].set(res[:n])
 
 
-def _gather(geom: IRGeometry, dl: jax.Array, spec: jax.Array, frames: tuple[jax.Array, ...],
-            materials: Sequence[Material], env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
-            view: jax.Array, obj: jax.Array) -> jax.Array:
-    """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) from the senders'
-    samples: view-independent radiance ``dl`` (P, M, C), view-dependent ``spec``
-    (P, M, 9, C) on the view grids ``frames``."""
-    g = geom.gather_size
-    ok = obj >= 0
+def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> jax.Array:
+    """(N,) bool: some neighbour's bounding sphere rises above the receiver's tangent plane."""
+    k_per = geom.n_objects - 1
+    sees = jnp.zeros(obj.shape, bool)
+    for k in range(k_per):
+        pair = jnp.maximum(obj, 0) * k_per + k
+        sees = sees | (_dot3(nrm, geom.centre_j[pair] - pos) > -geom.radius_j[pair])
+    return sees & (obj >= 0)
+
+
+def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
+             net: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
+             obj: jax.Array) -> jax.Array:
+    """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) given the diffuse
+    net light ``net`` (N, C) they receive (before α S/π) and the senders' mip ``atlas``."""
     o = jnp.maximum(obj, 0)
-    mats = _stack_materials(materials)
-    alpha, refl = mats["alpha"][o], mats["reflectance"][o]
-
-    # diffuse: the senders' radiance towards x minus the environment they hide, through α S/π
-    net, fsum, hidden, src = _diffuse_gather(geom, dl, spec, frames, env, pos, nrm, obj)
-    net = net - fsum[:, None] * hidden - src
-    out = alpha[:, None] * _times_reflectance(env, refl, net)
-
+    mats = sh.mats
+    out = mats["alpha"][o][:, None] * _times_reflectance(sh.env, mats["reflectance"][o], net)
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
-    cov = geom.s_cov[..., None]
-    atlas = _build_mips(jnp.concatenate([dl * cov, geom.s_nrm * cov, cov], -1), g)
-    nv = jnp.sum(nrm * view, -1)
-    out = out + _lobe_gather(geom, atlas, materials, env, pos, nrm, view, obj)
-    hsrc = _hidden_source_gloss(env, materials, geom, obj, pos, nrm, view)
+    out = out + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj)
+    hsrc = _hidden_source_gloss(sh, geom, obj, pos, nrm, view)
     if hsrc is not None:
         out = out - hsrc
-    vis_any = ok & (nv > 0.0)
-    return jnp.where(vis_any[:, None], out, 0.0)
+    ok = _sees(geom, pos, nrm, obj) & (_dot3(nrm, view) > 0.0)
+    return jnp.where(ok[:, None], out, 0.0)
 
 
-def _sample_diffuse(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap
-                    ) -> jax.Array:
+def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: jax.Array,
+                    nrm: jax.Array, obj: jax.Array) -> jax.Array:
+    """:func:`_diffuse_net` (N, C) at arbitrary receivers, each gathering from all samples of
+    its object's neighbours (receivers sorted by object, chunks of ``_CHUNK``; chunks of
+    receivers that see no neighbour are skipped). The reference for the interpolated
+    :func:`_interpolate_net`, and ``diffuse_at="receivers"``."""
+    n_obj = geom.n_objects
+    k_per = n_obj - 1
+    p_count, m_count = geom.s_area.shape
+    km = k_per * m_count
+    origin = jnp.mean(geom.centre_j, axis=0)
+
+    def per_obj(x: jax.Array) -> jax.Array:
+        return x.reshape(n_obj, km, *x.shape[2:])
+
+    blocks = (per_obj(snd.pos - origin), per_obj(snd.nrm), per_obj(snd.area),
+              *(per_obj(f) for f in snd.frames))
+    lum, spec = per_obj(snd.lum), per_obj(snd.spec)
+    mirror = None if snd.mirror is None else per_obj(snd.mirror)
+    n = pos.shape[0]
+    key = jnp.where(_sees(geom, pos, nrm, obj), obj, n_obj)
+    order = jnp.argsort(key)
+    nc = -(-n // _CHUNK)
+    pad = nc * _CHUNK - n
+    xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
+    ns = jnp.concatenate([nrm[order], jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], nrm.dtype),
+                                                       (pad, 3))]).reshape(nc, _CHUNK, 3)
+    ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
+    c = env.channels
+
+    def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
+        w, tu, tv = _form_factor_block(x0, nx, tuple(b[o] for b in blocks))
+        w = jnp.where(sel[:, None], w, 0.0)
+        lsum, fsum = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else
+                               mirror[o], env.spectral_basis)
+        net = _diffuse_net(geom, env, lsum, fsum, x0 + origin, nx,
+                           jnp.full(x0.shape[:1], o, jnp.int32))
+        return jnp.where(sel[:, None], net, 0.0)
+
+    def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
+        x0, nx, kk = args
+        acc = jnp.zeros((_CHUNK, c), lum.dtype)
+        for o in range(n_obj):
+            sel = kk == o
+            acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
+                                     lambda s: jnp.zeros((_CHUNK, c), lum.dtype), sel)
+        return acc
+
+    res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, c)[:n]
+    return jnp.zeros((n, c), lum.dtype).at[order].set(res)
+
+
+def _sample_diffuse(geom: IRGeometry, sh: _Shading) -> jax.Array:
     """(P, M, C) view-independent radiance α_j S_j E_irr(n_y)/π of each sample."""
     p_count, m_count = geom.s_area.shape
     senders = [j for _, j in geom.pairs]
-    e = jax.vmap(lambda nn: irradiance(env, nn))(geom.s_nrm.reshape(-1, 3))
+    e = jax.vmap(lambda nn: irradiance(sh.env, nn))(geom.s_nrm.reshape(-1, 3))
     e = e.reshape(p_count, m_count, -1)
-    mats = _stack_materials(materials)
     sid = jnp.asarray(senders, jnp.int32)
-    refl = mats["reflectance"][sid][:, None, :]
-    return (mats["alpha"][sid] / math.pi)[:, None, None] * _times_reflectance(env, refl, e)
+    refl = sh.mats["reflectance"][sid][:, None, :]
+    return (sh.mats["alpha"][sid] / math.pi)[:, None, None] * _times_reflectance(sh.env, refl,
+                                                                                   e)
+
+
+DIFFUSE_AT = ("samples", "receivers")
 
 
 def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
-                 receivers: GBuffer, bounces: int) -> jax.Array:
+                 receivers: GBuffer, bounces: int, diffuse_at: str = "samples") -> jax.Array:
     pairs = geom.pairs
     senders = [j for _, j in pairs]
     p_count, m_count = geom.s_area.shape
+    sh = _shading(materials, env)
     live = geom.s_area > 0
     frames = _view_frames(geom)
-    spec = _sample_specular(geom, materials, env, frames)
-    spec = jnp.where(live[..., None, None], spec, 0.0)
-    l0 = jnp.where(live[..., None], _sample_diffuse(geom, materials, env), 0.0)
+    spec, mirror = _sample_specular(geom, sh, frames)
+    l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh), 0.0)
+    cov = geom.s_cov[..., None]
+
+    def senders_with(lum: jax.Array) -> tuple[_Senders, jax.Array]:
+        snd = _Senders(pos=geom.s_pos, nrm=geom.s_nrm, area=geom.s_area, frames=frames,
+                       lum=lum, spec=spec, mirror=mirror)
+        atlas = (_build_mips(lum * cov, geom.gather_size),
+                 _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1), geom.gather_size))
+        return snd, atlas
+
     lum = l0
-    if bounces > 1:
-        sender = jnp.asarray(np.repeat(senders, m_count), jnp.int32)
-        nrm = geom.s_nrm.reshape(-1, 3)
-        view = geom.s_view.reshape(-1, 3)
-        for _ in range(bounces - 1):
-            extra = _gather(geom, lum, spec, frames, materials, env, geom.s_pos.reshape(-1, 3),
-                            nrm, view, jnp.where(live.reshape(-1), sender, -1))
-            lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
-    return _gather(geom, lum, spec, frames, materials, env, receivers.position,
-                   receivers.normal, receivers.view, receivers.object)
+    snd, atlas = senders_with(lum)
+    s_obj = jnp.where(live.reshape(-1), jnp.asarray(np.repeat(senders, m_count), jnp.int32),
+                      -1)
+    s_pos, s_nrm = geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3)
+    net = None
+    for b in range(bounces):
+        if diffuse_at == "samples" or b < bounces - 1:
+            net = _sample_diffuse_net(geom, snd, env)
+        if b == bounces - 1:
+            break
+        extra = _receive(geom, sh, atlas, net.reshape(-1, net.shape[-1]), s_pos, s_nrm,
+                         geom.s_view.reshape(-1, 3), s_obj)
+        lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
+        snd, atlas = senders_with(lum)
+    pos, nrm, obj = receivers.position, receivers.normal, receivers.object
+    if diffuse_at == "samples":
+        rnet = _interpolate_net(geom, net, pos, nrm, obj)
+    else:
+        rnet = _direct_diffuse(geom, snd, env, pos, nrm, obj)
+    return _receive(geom, sh, atlas, rnet, pos, nrm, receivers.view, obj)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1132,6 +1377,7 @@ def interreflection_from(
     *,
     mode: str | None = None,
     bounces: int = 1,
+    diffuse_at: str = "samples",
 ) -> jax.Array:
     """Shading pass of the interreflection: radiance (N, C) to ADD to
     ``shade(materials[obj], env, normal, view)`` at every receiver (DESIGN §1 eq. 6 / §2).
@@ -1146,6 +1392,9 @@ def interreflection_from(
         mode: "gather", "paper" or "none" (default: the geometry's mode).
         bounces: gather mode: number of light exchanges (1 = the neighbours' environment
             lighting only); ignored by "paper" (eq. 6 has one).
+        diffuse_at: gather mode: where the diffuse transfer (form-factor sums) is evaluated:
+            "samples" (default: at the receiving objects' own pass-1 samples, interpolated to
+            the receivers) or "receivers" (at every receiver; ~10× the cost on a frame).
 
     Returns:
         (N, C) float32, W·sr⁻¹·m⁻²·nm⁻¹ per band (or coefficients).
@@ -1154,6 +1403,9 @@ def interreflection_from(
     n = geometry.n_objects
     _check_inputs(n, materials, env, receivers)
     bounces = _check_int(bounces, "bounces", 0, 64)
+    if diffuse_at not in DIFFUSE_AT:
+        raise InputError(f"must be one of {DIFFUSE_AT}, got {diffuse_at!r}",
+                         field="diffuse_at")
     zeros = jnp.zeros((receivers.object.shape[0], env.channels), jnp.float32)
     if mode == "none" or n < 2 or bounces == 0:
         return zeros
@@ -1162,7 +1414,7 @@ def interreflection_from(
                          field="mode")
     if mode == "paper":
         return _paper_mode(geometry, materials, env, receivers)
-    return _gather_mode(geometry, materials, env, receivers, bounces)
+    return _gather_mode(geometry, materials, env, receivers, bounces, diffuse_at)
 
 
 def interreflection(
