@@ -777,18 +777,22 @@ def _verbose(**kwargs: Any) -> None:
 
 
 class CompactLM(eqx.Module):
-    """The Levenberg–Marquardt iteration of ``optimistix.LevenbergMarquardt`` written as one
-    ``lax.while_loop`` over an explicit forward-mode Jacobian (the fit's default solver).
+    """Levenberg–Marquardt as one ``lax.while_loop`` over an explicit forward-mode Jacobian
+    (the fit's default solver).
 
-    Same rules as optimistix: damping λ = 1/step size on JᵀJ + λI (the step solved by
-    Cholesky of the F×F normal matrix), the classical trust region (accept when the actual
-    reduction of ½|r|² is >= 0.01 of the Gauss–Newton model's predicted reduction; step size
-    ×3.5 when >= 0.99, ×0.25 on rejection), Cauchy termination in the max norm
-    (|Δy| < atol + rtol |y| and |Δr| < atol + rtol |r| elementwise, tested on accepted steps).
-    The difference is what gets compiled: the residuals and their Jacobian come from one
-    ``jax.jacfwd`` of the forward model (10 tangents through the cache's custom JVP), where
-    optimistix linearises the model and transposes the linearisation for Jᵀr and JᵀJ; the
-    program is ~40 % smaller to compile (docs/fitting.md, "Timings").
+    The iteration of ``optimistix.LevenbergMarquardt`` with two changes: every damped step
+    solves (JᵀJ + λI) δ = −Jᵀr by Cholesky of the F×F normal matrix; a step is accepted when
+    the actual reduction of ½|r|² is more than 0.01 of the Gauss–Newton model's prediction;
+    λ starts at 1 and is divided by 3.5 after a step predicted within 1 % (optimistix's
+    classical trust region), and after a rejection it becomes max(4λ, τ max (JᵀJ)_ii) with
+    τ = 1e-4, where optimistix multiplies by 4 (the bundled session's first Gauss–Newton steps
+    overshoot: optimistix spent 5 rejections climbing from λ = 1). Termination: optimistix's
+    Cauchy test on accepted steps (|Δy| < atol + rtol |y| and |Δr| < atol + rtol |r|
+    elementwise), or, after a rejection, a next step already below the tolerance on y (the
+    round-off floor; optimistix kept shrinking the step for ~10 more evaluations). What gets
+    compiled is small: the residuals and their Jacobian come from one ``jax.jacfwd`` of the
+    forward model (10 tangents through the cache's custom JVP), where optimistix linearises
+    the model and transposes the linearisation for Jᵀr and JᵀJ.
 
     Attributes:
         rtol, atol: termination tolerances on y and on the residuals.
@@ -854,8 +858,7 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
     Jacobian, predicted readings, step count and whether it terminated (converged)."""
     dt = y0.dtype
     F = y0.shape[0]
-    eps = jnp.finfo(dt).eps
-    big = jnp.finfo(dt).max
+    tau = 1e-4  # the damping after a rejection is at least τ max (JᵀJ)_ii
     B, L = problem.measured.shape  # residuals (B·L,), Jacobian (B·L, F), predictions (B, L)
     rdt = problem.measured.dtype
     r0, j0, p0 = (jnp.zeros((B * L,), rdt), jnp.zeros((B * L, F), rdt), jnp.zeros((B, L), rdt))
@@ -868,12 +871,17 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
         r, J = s["r"], s["J"]
         dy = s["y_eval"] - s["y"]
         rtr = jnp.sum(r * r)
-        predicted = 0.5 * (jnp.sum((J @ dy + r) ** 2) - rtr)
+        predicted = 0.5 * (jnp.sum((J @ dy + r) ** 2) - rtr)  # < 0: the model's reduction
         actual = 0.5 * (jnp.sum(r_e * r_e) - rtr)
         first = s["first"]
-        accept = (actual <= 0.01 * predicted) | first
-        good = (actual < 0.99 * predicted) & (predicted < 0) & jnp.logical_not(first)
-        step = s["step"] * jnp.where(accept, jnp.where(good, 3.5, 1.0), 0.25)
+        neg = predicted < 0
+        rho = jnp.where(neg, actual / jnp.where(neg, predicted, -1.0), -1.0)
+        accept = first | (jnp.isfinite(actual) & (rho > 0.01))
+        # the damping: ÷3.5 after a step the quadratic model predicted within 1 % (ρ > 0.99,
+        # optimistix's rule); after a rejected step ×4, and at least τ max (JᵀJ)_ii of the
+        # start (optimistix: ×4 only)
+        lam = jnp.where(accept, s["lam"] * jnp.where(rho > 0.99, 1.0 / 3.5, 1.0),
+                        jnp.maximum(s["lam"] * 4.0, tau * s["dmax"]))
         y_ok = jnp.max(jnp.abs(dy) / (solver.atol + solver.rtol * jnp.abs(s["y_eval"]))) < 1
         r_ok = jnp.max(jnp.abs(r_e - r) / (solver.atol + solver.rtol * jnp.abs(r_e))) < 1
         y = jnp.where(accept, s["y_eval"], s["y"])
@@ -882,17 +890,24 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
         pred = jnp.where(accept, p_e, s["pred"])
         if solver.verbose:
             jax.debug.callback(_emit, s["steps"], 0.5 * jnp.sum(r * r))
-        pos = step > eps
-        lam = jnp.where(pos, 1.0 / jnp.where(pos, step, 1.0), big)
-        chol = jax.scipy.linalg.cho_factor(J.T @ J + lam * jnp.eye(F, dtype=dt), lower=True)
-        delta = jax.scipy.linalg.cho_solve(chol, J.T @ r)
-        return {"y": y, "y_eval": y - delta, "r": r, "J": J, "pred": pred, "step": step,
-                "first": jnp.zeros((), bool), "done": accept & y_ok & r_ok,
+        A = (J.T @ J).astype(dt)
+        g = (J.T @ r).astype(dt)
+        dmax = jnp.where(first, jnp.max(jnp.diag(A)), s["dmax"])
+        eye = jnp.eye(F, dtype=dt)
+        chol = jax.scipy.linalg.cho_factor(A + lam * eye, lower=True)
+        delta = jax.scipy.linalg.cho_solve(chol, g)
+        # after a rejected step the next one is below the tolerance on y (the damping grew
+        # at the round-off floor, e.g. of a zero-residual problem): nothing left to resolve
+        small = (jnp.logical_not(accept)
+                 & (jnp.max(jnp.abs(delta) / (solver.atol + solver.rtol * jnp.abs(y))) < 1))
+        return {"y": y, "y_eval": y - delta, "r": r, "J": J, "pred": pred, "lam": lam,
+                "dmax": dmax, "first": jnp.zeros((), bool),
+                "done": (accept & jnp.logical_not(first) & y_ok & r_ok) | small,
                 "steps": s["steps"] + 1}
 
-    s0 = {"y": y0, "y_eval": y0, "r": r0, "J": j0, "pred": p0, "step": jnp.ones((), dt),
-          "first": jnp.ones((), bool), "done": jnp.zeros((), bool),
-          "steps": jnp.zeros((), jnp.int32)}
+    s0 = {"y": y0, "y_eval": y0, "r": r0, "J": j0, "pred": p0,
+          "lam": jnp.asarray(1.0, dt), "dmax": jnp.zeros((), dt), "first": jnp.ones((), bool),
+          "done": jnp.zeros((), bool), "steps": jnp.zeros((), jnp.int32)}
     return jax.lax.while_loop(cond, body, s0)
 
 

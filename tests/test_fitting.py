@@ -135,8 +135,10 @@ def test_recovery_own_model(small):
 def test_compact_solver_matches_optimistix(small):
     """The compact Levenberg–Marquardt loop (default) and optimistix.LevenbergMarquardt
     (solver="optimistix", an independent implementation: it linearises the model and
-    transposes the linearisation) run the same iteration: from the same starts on noisy
-    readings they stop at the same optimum, with the same cost, Jacobian and step counts."""
+    transposes the linearisation) reach the same optimum from the same starts on noisy
+    readings: costs within 1e-5, every parameter within a tenth of its standard error (the
+    β–μ–χ valley with χ near its bound 0 is flat), the Jacobians equal where the parameters
+    are, and the compact loop needs no more model evaluations."""
     import equinox as eqx
     import jax.numpy as jnp
 
@@ -156,10 +158,9 @@ def test_compact_solver_matches_optimistix(small):
         out[name] = {k: np.asarray(v, np.float64) for k, v in o.items()}
     a, b = out["compact"], out["optimistix"]
     assert a["converged"].all() and b["converged"].all()
-    np.testing.assert_allclose(a["cost"], b["cost"], rtol=1e-4)
-    # in the physical parameters (χ = y² is flat in y near 0: compare χ itself)
+    np.testing.assert_allclose(a["cost"], b["cost"], rtol=1e-5)
+    assert a["steps"].sum() <= b["steps"].sum() + 30, (a["steps"], b["steps"])
     kinds = [fitting.PARAMETERS[k] for _, k in pr.free]
-    chi = np.array([k == "chi" for k in kinds])
 
     def phys(y):
         return np.array([float(fitting.to_physical(v, k)) for v, k in zip(y, kinds,
@@ -169,20 +170,20 @@ def test_compact_solver_matches_optimistix(small):
         return np.array([fitting._dp_dy(float(v), k) for v, k in zip(y, kinds, strict=True)])
 
     for i in range(2):
-        pa, pb = phys(a["y"][i]), phys(b["y"][i])
-        np.testing.assert_allclose(pa[~chi], pb[~chi], rtol=2e-3)
-        np.testing.assert_allclose(pa[chi], pb[chi], atol=5e-4)
-        ja, jb = a["jacobian"][i] / dp(a["y"][i]), b["jacobian"][i] / dp(b["y"][i])
-        np.testing.assert_allclose(ja, jb, atol=2e-3 * np.abs(jb).max())
-    # same iteration; the last steps, at float32 round-off with these tight tolerances,
-    # may differ in number
-    assert np.all(np.abs(a["steps"] - b["steps"]) <= np.maximum(4, 0.2 * b["steps"])), (
-        a["steps"], b["steps"])
-    # the optimum is a stationary point: Jᵀr ≈ 0 relative to |J||r|
-    for i in range(2):
-        g = a["jacobian"][i].T @ a["residual"][i]
-        assert np.abs(g).max() <= 1e-2 * np.linalg.norm(a["jacobian"][i]) * np.linalg.norm(
-            a["residual"][i])
+        jb = b["jacobian"][i] / dp(b["y"][i])  # physical parameters
+        se = np.sqrt(np.diag(np.linalg.pinv(jb.T @ jb)))
+        np.testing.assert_array_less(np.abs(phys(a["y"][i]) - phys(b["y"][i])), 0.1 * se)
+    # the compact loop's Jacobian against central differences of the residuals
+    y = jnp.asarray(a["y"][0], pr.values.dtype)
+    w = jnp.ones((len(session.readings),), pr.values.dtype)
+    r, J, _ = fitting._residuals_jacobian(y, pr, w)
+    for j in (0, 3, 4):  # α, μ, n of the first object
+        e = np.zeros(y.shape[0])
+        e[j] = 1e-2
+        fd = (np.asarray(fitting.residuals(y + e, pr, w), np.float64)
+              - np.asarray(fitting.residuals(y - e, pr, w), np.float64)) / 2e-2
+        np.testing.assert_allclose(np.asarray(J, np.float64)[:, j], fd,
+                                   atol=2e-2 * np.abs(fd).max())
 
 
 def test_removed_and_unknown_options_are_named(small):
