@@ -434,9 +434,12 @@ def _prepare_custom_calls(targets: list[str] | None) -> bool:
     if targets is None or any(not t.startswith("lapack_") for t in targets):
         return False
     if targets:
-        from jax._src.lax import linalg
+        try:  # a private JAX function: if it moves, programs are compiled instead of loaded
+            from jax._src.lax import linalg
 
-        linalg.initialize_lapack()
+            linalg.initialize_lapack()
+        except Exception:
+            return False
     return True
 
 
