@@ -407,9 +407,10 @@ def prepare(
             "exact" (texel sum over the whole map per sample: the reference, slow).
         quality: gloss of the environment shading: "fast" (default; the pre-integrated
             split-sum approximation ``environment.gloss_split_sum``, a few prefiltered lookups
-            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the fitter's
-            16 × 32; see ``environment.gloss_integral``). Accuracy and cost of each:
-            docs/rendering.md.
+            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the oracle-grade
+            lobe grid, 128 × 24 half-vector nodes, and a texel sum for wide lobes; see
+            ``environment.gloss_integral``). Accuracy and cost of each: docs/rendering.md and
+            docs/lighting.md.
         split_settings: :class:`~spectral_fit.environment.SplitSum` for "fast" (default
             settings when None).
     Raises:
