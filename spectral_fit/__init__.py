@@ -113,6 +113,27 @@ _EXPORTS: dict[str, str] = {
     "camera_model_from_spec": "compositing",
     "scene_camera_model": "live",
     "RunStats": "live",
+    # radiance_cache (the fit's material-independent precomputation)
+    "CacheOptions": "radiance_cache",
+    "GlossNodes": "radiance_cache",
+    "RadianceCache": "radiance_cache",
+    "Sphere": "radiance_cache",
+    "build_gloss_nodes": "radiance_cache",
+    "build_radiance_cache": "radiance_cache",
+    "gloss_from_nodes": "radiance_cache",
+    "cached_radiance": "radiance_cache",
+    "field_radiance": "radiance_cache",
+    "probe_radiance": "radiance_cache",
+    # cold start: persistent caches of compiled programs and prepared scenes (startup)
+    "enable_compilation_cache": "startup",
+    "prepare_cached": "startup",
+    "render_frame_cached": "startup",
+    # frame program: covered pixels without background, output channels, pixel composite
+    # (renderer, compositing)
+    "PixelFrame": "renderer",
+    "render_pixels": "renderer",
+    "with_output": "renderer",
+    "composite_pixels": "compositing",
 }
 
 

@@ -65,6 +65,7 @@ __all__ = [
     "encode_frame",
     "decode_frame",
     "composite",
+    "composite_pixels",
     "camera_model_from_spec",
     "chart_xyz",
     "ChartCalibration",
@@ -305,6 +306,30 @@ def composite(frame, cg_linear, coverage, model: CameraModel) -> jax.Array:
     mixed = cov * cg + (1.0 - cov) * lut[fr.astype(jnp.int32)]
     enc = jnp.round(encode_frame(mixed, model) * 255.0).astype(jnp.uint8)
     return jnp.where(cov > 0, enc, fr)
+
+
+def composite_pixels(frame, cg_linear, index, valid, model: CameraModel) -> jax.Array:
+    """Composite a list of covered pixels over a video frame (the renderer's
+    :class:`~spectral_fit.renderer.PixelFrame`): each valid slot's CG colour, encoded with the
+    model's tone curve, replaces its pixel; every other pixel is the frame's own value.
+    Identical to :func:`composite` with the bool coverage mask of those pixels, but only the
+    N listed pixels are encoded (no full-frame CG image).
+
+    Args:
+        frame: (H, W, 3) uint8 encoded video frame.
+        cg_linear: (N, 3) float linear frame RGB of the CG per slot.
+        index: (N,) int flat pixel index y·W + x per slot.
+        valid: (N,) bool, slots that hold a covered pixel.
+        model: the camera model (its tone curve).
+
+    Returns (H, W, 3) uint8.
+    """
+    fr = jnp.asarray(frame, jnp.uint8)
+    h, w, _ = fr.shape
+    cg = jnp.clip(jnp.asarray(cg_linear), 0.0, 1.0)
+    enc = jnp.round(encode_frame(cg, model) * 255.0).astype(jnp.uint8)
+    idx = jnp.where(jnp.asarray(valid), jnp.asarray(index), h * w)  # out of range: dropped
+    return fr.reshape(h * w, 3).at[idx].set(enc, mode="drop").reshape(h, w, 3)
 
 
 # --------------------------------------------------------------------------------------------

@@ -176,19 +176,29 @@ class GlossQuadrature:
             multiple of the map's solid-angle-weighted mean.
         source_subpoints: 4 (at (±¼, ±¼) texel offsets) or 1 (the texel centre) points per
             source texel.
-        nodes: "visible" (rings × visible arcs) or "gauss" (Gauss–Laguerre rings × full
-            azimuths over the whole narrowed lobe; the earlier rule, kept for comparison).
+        nodes: the ``"exact"`` node rule: "grid" (default; :func:`_grid_nodes`, a
+            ``grid_along`` × ``grid_across`` Cartesian grid on [−grid_extent, grid_extent]²
+            in lobe widths, cut to the disc), "visible" (``radial`` rings × visible arcs,
+            :func:`_visible_nodes`; ``"render"`` always uses it) or "gauss" (Gauss–Laguerre
+            rings × full azimuths over the whole narrowed lobe; kept for comparison).
         texel_sum_from, texel_sum_full: ``"exact"`` replaces the lobe quadrature of ⟨L⟩ by
             the direct texel sum over the unfiltered (residual) map for wide lobes: from μ =
             ``texel_sum_from`` the two are blended (C² in μ) until μ = ``texel_sum_full``,
             above which only the texel sum runs (see :func:`gloss_integral`).
-        tent_points: ``"exact"`` sums each source texel at tent_points² equal-weight points
-            of its footprint in the bilinear map (:func:`_tent_subpoints`).
+        tent_points: tent_points² equal-weight points of each source texel's footprint in
+            the bilinear map (:func:`_tent_subpoints`; ``source_tent_dirs``, kept for callers
+            that sum equal-weight points).
+        tent_gauss: ``"exact"`` sums each source texel's footprint in the bilinear map (the
+            tent over ±1 texel) by a product Gauss rule with this many nodes per half of the
+            tent per axis, (2·tent_gauss)² points (:func:`_tent_gauss_subpoints`).
+        texel_sum_supersample: the wide-lobe texel sum runs over the residual map as the
+            bilinear lookup defines it, sampled this many times finer per axis
+            (``fine_texels``; 1: the texel centres, each texel a box).
     """
 
     radial: int = 16
     azimuthal: int = 32
-    prefilter_ratio: float = 0.3
+    prefilter_ratio: float = 0.2
     render_radial: int = 8
     render_azimuthal: int = 16
     render_prefilter_ratio: float = 0.3
@@ -200,10 +210,15 @@ class GlossQuadrature:
     max_sources: int = 32
     source_threshold: float = 30.0
     source_subpoints: int = 4
-    nodes: str = "visible"
-    texel_sum_from: float = 0.15
-    texel_sum_full: float = 0.25
+    nodes: str = "grid"
+    grid_along: int = 128
+    grid_across: int = 24
+    grid_extent: float = 4.0
+    texel_sum_from: float = 0.12
+    texel_sum_full: float = 0.18
     tent_points: int = 4
+    tent_gauss: int = 4
+    texel_sum_supersample: int = 2
 
 
 QUALITIES = ("exact", "render")
@@ -232,7 +247,18 @@ class EnvironmentMap(eqx.Module):
             sub-point); residual + sources = the map exactly.
         source_tent_dirs: (S, 16, 3) map-frame directions of 16 equal-weight points of each
             source texel's footprint in the bilinear map (the tent over ±1 texel), used by
-            the ``"exact"`` gloss (None: ``source_dirs``).
+            the radiance cache (None: ``source_dirs``).
+        source_fine_dirs, source_fine_weights: (S, P, 3) map-frame directions and (S, P)
+            weights (summing to about 1 per source) of the product Gauss rule over each source
+            texel's bilinear footprint (:func:`_tent_gauss_subpoints`), used by the ``"exact"``
+            gloss: the point's share of the texel's excess flux.
+        source_flux_full: (S, C) excess radiance × solid angle of each source texel in the
+            map's own channels (uncompressed; the ``"exact"`` gloss).
+        source_render_dirs, source_render_weights: the same rule with one node per half of
+            the tent per axis (2 × 2 points at ±⅓ texel; the ``"render"`` gloss).
+        fine_texels: (s²·H·W, r) the residual map (level 0) looked up bilinearly at the
+            texel centres of the s× finer grid, s = ``quadrature.texel_sum_supersample``
+            (the wide-lobe texel sum of ``"exact"``).
         level_sigma: (M,) prefilter std (radians) per level, level 0 = unfiltered (0).
         product_tensor: (K, K, K) basis product tensor in coefficient mode, else None.
         level_shapes / level_offsets: static (H_k, W_k) and atlas offsets per level.
@@ -255,6 +281,12 @@ class EnvironmentMap(eqx.Module):
     quadrature: GlossQuadrature = eqx.field(static=True, default=GlossQuadrature())
     diffuse: str = eqx.field(static=True, default="sh")
     source_tent_dirs: jax.Array | None = None
+    source_fine_dirs: jax.Array | None = None
+    source_fine_weights: jax.Array | None = None
+    source_flux_full: jax.Array | None = None
+    source_render_dirs: jax.Array | None = None
+    source_render_weights: jax.Array | None = None
+    fine_texels: jax.Array | None = None
 
     @property
     def channels(self) -> int:
@@ -324,8 +356,8 @@ class EnvironmentMap(eqx.Module):
                 raise InputError(f"expected a finite ({k}, {k}, {k}) tensor, got {pt.shape}",
                                  path=path, field="product_tensor")
         quad = quadrature or GlossQuadrature()
-        if quad.nodes not in ("visible", "gauss"):
-            raise InputError(f"must be 'visible' or 'gauss', got {quad.nodes!r}",
+        if quad.nodes not in ("grid", "visible", "gauss"):
+            raise InputError(f"must be 'grid', 'visible' or 'gauss', got {quad.nodes!r}",
                              field="quadrature.nodes")
         if not 0.0 < quad.texel_sum_from < quad.texel_sum_full:
             raise InputError("need 0 < texel_sum_from < texel_sum_full, got "
@@ -334,6 +366,13 @@ class EnvironmentMap(eqx.Module):
         if not (isinstance(quad.tent_points, int) and quad.tent_points >= 1):
             raise InputError(f"must be an integer >= 1, got {quad.tent_points!r}",
                              field="quadrature.tent_points")
+        if not (isinstance(quad.texel_sum_supersample, int)
+                and 1 <= quad.texel_sum_supersample <= 4):
+            raise InputError(f"must be an integer in 1..4, got {quad.texel_sum_supersample!r}",
+                             field="quadrature.texel_sum_supersample")
+        if not (isinstance(quad.tent_gauss, int) and quad.tent_gauss >= 1):
+            raise InputError(f"must be an integer >= 1, got {quad.tent_gauss!r}",
+                             field="quadrature.tent_gauss")
         if quad.source_subpoints not in (1, 4):
             raise InputError(f"must be 1 or 4, got {quad.source_subpoints!r}",
                              field="quadrature.source_subpoints")
@@ -354,9 +393,12 @@ class EnvironmentMap(eqx.Module):
             offsets.append(off)
             off += h * w + 2
         atlas = np.concatenate(flat)
+        fine_dirs, fine_w = _tent_gauss_subpoints(img.shape[0], img.shape[1], scells,
+                                                  quad.tent_gauss)
+        rdirs, rw = _tent_gauss_subpoints(img.shape[0], img.shape[1], scells, 1)
         pbasis = _spectral_basis(np.concatenate([atlas, sflux]), compress_tol)
         atlas_r = atlas @ pbasis.T
-        return cls(
+        env = cls(
             texels=jnp.asarray(img, dtype),
             rotation=jnp.asarray(R, dtype),
             sh=jnp.asarray(sh_coefficients(img), dtype),
@@ -373,7 +415,18 @@ class EnvironmentMap(eqx.Module):
             diffuse=diffuse,
             source_tent_dirs=jnp.asarray(_tent_subpoints(img.shape[0], img.shape[1], scells,
                                                          quad.tent_points), dtype),
+            source_fine_dirs=jnp.asarray(fine_dirs, dtype),
+            source_fine_weights=jnp.asarray(fine_w, dtype),
+            source_flux_full=jnp.asarray(sflux * sdirs.shape[1], dtype),
+            source_render_dirs=jnp.asarray(rdirs, dtype),
+            source_render_weights=jnp.asarray(rw, dtype),
         )
+        ss = quad.texel_sum_supersample
+        fine = jnp.asarray(texel_directions(img.shape[0] * ss, img.shape[1] * ss).reshape(-1, 3),
+                           dtype)
+        fine_texels = jax.jit(jax.vmap(lambda d, e=env: lookup_level(e, 0, d)))(fine)
+        return eqx.tree_at(lambda e: e.fine_texels, env, fine_texels,
+                           is_leaf=lambda x: x is None)
 
 
 def _spectral_basis(x: np.ndarray, tol: float) -> np.ndarray:
@@ -465,6 +518,41 @@ def _tent_subpoints(h: int, w: int, cells: np.ndarray, m: int = 4) -> np.ndarray
     v = np.clip((cells[:, 0:1] + 0.5 + dv.reshape(1, -1)) / h, 0.0, 1.0)
     u = (cells[:, 1:2] + 0.5 + du.reshape(1, -1)) / w
     return uv_to_direction(u, v)
+
+
+def _tent_gauss_rule(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """2m nodes and weights (summing to 1) on [−1, 1] for the weight 1 − |x| (the tent):
+    Gauss–Jacobi (α = 1, β = 0) on each half, exact for polynomials of degree 2m − 1 on
+    each linear piece (the tent's kink at 0 falls between the halves)."""
+    from scipy.special import roots_jacobi
+
+    x, w = roots_jacobi(m, 1.0, 0.0)  # weight (1 − x) on [−1, 1]
+    t, wt = 0.5 * (x + 1.0), 0.25 * w  # weight (1 − t) on [0, 1]; Σ wt = ½
+    return np.concatenate([-t[::-1], t]), np.concatenate([wt[::-1], wt])
+
+
+def _tent_gauss_subpoints(h: int, w: int, cells: np.ndarray, m: int = 4
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(S, 4m², 3) map-frame directions and (S, 4m²) weights of a product Gauss rule over each
+    source texel's footprint in the bilinear map: its excess radiance E spreads as
+    E·tent(Δu)·tent(Δv) (texel units, ±1 texel), so its flux is E ∫ tent tent dω with
+    dω = sinθ dθ dφ. The weights are w_u w_v sinθ_k (π/H)(2π/W) divided by the texel's solid
+    angle, i.e. each point's share of the flux E·Δω_texel that ``source_flux`` carries (their
+    sum is 1 up to the variation of sinθ across the footprint). Points beyond a pole are
+    dropped (zero weight)."""
+    x, wx = _tent_gauss_rule(m)
+    k = x.size
+    if cells.shape[0] == 0:
+        return np.zeros((0, k * k, 3)), np.zeros((0, k * k))
+    dv, du = np.meshgrid(x, x, indexing="ij")
+    wv, wu = np.meshgrid(wx, wx, indexing="ij")
+    v = (cells[:, 0:1] + 0.5 + dv.reshape(1, -1)) / h
+    u = (cells[:, 1:2] + 0.5 + du.reshape(1, -1)) / w
+    inside = (v > 0.0) & (v < 1.0)
+    v = np.clip(v, 0.0, 1.0)
+    sa = texel_solid_angles(h, w)[cells[:, 0], 0][:, None]
+    wgt = (wv * wu).reshape(1, -1) * np.sin(np.pi * v) * (2.0 * np.pi * np.pi / (h * w)) / sa
+    return uv_to_direction(u, v), np.where(inside, wgt, 0.0)
 
 
 def _sphere_blur(img: np.ndarray, sigma: float) -> np.ndarray:
@@ -1022,23 +1110,34 @@ def gloss_integral(
       levels blended smoothly in log σ) with the lobe D' narrowed so that narrowed lobe ⊛
       prefilter has the true lobe's width; near the surface's horizon each node's σ is cut to
       ``horizon_ratio`` × its elevation.
-    - ``"exact"``, wide lobes: ⟨L⟩ = Σ w_t L_t / Σ w_t, the direct sum over the texels of the
-      unfiltered map, w_t = F D G/(4 cosθr) Δω_t at the texel centres (:func:`_texel_mean`;
-      one integrand evaluation per texel, no lookups). The narrowing above is exact only for
+    - ``"exact"``, wide lobes: ⟨L⟩ = Σ w_t L_t / Σ w_t, the direct sum over the unfiltered
+      (bilinear) map sampled at the centres of a 2× finer grid, w_t = F D G/(4 cosθr) Δω_t
+      (:func:`_texel_mean`; four integrand evaluations per texel, no lookups; 1× — each
+      texel a box — was up to 3 % off for μ = 0.2 at θr = 80°, where the lobe is two texels
+      across). The narrowing above is exact only for
       a Gaussian lobe in a flat tangent plane; for wide lobes g, the horizon and the sphere's
       curvature change the lobe on the scale of σ and the prefiltered quadrature is biased
       (∝ σ²: 3–9 % at μ = 0.5 with r = 0.3, up to 26 % on the room map), while the texel
       sum's error (the integrand's variation inside one texel) falls as the lobe widens.
-      From μ = ``texel_sum_from`` (0.15) to ``texel_sum_full`` (0.25) the two are blended
+      From μ = ``texel_sum_from`` (0.12) to ``texel_sum_full`` (0.18) the two are blended
       with a C² weight in μ; only the branches a given μ needs run (``jax.lax.cond``).
+    - ``"exact"``, narrow lobes: the nodes are a Cartesian grid in the half-vector tangent
+      plane (:func:`_grid_nodes`, 128 along the plane of incidence × 24 across, r = 0.2),
+      dense along the plane of incidence so that at grazing views, where the prefilter must
+      be as narrow as the lobe is across (∝ cosθr), the map is still sampled within ~2
+      prefilter stds; the across-narrowing uses each column's own V·H. (The polar rule of
+      :func:`_visible_nodes`, kept for ``"render"``, aliased there: up to 6.8 % at θr = 75°.)
     - Bright sources taken out of the map (:func:`_extract_sources`) are added exactly
-      at sub-points: in ``"exact"`` 16 points of each source texel's footprint in the bilinear
-      map (:func:`_tent_subpoints`), in ``"render"`` its ``source_subpoints``.
+      at sub-points: in ``"exact"`` by a product Gauss rule (8 × 8 points) over each source
+      texel's footprint in the bilinear map (:func:`_tent_gauss_subpoints`), in the map's
+      own channels; in ``"render"`` its ``source_subpoints`` in the compressed channels.
 
     The nodes move smoothly with μ, n, N, V and the texel weights are smooth functions of them,
     so the result is smooth in μ and n (no tables in μ or n; the level blend and the method
-    blend are C²). ``quality`` picks the node counts and r: ``"exact"`` (16 × 32 nodes,
-    r = 0.3, texel sum for wide lobes) or ``"render"`` (8 × 16 nodes, r = 0.3; see
+    blend are C²; the bilinear lookups make it piecewise smooth, with slope jumps of ~1/M of
+    the lobe where one of the M nodes crosses a texel line). ``quality`` picks the node
+    counts and r: ``"exact"`` (128 × 24 grid, r = 0.2, texel sum for wide lobes) or
+    ``"render"`` (8 × 16 polar nodes, r = 0.3; see
     docs/lighting.md for the measured accuracy of each). Zero if N·V <= 0.
 
     Args:
@@ -1075,8 +1174,9 @@ def gloss_integral(
         radial, azimuthal, ratio = quad.radial, quad.azimuthal, quad.prefilter_ratio
     mean_kw = dict(distribution=distribution, **kw)
     if quality == "render":
+        rule = "visible" if quad.nodes == "grid" else quad.nodes
         mean = _lobe_mean(env, N, V, mu, n, nv, radial=radial, azimuthal=azimuthal,
-                          ratio=ratio, **mean_kw)
+                          ratio=ratio, node_rule=rule, **mean_kw)
     else:
         # wide lobes: the texel sum; narrow ones: the lobe quadrature; C² blend in between.
         # Only the branches needed for this μ run (both, if μ is batched under vmap).
@@ -1099,23 +1199,98 @@ def gloss_integral(
             mu_c = float(mu)
             mean = lobe() if mu_c <= a else texels() if mu_c >= b else blend()
     out = albedo * mean
-    if env.source_flux.shape[0]:
-        out = out + _source_gloss(env, N, V, mu, n, distribution=distribution,
-                                  tent=quality == "exact", **kw)
-    return jnp.where(nv_raw > 0.0, out @ env.spectral_basis, 0.0)
+    tent = "exact" if quality == "exact" else "render"
+    full = env.source_flux_full is not None and (
+        env.source_fine_dirs if tent == "exact" else env.source_render_dirs) is not None
+    if env.source_flux.shape[0] and not full:
+        out = out + _source_gloss(env, N, V, mu, n, distribution=distribution, **kw)
+    spec = out @ env.spectral_basis
+    if env.source_flux.shape[0] and full:
+        # in the map's own channels: the principal-spectra compression bounds the error per
+        # texel over all channels, not per band (up to 0.4 % in the dim bands of a lamp)
+        spec = spec + _source_gloss(env, N, V, mu, n, distribution=distribution, tent=tent,
+                                    **kw)
+    return jnp.where(nv_raw > 0.0, spec, 0.0)
+
+
+def _grid_nodes(
+    N: jax.Array, V: jax.Array, mu: jax.Array, var: jax.Array, nv: jax.Array, *,
+    distribution: str, along: int, across: int, extent: float,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Half vectors (M, 3), relative weights (M,) and cosθh (M,) of a Cartesian quadrature of
+    the gloss lobe narrowed for a reflected-direction prefilter of variance ``var`` per axis.
+
+    Tangent coordinates (x, y) of H around N (exponential map θh for the Gaussian D, tanθh for
+    Beckmann), x along V's azimuth (the plane of incidence), y across it. The narrowed lobe is
+    exp(−x²/w_t² − y²/w_b²) with w_t² = μ² − var/2, w_b² = μ² − var/(2cos²θr) (reflection
+    maps a step in x to 2 in reflected directions and a step in y to ≈ 2cosθr). Nodes: a
+    uniform ``along`` × ``across`` midpoint grid on [−extent, extent]² in (x/w_t, y/w_b)
+    (the trapezoid rule, spectrally accurate for the Gaussian). The reflected directions are
+    then spaced 4·extent·w_t/along along the plane of incidence and
+    4·extent·w_b·cosθr/across across it, so at grazing views, where the isotropic prefilter
+    must be as narrow as the lobe across (∝ cosθr), the many nodes along keep the spacing
+    at 0.44/cosθr prefilter stds (r = 0.2; 2.5 at θr = 80°; the polar rule of
+    :func:`_visible_nodes` had ~10 there and aliased). Half vectors that reflect V below the surface
+    get zero weight from G in the caller's lobe factor (the integrand goes to zero
+    continuously at the horizon). Nodes move smoothly with μ, N and V."""
+    dtype = N.dtype
+    nv = jnp.clip(nv, 0.0, 1.0)
+    floor = 0.01 * mu * mu
+    wt = jnp.sqrt(jnp.maximum(mu * mu - 0.5 * var, floor))
+    gx = extent * ((np.arange(along) + 0.5) * (2.0 / along) - 1.0)
+    gy = extent * ((np.arange(across) + 0.5) * (2.0 / across) - 1.0)
+    X, Y = np.meshgrid(gx, gy, indexing="ij")
+    X, Y = X.reshape(-1), Y.reshape(-1)
+    keep = X * X + Y * Y <= extent * extent  # outside the disc the weight is < e^-extent²
+    X, Y = X[keep], Y[keep]
+    wq = jnp.asarray(np.exp(-(X * X + Y * Y)), dtype)
+    x = wt * jnp.asarray(X, dtype)
+    # across the plane of incidence a step in y moves the reflected direction by 2 (V·H); along
+    # the lobe V·H = cos(θr − θx) changes (strongly at grazing views), so the across width is
+    # narrowed per column with the local factor. Nodes at y = w_b(x)·Y keep the weights
+    # exp(−X² − Y²): the narrowed column's density (μ/w_b) e^{−y²/w_b²} times dy = w_b dY.
+    theta_x = x if distribution == "gaussian" else jnp.arctan(x)
+    sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 1e-12))  # gradient-safe at V = N
+    c = nv * jnp.cos(theta_x) + sin_r * jnp.sin(theta_x)  # cos(θr − θx)
+    wb = jnp.sqrt(jnp.maximum(mu * mu - 0.5 * var / jnp.maximum(c * c, 1e-4), floor))
+    y = wb * jnp.asarray(Y, dtype)
+    r = jnp.sqrt(x * x + y * y)
+    r_safe = jnp.where(r > 1e-12, r, 1.0)
+    if distribution == "gaussian":
+        cos_h, sin_h = jnp.cos(r), jnp.sin(r)
+        jac = jnp.where(r > 1e-4, sin_h / r_safe, 1.0 - r * r / 6.0)
+    elif distribution == "beckmann":
+        cos_h = 1.0 / jnp.sqrt(1.0 + r * r)
+        sin_h = r * cos_h
+        jac = 1.0 / cos_h  # D dω_H ∝ e^{−(x²+y²)/m²} dx dy / cosθh
+    else:
+        raise InputError(f"unknown distribution {distribution!r}", field="distribution")
+    T, B = _view_frame(N, V)
+    ux = x / r_safe
+    uy = y / r_safe
+    H = cos_h[:, None] * N + (sin_h * ux)[:, None] * T + (sin_h * uy)[:, None] * B
+    # past θh = π/2 a half vector is below the surface: no weight (D = 0 there)
+    w = jnp.where(cos_h > 0.0, wq * jac, 0.0)
+    return H, w, cos_h
 
 
 def _lobe_mean(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.Array,
                nv: jax.Array, *, radial: int, azimuthal: int, ratio: float, distribution: str,
-               geometry: str, fresnel: bool) -> jax.Array:
+               geometry: str, fresnel: bool, node_rule: str | None = None) -> jax.Array:
     """⟨L⟩ (r,): the g-weighted mean of the prefiltered residual map over the narrowed lobe
     (:func:`_visible_nodes`), zero where the lobe has no weight."""
     quad = env.quadrature
     sigma = ratio * math.sqrt(2.0) * mu * jnp.maximum(nv, 0.05)
     _, _, _, var = _levels_for(env, sigma)
-    nodes = _visible_nodes if quad.nodes == "visible" else _narrowed_nodes
-    Hb, wb, chb = nodes(N, V, mu, var, nv, distribution=distribution,
-                        radial=radial, azimuthal=azimuthal)
+    rule = node_rule or quad.nodes
+    if rule == "grid":
+        Hb, wb, chb = _grid_nodes(N, V, mu, var, nv, distribution=distribution,
+                                  along=quad.grid_along, across=quad.grid_across,
+                                  extent=quad.grid_extent)
+    else:
+        nodes = _visible_nodes if rule == "visible" else _narrowed_nodes
+        Hb, wb, chb = nodes(N, V, mu, var, nv, distribution=distribution,
+                            radial=radial, azimuthal=azimuthal)
     gb, L = _lobe_factor(N, V, Hb, chb, mu, n, geometry=geometry, fresnel=fresnel)
     f = wb * gb
     # near the surface's horizon the prefilter would blur in light from behind the surface:
@@ -1130,20 +1305,26 @@ def _lobe_mean(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array, n
 
 def _texel_mean(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.Array,
                 *, distribution: str, geometry: str, fresnel: bool) -> jax.Array:
-    """⟨L⟩ (r,) by the direct texel sum over the unfiltered residual map (atlas level 0, each
-    texel a box of constant radiance): Σ w_t L_t / Σ w_t with w_t = F D G /(4 cosθr) Δω_t at
-    the texel centres. Its error is the variation of the integrand inside one texel, so it is
-    accurate for lobes several texels wide (μ >~ 0.2 on a 128-row map); it costs one integrand
-    evaluation per texel and no lookups."""
+    """⟨L⟩ (r,) by the direct texel sum over the unfiltered residual map as the bilinear
+    lookup defines it, sampled at the texel centres of an s× finer grid (``fine_texels``,
+    s = ``texel_sum_supersample``; s = 1: level 0 of the atlas, each texel a box):
+    Σ w_t L_t / Σ w_t with w_t = F D G /(4 cosθr) Δω_t at the fine centres. Its error is the
+    variation of the integrand inside one fine texel, so it is accurate for lobes a few
+    texels wide (μ >~ 0.12 on a 128-row map at s = 2, up to θr = 80°); it costs s² integrand
+    evaluations per texel and no lookups."""
     h, w = env.level_shapes[0]
     dtype = env.atlas.dtype
-    dirs = jnp.asarray(texel_directions(h, w).reshape(-1, 3), dtype)
-    sa = jnp.asarray(texel_solid_angles(h, w).reshape(-1), dtype)
+    ss = env.quadrature.texel_sum_supersample
+    values = env.atlas[: h * w] if env.fine_texels is None else env.fine_texels
+    if env.fine_texels is None:
+        ss = 1
+    dirs = jnp.asarray(texel_directions(h * ss, w * ss).reshape(-1, 3), dtype)
+    sa = jnp.asarray(texel_solid_angles(h * ss, w * ss).reshape(-1), dtype)
     # work in the map frame: rotate N and V instead of every texel direction
     wgt = _integrand(dirs, _to_map(env, N), _to_map(env, V), mu, n, distribution=distribution,
                      geometry=geometry, fresnel=fresnel) * sa
     total = jnp.sum(wgt)
-    return (wgt @ env.atlas[: h * w]) / jnp.where(total > 0.0, total, 1.0)
+    return (wgt @ values) / jnp.where(total > 0.0, total, 1.0)
 
 
 def _integrand(d: jax.Array, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.Array, *,
@@ -1172,18 +1353,24 @@ def _integrand(d: jax.Array, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.A
 
 
 def _source_gloss(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.Array,
-                  *, distribution: str, geometry: str, fresnel: bool, tent: bool = False
+                  *, distribution: str, geometry: str, fresnel: bool, tent: str | None = None
                   ) -> jax.Array:
-    """Σ over source sub-points of F D G / (4 cosθr) · excess flux (the exact integrand).
-    ``tent``: the 16 points of each source texel's bilinear footprint
-    (:func:`_tent_subpoints`) instead of its ``source_subpoints`` points inside the texel;
-    lobes narrower than a texel (small μ, grazing views) need them."""
-    k = env.source_dirs.shape[1]
-    dirs, scale = env.source_dirs, 1.0
-    if tent and env.source_tent_dirs is not None:
-        dirs, scale = env.source_tent_dirs, k / env.source_tent_dirs.shape[1]
+    """Σ over source sub-points of F D G / (4 cosθr) · excess flux (the exact integrand), in
+    the r compressed channels (``source_subpoints`` points inside each source texel), or with
+    ``tent`` in the map's C channels: the product Gauss rule over each source texel's
+    footprint in the bilinear map (:func:`_tent_gauss_subpoints`, ``source_flux_full``);
+    lobes narrower than a few texels (small μ, grazing views) need the footprint.
+    ``tent`` = "exact": (2·tent_gauss)² points per source texel; "render": 2 × 2."""
+    if tent:
+        dirs, pw = ((env.source_fine_dirs, env.source_fine_weights) if tent == "exact"
+                    else (env.source_render_dirs, env.source_render_weights))
+        d = dirs.reshape(-1, 3) @ env.rotation.T  # world directions (S·P, 3)
+        wgt = _integrand(d, N, V, mu, n, distribution=distribution, geometry=geometry,
+                         fresnel=fresnel).reshape(dirs.shape[:2])
+        return jnp.sum(wgt * pw, axis=1) @ env.source_flux_full
+    dirs = env.source_dirs
     d = dirs.reshape(-1, 3) @ env.rotation.T  # world directions (S·k, 3)
-    flux = jnp.repeat(env.source_flux * scale, dirs.shape[1], axis=0)
+    flux = jnp.repeat(env.source_flux, dirs.shape[1], axis=0)
     wgt = _integrand(d, N, V, mu, n, distribution=distribution, geometry=geometry,
                      fresnel=fresnel)
     return wgt @ flux
@@ -1486,15 +1673,12 @@ def _split_levels(pre: SplitSumMap, sigma: jax.Array
 
 
 def _materialise(x: jax.Array) -> jax.Array:
-    """x (..., K), computed once into memory: a product with the identity (a dot, which XLA
-    does not fuse into its neighbours) cuts the fusion, so that XLA:CPU does not recompute
-    x's whole expression inside every consumer (measured: 7× less CPU time for the split-sum
-    gloss). Exact (multiplications by 1 and additions of 0); K² MACs per row."""
-    k = x.shape[-1]
-    lead = x.shape[:-1]
-    eye = jnp.eye(k, dtype=x.dtype)
-    return jax.lax.dot(x.reshape(-1, k), eye, precision=jax.lax.Precision.HIGHEST
-                       ).reshape(*lead, k)
+    """x, computed once into memory: an optimisation barrier cuts the fusion, so that
+    XLA:CPU does not recompute x's whole expression inside every consumer (measured: 7× less
+    CPU time for the split-sum gloss). Exact. (It was a product with the identity, which
+    also cuts the fusion, but YNNPACK's dot of an (N, 5) by (5, 5) cost ~20 % of the gloss;
+    the barrier measured 12–15 % less CPU for the gloss, 5–8 % for the close-up frame.)"""
+    return jax.lax.optimization_barrier(x)
 
 
 def _split_lookup(pre: SplitSumMap, u: jax.Array, v: jax.Array, lo: jax.Array,

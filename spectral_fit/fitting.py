@@ -21,8 +21,10 @@ Pipeline (geometry and poses are fixed while materials are fitted):
    sphere; every term is a weighted sum of cached radiances with weights from F, D, G, so
    the Jacobian is exact autodiff, interreflection included; B the instrument's band-pass,
    :func:`band_matrix`). With ``geometry = "SCI"`` reflectance, S = max(S_SCI − F(n, 8°), 0).
-3. :func:`fit` — weighted least squares with optimistix Levenberg–Marquardt, several starts
-   solved one after the other in one program, uncertainties from the Jacobian, a bootstrap over
+3. :func:`fit` — weighted least squares by Levenberg–Marquardt (:class:`CompactLM`, the
+   iteration of ``optimistix.LevenbergMarquardt`` in one small compiled loop, or optimistix
+   itself with ``solver="optimistix"``), several starts solved one after the other in one
+   program, uncertainties from the Jacobian, a bootstrap over
    readings, identifiability warnings, the sensitivity of each reading to aiming error, and
    the hold-out prediction of interreflection readings from a fit on object-colour readings.
 
@@ -57,6 +59,8 @@ from .gbuffer import GBuffer, ObjectGeometry
 from .session import PARAMETERS, Session
 
 __all__ = [
+    "CompactLM",
+    "SOLVERS",
     "FitProblem",
     "FitResult",
     "FitOptions",
@@ -127,6 +131,62 @@ def scene_environment(scene: Any, *, dtype: Any = jnp.float32, compress_tol: flo
     img = np.asarray(img, np.float64) * spec.scale
     return EnvironmentMap.from_array(img, rotation_y_deg=spec.rotation_y_deg, dtype=dtype,
                                      compress_tol=compress_tol, path=str(spec.file))
+
+
+def _openblas_thread_setters() -> list[tuple[Any, Any]]:
+    """(get, set) thread-count functions of every OpenBLAS library loaded in this process
+    (numpy's and scipy's bundled copies), found in ``/proc/self/maps``; [] elsewhere."""
+    import ctypes
+    import os
+
+    out: list[tuple[Any, Any]] = []
+    try:
+        with open(f"/proc/{os.getpid()}/maps") as fh:
+            libs = sorted({ln.split()[-1] for ln in fh if "openblas" in ln and ".so" in ln})
+    except OSError:
+        return out
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for suffix in ("64_", "", "_64_"):
+            for prefix in ("scipy_openblas", "openblas"):
+                get = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
+                put = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
+                if get is not None and put is not None:
+                    get.restype = ctypes.c_int
+                    put.argtypes = [ctypes.c_int]
+                    out.append((get, put))
+                    break
+            else:
+                continue
+            break
+    return out
+
+
+class _single_blas_thread:
+    """Context: numpy's OpenBLAS runs on one thread inside (restored after).
+
+    The preparation's products are small (64-row chunks of the texel sums, the prefilter's
+    129 batched 128×128 products); on a loaded 2-core machine OpenBLAS's second thread
+    spin-waited and took ~6× the CPU time (docs/fitting.md, "Timings"). No-op where the
+    library cannot be found."""
+
+    def __enter__(self) -> _single_blas_thread:
+        self._saved = []
+        for get, put in _openblas_thread_setters():
+            try:
+                n = int(get())
+                put(1)
+                self._saved.append((put, n))
+            except Exception:  # a foreign BLAS build: leave it alone
+                continue
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for put, n in self._saved:
+            put(n)
 
 
 # ----------------------------------------------------------------------------- parametrisation
@@ -203,9 +263,18 @@ class FitProblem(eqx.Module):
 
 
 def _physical_from_y(problem: FitProblem, y: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(O, 6) physical parameters (fixed ones from ``problem.values``) and the global scale
+    at unconstrained ``y`` (:func:`to_physical`, all free parameters in one vector op)."""
     vals = problem.values
-    for j, (o, k) in enumerate(problem.free):
-        vals = vals.at[o, k].set(to_physical(y[j], PARAMETERS[k]))
+    if problem.free:
+        kinds = [PARAMETERS[k] for _, k in problem.free]
+        sq = np.array([k in ("chi", "gamma") for k in kinds])
+        shift = np.array([1.0 if k == "n" else 0.0 for k in kinds])
+        yf = y[:len(kinds)]
+        p = jnp.where(sq, yf * yf, shift.astype(vals.dtype) + jnp.exp(yf))
+        o_idx = np.array([o for o, _ in problem.free])
+        k_idx = np.array([k for _, k in problem.free])
+        vals = vals.at[o_idx, k_idx].set(p)
     scale = to_physical(y[-1], "scale") if problem.fit_scale else jnp.ones((), vals.dtype)
     return vals, scale
 
@@ -218,19 +287,15 @@ def _physical_from_p(problem: FitProblem, p: jax.Array) -> tuple[jax.Array, jax.
     return vals, scale
 
 
-def _materials(problem: FitProblem, values: jax.Array) -> list[Any]:
-    from .reflectance import Material, fresnel_dielectric
+def _reflectances(problem: FitProblem, values: jax.Array) -> jax.Array:
+    """(O, L) Lambert S(λ) of the objects for physical parameters ``values (O, 6)``: the
+    measured reflectance, minus the first-surface reflection F(n, 8°) where it is SCI."""
+    from .reflectance import fresnel_dielectric
 
     cos8 = math.cos(math.radians(_SCI_ANGLE_DEG))
-    out = []
-    for o, (dist, geom) in enumerate(problem.models):
-        n = values[o, PARAM_INDEX["n"]]
-        s = problem.reflectance[o]
-        s = jnp.where(problem.sci[o] > 0, jnp.maximum(s - fresnel_dielectric(cos8, n), 0.0), s)
-        out.append(Material(alpha=values[o, 0], beta=values[o, 1], chi=values[o, 2],
-                            mu=values[o, 3], n=n, gamma=values[o, 5], reflectance=s,
-                            distribution=dist, geometry=geom))
-    return out
+    f8 = fresnel_dielectric(jnp.full_like(values[:, 4], cos8), values[:, 4])  # (O,)
+    s = problem.reflectance
+    return jnp.where(problem.sci[:, None] > 0, jnp.maximum(s - f8[:, None], 0.0), s)
 
 
 def sample_radiance(problem: FitProblem, values: jax.Array) -> jax.Array:
@@ -241,11 +306,10 @@ def sample_radiance(problem: FitProblem, values: jax.Array) -> jax.Array:
 
     g = problem.receivers
     obj = jnp.maximum(g.object, 0)
-    mats = _materials(problem, values)
-    S = jnp.stack([m.reflectance for m in mats])  # (O, L)
+    S = _reflectances(problem, values)  # (O, L)
     out, _ = cached_radiance(problem.cache, values, S, obj, problem.models,
                              interreflection=problem.interreflection)
-    ok = g.valid & (problem.cache.nodes.nv > 0.0)
+    ok = g.valid & (problem.cache.sample_nodes.nv > 0.0)
     return jnp.where(ok[:, None], out, 0.0)
 
 
@@ -259,7 +323,7 @@ def interreflection_term(problem: FitProblem, values: jax.Array) -> jax.Array:
     if not problem.interreflection:
         return jnp.zeros_like(problem.irradiance)
     obj = jnp.maximum(g.object, 0)
-    S = jnp.stack([m.reflectance for m in _materials(problem, values)])
+    S = _reflectances(problem, values)
     _, ir = cached_radiance(problem.cache, values, S, obj, problem.models)
     return jnp.where(g.valid[:, None], ir, 0.0)
 
@@ -278,7 +342,7 @@ def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Arr
     from .radiance_cache import field_radiance
 
     obj = jnp.maximum(problem.receivers.object, 0)
-    S = jnp.stack([m.reflectance for m in _materials(problem, values)])
+    S = _reflectances(problem, values)
     mean = field_radiance(problem.cache, values, S, obj, problem.models,
                           interreflection=problem.interreflection)
     mean = (mean + problem.background) @ problem.band.T
@@ -321,12 +385,16 @@ class FitOptions:
         compress_tol: the gloss lookups run in the map's own principal spectra, as many as
             keep every texel within this relative error (see ``EnvironmentMap.from_array``);
             3e-3 keeps 28 of 81 on the bundled map, 6x faster, gloss error 0.07 % of peak.
-        jacobian: kept for compatibility; the Jacobian is always exact (autodiff of the
-            cached model's F, D, G weights).
-        ir_rounds: kept for compatibility; the interreflection term is inside the model and
-            its derivative inside the Jacobian, so no refresh rounds are needed.
         cache: node layout of the radiance cache
             (:class:`spectral_fit.radiance_cache.CacheOptions`).
+        solver: "compact" (default; :class:`CompactLM`, the Levenberg–Marquardt iteration of
+            optimistix in one small compiled loop) or "optimistix"
+            (``optimistix.LevenbergMarquardt`` with a Cholesky normal-equation solve); both
+            reach the same optimum (tested), "compact" compiles in less time.
+
+    The former options ``jacobian`` (the Jacobian is always exact forward-mode autodiff) and
+    ``ir_rounds`` (the interreflection term is inside the model, no refresh rounds) were
+    removed; naming them raises :class:`~spectral_fit.errors.InputError`.
     """
 
     spot_resolution: int = 8
@@ -342,9 +410,32 @@ class FitOptions:
     seed: int = 0
     dtype: Any = jnp.float32
     compress_tol: float = 3e-3
-    jacobian: str = "ad"
-    ir_rounds: int = 1
     cache: Any = None
+    solver: str = "compact"
+
+
+_REMOVED_OPTIONS = {
+    "jacobian": "the Jacobian is always exact forward-mode autodiff of the cached model",
+    "ir_rounds": "the interreflection term is inside the forward model and its Jacobian, so "
+                 "there are no refresh rounds",
+}
+
+
+def _fit_options(options: FitOptions | None, kwargs: dict[str, Any]) -> FitOptions:
+    """``options`` with the keyword overrides applied; removed or unknown option names raise
+    :class:`InputError` naming the option."""
+    for k in kwargs:
+        if k in _REMOVED_OPTIONS:
+            raise InputError(f"the option {k!r} was removed: {_REMOVED_OPTIONS[k]}; drop it",
+                             field=k)
+        if k not in FitOptions.__dataclass_fields__:
+            raise InputError(f"unknown fit option {k!r}; known: "
+                             f"{sorted(FitOptions.__dataclass_fields__)}", field=k)
+    opts = dataclasses.replace(options or FitOptions(), **kwargs)
+    if opts.solver not in SOLVERS:
+        raise InputError(f"unknown solver {opts.solver!r}; choose one of {SOLVERS}",
+                         field="solver")
+    return opts
 
 
 @dataclasses.dataclass
@@ -407,8 +498,6 @@ def _spot_samples(geoms: list[ObjectGeometry], positions: np.ndarray, aims: np.n
     for 10 views of 10×10 pixels). Returns per reading b and disc pixel k: position, normal,
     view, object (−1: the ray misses every object), ray direction.
     """
-    from .camera import look_at
-
     verts = np.concatenate([np.asarray(g.vertices, np.float64) for g in geoms])
     norms = np.concatenate([np.asarray(g.normals, np.float64) for g in geoms])
     tris, tri_obj, base = [], [], 0
@@ -423,7 +512,7 @@ def _spot_samples(geoms: list[ObjectGeometry], positions: np.ndarray, aims: np.n
     centroid = corners.mean(axis=1)
     radius = np.linalg.norm(corners - centroid[:, None], axis=-1).max(axis=1)
     B = len(positions)
-    sel, rots = [], []
+    sel = []
     for b in range(B):
         axis = aims[b] - positions[b]
         axis = axis / np.linalg.norm(axis)
@@ -434,8 +523,9 @@ def _spot_samples(geoms: list[ObjectGeometry], positions: np.ndarray, aims: np.n
         half = math.radians(fields_deg[b]) / 2.0 * math.sqrt(2.0)  # the square's corners
         grow = np.arcsin(np.clip(radius / np.maximum(d, 1e-12), 0.0, 1.0))
         sel.append(np.flatnonzero((ang <= half + grow + 1e-3) & (d > radius)))
-        view = np.asarray(look_at(positions[b], aims[b]), np.float64)
-        rots.append(view[:3, :3])
+    views = np.asarray(_look_at_many(jnp.asarray(positions, jnp.float32),
+                                     jnp.asarray(aims, jnp.float32)), np.float64)
+    rots = [views[b, :3, :3] for b in range(B)]
     keep = disc_pixels(res)
     c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
     X, Y = np.meshgrid(c, -c)
@@ -474,11 +564,13 @@ def _spot_samples(geoms: list[ObjectGeometry], positions: np.ndarray, aims: np.n
     return res_
 
 
-@eqx.filter_jit
-def _lookup_many(env: Any, directions: jax.Array) -> jax.Array:
-    from .environment import lookup
+@jax.jit
+def _look_at_many(eyes: jax.Array, targets: jax.Array) -> jax.Array:
+    """(B, 4, 4) :func:`spectral_fit.camera.look_at` view matrices, one compiled call (the
+    eager per-reading calls cost ~25 dispatches each)."""
+    from .camera import look_at
 
-    return jax.vmap(lambda d: lookup(env, d))(directions)
+    return jax.vmap(look_at)(eyes, targets)
 
 
 def band_matrix(wavelengths: np.ndarray, bandwidth_nm: float) -> np.ndarray:
@@ -523,6 +615,13 @@ def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = No
         InputError: a spot misses its object (< 50 % of the field on it), a stated distance
             disagrees with the geometry, or the session's objects are not the scene's.
     """
+    with _single_blas_thread():
+        return _prepare_fit(scene, session, options=options, env=env, geometries=geometries,
+                            check=check)
+
+
+def _prepare_fit(scene: Any, session: Session, *, options: FitOptions | None,
+                 env: Any, geometries: list[ObjectGeometry] | None, check: bool) -> Prepared:
     opts = options or FitOptions()
     t0 = time.perf_counter()
     dtype = opts.dtype
@@ -581,7 +680,9 @@ def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = No
     L = session.wavelengths.size
     bgp = np.zeros((P, L))
     if (~valid).any():
-        bgp[~valid] = np.asarray(_lookup_many(env, jnp.asarray(rays[~valid], dtype)))
+        from .radiance_cache import _env_lookup
+
+        bgp[~valid] = _env_lookup(env, rays[~valid])
     avg = np.kron(np.eye(B), np.full((1, nd), 1.0 / nd))
     bg = avg @ bgp
     # material-independent radiance: irradiance, mirror direction, gloss nodes, neighbours
@@ -675,14 +776,51 @@ def _verbose(**kwargs: Any) -> None:
     jax.debug.callback(_emit, kwargs["num_steps"][1], kwargs["loss_last_accepted_step"][1])
 
 
+class CompactLM(eqx.Module):
+    """Levenberg–Marquardt as one ``lax.while_loop`` over an explicit forward-mode Jacobian
+    (the fit's default solver).
+
+    The iteration of ``optimistix.LevenbergMarquardt`` with two changes: every damped step
+    solves (JᵀJ + λI) δ = −Jᵀr by Cholesky of the F×F normal matrix; a step is accepted when
+    the actual reduction of ½|r|² is more than 0.01 of the Gauss–Newton model's prediction;
+    λ starts at 1 and is divided by 3.5 after a step predicted within 1 % (optimistix's
+    classical trust region), and after a rejection it becomes max(4λ, τ max (JᵀJ)_ii) with
+    τ = 1e-4, where optimistix multiplies by 4 (the bundled session's first Gauss–Newton steps
+    overshoot: optimistix spent 5 rejections climbing from λ = 1). Termination: optimistix's
+    Cauchy test on accepted steps (|Δy| < atol + rtol |y| and |Δr| < atol + rtol |r|
+    elementwise), or, after a rejection, a next step already below the tolerance on y (the
+    round-off floor; optimistix kept shrinking the step for ~10 more evaluations). What gets
+    compiled is small: the residuals and their Jacobian come from one ``jax.jacfwd`` of the
+    forward model (10 tangents through the cache's custom JVP), where optimistix linearises
+    the model and transposes the linearisation for Jᵀr and JᵀJ.
+
+    Attributes:
+        rtol, atol: termination tolerances on y and on the residuals.
+        verbose: report (step, cost) per iteration through the progress callback.
+    """
+
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    verbose: bool = eqx.field(static=True, default=False)
+
+
+SOLVERS = ("compact", "optimistix")
+
+
 def _solver(opts: FitOptions, progress: bool) -> Any:
-    """optimistix Levenberg–Marquardt whose damped steps solve the normal equations
-    (JᵀJ + λ D) δ = −Jᵀr by Cholesky (``lineax.Normal(lineax.Cholesky())``): with ~10
+    """The solver named by ``opts.solver``: :class:`CompactLM` ("compact", default) or
+    ``optimistix.LevenbergMarquardt`` ("optimistix") whose damped steps solve the normal
+    equations (JᵀJ + λI) δ = −Jᵀr by Cholesky (``lineax.Normal(lineax.Cholesky())``): with ~10
     unknowns and ~1500 residuals this is a 10×10 factorisation per step, where the default
     QR of the materialised (B·L + F) × F augmented operator made each iteration ~7× slower
     here (0.49 s against 3.35 s for the bundled session's 21-22 iterations, same optimum).
     Forming JᵀJ squares the condition number; the damping keeps it positive definite, and
     the float64 exact-recovery test still reaches 1e-6."""
+    if opts.solver == "compact":
+        return CompactLM(rtol=opts.rtol, atol=opts.atol, verbose=progress)
+    if opts.solver != "optimistix":
+        raise InputError(f"unknown solver {opts.solver!r}; choose one of {SOLVERS}",
+                         field="solver")
     import lineax as lx
     import optimistix as optx
 
@@ -697,6 +835,80 @@ def _residuals_aux(y: jax.Array, problem: FitProblem, reading_weights: jax.Array
     pred = predict(problem, vals, scale)
     r = (pred - problem.measured) / problem.sigma
     return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1), pred
+
+
+def _residuals_jacobian(y: jax.Array, problem: FitProblem, reading_weights: jax.Array
+                        ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Weighted residuals (B·L,), their Jacobian (B·L, F) w.r.t. y (``jax.jacfwd``: the model
+    evaluated once, its F tangents batched) and the predicted readings (B, L)."""
+    def model(yy: jax.Array) -> tuple[jax.Array, jax.Array]:
+        vals, scale = _physical_from_y(problem, yy)
+        p = predict(problem, vals, scale)
+        return p, p
+
+    jp, pred = jax.jacfwd(model, has_aux=True)(y)  # (B, L, F), (B, L)
+    sw = jnp.sqrt(reading_weights)[:, None] / problem.sigma
+    r = ((pred - problem.measured) * sw).reshape(-1)
+    return r, (jp * sw[..., None]).reshape(r.shape[0], y.shape[0]), pred
+
+
+def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: CompactLM,
+                max_steps: int) -> dict[str, jax.Array]:
+    """:class:`CompactLM` from ``y0`` (see there); returns the final state's y, residuals,
+    Jacobian, predicted readings, step count and whether it terminated (converged)."""
+    dt = y0.dtype
+    F = y0.shape[0]
+    tau = 1e-4  # the damping after a rejection is at least τ max (JᵀJ)_ii
+    B, L = problem.measured.shape  # residuals (B·L,), Jacobian (B·L, F), predictions (B, L)
+    rdt = problem.measured.dtype
+    r0, j0, p0 = (jnp.zeros((B * L,), rdt), jnp.zeros((B * L, F), rdt), jnp.zeros((B, L), rdt))
+
+    def cond(s: dict[str, jax.Array]) -> jax.Array:
+        return jnp.logical_not(s["done"]) & (s["steps"] < max_steps)
+
+    def body(s: dict[str, jax.Array]) -> dict[str, jax.Array]:
+        r_e, j_e, p_e = _residuals_jacobian(s["y_eval"], problem, w)
+        r, J = s["r"], s["J"]
+        dy = s["y_eval"] - s["y"]
+        rtr = jnp.sum(r * r)
+        predicted = 0.5 * (jnp.sum((J @ dy + r) ** 2) - rtr)  # < 0: the model's reduction
+        actual = 0.5 * (jnp.sum(r_e * r_e) - rtr)
+        first = s["first"]
+        neg = predicted < 0
+        rho = jnp.where(neg, actual / jnp.where(neg, predicted, -1.0), -1.0)
+        accept = first | (jnp.isfinite(actual) & (rho > 0.01))
+        # the damping: ÷3.5 after a step the quadratic model predicted within 1 % (ρ > 0.99,
+        # optimistix's rule); after a rejected step ×4, and at least τ max (JᵀJ)_ii of the
+        # start (optimistix: ×4 only)
+        lam = jnp.where(accept, s["lam"] * jnp.where(rho > 0.99, 1.0 / 3.5, 1.0),
+                        jnp.maximum(s["lam"] * 4.0, tau * s["dmax"]))
+        y_ok = jnp.max(jnp.abs(dy) / (solver.atol + solver.rtol * jnp.abs(s["y_eval"]))) < 1
+        r_ok = jnp.max(jnp.abs(r_e - r) / (solver.atol + solver.rtol * jnp.abs(r_e))) < 1
+        y = jnp.where(accept, s["y_eval"], s["y"])
+        r = jnp.where(accept, r_e, r)
+        J = jnp.where(accept, j_e, J)
+        pred = jnp.where(accept, p_e, s["pred"])
+        if solver.verbose:
+            jax.debug.callback(_emit, s["steps"], 0.5 * jnp.sum(r * r))
+        A = (J.T @ J).astype(dt)
+        g = (J.T @ r).astype(dt)
+        dmax = jnp.where(first, jnp.max(jnp.diag(A)), s["dmax"])
+        eye = jnp.eye(F, dtype=dt)
+        chol = jax.scipy.linalg.cho_factor(A + lam * eye, lower=True)
+        delta = jax.scipy.linalg.cho_solve(chol, g)
+        # after a rejected step the next one is below the tolerance on y (the damping grew
+        # at the round-off floor, e.g. of a zero-residual problem): nothing left to resolve
+        small = (jnp.logical_not(accept)
+                 & (jnp.max(jnp.abs(delta) / (solver.atol + solver.rtol * jnp.abs(y))) < 1))
+        return {"y": y, "y_eval": y - delta, "r": r, "J": J, "pred": pred, "lam": lam,
+                "dmax": dmax, "first": jnp.zeros((), bool),
+                "done": (accept & jnp.logical_not(first) & y_ok & r_ok) | small,
+                "steps": s["steps"] + 1}
+
+    s0 = {"y": y0, "y_eval": y0, "r": r0, "J": j0, "pred": p0,
+          "lam": jnp.asarray(1.0, dt), "dmax": jnp.zeros((), dt), "first": jnp.ones((), bool),
+          "done": jnp.zeros((), bool), "steps": jnp.zeros((), jnp.int32)}
+    return jax.lax.while_loop(cond, body, s0)
 
 
 @eqx.filter_jit
@@ -723,6 +935,14 @@ def _solve_one(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Any,
     """One least-squares solve from start ``y0`` with reading weights ``w`` (unbatched):
     y, cost, converged, steps, residuals, their Jacobian at the last accepted step and the
     predicted readings."""
+    if isinstance(solver, CompactLM):
+        s = _compact_lm(problem, y0, w, solver, max_steps)
+        r = s["r"]
+        cost = 0.5 * jnp.sum(r * r)
+        fin = jnp.isfinite(cost)
+        return {"y": s["y"], "cost": jnp.where(fin, cost, jnp.inf),
+                "converged": s["done"] & fin, "steps": s["steps"], "residual": r,
+                "jacobian": s["J"], "predicted": s["pred"]}
     import optimistix as optx
 
     sol = optx.least_squares(lambda y, ww: _residuals_aux(y, problem, ww), solver, y0,
@@ -940,7 +1160,7 @@ def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
     from .scene import load_scene
     from .session import load_session
 
-    opts = dataclasses.replace(options or FitOptions(), **kwargs)
+    opts = _fit_options(options, kwargs)
     if isinstance(scene, str | Path):
         scene = load_scene(scene)
     if isinstance(session, str | Path):
@@ -986,26 +1206,16 @@ def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
     dt = problem.values.dtype
     solver = _solver(opts, progress is not None)
     say(f"solving: {F} unknowns, {int(use.sum())} readings x {L} bands, {opts.starts} starts "
-        "(Levenberg-Marquardt) ...")
+        f"(Levenberg-Marquardt, {opts.solver}) ...")
     if progress is not None:
         _PROGRESS.append(lambda s, c: say(f"  step {int(np.max(s)):3d}  "
                                           f"best cost {float(np.min(c)):.6g}"))
     t1 = time.perf_counter()
-    rounds = 1  # the interreflection term is inside the model (no refresh rounds)
-    ys = starts
-    out: dict[str, np.ndarray] = {}
     try:
-        for rnd in range(rounds):
-            if rnd:  # refresh the frozen interreflection term at the current best estimate
-                cur = out["y"][int(np.argmin(out["cost"]))]
-                problem = with_interreflection(problem, _physical_from_y(
-                    problem, jnp.asarray(cur, dt))[0])
-                say(f"interreflection refreshed (round {rnd + 1} of {rounds})")
-            out = _solve_batch(problem, jnp.asarray(ys, dt),
-                               jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
-                               opts.max_steps)
-            out = {k: np.asarray(v) for k, v in out.items()}
-            ys = out["y"].astype(np.float64)
+        out = _solve_batch(problem, jnp.asarray(starts, dt),
+                           jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
+                           opts.max_steps)
+        out = {k: np.asarray(v) for k, v in out.items()}
     finally:
         if progress is not None:
             _PROGRESS.pop()
@@ -1322,7 +1532,7 @@ def fit_many(prepared: Prepared, measured: Any, *, sigma: Any = None,
         ``scale`` (K,), ``cost`` (K,), ``converged`` (K,), ``steps`` (K,), ``devices`` (the
         devices the result was computed on).
     """
-    opts = dataclasses.replace(options or FitOptions(), **kwargs)
+    opts = _fit_options(options, kwargs)
     problem = prepared.problem
     dt = problem.values.dtype
     meas = np.asarray(measured, np.float64)

@@ -5,7 +5,8 @@ Per frame (``LiveSession.process``)::
     frame (H, W, 3) uint8 ──MarkerDetector (raw frame, K + distortion)──▶ marker poses
         ──MarkerTracker──▶ model (O, 4, 4), view (4, 4), visible (O,)      [CPU, NumPy]
     frame ──undistort onto the pinhole K (cv2.remap)──▶ background          [CPU, OpenCV]
-    ──one jitted step: render_frame (traced poses) → camera RGB → composite──▶ uint8 frame
+    ──one jitted step: render_pixels (traced poses; the covered pixels only, shaded
+      straight into camera RGB) → encode → written into the frame──▶ uint8 frame
 
 Geometry: the renderer draws with the pinhole intrinsics K (``[camera] intrinsics``, or the
 config's field of view when absent); each video frame is undistorted onto that same K
@@ -39,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .compositing import CameraModel, camera_model_from_sensitivities, composite
+from .compositing import CameraModel, camera_model_from_sensitivities, composite_pixels
 from .errors import InputError
 from .scene import Scene
 
@@ -157,14 +158,17 @@ _QUEUE = 2
 def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
                visible: jax.Array, background: jax.Array, camera: CameraModel
                ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    from .renderer import render_frame
+    from .renderer import render_pixels
 
     STEP_TRACES["step"] += 1
-    frame = render_frame(prep, materials, model=model, view=view, visible=visible)
-    out = composite(background, frame.xyz, frame.mask, camera)
-    stats = {"covered_pixels": frame.stats["covered_pixels"],
-             "overflow": frame.stats["pixel_overflow"] | frame.stats["raster_overflow"],
-             "object_id": frame.object_id}
+    # only the covered pixels are shaded (in the camera's linear RGB: prep's output matrix),
+    # encoded and written into the video frame: no environment background, no full-frame
+    # display encoding, no decoding of the video
+    px = render_pixels(prep, materials, model=model, view=view, visible=visible)
+    out = composite_pixels(background, px.values, px.index, px.valid, camera)
+    stats = {"covered_pixels": px.stats["covered_pixels"],
+             "overflow": px.stats["pixel_overflow"] | px.stats["raster_overflow"],
+             "object_id": px.object_id}
     return out, stats
 
 
@@ -309,16 +313,16 @@ class LiveSession:
         return True
 
     def _prepare(self, headroom: float) -> Any:
-        from .renderer import prepare
+        from .renderer import prepare, with_output
 
         h, w = self.size
         prep = prepare(self._planning_scene(), size=(w, h), headroom=headroom,
                        **self._options)
         if self.camera.has_spectral:
-            to_out = prep.to_spectrum @ self.camera.spectral_weights
+            to_out = np.asarray(prep.to_spectrum) @ np.asarray(self.camera.spectral_weights)
         else:
-            to_out = prep.to_xyz @ self.camera.xyz_matrix.T
-        return dataclasses.replace(prep, to_xyz=jnp.asarray(to_out, jnp.float32))
+            to_out = np.asarray(prep.to_xyz) @ np.asarray(self.camera.xyz_matrix).T
+        return with_output(prep, to_out)
 
     # ------------------------------------------------------------------ per frame
 

@@ -18,8 +18,9 @@ azimuth: equally spaced on fully visible rings, Gauss–Legendre over the visibl
 prefiltered residual map (:class:`~spectral_fit.environment.EnvironmentMap`, its own principal
 spectra) at a prefilter std matched to the node's footprint in reflected directions (limited
 near the horizon); the map's bright source texels are kept as explicit directions with their
-exact flux (the 16 points of each one's footprint in the bilinear map, as the environment
-module's exact gloss). Then
+exact flux (by default 16 equal-weight points of each one's footprint in the bilinear map;
+``CacheOptions.sources="gauss"`` takes the product Gauss points the environment module's exact
+gloss sums). Then
 
     gloss(μ, n) = Σ_k D(μ, θh_k) F(n, (V·H)_k) G_k c_k L_k + Σ_s D F G /(4 N·V) Φ_s,
 
@@ -30,7 +31,9 @@ direction and every environment texel of the irradiance sum is ray-cast once aga
 objects (spheres, analytically). Directions that hit a neighbour take the neighbour's outgoing
 radiance instead of the environment: for each reading and neighbour a fixed set of probes
 (directions from the spot's centre spread over the neighbour's silhouette) holds the hit point,
-its normal and the direction back to the spot, with their own (coarser) gloss node caches,
+its normal and the direction back to the spot, with their own gloss nodes (the samples'
+layout, stored after the samples' in one :class:`GlossNodes`, so one evaluation of the node
+weights serves samples, probes and the sample nodes that hit a neighbour),
 visible-environment irradiance and mirror radiance, so the neighbour's radiance
 α' S' E'/π + β' gloss'(μ', n') + χ' F L' is a function of the neighbour's parameters and its
 derivative is in the Jacobian. A hit takes the radiance of the nearest probe (one bounce: the
@@ -83,8 +86,12 @@ class CacheOptions:
         subsamples: s; a node's radiance is the mean of s × s sub-samples over its cell
             (1: one prefiltered lookup per node). 3 lowers the median gloss error at wide
             lobes by ~40 % (docs/fitting.md) for 9× the lookups in the preparation.
-        probes: probes per reading and neighbour (interreflection).
-        probe_theta0, probe_ring_ratio, probe_azimuths: node layout of the probes' caches.
+        probes: probes per reading and neighbour (interreflection); their gloss nodes have
+            the samples' layout (one array, one evaluation of the node weights).
+        sources: each bright source texel of the map as 16 equal-weight points of its
+            footprint in the bilinear map ("tent", default) or the environment module's
+            product Gauss rule over that footprint ("gauss", 64 points, what its exact gloss
+            sums; the bundled session's red β then comes out at +2.8 % instead of +1.8 %).
     """
 
     theta0: float = 0.003
@@ -94,9 +101,7 @@ class CacheOptions:
     horizon_ratio: float = 0.2
     subsamples: int = 1
     probes: int = 64
-    probe_theta0: float = 0.01
-    probe_ring_ratio: float = 1.6
-    probe_azimuths: int = 8
+    sources: str = "tent"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,20 +145,19 @@ class RadianceCache(eqx.Module):
     """Everything material-independent of the fit's field samples (a pytree).
 
     Attributes:
-        nodes: :class:`GlossNodes` of the P samples.
+        nodes: :class:`GlossNodes` of the P samples followed by the Q probes (one node
+            layout; ``sample_nodes`` and ``probe_nodes`` are the two parts).
         irradiance: (P, L) E(λ, N) of the visible environment (exact texel sum, texels hidden
             by a neighbour left out).
         mirror: (P, L) environment radiance along R (0 if a neighbour hides it).
         spectral_basis: (r, L) the map's principal spectra.
         probe_object: (Q,) object of each probe (Q may be 0).
-        probe_nodes: :class:`GlossNodes` of the probes (hit point, normal, direction back).
         probe_irradiance, probe_mirror: (Q, L) as ``irradiance``/``mirror`` at the probes.
         mirror_probe: (P,) probe seen along R, −1 for none.
         diffuse_probe: (P, Q) cosine-weighted solid angle of each probe's share of the
             hemisphere hidden by neighbours (irradiance from neighbours = this @ radiance).
         hit_sample, hit_probe: (H,) sample and probe of every gloss node that hits a neighbour.
-        hit_cos_h, hit_vh, hit_nl, hit_nv, hit_base, hit_ring: (H,) that node's cosines, base
-            weight and ring.
+        hit_node: (H,) that node's flat index in the sample's J·M nodes.
         average: (B, P) field averaging weights of the readings (0 for samples on no object
             or facing away).
         probe_group: (Q,) the reading each probe belongs to.
@@ -168,19 +172,13 @@ class RadianceCache(eqx.Module):
     mirror: jax.Array
     spectral_basis: jax.Array
     probe_object: jax.Array
-    probe_nodes: GlossNodes
     probe_irradiance: jax.Array
     probe_mirror: jax.Array
     mirror_probe: jax.Array
     diffuse_probe: jax.Array
     hit_sample: jax.Array
     hit_probe: jax.Array
-    hit_cos_h: jax.Array
-    hit_vh: jax.Array
-    hit_nl: jax.Array
-    hit_nv: jax.Array
-    hit_base: jax.Array
-    hit_ring: jax.Array
+    hit_node: jax.Array
     average: jax.Array
     probe_group: jax.Array
     probe_diffuse: jax.Array
@@ -189,6 +187,34 @@ class RadianceCache(eqx.Module):
     @property
     def n_probes(self) -> int:
         return int(self.probe_object.shape[0])
+
+    @property
+    def sample_nodes(self) -> GlossNodes:
+        """:class:`GlossNodes` of the P samples (the first P points of ``nodes``)."""
+        return _node_rows(self.nodes, 0, int(self.irradiance.shape[0]))
+
+    @property
+    def probe_nodes(self) -> GlossNodes:
+        """:class:`GlossNodes` of the Q probes (hit point, normal, direction back)."""
+        P = int(self.irradiance.shape[0])
+        return _node_rows(self.nodes, P, P + self.n_probes)
+
+
+_SHARED_NODE_FIELDS = ("cos_h", "src_flux")
+
+
+def _node_rows(nodes: GlossNodes, start: int, stop: int) -> GlossNodes:
+    """The points start:stop of ``nodes`` (the ring angles and source fluxes are shared)."""
+    return GlossNodes(**{f.name: getattr(nodes, f.name) if f.name in _SHARED_NODE_FIELDS
+                         else getattr(nodes, f.name)[start:stop]
+                         for f in dataclasses.fields(nodes)})
+
+
+def _concat_nodes(a: GlossNodes, b: GlossNodes) -> GlossNodes:
+    """The points of ``a`` followed by those of ``b`` (same layout, same map)."""
+    return GlossNodes(**{f.name: getattr(a, f.name) if f.name in _SHARED_NODE_FIELDS
+                         else jnp.concatenate([getattr(a, f.name), getattr(b, f.name)])
+                         for f in dataclasses.fields(a)})
 
 
 # ----------------------------------------------------------------------------- geometry (NumPy)
@@ -329,7 +355,7 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
                       *, objects: np.ndarray, spheres: Sequence[Sphere] = (),
                       theta0: float = 0.003, ring_ratio: float = 1.35, azimuths: int = 16,
                       prefilter: float = 0.35, horizon_ratio: float = 0.2,
-                      subsamples: int = 1, dtype: Any = jnp.float32
+                      subsamples: int = 1, sources: str = "tent", dtype: Any = jnp.float32
                       ) -> tuple[GlossNodes, dict[str, np.ndarray]]:
     """Gloss nodes of P shading points (see the module docstring), outside ``jit``.
 
@@ -341,6 +367,7 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
         spheres: occluders; node directions that hit one get no environment radiance.
         subsamples: s; each node's radiance is the mean of s × s sub-samples over its cell
             (1: one lookup at the node, prefiltered to the cell's size).
+        sources: how the map's bright source texels are summed (:class:`CacheOptions`).
 
     Returns:
         (nodes, hits): ``hits`` holds, for the nodes that hit an occluder, flat node indices
@@ -422,16 +449,26 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
     orig_h = np.repeat(X, J * M, axis=0)[hits] if hits.size else np.zeros((0, 3))
     hit_info = {"node": hits, "sphere": hit_idx[hits],
                 "point": orig_h + hit_t[hits, None] * dirs[hits]}
-    # explicit sources
+    # explicit sources: points of each source texel's footprint in the bilinear map, each
+    # with its share of the texel's excess flux: 16 equal-weight points ("tent") or the
+    # environment module's product Gauss rule ("gauss", as its exact gloss sums them)
+    if sources not in ("tent", "gauss"):
+        raise InputError(f"must be 'tent' or 'gauss', got {sources!r}", field="cache.sources")
     sd = np.asarray(env.source_dirs, np.float64)
-    scale = 1.0  # the footprint points of the bilinear map, as the exact gloss sums them
-    if env.source_tent_dirs is not None and env.source_tent_dirs.shape[0]:
-        scale = sd.shape[1] / env.source_tent_dirs.shape[1]
+    k = sd.shape[1]  # env.source_flux is per one of these k sub-points
+    share = np.full(sd.shape[:2], 1.0)
+    fine = getattr(env, "source_fine_dirs", None)
+    if sources == "gauss" and fine is not None and fine.shape[0]:
+        sd = np.asarray(fine, np.float64)
+        share = k * np.asarray(env.source_fine_weights, np.float64)
+    elif env.source_tent_dirs is not None and env.source_tent_dirs.shape[0]:
         sd = np.asarray(env.source_tent_dirs, np.float64)
+        share = np.full(sd.shape[:2], k / sd.shape[1])
     S = sd.shape[0] * sd.shape[1]
     if S:
         d = sd.reshape(-1, 3) @ np.asarray(env.rotation, np.float64).T
-        flux = np.repeat(np.asarray(env.source_flux, np.float64) * scale, sd.shape[1], axis=0)
+        flux = (np.asarray(env.source_flux, np.float64)[:, None, :]
+                * share[:, :, None]).reshape(S, -1)
         Hs = _unit(d[None] + V[:, None])
         s_nh = np.einsum("psc,pc->ps", Hs, N)
         s_vh = np.einsum("psc,pc->ps", Hs, V)
@@ -513,85 +550,109 @@ _GLOSS_FNS: dict[tuple[str, str], Any] = {}
 
 def _gloss_impl(m: jax.Array, nn: jax.Array, nodes: GlossNodes, distribution: str,
                 geometry: str) -> jax.Array:
-    """The gloss of :func:`gloss_from_nodes` as a ``jax.custom_jvp`` of explicit array
-    arguments (nothing traced is closed over), one function per (distribution, geometry)."""
+    """The gloss of :func:`gloss_from_nodes` (no hit weights)."""
+    empty = jnp.zeros((0,), jnp.int32)
+    return _gloss_hits_impl(m, nn, nodes, empty, empty, distribution, geometry)[0]
+
+
+def _gloss_hits_impl(m: jax.Array, nn: jax.Array, nodes: GlossNodes, hit_point: jax.Array,
+                     hit_node: jax.Array, distribution: str, geometry: str
+                     ) -> tuple[jax.Array, jax.Array]:
+    """Gloss (P, r) of every point and the weights D F G · base (H,) of the nodes
+    ``hit_node`` (flat index into J·M) of points ``hit_point``, as a ``jax.custom_jvp`` of
+    explicit array arguments (nothing traced is closed over), one function per
+    (distribution, geometry)."""
     key = (distribution, geometry)
     if key not in _GLOSS_FNS:
         _GLOSS_FNS[key] = _make_gloss(distribution, geometry)
-    return _GLOSS_FNS[key](m, nn, nodes)
+    return _GLOSS_FNS[key](m, nn, nodes, hit_point, hit_node)
 
 
 def _make_gloss(distribution: str, geometry: str) -> Any:
     @jax.custom_jvp
-    def g(m: jax.Array, nn: jax.Array, nodes: GlossNodes) -> jax.Array:
+    def g(m: jax.Array, nn: jax.Array, nodes: GlossNodes, hit_point: jax.Array,
+          hit_node: jax.Array) -> tuple[jax.Array, jax.Array]:
         w, ws = _gloss_weights(nodes, m, nn, distribution, geometry)
-        return _contract(nodes, w[:, None])[:, 0] + ws @ nodes.src_flux
+        wh = w.reshape(w.shape[0], -1)[hit_point, hit_node]
+        return _contract(nodes, w[:, None])[:, 0] + ws @ nodes.src_flux, wh
 
     @g.defjvp
-    def g_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...]) -> tuple[jax.Array, jax.Array]:
-        m, nn, nodes = primals
-        dm, dn, _ = tangents  # the cache is constant
+    def g_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...]
+              ) -> tuple[tuple[jax.Array, jax.Array], tuple[jax.Array, jax.Array]]:
+        m, nn, nodes, hp, hn = primals
+        dm, dn = tangents[0], tangents[1]  # the cache and the hit indices are constant
         one = jnp.ones_like(m)
         zero = jnp.zeros_like(m)
-        # sources: generic (few nodes)
-        ws, wsm = jax.jvp(lambda a: _src_weights(nodes, a, nn, distribution, geometry),
-                          (m,), (one,))
-        _, wsn = jax.jvp(lambda b: _src_weights(nodes, m, b, distribution, geometry),
-                         (nn,), (one,))
-        sv, sm, sn = (x @ nodes.src_flux for x in (ws, wsm, wsn))
         if geometry == "smith":  # G depends on μ: no factoring
+            ws, wsm = jax.jvp(lambda a: _src_weights(nodes, a, nn, distribution, geometry),
+                              (m,), (one,))
+            _, wsn = jax.jvp(lambda b: _src_weights(nodes, m, b, distribution, geometry),
+                             (nn,), (one,))
             f = lambda a, b: _gloss_weights(nodes, a, b, distribution, geometry)[0]  # noqa: E731
             w, wm = jax.jvp(f, (m, nn), (one, zero))
             _, wn = jax.jvp(f, (m, nn), (zero, one))
-            out = _contract(nodes, jnp.stack([w, wm, wn], axis=1))
+            W = jnp.stack([w, wm, wn], axis=1)
         else:
-            D, Dm = jax.jvp(lambda a: microfacet_d(nodes.cos_h[None, :], a[:, None],
-                                                   distribution), (m,), (one,))  # (P, J)
-            F, Fn = jax.jvp(lambda b: fresnel_dielectric(nodes.vh, b[:, None, None]), (nn,),
+            # G is μ-independent: D(μ) and F(n) and their derivatives factor out. One D
+            # over the rings and the sources' half vectors, one F over every node's V·H.
+            P, J = nodes.vh.shape[0], nodes.vh.shape[1]
+            cos_all = jnp.concatenate([jnp.broadcast_to(nodes.cos_h[None, :], (P, J)),
+                                       nodes.src_nh], axis=1)  # (P, J + S)
+            D, Dm = jax.jvp(lambda a: microfacet_d(cos_all, a[:, None], distribution), (m,),
                             (one,))
+            vh_all = jnp.concatenate([nodes.vh.reshape(P, -1), nodes.src_vh], axis=1)
+            F, Fn = jax.jvp(lambda b: fresnel_dielectric(vh_all, b[:, None]), (nn,), (one,))
+            nk = nodes.vh.shape[1] * nodes.vh.shape[2]
             G = microfacet_g(nodes.cos_h[None, :, None], nodes.nv[:, None, None], nodes.nl,
                              nodes.vh, m[:, None, None], geometry)
-            gb = G * nodes.base
-            D3, Dm3 = D[:, :, None], Dm[:, :, None]
-            out = _contract(nodes, jnp.stack([D3 * F * gb, Dm3 * F * gb, D3 * Fn * gb],
-                                             axis=1))
+            gb = (G * nodes.base).reshape(P, nk)
+            gbs = microfacet_g(nodes.src_nh, nodes.nv[:, None], nodes.src_nl, nodes.src_vh,
+                               m[:, None], geometry) * nodes.src_base
+            shp = nodes.vh.shape
+            D3, Dm3 = D[:, :J, None], Dm[:, :J, None]
+            Fk, Fnk = (F[:, :nk] * gb).reshape(shp), (Fn[:, :nk] * gb).reshape(shp)
+            W = jnp.stack([D3 * Fk, Dm3 * Fk, D3 * Fnk], axis=1)
+            Fs, Fns = F[:, nk:] * gbs, Fn[:, nk:] * gbs
+            ws, wsm, wsn = D[:, J:] * Fs, Dm[:, J:] * Fs, D[:, J:] * Fns
+        out = _contract(nodes, W)
+        sv, sm, sn = (x @ nodes.src_flux for x in (ws, wsm, wsn))
         val, d_mu, d_n = out[:, 0], out[:, 1], out[:, 2]
-        return val + sv, (d_mu + sm) * dm[:, None] + (d_n + sn) * dn[:, None]
+        wh3 = W.reshape(W.shape[0], 3, -1)[hp, :, hn]  # (H, 3)
+        return ((val + sv, wh3[:, 0]),
+                ((d_mu + sm) * dm[:, None] + (d_n + sn) * dn[:, None],
+                 wh3[:, 1] * dm[hp] + wh3[:, 2] * dn[hp]))
 
     return g
 
 
-def _per_model(models: Sequence[tuple[str, str]], obj: jax.Array, fn: Any) -> jax.Array:
-    """fn(distribution, geometry) evaluated per distinct model, selected per point."""
+def _gloss_all(cache: RadianceCache, values: jax.Array, objects: jax.Array,
+               models: Sequence[tuple[str, str]]) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """One evaluation of the gloss nodes of the samples and the probes (they share one node
+    layout and one array): gloss (P + Q, r), the weights D F G · base (H,) of the sample
+    nodes that hit a neighbour, and the per-point parameters (P + Q, 6)."""
+    obj_all = jnp.concatenate([objects, cache.probe_object])
+    v = values[obj_all]
+    hp, hn = cache.hit_sample, cache.hit_node
     kinds = sorted(set(models))
-    out = None
+    gl = wh = None
     for dist, geom in kinds:
-        val = fn(dist, geom)
-        if len(kinds) == 1:
-            return val
-        sel = jnp.asarray([m == (dist, geom) for m in models])[obj]
-        sel = sel.reshape(sel.shape + (1,) * (val.ndim - 1))
-        out = val if out is None else jnp.where(sel, val, out)
-    return out
+        g, w = _gloss_hits_impl(v[:, 3], v[:, 4], cache.nodes, hp, hn, dist, geom)
+        if gl is None:
+            gl, wh = g, w
+            continue
+        sel = jnp.asarray([m == (dist, geom) for m in models])[obj_all]
+        gl = jnp.where(sel[:, None], g, gl)
+        wh = jnp.where(sel[hp], w, wh)
+    return gl, wh, v
 
 
-def _hit_weights(cache: RadianceCache, v: jax.Array, objects: jax.Array,
-                 models: Sequence[tuple[str, str]]) -> jax.Array:
-    """β D F G · base (H,) of the gloss nodes that hit a neighbour; D is evaluated per
-    sample and ring (its normalisation once per sample) and gathered."""
-    nodes = cache.nodes
-    hs = cache.hit_sample
-    ho = objects[hs]
-    ring = cache.hit_ring
-
-    def w(dist: str, geom: str) -> jax.Array:
-        D = microfacet_d(nodes.cos_h[None, :], v[:, 3:4], dist)  # (P, J)
-        mu = v[hs, 3]
-        G = microfacet_g(cache.hit_cos_h, cache.hit_nv, cache.hit_nl, cache.hit_vh, mu, geom)
-        F = fresnel_dielectric(cache.hit_vh, v[hs, 4])
-        return D[hs, ring] * G * F * cache.hit_base
-
-    return v[hs, 1] * _per_model(models, ho, w)
+def _probe_out(cache: RadianceCache, vq: jax.Array, reflectance: jax.Array,
+               glq: jax.Array, fq: jax.Array) -> jax.Array:
+    """Outgoing radiance (Q, L) at the probes: α' S' E'/π + β' gloss' + χ' F L'(R)."""
+    S = reflectance[cache.probe_object]
+    return ((vq[:, 0:1] / math.pi) * S * cache.probe_irradiance
+            + vq[:, 1:2] * (glq @ cache.spectral_basis) + vq[:, 2:3] * fq[:, None]
+            * cache.probe_mirror)
 
 
 def cached_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Array,
@@ -605,20 +666,16 @@ def cached_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Ar
         objects: (P,) object of each sample (>= 0; mask invalid samples outside).
         models: (distribution, geometry) per object (static).
     """
-    basis = cache.spectral_basis
-    nodes = cache.nodes
-    v = values[objects]  # (P, 6)
+    P = cache.irradiance.shape[0]
+    gl_all, wh, v_all = _gloss_all(cache, values, objects, models)
+    f_all = fresnel_dielectric(cache.nodes.nv, v_all[:, 4])
+    v, Fm = v_all[:P], f_all[:P, None]
     S = reflectance[objects]
-    nv = nodes.nv
-    diffuse_E = cache.irradiance
-    gl = _per_model(models, objects, lambda d, g: gloss_from_nodes(
-        nodes, v[:, 3], v[:, 4], distribution=d, geometry=g)) @ basis
-    Fm = fresnel_dielectric(nv, v[:, 4])[:, None]
-    out = ((v[:, 0:1] / math.pi) * S * diffuse_E + v[:, 1:2] * gl
-           + v[:, 2:3] * Fm * cache.mirror)
+    out = ((v[:, 0:1] / math.pi) * S * cache.irradiance
+           + v[:, 1:2] * (gl_all[:P] @ cache.spectral_basis) + v[:, 2:3] * Fm * cache.mirror)
     ir = jnp.zeros_like(out)
     if interreflection and cache.n_probes:
-        lout = probe_radiance(cache, values, reflectance, models)  # (Q, L)
+        lout = _probe_out(cache, v_all[P:], reflectance, gl_all[P:], f_all[P:])  # (Q, L)
         lz = jnp.concatenate([lout, jnp.zeros((1, lout.shape[1]), lout.dtype)])
         # diffuse: irradiance from the neighbours
         ir = ir + (v[:, 0:1] / math.pi) * S * (cache.diffuse_probe @ lout)
@@ -626,9 +683,9 @@ def cached_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Ar
         ir = ir + v[:, 2:3] * Fm * lz[cache.mirror_probe]
         # gloss nodes that hit a neighbour
         if cache.hit_sample.shape[0]:
-            w = _hit_weights(cache, v, objects, models)
+            w = v[cache.hit_sample, 1] * wh
             ir = ir + jax.ops.segment_sum(w[:, None] * lout[cache.hit_probe],
-                                          cache.hit_sample, num_segments=out.shape[0])
+                                          cache.hit_sample, num_segments=P)
     return out + ir, ir
 
 
@@ -639,24 +696,23 @@ def field_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Arr
     radiance of :func:`cached_radiance`, with every term linear in a per-object parameter
     summed into field means before the spectral product (the fit's forward model: the
     interreflection hits are reduced to a (B, Q) matrix of scalars, then one product with
-    the probes' radiance)."""
-    basis = cache.spectral_basis
-    nodes = cache.nodes
+    the probes' radiance). The gloss of the samples, of the probes and the weights of the
+    nodes that hit a neighbour come from one evaluation of the node weights."""
+    P = cache.irradiance.shape[0]
     A = cache.average
-    v = values[objects]  # (P, 6)
+    gl_all, wh, v_all = _gloss_all(cache, values, objects, models)
+    f_all = fresnel_dielectric(cache.nodes.nv, v_all[:, 4])
+    v, Fm = v_all[:P], f_all[:P, None]
     S = reflectance[objects]
-    gl = _per_model(models, objects, lambda d, g: gloss_from_nodes(
-        nodes, v[:, 3], v[:, 4], distribution=d, geometry=g))  # (P, r)
-    Fm = fresnel_dielectric(nodes.nv, v[:, 4])[:, None]
     direct = (v[:, 0:1] / math.pi) * S * cache.irradiance + v[:, 2:3] * Fm * cache.mirror
-    out = A @ direct + (A @ (v[:, 1:2] * gl)) @ basis
+    out = A @ direct + (A @ (v[:, 1:2] * gl_all[:P])) @ cache.spectral_basis
     if interreflection and cache.n_probes:
-        lout = probe_radiance(cache, values, reflectance, models)  # (Q, L)
+        lout = _probe_out(cache, v_all[P:], reflectance, gl_all[P:], f_all[P:])  # (Q, L)
         lz = jnp.concatenate([lout, jnp.zeros((1, lout.shape[1]), lout.dtype)])
         B, Q = A.shape[0], lout.shape[0]
         coef = cache.probe_diffuse.T @ ((values[:, 0:1] / math.pi) * reflectance)  # (Q, L)
         if cache.hit_sample.shape[0]:
-            C = jax.ops.segment_sum(cache.hit_average * _hit_weights(cache, v, objects, models),
+            C = jax.ops.segment_sum(cache.hit_average * v[cache.hit_sample, 1] * wh,
                                     cache.hit_probe, num_segments=Q)
             coef = coef + C[:, None]
         out = out + jax.ops.segment_sum(coef * lout, cache.probe_group, num_segments=B)
@@ -668,15 +724,10 @@ def probe_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Arr
                    models: Sequence[tuple[str, str]]) -> jax.Array:
     """Outgoing radiance (Q, L) of the neighbours at the probes towards the receivers, for
     physical parameters ``values (O, 6)`` (one bounce: environment light only)."""
-    po = cache.probe_object
-    v = values[po]
-    S = reflectance[po]
-    nodes = cache.probe_nodes
-    gl = _per_model(models, po, lambda d, g: gloss_from_nodes(
-        nodes, v[:, 3], v[:, 4], distribution=d, geometry=g)) @ cache.spectral_basis
-    Fm = fresnel_dielectric(nodes.nv, v[:, 4])[:, None]
-    return ((v[:, 0:1] / math.pi) * S * cache.probe_irradiance + v[:, 1:2] * gl
-            + v[:, 2:3] * Fm * cache.probe_mirror)
+    P = cache.irradiance.shape[0]
+    gl_all, _, v_all = _gloss_all(cache, values, jnp.zeros((P,), jnp.int32), models)
+    f_all = fresnel_dielectric(cache.nodes.nv, v_all[:, 4])
+    return _probe_out(cache, v_all[P:], reflectance, gl_all[P:], f_all[P:])
 
 
 # ----------------------------------------------------------------------------- building
@@ -764,7 +815,8 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     nodes, hits = build_gloss_nodes(
         env, X, N, V, objects=obj, spheres=spheres if spheres else (), theta0=opts.theta0,
         ring_ratio=opts.ring_ratio, azimuths=opts.azimuths, prefilter=opts.prefilter,
-        horizon_ratio=opts.horizon_ratio, subsamples=opts.subsamples, dtype=dtype)
+        horizon_ratio=opts.horizon_ratio, subsamples=opts.subsamples, sources=opts.sources,
+        dtype=dtype)
     nv = np.sum(N * V, -1)
     R = _unit(2.0 * nv[:, None] * N - V)
     irr = np.zeros((P, C))
@@ -841,11 +893,7 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         keep = hq >= 0
         hn = hits["node"][keep]
         hs, hq = hs[keep], hq[keep]
-        jj = (hn // M) % J
-        cos_h = np.asarray(nodes.cos_h, np.float64)[jj]
-        flat = lambda a: np.asarray(a, np.float64).reshape(-1)[hn]  # noqa: E731
-        h_vh, h_nl, h_base = flat(nodes.vh), flat(nodes.nl), flat(nodes.base)
-        h_nv = np.asarray(nodes.nv, np.float64)[hs]
+        hnode = hn % (J * M)
         # keep the probes something refers to
         used = (dpr.sum(axis=0) > 0.0)
         used[mprobe[mprobe >= 0]] = True
@@ -861,9 +909,10 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         pN = _unit(pp - pc)
         pV = _unit(po - pp)
         pnodes, _ = build_gloss_nodes(
-            env, pp, pN, pV, objects=pobj, spheres=spheres, theta0=opts.probe_theta0,
-            ring_ratio=opts.probe_ring_ratio, azimuths=opts.probe_azimuths,
-            prefilter=opts.prefilter, horizon_ratio=opts.horizon_ratio, dtype=dtype)
+            env, pp, pN, pV, objects=pobj, spheres=spheres, theta0=opts.theta0,
+            ring_ratio=opts.ring_ratio, azimuths=opts.azimuths,
+            prefilter=opts.prefilter, horizon_ratio=opts.horizon_ratio, sources=opts.sources,
+            dtype=dtype)
         pE, _ = _visible_irradiance(env, pp, pN, pobj, spheres)
         pnv = np.sum(pN * pV, -1)
         pR = _unit(2.0 * pnv[:, None] * pN - pV)
@@ -874,16 +923,15 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         pobj = np.zeros(0, np.int64)
         pnodes, _ = build_gloss_nodes(env, np.zeros((0, 3)), np.zeros((0, 3)) + [0, 1, 0],
                                       np.zeros((0, 3)) + [0, 1, 0], objects=pobj,
-                                      theta0=opts.probe_theta0,
-                                      ring_ratio=opts.probe_ring_ratio,
-                                      azimuths=opts.probe_azimuths, dtype=dtype)
+                                      theta0=opts.theta0, ring_ratio=opts.ring_ratio,
+                                      azimuths=opts.azimuths, sources=opts.sources,
+                                      dtype=dtype)
         pE = pM = np.zeros((0, C))
         pg = np.zeros(0, np.int64)
         dpr = np.zeros((P, 0))
         mprobe = np.full(P, -1)
         hs = hq = np.zeros(0, np.int64)
-        cos_h = h_vh = h_nl = h_base = h_nv = np.zeros(0)
-        jj = np.zeros(0, np.int64)
+        hnode = np.zeros(0, np.int64)
     mprobe = np.where(mprobe >= 0, mprobe, Q)  # index Q: a zero row
     if average is None:
         nb = int(grp.max()) + 1 if grp.size else 0
@@ -899,12 +947,11 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     h_avg = avg[grp[hs], hs] if hs.size else np.zeros(0)
     f = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     return RadianceCache(
-        nodes=nodes, irradiance=f(irr), mirror=f(mir),
+        nodes=_concat_nodes(nodes, pnodes), irradiance=f(irr), mirror=f(mir),
         spectral_basis=f(np.asarray(env.spectral_basis, np.float64)),
-        probe_object=jnp.asarray(pobj, jnp.int32), probe_nodes=pnodes,
+        probe_object=jnp.asarray(pobj, jnp.int32),
         probe_irradiance=f(pE), probe_mirror=f(pM), mirror_probe=jnp.asarray(mprobe, jnp.int32),
         diffuse_probe=f(dpr), hit_sample=jnp.asarray(hs, jnp.int32),
-        hit_probe=jnp.asarray(hq, jnp.int32), hit_cos_h=f(cos_h), hit_vh=f(h_vh),
-        hit_nl=f(h_nl), hit_nv=f(h_nv), hit_base=f(h_base),
-        hit_ring=jnp.asarray(jj, jnp.int32), average=f(avg),
-        probe_group=jnp.asarray(pg, jnp.int32), probe_diffuse=f(fdq), hit_average=f(h_avg))
+        hit_probe=jnp.asarray(hq, jnp.int32), hit_node=jnp.asarray(hnode, jnp.int32),
+        average=f(avg), probe_group=jnp.asarray(pg, jnp.int32), probe_diffuse=f(fdq),
+        hit_average=f(h_avg))

@@ -35,6 +35,7 @@ DESIGN §3), so diffuse objects never clip.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from collections.abc import Sequence
@@ -45,15 +46,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .camera import eye_position, inverse_3x3, inverse_4x4
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
 from .reflectance import Material
+from .startup import single_threaded_blas
 
 __all__ = [
     "Prepared",
     "Frame",
+    "PixelFrame",
     "prepare",
     "render_frame",
+    "render_pixels",
+    "with_output",
     "render",
     "scene_materials",
     "load_environment",
@@ -358,6 +364,7 @@ def _look_at_impl(eye, target, up):
 _look_at_jit = jax.jit(_look_at_impl)
 
 
+@single_threaded_blas()  # NumPy's BLAS threads busy-wait: docs/rendering.md "Cold start"
 def prepare(
     scene: Any,
     *,
@@ -400,9 +407,10 @@ def prepare(
             "exact" (texel sum over the whole map per sample: the reference, slow).
         quality: gloss of the environment shading: "fast" (default; the pre-integrated
             split-sum approximation ``environment.gloss_split_sum``, a few prefiltered lookups
-            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the fitter's
-            16 × 32; see ``environment.gloss_integral``). Accuracy and cost of each:
-            docs/rendering.md.
+            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the oracle-grade
+            lobe grid, 128 × 24 half-vector nodes, and a texel sum for wide lobes; see
+            ``environment.gloss_integral``). Accuracy and cost of each: docs/rendering.md and
+            docs/lighting.md.
         split_settings: :class:`~spectral_fit.environment.SplitSum` for "fast" (default
             settings when None).
     Raises:
@@ -584,7 +592,7 @@ def _to_world(vertices: jax.Array, vertex_object: jax.Array, model: jax.Array) -
 
 def _normals_to_world(normals: jax.Array, vertex_object: jax.Array, model: jax.Array
                       ) -> jax.Array:
-    nm = jnp.swapaxes(jnp.linalg.inv(model[:, :3, :3]), 1, 2)  # inverse transpose, (O, 3, 3)
+    nm = jnp.swapaxes(inverse_3x3(model[:, :3, :3]), 1, 2)  # inverse transpose, (O, 3, 3)
     n = jnp.einsum("vij,vj->vi", nm[vertex_object], normals)
     return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
 
@@ -747,10 +755,10 @@ def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
     py, px = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32) + 0.5,
                           jnp.arange(w, dtype=jnp.float32) + 0.5, indexing="ij")
     ndc = jnp.stack([2 * px / w - 1, 1 - 2 * py / h, jnp.ones_like(px), jnp.ones_like(px)], -1)
-    inv = jnp.linalg.inv(prep.projection @ view)
+    inv = inverse_4x4(prep.projection @ view)
     far = ndc.reshape(-1, 4) @ inv.T
     far = far[:, :3] / far[:, 3:4]
-    eye = jnp.linalg.inv(view)[:3, 3]
+    eye = eye_position(view)
     d = far - eye
     return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
@@ -766,8 +774,8 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     h, w = prep.shape
     env = prep.env
     hm, wm = env.texels.shape[:2]
-    inv = jnp.linalg.inv(prep.projection @ view)
-    eye = jnp.linalg.inv(view)[:3, 3]
+    inv = inverse_4x4(prep.projection @ view)
+    eye = eye_position(view)
     # a far-plane point of NDC (x, y, 1, 1) minus the eye, as a function of pixel (col, row):
     # linear in (x, y) after the perspective division by w = inv[3] · (x, y, 1, 1), and
     # w does not depend on (x, y) for a projection whose last row is (0, 0, −1, 0)
@@ -796,16 +804,146 @@ def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:
     return fast_lookup(_lut_env(env, flat, env.texels.shape[:2]), dirs)
 
 
-def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
-                 visible: jax.Array, spectral: bool) -> Frame:
-    from .display import to_display
-    from .raster import (
-        PixelList,
-        covered_pixels,
-        interpolate_pixels,
-        rasterize,
-        scatter_pixels,
+class PixelFrame(eqx.Module):
+    """The covered pixels of one frame, shaded (the part of :class:`Frame` before the
+    background, the scatter into an image and the display encoding; a pytree).
+
+    Attributes:
+        values: (N, K) radiance of each slot in the output channels (K = 3: ``prep.to_xyz``'s
+            space, absolute XYZ unless :func:`with_output` changed it; K = C with
+            ``spectral``: the radiance channels, bands or basis coefficients), 0 in empty
+            slots. N = sum of ``prep.pixel_capacity``.
+        index: (N,) int32 flat pixel index y·W + x of each slot (0 in empty slots).
+        valid: (N,) bool, slots that hold a covered pixel.
+        mask: (H, W) bool, pixels covered by an object.
+        object_id: (H, W) int32 object per pixel (−1 = none).
+        stats: ``covered_pixels``, ``pixel_overflow``, ``raster_overflow``,
+            ``interreflection_overflow`` (see :class:`Frame`).
+    """
+
+    values: jax.Array
+    index: jax.Array
+    valid: jax.Array
+    mask: jax.Array
+    object_id: jax.Array
+    stats: dict[str, jax.Array]
+
+
+def with_output(prep: Prepared, matrix: Any) -> Prepared:
+    """``prep`` with its radiance-channels → output map replaced by ``matrix`` (C, 3) (e.g.
+    channels → a video camera's linear RGB): :attr:`Frame.xyz` (and the background table, and
+    the mirror lookups that the frame does in the output space) are then in that space."""
+    m = np.asarray(matrix, np.float64)
+    if m.shape != (prep.channels, 3) or not np.all(np.isfinite(m)):
+        raise InputError(f"expected a finite ({prep.channels}, 3) matrix, got {m.shape}",
+                         field="matrix")
+    env = prep.env
+    hm, wm, c = env.texels.shape
+    flat = np.concatenate([np.asarray(env.texels, np.float64).reshape(hm * wm, c),
+                           np.asarray(env.poles, np.float64)])
+    return dataclasses.replace(prep, to_xyz=jnp.asarray(m, jnp.float32),
+                               env_xyz=jnp.asarray(flat @ m, jnp.float32))
+
+
+def _chunk_size(capacity: int) -> int:
+    """Slots per shading chunk: chunks beyond the covered-pixel count are skipped, so the
+    shading cost follows the count (to within one chunk), not the planned capacity; chunks of
+    a few thousand points also keep the gloss's intermediates in cache (measured on the
+    close-up: 57,344 slots at once 45 ms CPU, in chunks of 2048–4096 20 ms, for 32,894
+    covered pixels)."""
+    if capacity >= 32768:
+        return 4096
+    if capacity >= 4096:
+        return 2048
+    return capacity
+
+
+def _chunked(fn: Any, count: jax.Array, out_channels: int, *arrays: jax.Array) -> jax.Array:
+    """``fn(*chunks)`` (B, K) over consecutive chunks of the (cap, …) ``arrays``, skipping
+    (zeros) the chunks that start at or after ``count`` (the valid slots come first)."""
+    cap = arrays[0].shape[0]
+    b = _chunk_size(cap)
+    nc = -(-cap // b)
+    pad = nc * b - cap
+    if nc == 1:
+        return fn(*arrays)
+    if pad:
+        arrays = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))])
+                       for a in arrays)
+    dtype = jnp.float32
+
+    def body(x: tuple[jax.Array, ...]) -> jax.Array:
+        i, *chunk = x
+        return jax.lax.cond(i * b < count, lambda *c: fn(*c).astype(dtype),
+                            lambda *c: jnp.zeros((b, out_channels), dtype), *chunk)
+
+    out = jax.lax.map(body, (jnp.arange(nc, dtype=jnp.int32),
+                             *[a.reshape(nc, b, *a.shape[1:]) for a in arrays]))
+    return out.reshape(nc * b, out_channels)[:cap]
+
+
+def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[jax.Array],
+               to_out: jax.Array, mirror_table: jax.Array) -> jax.Array:
+    """Environment shading (eq. 5, quality "fast") of the G-buffer samples straight into the
+    output channels (N, K): ``to_out`` (C, K) maps radiance channels to them. The gloss and
+    mirror depend on λ only through the environment, so they are looked up in K channels (the
+    split-sum levels' principal spectra times ``to_out``; ``mirror_table`` = the map's texels
+    + 2 pole rows times ``to_out``); the diffuse term α S(λ) I_d(N)/π is one lookup of a
+    per-object table (the irradiance map filtered by S(λ), times α/π, times ``to_out``, built
+    per frame: 2,050 rows). Per object, in chunks of slots; chunks past the object's covered
+    count are skipped."""
+    from .environment import (
+        _materialise,
+        fast_lookup,
+        fresnel_dielectric,
+        gloss_split_sum,
+        irradiance,
+        lobe_moment_table,
     )
+
+    env = prep.env
+    settings = prep.split_settings
+    k_out = int(to_out.shape[1])
+    env_g = eqx.tree_at(lambda e: e.spectral_basis, env, env.spectral_basis @ to_out)
+    mirror_env = _lut_env(env, mirror_table, env.texels.shape[:2])
+    lut = prep.irradiance_lut
+    out = []
+    for m, cnt, (nrm, v) in zip(mats, counts, _object_slices(gb, prep.pixel_capacity),
+                                strict=True):
+        kw = dict(distribution=m.distribution, geometry=m.geometry)
+        moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
+        dtable = None
+        if lut is not None:
+            dtable = _lut_env(env, (m.alpha / math.pi) * _filtered_irradiance(m, env, lut)
+                              @ to_out)
+
+        def shade(nn: jax.Array, vv: jax.Array, m: Material = m, moments: jax.Array = moments,
+                  dtable: Any = dtable, kw: dict = kw) -> jax.Array:
+            gloss = gloss_split_sum(env_g, prep.split_map, moments, nn, vv, m.mu, m.n,
+                                    settings=settings, **kw)
+            nv = (nn[:, 0] * vv[:, 0] + nn[:, 1] * vv[:, 1] + nn[:, 2] * vv[:, 2])[:, None]
+            refl = 2.0 * nv * nn - vv
+            fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
+            nv = fac[:, 1:2]
+            mirror = fac[:, 0:1] * fast_lookup(mirror_env, refl)
+            if dtable is None:
+                e = jax.vmap(lambda d: irradiance(env, d))(nn)
+                diffuse = (m.alpha / math.pi) * _filtered_irradiance(m, env, e) @ to_out
+            else:
+                diffuse = fast_lookup(dtable, nn)
+            rad = diffuse + m.beta * gloss + m.chi * mirror
+            return jnp.where(nv > 0.0, rad, 0.0)
+
+        out.append(_chunked(shade, cnt, k_out, nrm, v))
+    return jnp.concatenate(out)
+
+
+def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
+                 visible: jax.Array, spectral: bool) -> PixelFrame:
+    """Steps 1–3 of the frame (traced): geometry, raster, covered pixels, G-buffer, shading
+    and interreflection of the covered pixels, in the output channels (see
+    :class:`PixelFrame`)."""
+    from .raster import PixelList, covered_pixels, interpolate_pixels, rasterize
 
     TRACE_COUNT["render_frame"] += 1
     h, w = prep.shape
@@ -827,7 +965,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     # 2. rasterise, compact covered pixels, G-buffer
     ras = rasterize(clip, prep.triangles, (h, w), config=prep.raster_config, check=False)
     # covered pixels, one fixed-capacity list per object (each object is shaded with its own
-    # material by shade_points, whose per-material precomputations then run once per object)
+    # material, whose per-material precomputations then run once per object)
     obj_img = jnp.where(ras.tri_id >= 0, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
     lists = [covered_pixels(eqx.tree_at(lambda r: r.tri_id, ras,
                                         jnp.where(obj_img == o, ras.tri_id, -1)), cap)
@@ -841,7 +979,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     pos = vals[:, :3]
     nrm = vals[:, 3:]
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
-    eye = jnp.linalg.inv(view)[:3, 3]
+    eye = eye_position(view)
     vdir = eye - pos
     vdir = vdir / jnp.maximum(jnp.linalg.norm(vdir, axis=-1, keepdims=True), 1e-12)
     # silhouette pixels whose interpolated (smooth) normal turns away from the eye: bend the
@@ -857,10 +995,21 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     gb = GBuffer(position=pos, normal=nrm, view=vdir, object=obj,
                  pixel=jnp.where(pix.valid, pix.index, -1))
 
-    # 3. shading + interreflection
-    radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
-                              prep.quality, prep.pixel_capacity, prep.split_map,
-                              prep.split_settings)
+    # 3. shading + interreflection, in the output channels (XYZ, or all channels for the
+    # spectral output): no (N, C) array unless the spectra are asked for
+    if spectral:
+        to_out = jnp.eye(prep.channels, dtype=jnp.float32)
+        hm, wm, c = prep.env.texels.shape
+        mirror_table = jnp.concatenate([prep.env.texels.reshape(hm * wm, c), prep.env.poles])
+    else:
+        to_out = prep.to_xyz
+        mirror_table = prep.env_xyz
+    if prep.quality == "fast":
+        radiance = _shade_out(prep, mats, gb, [q.count for q in lists], to_out, mirror_table)
+    else:
+        radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
+                                  prep.quality, prep.pixel_capacity, prep.split_map,
+                                  prep.split_settings) @ to_out
     # interreflection sees a hidden object intact (no degenerate triangles, which gave NaN)
     # but 1 km below the scene: its light and shadow on the others are ~1e-9 of a neighbour's
     away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
@@ -871,61 +1020,70 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                                                         prep.triangle_slices, strict=True))]
     ir, ir_overflow = _interreflection(prep, geoms, mats, gb)
     if ir is not None:
-        radiance = radiance + ir
+        radiance = radiance + ir @ to_out
     radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
+    stats = {
+        "covered_pixels": pix.count,
+        "pixel_overflow": pix.overflow,
+        "raster_overflow": ras.overflow,
+        "interreflection_overflow": ir_overflow,
+    }
+    return PixelFrame(values=radiance, index=pix.index, valid=pix.valid,
+                      mask=ras.tri_id >= 0, object_id=obj_img, stats=stats)
 
+
+def _scatter(values: jax.Array, px: PixelFrame, image: jax.Array) -> jax.Array:
+    """Write the slots' ``values`` (N, K) into ``image`` (H, W, K)."""
+    h, w, k = image.shape
+    idx = jnp.where(px.valid, px.index, h * w)  # out of range: dropped
+    return image.reshape(h * w, k).at[idx].set(values, mode="drop").reshape(h, w, k)
+
+
+def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
+                 visible: jax.Array, spectral: bool, background: bool = True) -> Frame:
+    from .display import to_display
+
+    h, w = prep.shape
+    px = _pixels_impl(prep, materials, model, view, visible, spectral)
     # 4. background and XYZ
-    bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
-    xyz = scatter_pixels(radiance @ prep.to_xyz, pix, bg_xyz)
-    mask = ras.tri_id >= 0
-    object_id = obj_img
+    if background:
+        bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
+    else:
+        bg_xyz = jnp.zeros((h, w, 3), jnp.float32)
     spec = None
     if spectral:
-        env = prep.env
-        hm, wm, c = env.texels.shape
-        flat = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
-        bg = _background(prep, flat, view) @ prep.to_spectrum
-        spec = scatter_pixels(radiance @ prep.to_spectrum, pix, bg.reshape(h, w, -1))
+        xyz = _scatter(px.values @ prep.to_xyz, px, bg_xyz)
+        if background:
+            env = prep.env
+            hm, wm, c = env.texels.shape
+            flat = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
+            bg = (_background(prep, flat, view) @ prep.to_spectrum).reshape(h, w, -1)
+        else:
+            bg = jnp.zeros((h, w, prep.to_spectrum.shape[1]), jnp.float32)
+        spec = _scatter(px.values @ prep.to_spectrum, px, bg)
+    else:
+        xyz = _scatter(px.values, px, bg_xyz)
 
     # 5. display
     d = to_display(xyz, exposure_luminance=prep.exposure, display=prep.display,
-                   scene_white_xy=prep.scene_white_xy, mask=mask)
-    count = pix.count
+                   scene_white_xy=prep.scene_white_xy, mask=px.mask)
+    count = px.stats["covered_pixels"]
     stats = {
         "out_of_gamut_fraction": d.out_of_gamut_fraction,
         "below_zero_fraction": d.below_zero_fraction,
         "overexposed_fraction": d.overexposed_fraction,
         "coverage": count.astype(jnp.float32) / (h * w),
-        "covered_pixels": count,
-        "pixel_overflow": pix.overflow,
-        "raster_overflow": ras.overflow,
-        "interreflection_overflow": ir_overflow,
+        **px.stats,
     }
-    return Frame(xyz=xyz, rgb=d.rgb, linear_rgb=d.linear, mask=mask, object_id=object_id,
-                 spectral=spec, stats=stats)
+    return Frame(xyz=xyz, rgb=d.rgb, linear_rgb=d.linear, mask=px.mask,
+                 object_id=px.object_id, spectral=spec, stats=stats)
 
 
 _render_jit = eqx.filter_jit(_render_impl)
 
 
-def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, view: Any = None,
-                 visible: Any = None, spectral: bool = False) -> Frame:
-    """Render one frame (jit-compiled once per :class:`Prepared` shape; differentiable).
-
-    Args:
-        prep: from :func:`prepare`.
-        materials: a stacked :class:`~spectral_fit.reflectance.Material` (leading axis O) or a
-            sequence of O Materials (reflectance in bands, or K coefficients in basis mode);
-            default the config's. Traced: new values never recompile.
-        model: (O, 4, 4) world-from-object matrices (default the config's poses). Traced.
-        view: (4, 4) world → OpenGL eye view matrix (default the config's camera). Traced.
-        visible: (O,) bool per-object visibility (default all visible). Traced.
-        spectral: also return the spectral radiance (H, W, L) (a separate compilation).
-
-    Returns:
-        :class:`Frame`. Gradients flow to every material parameter of every object (and to
-        the model/view matrices through shading, not through visibility).
-    """
+def _check_frame_inputs(prep: Prepared, materials: Any, model: Any, view: Any, visible: Any
+                        ) -> tuple[Any, jax.Array, jax.Array, jax.Array]:
     mats = prep.materials if materials is None else materials
     model = prep.model if model is None else model
     view = prep.view if view is None else view
@@ -943,9 +1101,48 @@ def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, vi
     if not isinstance(mats, Material):
         mats = _stack(_as_stacked(mats, prep.num_objects)) if len(
             {(m.distribution, m.geometry) for m in mats}) == 1 else list(mats)
-    return _render_jit(prep, mats, jnp.asarray(model, jnp.float32),
-                       jnp.asarray(view, jnp.float32), jnp.asarray(visible, bool),
-                       spectral)
+    return (mats, jnp.asarray(model, jnp.float32), jnp.asarray(view, jnp.float32),
+            jnp.asarray(visible, bool))
+
+
+def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
+                  view: Any = None, visible: Any = None, spectral: bool = False
+                  ) -> PixelFrame:
+    """The covered pixels of one frame, shaded (with interreflection), without background,
+    image scatter or display encoding: for callers that put the pixels somewhere else (the
+    live composite writes them straight into the video frame). Same inputs as
+    :func:`render_frame`; meant to be called inside the caller's own ``jit``. Returns a
+    :class:`PixelFrame`; its values are in ``prep.to_xyz``'s output space (:func:`with_output`)
+    or, with ``spectral``, in the C radiance channels."""
+    mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
+    return _pixels_impl(prep, mats, model, view, visible, spectral)
+
+
+def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, view: Any = None,
+                 visible: Any = None, spectral: bool = False, background: bool = True
+                 ) -> Frame:
+    """Render one frame (jit-compiled once per :class:`Prepared` shape; differentiable).
+
+    Args:
+        prep: from :func:`prepare`.
+        materials: a stacked :class:`~spectral_fit.reflectance.Material` (leading axis O) or a
+            sequence of O Materials (reflectance in bands, or K coefficients in basis mode);
+            default the config's. Traced: new values never recompile.
+        model: (O, 4, 4) world-from-object matrices (default the config's poses). Traced.
+        view: (4, 4) world → OpenGL eye view matrix (default the config's camera). Traced.
+        visible: (O,) bool per-object visibility (default all visible). Traced.
+        spectral: also return the spectral radiance (H, W, L) (a separate compilation; the
+            default frame never forms per-pixel spectra: it shades straight into XYZ).
+        background: False: uncovered pixels are black (0) instead of the environment seen
+            through them (for callers that replace them, e.g. by a video frame; a separate
+            compilation).
+
+    Returns:
+        :class:`Frame`. Gradients flow to every material parameter of every object (and to
+        the model/view matrices through shading, not through visibility).
+    """
+    mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
+    return _render_jit(prep, mats, model, view, visible, bool(spectral), bool(background))
 
 
 def render(scene: Any, materials: Any = None, *, spectral: bool = False,

@@ -727,7 +727,7 @@ def _spectrum_text(wl: np.ndarray, values: np.ndarray, unit: str, comment: str =
                                 [f"value_{k + 1}" for k in range(values.shape[0])])
     rows = [",".join(cols)]
     for j, w in enumerate(wl):
-        rows.append(",".join([f"{w:g}"] + [f"{v:.8g}" for v in values[:, j]]))
+        rows.append(",".join([f"{w:g}"] + [f"{v:.12g}" for v in values[:, j]]))
     return "\n".join(head + rows) + "\n"
 
 

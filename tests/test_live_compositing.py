@@ -16,6 +16,7 @@ from spectral_fit.compositing import (
     camera_model_from_sensitivities,
     colorchecker_reflectances,
     composite,
+    composite_pixels,
     sample_chart,
 )
 
@@ -146,6 +147,30 @@ def test_composite_bool_mask_matches_full_coverage():
     np.testing.assert_array_equal(out[~mask], frame[~mask])
     want = colour.cctf_encoding(np.clip(cg[mask], 0, 1).astype(np.float64), function="sRGB")
     np.testing.assert_allclose(out[mask], want * 255, atol=0.51)
+
+
+def test_composite_pixels_matches_the_full_image_composite():
+    """Writing a list of covered pixels (the renderer's PixelFrame: values, flat index, valid)
+    into the frame gives the same bytes as compositing the full CG image with the bool mask;
+    invalid slots write nothing."""
+    white = illuminant("D65", WL) / 100.0
+    m = camera_model_from_sensitivities("Nikon 5100 (NPL)", WL, white)
+    rng = np.random.default_rng(2)
+    h, w = 7, 9
+    frame = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    cg = rng.uniform(-0.1, 1.2, (h, w, 3)).astype(np.float32)
+    mask = rng.random((h, w)) < 0.4
+    idx = np.flatnonzero(mask)
+    n = idx.size
+    # slots: the covered pixels, then empty slots (index 0, garbage values, valid False)
+    index = np.concatenate([idx, np.zeros(5, np.int64)]).astype(np.int32)
+    values = np.concatenate([cg.reshape(-1, 3)[idx], np.full((5, 3), 0.7, np.float32)])
+    valid = np.arange(n + 5) < n
+    out = np.asarray(composite_pixels(jnp.asarray(frame), jnp.asarray(values),
+                                      jnp.asarray(index), jnp.asarray(valid), m))
+    ref = np.asarray(composite(jnp.asarray(frame), jnp.asarray(cg), jnp.asarray(mask), m))
+    np.testing.assert_array_equal(out, ref)
+    np.testing.assert_array_equal(out[~mask], frame[~mask])
 
 
 def test_white_reference_closed_forms():

@@ -208,6 +208,60 @@ def test_gradients_match_finite_differences(prep):
             assert abs(fd) > 1e-4, (name, obj, fd)  # every parameter matters here
 
 
+def test_frame_without_background(prep, frame):
+    """background=False: the same covered pixels, zeros elsewhere (the live composite's
+    case: the video frame replaces the environment)."""
+    from spectral_fit.renderer import render_frame
+
+    f = render_frame(prep, background=False)
+    mask = np.asarray(frame.mask)
+    np.testing.assert_array_equal(np.asarray(f.mask), mask)
+    xyz, ref = np.asarray(f.xyz), np.asarray(frame.xyz)
+    assert np.all(xyz[~mask] == 0.0)
+    np.testing.assert_allclose(xyz[mask], ref[mask], rtol=1e-6, atol=1e-7 * ref.max())
+
+
+def test_chunked_xyz_shading_matches_the_band_shading(prep):
+    """The frame's shading (in XYZ, in chunks of slots, chunks past each object's covered
+    count skipped) equals the per-band shading of all slots at once (the C-channel split-sum
+    path) converted to XYZ afterwards, on random normals and views; with 8,192 slots per
+    object (chunks of 2,048) and 3,000 / 5,000 covered, the last chunks are skipped (zeros)."""
+    import dataclasses
+
+    import equinox as eqx
+
+    from spectral_fit.gbuffer import GBuffer
+    from spectral_fit.renderer import _as_stacked, _shade_fast, _shade_out
+
+    cap, counts = 8192, (3000, 5000)
+    p = dataclasses.replace(prep, pixel_capacity=(cap, cap))
+    rng = np.random.default_rng(5)
+    nrm = rng.normal(size=(2 * cap, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    v = nrm + 0.9 * rng.normal(size=(2 * cap, 3))  # mostly facing, some grazing or behind
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    obj = np.repeat([0, 1], cap).astype(np.int32)
+    gb = GBuffer(position=jnp.zeros((2 * cap, 3)), normal=jnp.asarray(nrm, jnp.float32),
+                 view=jnp.asarray(v, jnp.float32), object=jnp.asarray(obj),
+                 pixel=jnp.arange(2 * cap, dtype=jnp.int32))
+    mats = _as_stacked(eqx_replace(prep.materials, chi=jnp.array([0.3, 0.5])), 2)
+
+    @eqx.filter_jit
+    def both(p, mats, gb):
+        new = _shade_out(p, mats, gb, [jnp.int32(c) for c in counts], p.to_xyz, p.env_xyz)
+        old = _shade_fast(mats, p.env, gb, p.irradiance_lut, p.pixel_capacity, p.split_map,
+                          p.split_settings) @ p.to_xyz
+        return new, old
+
+    new, old = (np.asarray(x) for x in both(p, mats, gb))
+    for o, c in enumerate(counts):
+        a, b = new[o * cap:o * cap + c], old[o * cap:o * cap + c]
+        np.testing.assert_allclose(a, b, rtol=2e-5, atol=2e-6 * np.abs(b).max())
+        assert np.abs(b).max() > 0
+        first_skipped = -(-c // 2048) * 2048
+        assert np.all(new[o * cap + first_skipped:(o + 1) * cap] == 0.0)
+
+
 def test_bad_inputs_name_the_option(prep, folder):
     from spectral_fit.renderer import prepare, render_frame
 

@@ -21,6 +21,9 @@ Figures:
 * ``non_render_ms``: sequential end-to-end minus render (what the overlap can hide);
 * ``render_fps``, ``covered_pixels``, ``pixel_capacity``, ``recompiles`` (must stay 0).
 
+``live_paper_none``: the same without interreflection (the frame program and the live stages
+alone).
+
 ``--quick``: frames at a third of the size (240×160, intrinsics scaled), interreflection
 "none", K = 8 basis, 3 end-to-end frames (figures not comparable).
 """
@@ -43,6 +46,15 @@ VIDEO = ROOT / "measurements" / "video" / "sample.mp4"
 
 
 def live_paper(opts: BenchOptions) -> dict[str, Any]:
+    return _live(opts)
+
+
+def live_paper_none(opts: BenchOptions) -> dict[str, Any]:
+    """``live_paper`` without interreflection (the frame program and the live stages alone)."""
+    return _live(opts, mode="none")
+
+
+def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
     import jax
 
     from ..errors import InputError
@@ -54,7 +66,7 @@ def live_paper(opts: BenchOptions) -> dict[str, Any]:
         raise InputError("live_paper needs the repository's configs/ and measurements/video/",
                          path=CONFIG if not CONFIG.is_file() else VIDEO)
     scene = load_scene(CONFIG)
-    extra: dict[str, Any] = {}
+    extra: dict[str, Any] = {} if mode is None else {"mode": mode}
     if opts.quick:
         extra = {"mode": "none", "spectral_mode": "basis", "k": 8}
     n_e2e = 3 if opts.quick else max(2, min(opts.repeats, 12))
@@ -186,4 +198,5 @@ def live_stages(opts: BenchOptions) -> dict[str, Any]:
     return out
 
 
-CASES = {"live_paper": live_paper, "live_stages": live_stages}
+CASES = {"live_paper": live_paper, "live_paper_none": live_paper_none,
+         "live_stages": live_stages}

@@ -37,24 +37,13 @@ def _say(msg: str) -> None:
 
 
 def enable_compilation_cache() -> str | None:
-    """Keep XLA's compiled programs between runs (the fit's solver takes ~30 s to compile on
-    2 CPU cores): ``$SPECTRAL_FIT_JAX_CACHE`` or ``~/.cache/spectral_fit/jax``; set the variable
-    to an empty string to disable. Applications (this CLI) opt in; the library never does."""
-    import os
+    """Keep XLA's compiled programs between runs (the fit's solver takes ~3 s of CPU to
+    compile, more on a loaded machine): ``$SPECTRAL_FIT_JAX_CACHE`` or
+    ``~/.cache/spectral_fit/jax``; set the variable to an empty string to disable.
+    Applications (this CLI) opt in; the library never does."""
+    from ..startup import enable_compilation_cache as enable
 
-    import jax
-
-    path = os.environ.get("SPECTRAL_FIT_JAX_CACHE",
-                          os.path.join(os.path.expanduser("~"), ".cache", "spectral_fit", "jax"))
-    if not path:
-        return None
-    try:
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    except Exception:  # a read-only home must not stop the fit
-        return None
-    return path
+    return enable(min_compile_time_s=1.0)
 
 
 def run(args: argparse.Namespace) -> int:

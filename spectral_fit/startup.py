@@ -1,0 +1,480 @@
+"""Cold start: persistent caches for the first frame of a process.
+
+A fresh process that renders a frame pays for three things before the first pixel: preparing the
+scene (:func:`~spectral_fit.renderer.prepare`: meshes, the environment's prefiltered levels and
+split-sum tables, capacity plans; 1–3 s of CPU on the benchmark scene), tracing and lowering the
+frame program to XLA (about 5 s of CPU) and compiling it (about 30 s of CPU on 2 cores).
+JAX's persistent compilation cache removes only the last of these: a cache hit still traces and
+lowers the whole program. This module keeps all three between processes:
+
+* :func:`enable_compilation_cache`: JAX's persistent compilation cache in
+  ``$SPECTRAL_FIT_JAX_CACHE`` (default ``~/.cache/spectral_fit/jax``), for every program;
+* :func:`prepare_cached`: :func:`~spectral_fit.renderer.prepare` of a config file, stored on disk
+  (``$SPECTRAL_FIT_CACHE/prepared``, default ``~/.cache/spectral_fit/prepared``);
+* :func:`render_frame_cached`: :func:`~spectral_fit.renderer.render_frame` through a compiled
+  executable stored on disk (``.../programs``): a hit loads the executable without tracing.
+
+Every entry is keyed by a SHA-256 of everything it depends on: the text of the package's source
+files, the versions of jax, jaxlib, equinox, numpy and colour-science, the backend and device
+kind, ``XLA_FLAGS`` and the JAX settings that change lowering; for a prepared scene also the
+config file's bytes, the size and modification time of every file the config names, and the
+options; for a program the full structure of its arguments (every static field, every array's
+shape and dtype) and the compiler options. A changed input therefore misses and recomputes; it
+never loads a stale entry. Set ``SPECTRAL_FIT_CACHE`` (or ``SPECTRAL_FIT_JAX_CACHE``) to an
+empty string to disable a cache. Applications (the CLI, the benchmarks, the notebooks) opt in;
+the library never enables a cache by itself, because JAX's setting is process-global.
+
+Measured figures: docs/rendering.md ("Cold start").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import importlib.metadata
+import os
+import pickle
+import sys
+import tomllib
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "cache_root",
+    "enable_compilation_cache",
+    "prepare_cached",
+    "render_frame_cached",
+    "single_threaded_blas",
+    "CACHE_STATS",
+]
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+#: hits and misses of the two disk caches in this process (for the benchmarks and tests)
+CACHE_STATS: dict[str, int] = {"prepared_hit": 0, "prepared_miss": 0, "program_hit": 0,
+                               "program_miss": 0, "program_memory_hit": 0}
+
+# entries kept per cache folder (oldest removed first)
+_MAX_ENTRIES = 8
+
+
+def cache_root() -> Path | None:
+    """The folder of the prepared-scene and program caches: ``$SPECTRAL_FIT_CACHE`` or
+    ``~/.cache/spectral_fit``; None when the variable is set to an empty string."""
+    path = os.environ.get("SPECTRAL_FIT_CACHE",
+                          os.path.join(os.path.expanduser("~"), ".cache", "spectral_fit"))
+    return Path(path) if path else None
+
+
+def enable_compilation_cache(path: str | os.PathLike[str] | None = None, *,
+                             min_compile_time_s: float = 0.0) -> str | None:
+    """Turn on JAX's persistent compilation cache (process-global) and return its folder.
+
+    Args:
+        path: the cache folder; default ``$SPECTRAL_FIT_JAX_CACHE`` or
+            ``~/.cache/spectral_fit/jax`` (an empty variable disables the cache: returns None).
+        min_compile_time_s: programs that compile faster than this are not stored. The default
+            0 stores every program, so that a warm process compiles nothing at all (a frame's
+            few small eager programs add up to ~0.4 s of compile otherwise).
+
+    A folder that cannot be created (read-only home) leaves the cache off and returns None.
+    """
+    import jax
+
+    if path is None:
+        path = os.environ.get("SPECTRAL_FIT_JAX_CACHE",
+                              os.path.join(os.path.expanduser("~"), ".cache", "spectral_fit",
+                                           "jax"))
+    if not path:
+        return None
+    path = os.fspath(path)
+    try:
+        os.makedirs(path, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                          float(min_compile_time_s))
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    except Exception:  # a cache must never stop the application
+        return None
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# keys
+
+
+@functools.cache
+def _source_digest() -> str:
+    """SHA-256 of every file of the package (relative path and bytes), computed once."""
+    h = hashlib.sha256()
+    for p in sorted(PACKAGE_DIR.rglob("*")):
+        if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc":
+            h.update(str(p.relative_to(PACKAGE_DIR)).encode())
+            h.update(b"\0")
+            h.update(p.read_bytes())
+            h.update(b"\0")
+    return h.hexdigest()
+
+
+def _version(dist: str) -> str:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return "-"
+
+
+@functools.cache
+def _environment_digest() -> str:
+    """The package sources, library versions, backend and the settings that change lowering."""
+    import jax
+
+    dev = jax.devices()[0]
+    parts = [
+        _source_digest(),
+        *(f"{d}={_version(d)}" for d in ("jax", "jaxlib", "equinox", "numpy",
+                                         "colour-science")),
+        f"backend={jax.default_backend()}", f"device={dev.platform}:{dev.device_kind}",
+        f"devices={jax.device_count()}",
+        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}",
+        f"x64={jax.config.jax_enable_x64}",
+        f"matmul={jax.config.jax_default_matmul_precision}",
+    ]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def _strings(tree: Any) -> Iterable[str]:
+    if isinstance(tree, str):
+        yield tree
+    elif isinstance(tree, dict):
+        for v in tree.values():
+            yield from _strings(v)
+    elif isinstance(tree, list | tuple):
+        for v in tree:
+            yield from _strings(v)
+
+
+def _config_digest(path: Path) -> str | None:
+    """Config bytes plus (path, size, mtime) of every existing file any of its strings names
+    (absolute, or relative to the config's folder or the working folder); None when the file
+    cannot be read or parsed (then :func:`prepare` reports the error itself)."""
+    try:
+        raw = path.read_bytes()
+        doc = tomllib.loads(raw.decode("utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None
+    h = hashlib.sha256(raw)
+    h.update(str(path.resolve()).encode())
+    seen = set()
+    for s in _strings(doc):
+        if not s or len(s) > 4096 or "\0" in s:
+            continue
+        p = Path(s).expanduser()
+        for cand in ([p] if p.is_absolute() else [path.parent / p, Path.cwd() / p]):
+            with contextlib.suppress(OSError):
+                if cand.is_file():
+                    st = cand.stat()
+                    key = f"{cand.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+                    if key not in seen:
+                        seen.add(key)
+                        h.update(key.encode())
+    return h.hexdigest()
+
+
+_PLAIN = (type(None), bool, int, float, str)
+
+
+def _plain_repr(value: Any) -> str | None:
+    """A deterministic text of a plain option value (scalars, tuples/lists of them, frozen
+    dataclasses of them); None for anything else (arrays, objects): then no caching."""
+    if isinstance(value, _PLAIN):
+        return repr(value)
+    if isinstance(value, list | tuple):
+        items = [_plain_repr(v) for v in value]
+        return None if any(i is None for i in items) else "(" + ",".join(items) + ")"
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        items = [_plain_repr(getattr(value, f.name)) for f in dataclasses.fields(value)]
+        if any(i is None for i in items):
+            return None
+        return type(value).__qualname__ + "(" + ",".join(items) + ")"
+    return None
+
+
+# --------------------------------------------------------------------------------------------
+# disk entries
+
+
+def _read_entry(folder: Path, key: str) -> Any:
+    p = folder / f"{key}.pkl"
+    try:
+        with open(p, "rb") as fh:
+            return pickle.load(fh)
+    except FileNotFoundError:
+        return None
+    except Exception:  # a damaged entry is recomputed (and overwritten)
+        with contextlib.suppress(OSError):
+            p.unlink()
+        return None
+
+
+def _write_entry(folder: Path, key: str, value: Any) -> None:
+    from .fileio import atomic_write_bytes
+
+    try:
+        data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(folder / f"{key}.pkl", data)
+        entries = sorted(folder.glob("*.pkl"), key=lambda q: q.stat().st_mtime_ns)
+        for old in entries[:-_MAX_ENTRIES]:
+            with contextlib.suppress(OSError):
+                old.unlink()
+    except Exception:  # a cache that cannot be written must not stop the application
+        return
+
+
+# --------------------------------------------------------------------------------------------
+# prepared scenes
+
+
+_BLAS_SYMBOLS = (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+                 ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
+                 ("openblas_get_num_threads64_", "openblas_set_num_threads64_"),
+                 ("openblas_get_num_threads", "openblas_set_num_threads"))
+
+
+@contextlib.contextmanager
+def single_threaded_blas() -> Any:
+    """Run NumPy's OpenBLAS on one thread inside the block (restored afterwards).
+
+    OpenBLAS threads busy-wait for work. On a small, shared machine (2 cores, other processes
+    running) its second thread competes with everything else, and :func:`prepare`'s matrix
+    products (the environment's spherical blurs and principal spectra) took 1.7–8 s of CPU
+    instead of 0.8 s on one thread, in paired runs (docs/rendering.md, "Cold start"). Only
+    OpenBLAS libraries already loaded by the process are changed (found in /proc/self/maps);
+    elsewhere this does nothing."""
+    import ctypes
+
+    saved = []
+    try:
+        with open("/proc/self/maps") as fh:
+            libs = sorted({line.split()[-1] for line in fh
+                           if "openblas" in line.lower() and line.split()[-1].startswith("/")})
+    except OSError:
+        libs = []
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for get_name, set_name in _BLAS_SYMBOLS:
+            get, put = getattr(lib, get_name, None), getattr(lib, set_name, None)
+            if get is not None and put is not None:
+                get.restype = ctypes.c_int
+                saved.append((put, int(get())))
+                put(ctypes.c_int(1))
+                break
+    try:
+        yield
+    finally:
+        for put, n in saved:
+            put(ctypes.c_int(n))
+
+
+
+def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = None,
+                   **options: Any) -> Any:
+    """:func:`~spectral_fit.renderer.prepare` with a disk cache of its result.
+
+    Args:
+        scene: path to a scene config (TOML). A :class:`~spectral_fit.scene.Scene` object, or
+            an option that is not a plain value (e.g. an ``environment`` array), is prepared
+            without the cache.
+        cache_dir: cache root (default :func:`cache_root`); entries go to ``<root>/prepared``.
+        **options: passed to ``prepare`` (size, mode, spectral_mode, k, ...).
+
+    Returns:
+        The :class:`~spectral_fit.renderer.Prepared` scene, identical to ``prepare``'s (the
+        stored arrays are float32 as prepared; pickled, not recomputed).
+    Raises:
+        InputError: as ``prepare`` (bad configs and options are never cached).
+    """
+    from .renderer import prepare
+
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
+    texts = {k: _plain_repr(v) for k, v in options.items()}
+    digest = (_config_digest(Path(scene)) if root is not None
+              and isinstance(scene, str | os.PathLike) else None)
+    if digest is None or any(t is None for t in texts.values()):
+        return prepare(scene, **options)
+    text = "\n".join([_environment_digest(), digest,
+                      *(f"{k}={texts[k]}" for k in sorted(texts))])
+    key = hashlib.sha256(text.encode()).hexdigest()[:40]
+    folder = root / "prepared"
+    hit = _read_entry(folder, key)
+    if hit is not None:
+        CACHE_STATS["prepared_hit"] += 1
+        return hit
+    CACHE_STATS["prepared_miss"] += 1
+    prep = prepare(scene, **options)
+    _write_entry(folder, key, prep)
+    return prep
+
+
+# --------------------------------------------------------------------------------------------
+# compiled frame programs
+
+
+# compiled frame programs of this process, by key (jax.stages.Compiled: a flat list of arrays
+# -> a dict of Frame fields)
+_PROGRAMS: dict[str, Any] = {}
+
+
+def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
+                 compiler_options: dict[str, Any] | None, background: bool = True) -> str:
+    import jax
+    import numpy as np
+
+    # static fields are written with repr: numpy's print options (which other libraries change
+    # on import) are pinned so that the text does not depend on what was imported before
+    with np.printoptions(precision=8, threshold=sys.maxsize, edgeitems=3, linewidth=75,
+                         suppress=False, nanstr="nan", infstr="inf", sign="-",
+                         floatmode="unique", legacy=False):
+        parts = [_environment_digest(), repr(treedef), f"spectral={bool(spectral)}",
+                 f"background={bool(background)}",
+                 f"options={sorted((compiler_options or {}).items())!r}"]
+        for x in leaves:
+            if isinstance(x, jax.Array | np.ndarray):
+                parts.append(f"{tuple(x.shape)}:{x.dtype}:{getattr(x, 'weak_type', False)}")
+            else:
+                parts.append("static:" + repr(x))
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:40]
+
+
+def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
+                        view: Any = None, visible: Any = None, spectral: bool = False,
+                        background: bool = True,
+                        cache_dir: str | os.PathLike[str] | None = None,
+                        compiler_options: dict[str, Any] | None = None) -> Any:
+    """:func:`~spectral_fit.renderer.render_frame` through a compiled program kept on disk.
+
+    The first call for a given argument structure (the :class:`Prepared` scene's static
+    fields, every array's shape and dtype, ``spectral``, ``background``,
+    ``compiler_options``) in any process
+    traces, compiles and stores the executable (``<root>/programs``); later calls, in this
+    process or a new one, load it and run it without tracing. The result is the same Frame as
+    ``render_frame``'s, from the same XLA program (with ``compiler_options`` None).
+
+    Args:
+        prep, materials, model, view, visible, spectral, background: as for
+            ``render_frame`` (the same checks and defaults).
+        cache_dir: cache root (default :func:`cache_root`; with the cache disabled the
+            program is still kept in memory for this process).
+        compiler_options: XLA options of the compilation (``jax.stages.Lowered.compile``),
+            e.g. ``{"xla_cpu_use_fusion_emitters": False}``; part of the key.
+
+    Returns:
+        :class:`~spectral_fit.renderer.Frame` (not differentiable: use ``render_frame`` for
+        gradients).
+    Raises:
+        InputError: wrong shapes of model, view or visible (naming the field).
+    """
+    import jax
+    import numpy as np
+
+    from .renderer import Frame, _check_frame_inputs
+
+    if visible is None:  # a NumPy default: jnp.ones would compile a program in a new process
+        visible = np.ones((prep.num_objects,), bool)
+    args = (prep, *_check_frame_inputs(prep, materials, model, view, visible))
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    is_arr = [isinstance(x, jax.Array | np.ndarray) for x in leaves]
+    arrays = [x for x, a in zip(leaves, is_arr, strict=True) if a]
+    key = _program_key(treedef, leaves, spectral, compiler_options, background)
+    prog = _PROGRAMS.get(key)
+    if prog is not None:
+        CACHE_STATS["program_memory_hit"] += 1
+    else:
+        from .renderer import render_frame
+
+        statics = tuple(x for x, a in zip(leaves, is_arr, strict=True) if not a)
+
+        def program(arr: list[Any]) -> dict[str, Any]:
+            it_a, it_s = iter(arr), iter(statics)
+            full = [next(it_a) if a else next(it_s) for a in is_arr]
+            p, mats, mod, v, vis = jax.tree_util.tree_unflatten(treedef, full)
+            frame = render_frame(p, mats, model=mod, view=v, visible=vis, spectral=spectral,
+                                 background=background)
+            return {f.name: getattr(frame, f.name) for f in dataclasses.fields(frame)}
+
+        prog = _load_or_compile(key, program, arrays, compiler_options, cache_dir)
+        _PROGRAMS[key] = prog
+    out = prog(arrays)
+    return Frame(**out)
+
+
+def _custom_call_targets(compiled: Any) -> list[str] | None:
+    """The custom-call targets (external kernels) of a compiled program; None if unknown."""
+    import re
+
+    try:
+        return sorted(set(re.findall(r'custom_call_target="([^"]+)"', compiled.as_text())))
+    except Exception:
+        return None
+
+
+def _prepare_custom_calls(targets: list[str] | None) -> bool:
+    """Make the external kernels of a program loaded from disk callable; False when it calls
+    one that this module does not know how to prepare (then the program is recompiled).
+
+    JAX initialises the LAPACK kernels (``jnp.linalg``) lazily, while lowering a program that
+    uses them; a program loaded from disk is never lowered, and calling an uninitialised
+    kernel crashed the process."""
+    if targets is None or any(not t.startswith("lapack_") for t in targets):
+        return False
+    if targets:
+        try:  # a private JAX function: if it moves, programs are compiled instead of loaded
+            from jax._src.lax import linalg
+
+            linalg.initialize_lapack()
+        except Exception:
+            return False
+    return True
+
+
+def _load_or_compile(key: str, fn: Any, arrays: list[Any],
+                     compiler_options: dict[str, Any] | None,
+                     cache_dir: str | os.PathLike[str] | None) -> Any:
+    """The compiled ``jax.jit(fn)`` for ``arrays`` (a list of arrays), loaded from
+    ``<root>/programs/<key>.pkl`` when there, else compiled and stored. ``key`` must determine
+    the program (see :func:`_program_key`)."""
+    import jax
+    from jax.experimental.serialize_executable import deserialize_and_load, serialize
+
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
+    folder = None if root is None else root / "programs"
+    if folder is not None:
+        entry = _read_entry(folder, key)
+        if entry is not None and _prepare_custom_calls(entry.get("custom_calls")):
+            try:
+                compiled = deserialize_and_load(entry["payload"], entry["in_tree"],
+                                                entry["out_tree"])
+                CACHE_STATS["program_hit"] += 1
+                return compiled
+            except Exception:  # e.g. written by another jaxlib build: recompile
+                pass
+    CACHE_STATS["program_miss"] += 1
+    lowered = jax.jit(fn).lower(arrays)
+    compiled = (lowered.compile(compiler_options=compiler_options) if compiler_options
+                else lowered.compile())
+    if folder is not None:
+        try:
+            targets = _custom_call_targets(compiled)
+            if _prepare_custom_calls(targets):  # else: a kernel a new process could not call
+                payload, in_tree, out_tree = serialize(compiled)
+                _write_entry(folder, key, {"payload": payload, "in_tree": in_tree,
+                                           "out_tree": out_tree, "custom_calls": targets})
+        except Exception:  # a backend without executable serialisation: memory only
+            pass
+    return compiled

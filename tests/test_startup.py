@@ -1,0 +1,271 @@
+"""Cold-start caches (spectral_fit.startup): prepared scenes and compiled frame programs on
+disk, checked against the uncached functions (bit for bit), across fresh processes, and for
+invalidation when an input changes."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from spectral_fit import startup
+from spectral_fit.errors import InputError
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _rendering_util import ANCHOR_ENV, scene_toml  # noqa: E402
+
+
+def _small_env(path: Path, scale: float = 1.0) -> Path:
+    """The benchmark map averaged down to 16 × 32 texels (cheap to prepare)."""
+    from spectral_fit.exr import read_spectral_exr, write_spectral_exr
+
+    wl, img = read_spectral_exr(ANCHOR_ENV)
+    h, w, c = img.shape
+    small = img.reshape(16, h // 16, 32, w // 32, c).mean(axis=(1, 3)) * scale
+    write_spectral_exr(path, wl, small, preview=False)
+    return path
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("startup")
+    env = _small_env(folder / "env.exr")
+    p = folder / "scene.toml"
+    p.write_text(scene_toml(env, stacks=8, width=40, height=30, same_colour=False))
+    return p
+
+
+def _leaves_equal(a, b) -> bool:
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    return (len(la) == len(lb) and all(
+        np.array_equal(np.asarray(x), np.asarray(y)) and np.asarray(x).dtype ==
+        np.asarray(y).dtype for x, y in zip(la, lb, strict=True))
+        and repr(ta) == repr(tb))
+
+
+def _env(cache: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env["SPECTRAL_FIT_CACHE"] = str(cache)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    return env
+
+
+def test_prepare_cached_hits_and_matches_prepare(config, tmp_path):
+    from spectral_fit.renderer import prepare
+
+    before = dict(startup.CACHE_STATS)
+    a = startup.prepare_cached(config, cache_dir=tmp_path, mode="none")
+    b = startup.prepare_cached(config, cache_dir=tmp_path, mode="none")
+    assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 1
+    assert startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
+    ref = prepare(config, mode="none")
+    assert _leaves_equal(a, ref) and _leaves_equal(b, ref)
+    # another option value is another entry
+    startup.prepare_cached(config, cache_dir=tmp_path, mode="none", size=(20, 16))
+    assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 2
+    assert len(list((tmp_path / "prepared").glob("*.pkl"))) == 2
+
+
+def test_prepare_cached_invalidated_by_a_named_file(tmp_path):
+    env = _small_env(tmp_path / "env.exr")
+    cfg = tmp_path / "scene.toml"
+    cfg.write_text(scene_toml(env, stacks=6, width=24, height=16))
+    cache = tmp_path / "cache"
+    a = startup.prepare_cached(cfg, cache_dir=cache, mode="none")
+    _small_env(env, scale=2.0)  # same path and size, new content and modification time
+    misses = startup.CACHE_STATS["prepared_miss"]
+    b = startup.prepare_cached(cfg, cache_dir=cache, mode="none")
+    assert startup.CACHE_STATS["prepared_miss"] == misses + 1
+    np.testing.assert_allclose(np.asarray(b.env.texels), 2.0 * np.asarray(a.env.texels),
+                               rtol=1e-6)
+    # a damaged entry is recomputed, not loaded
+    for p in (cache / "prepared").glob("*.pkl"):
+        p.write_bytes(b"not a pickle")
+    c = startup.prepare_cached(cfg, cache_dir=cache, mode="none")
+    assert startup.CACHE_STATS["prepared_miss"] == misses + 2
+    assert _leaves_equal(b, c)
+
+
+def test_prepare_cached_bypasses_what_it_cannot_key(config, tmp_path, monkeypatch):
+    from spectral_fit.scene import load_scene
+
+    before = dict(startup.CACHE_STATS)
+    startup.prepare_cached(load_scene(config), cache_dir=tmp_path, mode="none")
+    monkeypatch.setenv("SPECTRAL_FIT_CACHE", "")
+    assert startup.cache_root() is None
+    startup.prepare_cached(config, mode="none")
+    assert startup.CACHE_STATS == before
+    assert not (tmp_path / "prepared").exists()
+    with pytest.raises(InputError) as e:
+        startup.prepare_cached(config, cache_dir=tmp_path, mode="bogus")
+    assert e.value.field == "mode"
+
+
+def test_program_key_ignores_numpy_print_options():
+    import jax.numpy as jnp
+
+    from spectral_fit.display import Display
+
+    d = Display(primaries_xy=np.array([[0.64, 0.33], [0.3, 0.6], [0.15, 0.06]]),
+                white_xy=np.array([0.3127, 0.329]))
+    tree = (d, jnp.ones(3))
+    leaves, td = jax.tree_util.tree_flatten(tree)
+    k0 = startup._program_key(td, leaves, False, None)
+    with np.printoptions(legacy="1.13", precision=3):
+        assert startup._program_key(td, leaves, False, None) == k0
+    assert startup._program_key(td, leaves, True, None) != k0
+    assert startup._program_key(td, leaves, False, None, background=False) != k0
+    assert startup._program_key(td, [jnp.ones(4)], False, None) != k0
+
+
+_PROGRAM = """
+import json, sys
+import jax.numpy as jnp
+import numpy as np
+from spectral_fit import startup
+
+def fn(arr):
+    (m,) = arr
+    return {"inv": jnp.linalg.inv(m), "sum": jnp.sum(m)}
+
+m = jnp.asarray(np.array([[4.0, 1.0, 0.5], [0.0, 3.0, 1.0], [1.0, 0.0, 2.0]], np.float32))
+c = startup._load_or_compile("k", fn, [m], None, sys.argv[1])
+out = c([m])
+print(json.dumps({"inv": np.asarray(out["inv"]).tolist(), "stats": startup.CACHE_STATS}))
+"""
+
+
+def test_program_loads_in_a_fresh_process(tmp_path):
+    # the second process loads the executable without lowering jnp.linalg (which is what
+    # initialises the LAPACK kernels): this crashed before the kernels were loaded explicitly
+    script = tmp_path / "prog.py"
+    script.write_text(_PROGRAM)
+    outs = []
+    for _ in range(2):
+        r = subprocess.run([sys.executable, str(script), str(tmp_path / "cache")],
+                           capture_output=True, text=True, env=_env(tmp_path / "unused"),
+                           timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+        outs.append(json.loads(r.stdout.strip().splitlines()[-1]))
+    assert outs[0]["stats"]["program_miss"] == 1 and outs[0]["stats"]["program_hit"] == 0
+    assert outs[1]["stats"]["program_hit"] == 1 and outs[1]["stats"]["program_miss"] == 0
+    m = np.array([[4.0, 1.0, 0.5], [0.0, 3.0, 1.0], [1.0, 0.0, 2.0]])
+    for o in outs:
+        np.testing.assert_allclose(o["inv"], np.linalg.inv(m), rtol=1e-5, atol=1e-6)
+    import pickle
+
+    entry = pickle.loads((tmp_path / "cache" / "programs" / "k.pkl").read_bytes())
+    assert any(t.startswith("lapack_") for t in entry["custom_calls"])
+
+
+def test_programs_with_unknown_kernels_are_not_loaded():
+    assert startup._prepare_custom_calls([]) is True
+    assert startup._prepare_custom_calls(["lapack_sgetrf_ffi"]) is True
+    assert startup._prepare_custom_calls(["lapack_sgetrf_ffi", "ducc_fft"]) is False
+    assert startup._prepare_custom_calls(None) is False
+
+
+_FRAME = """
+import sys
+import numpy as np
+from spectral_fit import startup
+prep = startup.prepare_cached(sys.argv[1], mode="none")
+f = startup.render_frame_cached(prep)
+np.save(sys.argv[2], np.asarray(f.xyz))
+print(startup.CACHE_STATS)
+"""
+
+
+def test_render_frame_cached_matches_render_frame(config, tmp_path):
+    import jax.numpy as jnp
+
+    from spectral_fit.renderer import render_frame
+
+    cache = tmp_path / "cache"
+    prep = startup.prepare_cached(config, cache_dir=cache, mode="none")
+    ref = render_frame(prep)
+    misses = startup.CACHE_STATS["program_miss"]
+    got = startup.render_frame_cached(prep, cache_dir=cache)
+    assert startup.CACHE_STATS["program_miss"] == misses + 1
+    assert int(ref.stats["covered_pixels"]) > 20
+    for name in ("xyz", "rgb", "linear_rgb", "mask", "object_id"):
+        assert np.array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(ref, name)))
+    assert {k: float(v) for k, v in got.stats.items()} == {
+        k: float(v) for k, v in ref.stats.items()}
+    # a new pose reuses the program (no retrace, no recompile) and matches render_frame
+    model = np.asarray(prep.model).copy()
+    model[0, 0, 3] += 0.01
+    mem = startup.CACHE_STATS["program_memory_hit"]
+    got2 = startup.render_frame_cached(prep, model=model, cache_dir=cache)
+    ref2 = render_frame(prep, model=jnp.asarray(model))
+    assert startup.CACHE_STATS["program_memory_hit"] == mem + 1
+    assert np.array_equal(np.asarray(got2.xyz), np.asarray(ref2.xyz))
+    assert not np.array_equal(np.asarray(got2.xyz), np.asarray(got.xyz))
+    with pytest.raises(InputError) as e:
+        startup.render_frame_cached(prep, model=model[:1], cache_dir=cache)
+    assert e.value.field == "model"
+    # a fresh process finds both entries on disk and renders the same frame
+    script = tmp_path / "frame.py"
+    script.write_text(textwrap.dedent(_FRAME))
+    r = subprocess.run([sys.executable, str(script), str(config), str(tmp_path / "xyz.npy")],
+                       capture_output=True, text=True, env=_env(cache), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "'prepared_hit': 1" in r.stdout and "'program_hit': 1" in r.stdout
+    assert "'program_miss': 0" in r.stdout
+    assert np.array_equal(np.load(tmp_path / "xyz.npy"), np.asarray(ref.xyz))
+
+
+def test_single_threaded_blas_sets_and_restores_openblas_threads():
+    import ctypes
+
+    x = np.random.default_rng(0).random((300, 40))
+    ref = x.T @ x  # loads NumPy's BLAS
+    with open("/proc/self/maps") as fh:
+        libs = sorted({line.split()[-1] for line in fh if "openblas" in line.lower()
+                       and "numpy" in line})
+    if not libs:
+        pytest.skip("NumPy is not linked to a loadable OpenBLAS here")
+    lib = ctypes.CDLL(libs[0])
+    get = getattr(lib, "scipy_openblas_get_num_threads64_", None) or lib.openblas_get_num_threads
+    before = get()
+    with startup.single_threaded_blas():
+        assert get() == 1
+        np.testing.assert_allclose(x.T @ x, ref, rtol=1e-12)
+    assert get() == before
+
+
+_ENABLE = """
+import json, os, sys
+import jax
+from spectral_fit import startup
+a = startup.enable_compilation_cache(sys.argv[1], min_compile_time_s=0.25)
+cfg = [jax.config.jax_compilation_cache_dir,
+       jax.config.jax_persistent_cache_min_compile_time_secs]
+os.environ["SPECTRAL_FIT_JAX_CACHE"] = ""
+b = startup.enable_compilation_cache()
+c = startup.enable_compilation_cache(os.path.join(sys.argv[2], "sub"))
+print(json.dumps({"a": a, "cfg": cfg, "b": b, "c": c}))
+"""
+
+
+def test_enable_compilation_cache(tmp_path):
+    # process-global JAX settings: checked in a fresh process
+    blocked = tmp_path / "file"
+    blocked.write_text("not a folder")
+    r = subprocess.run([sys.executable, "-c", _ENABLE, str(tmp_path / "jax"), str(blocked)],
+                       capture_output=True, text=True, env=_env(tmp_path), timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["a"] == str(tmp_path / "jax") and (tmp_path / "jax").is_dir()
+    assert out["cfg"] == [str(tmp_path / "jax"), 0.25]
+    assert out["b"] is None  # disabled by the empty variable
+    assert out["c"] is None  # a folder that cannot be created leaves the cache off
