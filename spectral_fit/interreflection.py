@@ -1276,7 +1276,9 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
 
 def _paper_textures(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap
                     ) -> tuple[jax.Array, jax.Array]:
-    """Pass 1 shading: T_d, T_s (P, T², C) of each sender seen from the receiver's centre."""
+    """Pass 1 shading: T_d, T_s (P, T², C) of each sender seen from the receiver's centre.
+    The gloss uses the environment module's "render" quadrature (8 × 16 nodes): the textures
+    are a 64² approximation of the sender anyway, and "exact" costs ~10× more per texel."""
     t2 = geom.texture_size ** 2
     c = env.channels
     tds, tss = [], []
@@ -1289,7 +1291,7 @@ def _paper_textures(geom: IRGeometry, materials: Sequence[Material], env: Enviro
             e = irradiance(env, nn)
             td = (m.alpha / math.pi) * _times_reflectance(env, m.reflectance, e)
             ts = (m.beta * gloss_integral(env, nn, vv, m.mu, m.n, distribution=m.distribution,
-                                          geometry=m.geometry)
+                                          geometry=m.geometry, quality="render")
                   + m.chi * mirror_radiance(env, nn, vv, m.n))
             front = jnp.dot(nn, vv) > 0.0
             return td, jnp.where(front, ts, 0.0)
