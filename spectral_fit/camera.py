@@ -32,6 +32,9 @@ __all__ = [
     "interreflection_camera",
     "project",
     "perspective_camera",
+    "inverse_3x3",
+    "inverse_4x4",
+    "eye_position",
 ]
 
 
@@ -147,6 +150,63 @@ def view_to_opencv_pose(view) -> tuple[jax.Array, jax.Array]:
     """Inverse of :func:`opencv_pose_to_view`: (R (3, 3), t (3,))."""
     rt = opencv_to_opengl_axes() @ jnp.asarray(view, jnp.float32)
     return rt[:3, :3], rt[:3, 3]
+
+
+def inverse_3x3(m) -> jax.Array:
+    """Inverse of 3×3 matrices (..., 3, 3) by the adjugate over the determinant, in closed
+    form: elementwise arithmetic that XLA fuses into one kernel (no LAPACK call, cheap to
+    compile, differentiable). For the well-conditioned rotation/scale blocks of model and view
+    matrices; a singular matrix gives inf/NaN."""
+    m = jnp.asarray(m)
+    a, b, c = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    d, e, f = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    g, h, i = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g  # cofactors of row 0
+    det = a * c00 + b * c01 + c * c02
+    adj = jnp.stack([
+        jnp.stack([c00, c * h - b * i, b * f - c * e], -1),
+        jnp.stack([c01, a * i - c * g, c * d - a * f], -1),
+        jnp.stack([c02, b * g - a * h, a * e - b * d], -1),
+    ], -2)
+    return adj / det[..., None, None]
+
+
+def inverse_4x4(m) -> jax.Array:
+    """Inverse of 4×4 matrices (..., 4, 4) in closed form (Laplace expansion by the 2×2 minors
+    of the top and bottom row pairs); like :func:`inverse_3x3`, fused elementwise arithmetic
+    instead of a LAPACK call. Used for projection·view products (clip → world)."""
+    m = jnp.asarray(m)
+    a = [[m[..., r, k] for k in range(4)] for r in range(4)]
+    # 2×2 minors of rows 0-1 (s) and rows 2-3 (c), columns (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
+    pairs = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+    s = [a[0][p] * a[1][q] - a[1][p] * a[0][q] for p, q in pairs]
+    c = [a[2][p] * a[3][q] - a[3][p] * a[2][q] for p, q in pairs]
+    det = s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]
+    r0 = [a[1][1] * c[5] - a[1][2] * c[4] + a[1][3] * c[3],
+          -a[0][1] * c[5] + a[0][2] * c[4] - a[0][3] * c[3],
+          a[3][1] * s[5] - a[3][2] * s[4] + a[3][3] * s[3],
+          -a[2][1] * s[5] + a[2][2] * s[4] - a[2][3] * s[3]]
+    r1 = [-a[1][0] * c[5] + a[1][2] * c[2] - a[1][3] * c[1],
+          a[0][0] * c[5] - a[0][2] * c[2] + a[0][3] * c[1],
+          -a[3][0] * s[5] + a[3][2] * s[2] - a[3][3] * s[1],
+          a[2][0] * s[5] - a[2][2] * s[2] + a[2][3] * s[1]]
+    r2 = [a[1][0] * c[4] - a[1][1] * c[2] + a[1][3] * c[0],
+          -a[0][0] * c[4] + a[0][1] * c[2] - a[0][3] * c[0],
+          a[3][0] * s[4] - a[3][1] * s[2] + a[3][3] * s[0],
+          -a[2][0] * s[4] + a[2][1] * s[2] - a[2][3] * s[0]]
+    r3 = [-a[1][0] * c[3] + a[1][1] * c[1] - a[1][2] * c[0],
+          a[0][0] * c[3] - a[0][1] * c[1] + a[0][2] * c[0],
+          -a[3][0] * s[3] + a[3][1] * s[1] - a[3][2] * s[0],
+          a[2][0] * s[3] - a[2][1] * s[1] + a[2][2] * s[0]]
+    adj = jnp.stack([jnp.stack(r, -1) for r in (r0, r1, r2, r3)], -2)
+    return adj / det[..., None, None]
+
+
+def eye_position(view) -> jax.Array:
+    """World position (..., 3) of the eye of an affine view matrix (..., 4, 4) (world → eye,
+    last row (0, 0, 0, 1)): −A⁻¹ t for view = [A t; 0 1]."""
+    view = jnp.asarray(view)
+    return -jnp.einsum("...ij,...j->...i", inverse_3x3(view[..., :3, :3]), view[..., :3, 3])
 
 
 def relative_transform(m1, m2) -> jax.Array:

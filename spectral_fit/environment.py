@@ -254,6 +254,8 @@ class EnvironmentMap(eqx.Module):
             gloss: the point's share of the texel's excess flux.
         source_flux_full: (S, C) excess radiance × solid angle of each source texel in the
             map's own channels (uncompressed; the ``"exact"`` gloss).
+        source_render_dirs, source_render_weights: the same rule with one node per half of
+            the tent per axis (2 × 2 points at ±⅓ texel; the ``"render"`` gloss).
         fine_texels: (s²·H·W, r) the residual map (level 0) looked up bilinearly at the
             texel centres of the s× finer grid, s = ``quadrature.texel_sum_supersample``
             (the wide-lobe texel sum of ``"exact"``).
@@ -282,6 +284,8 @@ class EnvironmentMap(eqx.Module):
     source_fine_dirs: jax.Array | None = None
     source_fine_weights: jax.Array | None = None
     source_flux_full: jax.Array | None = None
+    source_render_dirs: jax.Array | None = None
+    source_render_weights: jax.Array | None = None
     fine_texels: jax.Array | None = None
 
     @property
@@ -391,6 +395,7 @@ class EnvironmentMap(eqx.Module):
         atlas = np.concatenate(flat)
         fine_dirs, fine_w = _tent_gauss_subpoints(img.shape[0], img.shape[1], scells,
                                                   quad.tent_gauss)
+        rdirs, rw = _tent_gauss_subpoints(img.shape[0], img.shape[1], scells, 1)
         pbasis = _spectral_basis(np.concatenate([atlas, sflux]), compress_tol)
         atlas_r = atlas @ pbasis.T
         env = cls(
@@ -413,6 +418,8 @@ class EnvironmentMap(eqx.Module):
             source_fine_dirs=jnp.asarray(fine_dirs, dtype),
             source_fine_weights=jnp.asarray(fine_w, dtype),
             source_flux_full=jnp.asarray(sflux * sdirs.shape[1], dtype),
+            source_render_dirs=jnp.asarray(rdirs, dtype),
+            source_render_weights=jnp.asarray(rw, dtype),
         )
         ss = quad.texel_sum_supersample
         fine = jnp.asarray(texel_directions(img.shape[0] * ss, img.shape[1] * ss).reshape(-1, 3),
@@ -1192,15 +1199,16 @@ def gloss_integral(
             mu_c = float(mu)
             mean = lobe() if mu_c <= a else texels() if mu_c >= b else blend()
     out = albedo * mean
-    exact_sources = (quality == "exact" and env.source_fine_dirs is not None
-                     and env.source_flux_full is not None)
-    if env.source_flux.shape[0] and not exact_sources:
+    tent = "exact" if quality == "exact" else "render"
+    full = env.source_flux_full is not None and (
+        env.source_fine_dirs if tent == "exact" else env.source_render_dirs) is not None
+    if env.source_flux.shape[0] and not full:
         out = out + _source_gloss(env, N, V, mu, n, distribution=distribution, **kw)
     spec = out @ env.spectral_basis
-    if env.source_flux.shape[0] and exact_sources:
+    if env.source_flux.shape[0] and full:
         # in the map's own channels: the principal-spectra compression bounds the error per
         # texel over all channels, not per band (up to 0.4 % in the dim bands of a lamp)
-        spec = spec + _source_gloss(env, N, V, mu, n, distribution=distribution, tent=True,
+        spec = spec + _source_gloss(env, N, V, mu, n, distribution=distribution, tent=tent,
                                     **kw)
     return jnp.where(nv_raw > 0.0, spec, 0.0)
 
@@ -1221,8 +1229,8 @@ def _grid_nodes(
     then spaced 4·extent·w_t/along along the plane of incidence and
     4·extent·w_b·cosθr/across across it, so at grazing views, where the isotropic prefilter
     must be as narrow as the lobe across (∝ cosθr), the many nodes along keep the spacing
-    within ~1.7 prefilter stds up to θr ≈ 80° (an isotropic grid in the half-vector domain,
-    as :func:`_visible_nodes`, aliases there). Half vectors that reflect V below the surface
+    at 0.44/cosθr prefilter stds (r = 0.2; 2.5 at θr = 80°; the polar rule of
+    :func:`_visible_nodes` had ~10 there and aliased). Half vectors that reflect V below the surface
     get zero weight from G in the caller's lobe factor (the integrand goes to zero
     continuously at the horizon). Nodes move smoothly with μ, N and V."""
     dtype = N.dtype
@@ -1345,19 +1353,21 @@ def _integrand(d: jax.Array, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.A
 
 
 def _source_gloss(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array, n: jax.Array,
-                  *, distribution: str, geometry: str, fresnel: bool, tent: bool = False
+                  *, distribution: str, geometry: str, fresnel: bool, tent: str | None = None
                   ) -> jax.Array:
     """Σ over source sub-points of F D G / (4 cosθr) · excess flux (the exact integrand), in
     the r compressed channels (``source_subpoints`` points inside each source texel), or with
     ``tent`` in the map's C channels: the product Gauss rule over each source texel's
     footprint in the bilinear map (:func:`_tent_gauss_subpoints`, ``source_flux_full``);
-    lobes narrower than a few texels (small μ, grazing views) need the footprint."""
+    lobes narrower than a few texels (small μ, grazing views) need the footprint.
+    ``tent`` = "exact": (2·tent_gauss)² points per source texel; "render": 2 × 2."""
     if tent:
-        dirs = env.source_fine_dirs
+        dirs, pw = ((env.source_fine_dirs, env.source_fine_weights) if tent == "exact"
+                    else (env.source_render_dirs, env.source_render_weights))
         d = dirs.reshape(-1, 3) @ env.rotation.T  # world directions (S·P, 3)
         wgt = _integrand(d, N, V, mu, n, distribution=distribution, geometry=geometry,
                          fresnel=fresnel).reshape(dirs.shape[:2])
-        return jnp.sum(wgt * env.source_fine_weights, axis=1) @ env.source_flux_full
+        return jnp.sum(wgt * pw, axis=1) @ env.source_flux_full
     dirs = env.source_dirs
     d = dirs.reshape(-1, 3) @ env.rotation.T  # world directions (S·k, 3)
     flux = jnp.repeat(env.source_flux, dirs.shape[1], axis=0)
@@ -1663,15 +1673,12 @@ def _split_levels(pre: SplitSumMap, sigma: jax.Array
 
 
 def _materialise(x: jax.Array) -> jax.Array:
-    """x (..., K), computed once into memory: a product with the identity (a dot, which XLA
-    does not fuse into its neighbours) cuts the fusion, so that XLA:CPU does not recompute
-    x's whole expression inside every consumer (measured: 7× less CPU time for the split-sum
-    gloss). Exact (multiplications by 1 and additions of 0); K² MACs per row."""
-    k = x.shape[-1]
-    lead = x.shape[:-1]
-    eye = jnp.eye(k, dtype=x.dtype)
-    return jax.lax.dot(x.reshape(-1, k), eye, precision=jax.lax.Precision.HIGHEST
-                       ).reshape(*lead, k)
+    """x, computed once into memory: an optimisation barrier cuts the fusion, so that
+    XLA:CPU does not recompute x's whole expression inside every consumer (measured: 7× less
+    CPU time for the split-sum gloss). Exact. (It was a product with the identity, which
+    also cuts the fusion, but YNNPACK's dot of an (N, 5) by (5, 5) cost ~20 % of the gloss;
+    the barrier measured 12–15 % less CPU for the gloss, 5–8 % for the close-up frame.)"""
+    return jax.lax.optimization_barrier(x)
 
 
 def _split_lookup(pre: SplitSumMap, u: jax.Array, v: jax.Array, lo: jax.Array,

@@ -18,8 +18,9 @@ azimuth: equally spaced on fully visible rings, Gauss–Legendre over the visibl
 prefiltered residual map (:class:`~spectral_fit.environment.EnvironmentMap`, its own principal
 spectra) at a prefilter std matched to the node's footprint in reflected directions (limited
 near the horizon); the map's bright source texels are kept as explicit directions with their
-exact flux (the 16 points of each one's footprint in the bilinear map, as the environment
-module's exact gloss). Then
+exact flux (by default 16 equal-weight points of each one's footprint in the bilinear map;
+``CacheOptions.sources="gauss"`` takes the product Gauss points the environment module's exact
+gloss sums). Then
 
     gloss(μ, n) = Σ_k D(μ, θh_k) F(n, (V·H)_k) G_k c_k L_k + Σ_s D F G /(4 N·V) Φ_s,
 

@@ -46,9 +46,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .camera import eye_position, inverse_3x3, inverse_4x4
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
 from .reflectance import Material
+from .startup import single_threaded_blas
 
 __all__ = [
     "Prepared",
@@ -362,6 +364,7 @@ def _look_at_impl(eye, target, up):
 _look_at_jit = jax.jit(_look_at_impl)
 
 
+@single_threaded_blas()  # NumPy's BLAS threads busy-wait: docs/rendering.md "Cold start"
 def prepare(
     scene: Any,
     *,
@@ -404,9 +407,10 @@ def prepare(
             "exact" (texel sum over the whole map per sample: the reference, slow).
         quality: gloss of the environment shading: "fast" (default; the pre-integrated
             split-sum approximation ``environment.gloss_split_sum``, a few prefiltered lookups
-            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the fitter's
-            16 × 32; see ``environment.gloss_integral``). Accuracy and cost of each:
-            docs/rendering.md.
+            per pixel), "render" (the quadrature with 8 × 16 nodes) or "exact" (the oracle-grade
+            lobe grid, 128 × 24 half-vector nodes, and a texel sum for wide lobes; see
+            ``environment.gloss_integral``). Accuracy and cost of each: docs/rendering.md and
+            docs/lighting.md.
         split_settings: :class:`~spectral_fit.environment.SplitSum` for "fast" (default
             settings when None).
     Raises:
@@ -588,7 +592,7 @@ def _to_world(vertices: jax.Array, vertex_object: jax.Array, model: jax.Array) -
 
 def _normals_to_world(normals: jax.Array, vertex_object: jax.Array, model: jax.Array
                       ) -> jax.Array:
-    nm = jnp.swapaxes(jnp.linalg.inv(model[:, :3, :3]), 1, 2)  # inverse transpose, (O, 3, 3)
+    nm = jnp.swapaxes(inverse_3x3(model[:, :3, :3]), 1, 2)  # inverse transpose, (O, 3, 3)
     n = jnp.einsum("vij,vj->vi", nm[vertex_object], normals)
     return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
 
@@ -751,10 +755,10 @@ def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
     py, px = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32) + 0.5,
                           jnp.arange(w, dtype=jnp.float32) + 0.5, indexing="ij")
     ndc = jnp.stack([2 * px / w - 1, 1 - 2 * py / h, jnp.ones_like(px), jnp.ones_like(px)], -1)
-    inv = jnp.linalg.inv(prep.projection @ view)
+    inv = inverse_4x4(prep.projection @ view)
     far = ndc.reshape(-1, 4) @ inv.T
     far = far[:, :3] / far[:, 3:4]
-    eye = jnp.linalg.inv(view)[:3, 3]
+    eye = eye_position(view)
     d = far - eye
     return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
@@ -770,8 +774,8 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     h, w = prep.shape
     env = prep.env
     hm, wm = env.texels.shape[:2]
-    inv = jnp.linalg.inv(prep.projection @ view)
-    eye = jnp.linalg.inv(view)[:3, 3]
+    inv = inverse_4x4(prep.projection @ view)
+    eye = eye_position(view)
     # a far-plane point of NDC (x, y, 1, 1) minus the eye, as a function of pixel (col, row):
     # linear in (x, y) after the perspective division by w = inv[3] · (x, y, 1, 1), and
     # w does not depend on (x, y) for a projection whose last row is (0, 0, −1, 0)
@@ -975,7 +979,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     pos = vals[:, :3]
     nrm = vals[:, 3:]
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
-    eye = jnp.linalg.inv(view)[:3, 3]
+    eye = eye_position(view)
     vdir = eye - pos
     vdir = vdir / jnp.maximum(jnp.linalg.norm(vdir, axis=-1, keepdims=True), 1e-12)
     # silhouette pixels whose interpolated (smooth) normal turns away from the eye: bend the

@@ -294,8 +294,6 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
         cache_dir: cache root (default :func:`cache_root`); entries go to ``<root>/prepared``.
         **options: passed to ``prepare`` (size, mode, spectral_mode, k, ...).
 
-    ``prepare`` runs with NumPy's BLAS on one thread (:func:`single_threaded_blas`).
-
     Returns:
         The :class:`~spectral_fit.renderer.Prepared` scene, identical to ``prepare``'s (the
         stored arrays are float32 as prepared; pickled, not recomputed).
@@ -309,8 +307,7 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
     digest = (_config_digest(Path(scene)) if root is not None
               and isinstance(scene, str | os.PathLike) else None)
     if digest is None or any(t is None for t in texts.values()):
-        with single_threaded_blas():
-            return prepare(scene, **options)
+        return prepare(scene, **options)
     text = "\n".join([_environment_digest(), digest,
                       *(f"{k}={texts[k]}" for k in sorted(texts))])
     key = hashlib.sha256(text.encode()).hexdigest()[:40]
@@ -320,8 +317,7 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
         CACHE_STATS["prepared_hit"] += 1
         return hit
     CACHE_STATS["prepared_miss"] += 1
-    with single_threaded_blas():
-        prep = prepare(scene, **options)
+    prep = prepare(scene, **options)
     _write_entry(folder, key, prep)
     return prep
 
@@ -335,29 +331,8 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
 _PROGRAMS: dict[str, Any] = {}
 
 
-def _frame_args(prep: Any, materials: Any, model: Any, view: Any, visible: Any) -> tuple:
-    """The arguments render_frame normalises, as a pytree (materials stacked when possible)."""
-    import jax.numpy as jnp
-    import numpy as np
-
-    from .reflectance import Material
-
-    mats = prep.materials if materials is None else materials
-    if not isinstance(mats, Material):
-        mats = list(mats)
-        if len({(m.distribution, m.geometry) for m in mats}) == 1:
-            import jax
-
-            mats = jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *mats)
-    model = prep.model if model is None else jnp.asarray(model, jnp.float32)
-    view = prep.view if view is None else jnp.asarray(view, jnp.float32)
-    if visible is None:
-        visible = np.ones((prep.num_objects,), bool)
-    return prep, mats, model, view, jnp.asarray(visible, bool)
-
-
 def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
-                 compiler_options: dict[str, Any] | None) -> str:
+                 compiler_options: dict[str, Any] | None, background: bool = True) -> str:
     import jax
     import numpy as np
 
@@ -367,6 +342,7 @@ def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
                          suppress=False, nanstr="nan", infstr="inf", sign="-",
                          floatmode="unique", legacy=False):
         parts = [_environment_digest(), repr(treedef), f"spectral={bool(spectral)}",
+                 f"background={bool(background)}",
                  f"options={sorted((compiler_options or {}).items())!r}"]
         for x in leaves:
             if isinstance(x, jax.Array | np.ndarray):
@@ -378,18 +354,21 @@ def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
 
 def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
                         view: Any = None, visible: Any = None, spectral: bool = False,
+                        background: bool = True,
                         cache_dir: str | os.PathLike[str] | None = None,
                         compiler_options: dict[str, Any] | None = None) -> Any:
     """:func:`~spectral_fit.renderer.render_frame` through a compiled program kept on disk.
 
     The first call for a given argument structure (the :class:`Prepared` scene's static
-    fields, every array's shape and dtype, ``spectral``, ``compiler_options``) in any process
+    fields, every array's shape and dtype, ``spectral``, ``background``,
+    ``compiler_options``) in any process
     traces, compiles and stores the executable (``<root>/programs``); later calls, in this
     process or a new one, load it and run it without tracing. The result is the same Frame as
     ``render_frame``'s, from the same XLA program (with ``compiler_options`` None).
 
     Args:
-        prep, materials, model, view, visible, spectral: as for ``render_frame``.
+        prep, materials, model, view, visible, spectral, background: as for
+            ``render_frame`` (the same checks and defaults).
         cache_dir: cache root (default :func:`cache_root`; with the cache disabled the
             program is still kept in memory for this process).
         compiler_options: XLA options of the compilation (``jax.stages.Lowered.compile``),
@@ -404,19 +383,15 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     import jax
     import numpy as np
 
-    from .errors import InputError
-    from .renderer import Frame
+    from .renderer import Frame, _check_frame_inputs
 
-    n = prep.num_objects
-    for name, value, shape in (("model", model, (n, 4, 4)), ("view", view, (4, 4)),
-                               ("visible", visible, (n,))):
-        if value is not None and np.shape(value) != shape:
-            raise InputError(f"expected shape {shape}, got {np.shape(value)}", field=name)
-    args = _frame_args(prep, materials, model, view, visible)
+    if visible is None:  # a NumPy default: jnp.ones would compile a program in a new process
+        visible = np.ones((prep.num_objects,), bool)
+    args = (prep, *_check_frame_inputs(prep, materials, model, view, visible))
     leaves, treedef = jax.tree_util.tree_flatten(args)
     is_arr = [isinstance(x, jax.Array | np.ndarray) for x in leaves]
     arrays = [x for x, a in zip(leaves, is_arr, strict=True) if a]
-    key = _program_key(treedef, leaves, spectral, compiler_options)
+    key = _program_key(treedef, leaves, spectral, compiler_options, background)
     prog = _PROGRAMS.get(key)
     if prog is not None:
         CACHE_STATS["program_memory_hit"] += 1
@@ -429,7 +404,8 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
             it_a, it_s = iter(arr), iter(statics)
             full = [next(it_a) if a else next(it_s) for a in is_arr]
             p, mats, mod, v, vis = jax.tree_util.tree_unflatten(treedef, full)
-            frame = render_frame(p, mats, model=mod, view=v, visible=vis, spectral=spectral)
+            frame = render_frame(p, mats, model=mod, view=v, visible=vis, spectral=spectral,
+                                 background=background)
             return {f.name: getattr(frame, f.name) for f in dataclasses.fields(frame)}
 
         prog = _load_or_compile(key, program, arrays, compiler_options, cache_dir)
@@ -458,9 +434,12 @@ def _prepare_custom_calls(targets: list[str] | None) -> bool:
     if targets is None or any(not t.startswith("lapack_") for t in targets):
         return False
     if targets:
-        from jax._src.lax import linalg
+        try:  # a private JAX function: if it moves, programs are compiled instead of loaded
+            from jax._src.lax import linalg
 
-        linalg.initialize_lapack()
+            linalg.initialize_lapack()
+        except Exception:
+            return False
     return True
 
 

@@ -92,6 +92,49 @@ def test_gloss_exact_vs_brute_force_dense(anchor, mu):
     assert rel[:16].max() < 0.01 and rel[16:].max() < 0.02, rel
 
 
+@pytest.fixture(scope="module")
+def room():
+    """The bundled room map (2° lamp of 8 source texels, a window and a ceiling panel with
+    sharp edges): (img, EnvironmentMap, world direction of its brightest texel)."""
+    from pathlib import Path
+
+    from spectral_fit.exr import read_spectral_exr
+
+    path = Path(__file__).resolve().parents[1] / "measurements" / "environment" / \
+        "studio_room.exr"
+    _, img = read_spectral_exr(path)
+    img = np.asarray(img, np.float64)
+    lum = img.sum(-1)
+    i, j = np.unravel_index(np.argmax(lum), lum.shape)
+    return img, EnvironmentMap.from_array(img), texel_directions(*img.shape[:2])[i, j]
+
+
+def test_gloss_exact_vs_brute_force_room_map_grazing(room):
+    """μ = 0.14 on the room map up to θr = 80°: the polar lobe rule was 6.8 % off at 75°
+    (aliasing along the plane of incidence and one across-narrowing for the whole lobe);
+    measured now <= 0.68 % on the dense grid."""
+    img, env, lamp = room
+    mu = 0.14
+    rel = _relative_errors(env, img, mu, _grid(lamp, mu, int(mu * 1000) + 7, k=2,
+                                               grazing=(75.0, 80.0)), "exact", np.eye(3))
+    print(f"room exact mu={mu}: median {np.median(rel):.4f} max {rel.max():.4f}")
+    assert rel.max() < 0.01, rel
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mu", [0.05, 0.07, 0.1, 0.14, 0.2, 0.25, 0.3, 0.4, 0.5])
+def test_gloss_exact_vs_brute_force_room_dense(room, mu):
+    """The room map on the grid of scripts/gloss_accuracy.py (16 configurations with
+    θr <= 60°, 8 from 65° to 80°). Measured worst: 0.91 % except μ = 0.07: 1.42 % at
+    θr = 45° (380–390 nm, the sub-texel prefilter's bias next to the window's edge) and 2.55 %
+    at 80° on the lamp (1.03 % against the oracle at 8×; docs/lighting.md)."""
+    img, env, lamp = room
+    cfg = _grid(lamp, mu, int(mu * 1000) + 7, k=16, grazing=(65.0, 70.0, 75.0, 80.0))
+    rel = _relative_errors(env, img, mu, cfg, "exact", np.eye(3))
+    lim = (0.015, 0.03) if mu == 0.07 else (0.01, 0.01)
+    assert rel[:16].max() < lim[0] and rel[16:].max() < lim[1], rel
+
+
 @pytest.mark.parametrize("mu", [0.1, 0.3])
 def test_gloss_render_vs_brute_force_bundled_map(anchor, mu):
     img, env, lamp = anchor

@@ -123,6 +123,7 @@ def test_program_key_ignores_numpy_print_options():
     with np.printoptions(legacy="1.13", precision=3):
         assert startup._program_key(td, leaves, False, None) == k0
     assert startup._program_key(td, leaves, True, None) != k0
+    assert startup._program_key(td, leaves, False, None, background=False) != k0
     assert startup._program_key(td, [jnp.ones(4)], False, None) != k0
 
 
@@ -240,3 +241,31 @@ def test_single_threaded_blas_sets_and_restores_openblas_threads():
         assert get() == 1
         np.testing.assert_allclose(x.T @ x, ref, rtol=1e-12)
     assert get() == before
+
+
+_ENABLE = """
+import json, os, sys
+import jax
+from spectral_fit import startup
+a = startup.enable_compilation_cache(sys.argv[1], min_compile_time_s=0.25)
+cfg = [jax.config.jax_compilation_cache_dir,
+       jax.config.jax_persistent_cache_min_compile_time_secs]
+os.environ["SPECTRAL_FIT_JAX_CACHE"] = ""
+b = startup.enable_compilation_cache()
+c = startup.enable_compilation_cache(os.path.join(sys.argv[2], "sub"))
+print(json.dumps({"a": a, "cfg": cfg, "b": b, "c": c}))
+"""
+
+
+def test_enable_compilation_cache(tmp_path):
+    # process-global JAX settings: checked in a fresh process
+    blocked = tmp_path / "file"
+    blocked.write_text("not a folder")
+    r = subprocess.run([sys.executable, "-c", _ENABLE, str(tmp_path / "jax"), str(blocked)],
+                       capture_output=True, text=True, env=_env(tmp_path), timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["a"] == str(tmp_path / "jax") and (tmp_path / "jax").is_dir()
+    assert out["cfg"] == [str(tmp_path / "jax"), 0.25]
+    assert out["b"] is None  # disabled by the empty variable
+    assert out["c"] is None  # a folder that cannot be created leaves the cache off

@@ -7,7 +7,9 @@ and red ColorChecker N Ohta diffuse spectra, α = β = 1, χ = 0, μ = 0.1, n = 
 receivers are the covered pixels of the 720×480 camera view (90° vertical FOV), as the frame
 renderer passes them. Each case times the jitted ``interreflection`` (pass-1 raster + shading
 pass, what a frame with moving objects pays) and, where marked ``_shade``, only
-``interreflection_from`` on a prepared geometry (what the fitter pays per iteration).
+``interreflection_from`` on a prepared geometry (what the fitter pays per iteration);
+``_receivers``: the diffuse transfer summed at every receiver (``diffuse_at="receivers"``)
+instead of at the objects' own samples.
 """
 
 from __future__ import annotations
@@ -106,7 +108,8 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
 
 
 def _case(opts: BenchOptions, *, mode: str, z: float = -0.275, k: int | None = None,
-          bands: int = 31, bounces: int = 1, shade_only: bool = False) -> dict[str, Any]:
+          bands: int = 31, bounces: int = 1, shade_only: bool = False,
+          diffuse_at: str = "samples") -> dict[str, Any]:
     import jax
 
     from ..interreflection import interreflection, interreflection_from, prepare_interreflection
@@ -121,13 +124,15 @@ def _case(opts: BenchOptions, *, mode: str, z: float = -0.275, k: int | None = N
     objs, mats, env, rec = sc["objects"], sc["materials"], sc["env"], sc["receivers"]
     if shade_only:
         geom = prepare_interreflection(objs, mode=mode)
-        fn = jax.jit(lambda g, m, e, r: interreflection_from(g, m, e, r, bounces=bounces))
+        fn = jax.jit(lambda g, m, e, r: interreflection_from(g, m, e, r, bounces=bounces,
+                                                              diffuse_at=diffuse_at))
         out = measure(fn, geom, mats, env, rec, repeats=opts.repeats)
     else:
         fn = jax.jit(lambda o, m, e, r: interreflection(o, m, e, r, mode=mode,
                                                          bounces=bounces))
         out = measure(fn, objs, mats, env, rec, repeats=opts.repeats)
-    out.update(receivers=sc["pixels"], channels=int(env.channels), mode=mode, bounces=bounces)
+    out.update(receivers=sc["pixels"], channels=int(env.channels), mode=mode, bounces=bounces,
+               diffuse_at=diffuse_at)
     return out
 
 
@@ -137,6 +142,10 @@ CASES = {
     "ir_gather_paper_81": lambda o: _case(o, mode="gather", bands=81),
     "ir_gather_paper_k8": lambda o: _case(o, mode="gather", k=8),
     "ir_gather_shade_paper": lambda o: _case(o, mode="gather", shade_only=True),
+    "ir_gather_b2_shade_paper": lambda o: _case(o, mode="gather", bounces=2, shade_only=True),
+    "ir_gather_b2_shade_receivers_paper": lambda o: _case(o, mode="gather", bounces=2,
+                                                          shade_only=True,
+                                                          diffuse_at="receivers"),
     "ir_gather_closeup": lambda o: _case(o, mode="gather", z=-0.100),
     "ir_paper_paper": lambda o: _case(o, mode="paper"),
 }

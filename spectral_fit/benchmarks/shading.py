@@ -13,7 +13,7 @@ benchmark environment (``measurements/benchmark/anchor_environment.exr``, 31 ban
 180° about +Y), materials of the benchmark (α = β = 1, χ = 0, μ = 0.1, n = 1.5, ColorChecker
 N Ohta yellow / red), one :func:`shade_points` call per sphere; gloss quality "render" or
 "exact". ``shade_frame_exact_wide``: the same with μ = 0.4 (a wide lobe: "exact" then sums the
-map's texels directly), quality "exact".
+bilinear map at the centres of a 2× finer grid directly), quality "exact".
 """
 
 from __future__ import annotations
@@ -130,8 +130,13 @@ def _frame_case(opts: BenchOptions, quality: str, mu: float = 0.1) -> dict[str, 
 
     out = measure(fn, mats, env, parts, repeats=opts.repeats)
     q = env.quadrature
-    nodes = (q.render_radial * q.render_azimuthal if quality == "render"
-             else q.radial * q.azimuthal)
+    if quality == "render" or q.nodes != "grid":
+        nodes = (q.render_radial * q.render_azimuthal if quality == "render"
+                 else q.radial * q.azimuthal)
+    else:  # the exact lobe grid cut to its disc (environment._grid_nodes)
+        gx = (np.arange(q.grid_along) + 0.5) * (2.0 / q.grid_along) - 1.0
+        gy = (np.arange(q.grid_across) + 0.5) * (2.0 / q.grid_across) - 1.0
+        nodes = int(np.sum(gx[:, None] ** 2 + gy[None, :] ** 2 <= 1.0))
     out.update(points=int(normals.shape[0]), channels=int(env.channels), quality=quality, mu=mu,
                gloss_nodes=nodes, gloss_channels=int(env.atlas.shape[1]))
     return out
