@@ -133,62 +133,6 @@ def scene_environment(scene: Any, *, dtype: Any = jnp.float32, compress_tol: flo
                                      compress_tol=compress_tol, path=str(spec.file))
 
 
-def _openblas_thread_setters() -> list[tuple[Any, Any]]:
-    """(get, set) thread-count functions of every OpenBLAS library loaded in this process
-    (numpy's and scipy's bundled copies), found in ``/proc/self/maps``; [] elsewhere."""
-    import ctypes
-    import os
-
-    out: list[tuple[Any, Any]] = []
-    try:
-        with open(f"/proc/{os.getpid()}/maps") as fh:
-            libs = sorted({ln.split()[-1] for ln in fh if "openblas" in ln and ".so" in ln})
-    except OSError:
-        return out
-    for path in libs:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for suffix in ("64_", "", "_64_"):
-            for prefix in ("scipy_openblas", "openblas"):
-                get = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
-                put = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
-                if get is not None and put is not None:
-                    get.restype = ctypes.c_int
-                    put.argtypes = [ctypes.c_int]
-                    out.append((get, put))
-                    break
-            else:
-                continue
-            break
-    return out
-
-
-class _single_blas_thread:
-    """Context: numpy's OpenBLAS runs on one thread inside (restored after).
-
-    The preparation's products are small (64-row chunks of the texel sums, the prefilter's
-    129 batched 128×128 products); on a loaded 2-core machine OpenBLAS's second thread
-    spin-waited and took ~6× the CPU time (docs/fitting.md, "Timings"). No-op where the
-    library cannot be found."""
-
-    def __enter__(self) -> _single_blas_thread:
-        self._saved = []
-        for get, put in _openblas_thread_setters():
-            try:
-                n = int(get())
-                put(1)
-                self._saved.append((put, n))
-            except Exception:  # a foreign BLAS build: leave it alone
-                continue
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        for put, n in self._saved:
-            put(n)
-
-
 # ----------------------------------------------------------------------------- parametrisation
 
 
@@ -615,7 +559,11 @@ def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = No
         InputError: a spot misses its object (< 50 % of the field on it), a stated distance
             disagrees with the geometry, or the session's objects are not the scene's.
     """
-    with _single_blas_thread():
+    from .startup import single_threaded_blas
+
+    # NumPy's OpenBLAS on one thread: its busy-waiting second thread took 12.5 s of CPU
+    # where one thread takes 3.7 s on the loaded 2-core machine (docs/fitting.md, "Timings")
+    with single_threaded_blas():
         return _prepare_fit(scene, session, options=options, env=env, geometries=geometries,
                             check=check)
 

@@ -219,19 +219,6 @@ def test_physical_from_y_matches_the_per_parameter_maps(small):
         assert abs(back - (abs(y[j]) if fitting.PARAMETERS[k] == "chi" else y[j])) < 1e-6
 
 
-def test_single_blas_thread_restores_the_count():
-    """The preparation's BLAS limiter sets every loaded OpenBLAS to one thread and restores
-    the previous count; matrix products inside are unchanged."""
-    a = np.random.default_rng(0).standard_normal((64, 300))
-    ref = a @ a.T
-    libs = fitting._openblas_thread_setters()
-    before = [int(g()) for g, _ in libs]
-    with fitting._single_blas_thread():
-        assert all(int(g()) == 1 for g, _ in libs)
-        np.testing.assert_allclose(a @ a.T, ref, rtol=1e-12, atol=1e-12)
-    assert [int(g()) for g, _ in libs] == before
-
-
 def test_spot_missing_object(small, tmp_path):
     scene, session, prep, env, clean = small
     r0 = session.readings[0]
