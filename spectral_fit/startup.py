@@ -408,7 +408,20 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
                                  background=background)
             return {f.name: getattr(frame, f.name) for f in dataclasses.fields(frame)}
 
+        hits = CACHE_STATS["program_hit"]
         prog = _load_or_compile(key, program, arrays, compiler_options, cache_dir)
+        if CACHE_STATS["program_hit"] > hits:
+            # a program loaded from disk is run once under a guard: if it cannot run here
+            # (a kernel missing from the stored executable), compile it again and replace it
+            try:
+                out = jax.block_until_ready(prog(arrays))
+            except Exception:
+                CACHE_STATS["program_hit"] -= 1
+                prog = _load_or_compile(key, program, arrays, compiler_options, cache_dir,
+                                        reload=False)
+            else:
+                _PROGRAMS[key] = prog
+                return Frame(**out)
         _PROGRAMS[key] = prog
     out = prog(arrays)
     return Frame(**out)
@@ -445,10 +458,14 @@ def _prepare_custom_calls(targets: list[str] | None) -> bool:
 
 def _load_or_compile(key: str, fn: Any, arrays: list[Any],
                      compiler_options: dict[str, Any] | None,
-                     cache_dir: str | os.PathLike[str] | None) -> Any:
+                     cache_dir: str | os.PathLike[str] | None, *, reload: bool = True) -> Any:
     """The compiled ``jax.jit(fn)`` for ``arrays`` (a list of arrays), loaded from
-    ``<root>/programs/<key>.pkl`` when there, else compiled and stored. ``key`` must determine
-    the program (see :func:`_program_key`)."""
+    ``<root>/programs/<key>.pkl`` when there (and ``reload``), else compiled and stored.
+    ``key`` must determine the program (see :func:`_program_key`).
+
+    The compilation bypasses JAX's persistent compilation cache: an executable that JAX
+    itself loaded from that cache can serialise without some of its kernels, and a new
+    process loading it then fails with "Function ... not found"."""
     import jax
     from jax.experimental.serialize_executable import deserialize_and_load, serialize
 
@@ -456,7 +473,8 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
     folder = None if root is None else root / "programs"
     if folder is not None:
         entry = _read_entry(folder, key)
-        if entry is not None and _prepare_custom_calls(entry.get("custom_calls")):
+        if (reload and entry is not None
+                and _prepare_custom_calls(entry.get("custom_calls"))):
             try:
                 compiled = deserialize_and_load(entry["payload"], entry["in_tree"],
                                                 entry["out_tree"])
@@ -466,8 +484,13 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
                 pass
     CACHE_STATS["program_miss"] += 1
     lowered = jax.jit(fn).lower(arrays)
-    compiled = (lowered.compile(compiler_options=compiler_options) if compiler_options
-                else lowered.compile())
+    persistent = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        compiled = (lowered.compile(compiler_options=compiler_options) if compiler_options
+                    else lowered.compile())
+    finally:
+        jax.config.update("jax_enable_compilation_cache", persistent)
     if folder is not None:
         try:
             targets = _custom_call_targets(compiled)

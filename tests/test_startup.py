@@ -269,3 +269,28 @@ def test_enable_compilation_cache(tmp_path):
     assert out["cfg"] == [str(tmp_path / "jax"), 0.25]
     assert out["b"] is None  # disabled by the empty variable
     assert out["c"] is None  # a folder that cannot be created leaves the cache off
+
+
+def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monkeypatch):
+    """A program loaded from disk that fails when run (e.g. a kernel missing from the stored
+    executable) is compiled again instead of failing the frame."""
+    import jax.experimental.serialize_executable as se
+
+    from spectral_fit.renderer import render_frame
+
+    cache = tmp_path / "cache"
+    prep = startup.prepare_cached(config, cache_dir=cache, mode="none")
+    startup.render_frame_cached(prep, cache_dir=cache, background=False)  # stores the program
+    startup._PROGRAMS.clear()
+
+    def broken(*args, **kwargs):
+        def run(arrays):
+            raise RuntimeError("NOT_FOUND: Function bitcast_copy_fusion not found")
+        return run
+
+    monkeypatch.setattr(se, "deserialize_and_load", broken)
+    misses = startup.CACHE_STATS["program_miss"]
+    got = startup.render_frame_cached(prep, cache_dir=cache, background=False)
+    assert startup.CACHE_STATS["program_miss"] == misses + 1
+    ref = render_frame(prep, background=False)
+    assert np.array_equal(np.asarray(got.xyz), np.asarray(ref.xyz))
