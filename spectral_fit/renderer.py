@@ -667,6 +667,24 @@ def _filtered_irradiance(m: Material, env: Any, e: jax.Array) -> jax.Array:
     return jnp.einsum("i,nj,ijk->nk", m.reflectance, e, env.product_tensor)
 
 
+def _gloss_and_mirror(env_gloss: Any, split_map: Any, env_mirror: Any, moments: jax.Array,
+                      nrm: jax.Array, v: jax.Array, m: Material, settings: Any
+                      ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Quality "fast" gloss and mirror of eq. (5) at points nrm, v (N, 3): the split-sum gloss
+    per unit β looked up in ``env_gloss``'s channels, F(n, N·V) times the mirror radiance
+    along R from ``env_mirror`` (N, C), and N·V (N, 1)."""
+    from .environment import _materialise, fast_lookup, fresnel_dielectric, gloss_split_sum
+
+    gloss = gloss_split_sum(env_gloss, split_map, moments, nrm, v, m.mu, m.n,
+                            settings=settings, distribution=m.distribution,
+                            geometry=m.geometry)
+    nv = (nrm[:, 0] * v[:, 0] + nrm[:, 1] * v[:, 1] + nrm[:, 2] * v[:, 2])[:, None]
+    refl = 2.0 * nv * nrm - v
+    # per-point factors computed once (not inside each of the C channels' expressions)
+    fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
+    return gloss, fac[:, 0:1] * fast_lookup(env_mirror, refl), fac[:, 1:2]
+
+
 def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | None,
                 capacities: tuple[int, ...], split_map: Any, settings: Any) -> jax.Array:
     """Quality "fast" of :func:`_shade_samples`: eq. (5) with the split-sum gloss
@@ -674,10 +692,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
     mirror by one lookup along R and the diffuse irradiance from the irradiance map ``lut``
     (or ``env``), all points of an object at once (few lookups per point: no batching)."""
     from .environment import (
-        _materialise,
         fast_lookup,
-        fresnel_dielectric,
-        gloss_split_sum,
         irradiance,
         lobe_moment_table,
     )
@@ -687,14 +702,8 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
     for m, (nrm, v) in zip(mats, _object_slices(gb, capacities), strict=True):
         kw = dict(distribution=m.distribution, geometry=m.geometry)
         moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
-        gloss = gloss_split_sum(env, split_map, moments, nrm, v, m.mu, m.n,
-                                settings=settings, **kw)
-        nv = (nrm[:, 0] * v[:, 0] + nrm[:, 1] * v[:, 1] + nrm[:, 2] * v[:, 2])[:, None]
-        refl = 2.0 * nv * nrm - v
-        # per-point factors computed once (not inside each of the C channels' expressions)
-        fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
-        nv = fac[:, 1:2]
-        mirror = fac[:, 0:1] * fast_lookup(env, refl)
+        gloss, mirror, nv = _gloss_and_mirror(env, split_map, env, moments, nrm, v, m,
+                                              settings)
         if table is None:
             e = jax.vmap(lambda d: irradiance(env, d))(nrm)
         else:
@@ -893,10 +902,7 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     per frame: 2,050 rows). Per object, in chunks of slots; chunks past the object's covered
     count are skipped."""
     from .environment import (
-        _materialise,
         fast_lookup,
-        fresnel_dielectric,
-        gloss_split_sum,
         irradiance,
         lobe_moment_table,
     )
@@ -918,14 +924,9 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                               @ to_out)
 
         def shade(nn: jax.Array, vv: jax.Array, m: Material = m, moments: jax.Array = moments,
-                  dtable: Any = dtable, kw: dict = kw) -> jax.Array:
-            gloss = gloss_split_sum(env_g, prep.split_map, moments, nn, vv, m.mu, m.n,
-                                    settings=settings, **kw)
-            nv = (nn[:, 0] * vv[:, 0] + nn[:, 1] * vv[:, 1] + nn[:, 2] * vv[:, 2])[:, None]
-            refl = 2.0 * nv * nn - vv
-            fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
-            nv = fac[:, 1:2]
-            mirror = fac[:, 0:1] * fast_lookup(mirror_env, refl)
+                  dtable: Any = dtable) -> jax.Array:
+            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.split_map, mirror_env, moments,
+                                                  nn, vv, m, settings)
             if dtable is None:
                 e = jax.vmap(lambda d: irradiance(env, d))(nn)
                 diffuse = (m.alpha / math.pi) * _filtered_irradiance(m, env, e) @ to_out
