@@ -461,14 +461,10 @@ def _extract_sources(img: np.ndarray, max_sources: int, threshold: float, subpoi
     centre (1). Residual + sources = the map exactly, and the residual is smooth enough for the
     prefiltered lobe quadrature."""
     h, w, c = img.shape
-    sa = texel_solid_angles(h, w)
-    lum = np.abs(img).sum(axis=-1)
-    mean = (lum * sa).sum() / sa.sum()
-    cand = np.argwhere(lum > threshold * max(mean, 1e-300))
-    if max_sources <= 0 or cand.size == 0:
+    cand = _source_cells(img, max_sources, threshold)
+    if cand.shape[0] == 0:
         return img, np.zeros((0, subpoints, 3)), np.zeros((0, c))
-    order = np.argsort(-lum[cand[:, 0], cand[:, 1]])[:max_sources]
-    cand = cand[order]
+    sa = texel_solid_angles(h, w)
     is_src = np.zeros((h, w), bool)
     is_src[cand[:, 0], cand[:, 1]] = True
     residual = img.copy()
@@ -488,7 +484,9 @@ def _extract_sources(img: np.ndarray, max_sources: int, threshold: float, subpoi
 
 
 def _source_cells(img: np.ndarray, max_sources: int, threshold: float) -> np.ndarray:
-    """(S, 2) rows and columns of the source texels of :func:`_extract_sources` (same order)."""
+    """(S, 2) rows and columns of the source texels of :func:`_extract_sources`: channel-summed
+    |value| above ``threshold`` × the map's solid-angle-weighted mean, brightest first, at most
+    ``max_sources``."""
     h, w, _ = img.shape
     sa = texel_solid_angles(h, w)
     lum = np.abs(img).sum(axis=-1)
