@@ -65,6 +65,16 @@ CENTRES = {"yellow": np.array([-0.045, 0.0, -0.275]), "red": np.array([0.045, 0.
 RADIUS = 0.0375
 
 
+def assert_recovered(params: dict, *, rel: float, chi_abs: float) -> None:
+    """Every parameter of :data:`TRUE` within ``rel`` × its true value in ``params``
+    ({object: {param: value}}), χ within ``chi_abs`` (absolute: its true value is small)."""
+    for obj, tp in TRUE.items():
+        for p, v in tp.items():
+            got = params[obj][p]
+            tol = rel * abs(v) if p != "chi" else chi_abs
+            assert abs(got - v) <= tol, (obj, p, got, v)
+
+
 def write_small_scene(folder: Path, *, env_size: tuple[int, int] = (16, 32)) -> Path:
     """Write the small scene (two icospheres, a 16×32 synthetic environment, 16 bands)."""
     from spectral_fit.environment import synthetic_environment

@@ -13,7 +13,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _fitting_util import CENTRES, RADIUS, TRUE, spots, write_session, write_small_scene
+from _fitting_util import (
+    CENTRES,
+    RADIUS,
+    TRUE,
+    assert_recovered,
+    spots,
+    write_session,
+    write_small_scene,
+)
 
 from spectral_fit import fitting
 from spectral_fit.errors import InputError
@@ -112,11 +120,7 @@ def test_recovery_own_model(small):
     res = fitting.fit(scene, session, prepared=prep, starts=3, aim_step_m=0.0, holdout=False,
                       rtol=1e-6, atol=1e-7)
     assert res.status == "converged"
-    for obj, tp in TRUE.items():
-        for p, v in tp.items():
-            got = res.params[obj][p]
-            tol = 3e-3 * abs(v) if p != "chi" else 1e-3
-            assert abs(got - v) <= tol, (obj, p, got, v)
+    assert_recovered(res.params, rel=3e-3, chi_abs=1e-3)
     conv = [s for s in res.starts if s["converged"]]
     assert len(conv) >= 2  # several starts reach the same optimum
     assert max(s["cost"] for s in conv) <= min(s["cost"] for s in conv) + 1e-3

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _fitting_util import TRUE, spots, write_session, write_small_scene
+from _fitting_util import TRUE, assert_recovered, spots, write_session, write_small_scene
 
 from spectral_fit import fitting
 from spectral_fit import radiance_cache as rc
@@ -195,8 +195,4 @@ def test_recovery_with_interreflection_own_model(tmp_path):
     res = fitting.fit(scene, s, prepared=prep, starts=2, rtol=1e-6, atol=1e-7, max_steps=100,
                       aim_step_m=0.0, holdout=False)
     assert res.status == "converged"
-    for obj, tp in TRUE.items():
-        for p, v in tp.items():
-            got = res.params[obj][p]
-            tol = 2e-3 * abs(v) if p != "chi" else 1e-3
-            assert abs(got - v) <= tol, (obj, p, got, v)
+    assert_recovered(res.params, rel=2e-3, chi_abs=1e-3)
