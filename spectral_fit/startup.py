@@ -393,6 +393,7 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     arrays = [x for x, a in zip(leaves, is_arr, strict=True) if a]
     key = _program_key(treedef, leaves, spectral, compiler_options, background)
     prog = _PROGRAMS.get(key)
+    out = None
     if prog is not None:
         CACHE_STATS["program_memory_hit"] += 1
     else:
@@ -419,11 +420,9 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
                 CACHE_STATS["program_hit"] -= 1
                 prog = _load_or_compile(key, program, arrays, compiler_options, cache_dir,
                                         reload=False)
-            else:
-                _PROGRAMS[key] = prog
-                return Frame(**out)
         _PROGRAMS[key] = prog
-    out = prog(arrays)
+    if out is None:
+        out = prog(arrays)
     return Frame(**out)
 
 
