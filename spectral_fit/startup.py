@@ -462,9 +462,11 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
     ``<root>/programs/<key>.pkl`` when there (and ``reload``), else compiled and stored.
     ``key`` must determine the program (see :func:`_program_key`).
 
-    The compilation bypasses JAX's persistent compilation cache: an executable that JAX
-    itself loaded from that cache can serialise without some of its kernels, and a new
-    process loading it then fails with "Function ... not found"."""
+    The compilation bypasses JAX's persistent compilation cache, so what is stored is a fresh
+    compile. A stored program can still fail in another process ("Function ... not found"):
+    seen when it was compiled in a process that had compiled many other programs before (a
+    test session); :func:`render_frame_cached` runs a loaded program once under a guard and
+    compiles it again then."""
     import jax
     from jax.experimental.serialize_executable import deserialize_and_load, serialize
 
