@@ -3,13 +3,15 @@
 upsampled 4×, float64) on the two bundled maps, per μ and quality.
 
     python scripts/gloss_accuracy.py [--model bilinear|box] [--mus 0.05,0.1,...]
-        [--qualities exact,render,fast] [--maps benchmark,room] [--ss 4]
+        [--qualities exact,render,fast] [--maps benchmark,room] [--ss 4] [--refine 8]
 
 ("fast": the split-sum :func:`gloss_split_sum` of the frame renderer's default quality.)
 
 Per μ: 16 configurations with θr <= 60° (8 with the mirror direction within ~μ of the map's
 brightest texel) and 8 grazing ones (θr = 65°, 70°, 75°, 80°, one on the lamp and one anywhere
-each). Printed: median and max over configurations of the worst band's relative error, for the
+each). For μ <= 0.1 the oracle sums the lobe's core ``--refine`` × finer still (adaptive
+supersampling; at μ = 0.07, θr = 80° on the room map's lamp the plain 4× sum is 2.1 % off).
+Printed: median and max over configurations of the worst band's relative error, for the
 θr <= 60° set and for the grazing set.
 """
 
@@ -50,6 +52,8 @@ def main() -> None:
     ap.add_argument("--qualities", default="exact,render")
     ap.add_argument("--maps", default="benchmark,room")
     ap.add_argument("--ss", type=int, default=4, help="oracle supersampling")
+    ap.add_argument("--refine", type=int, default=8,
+                    help="oracle refinement of the lobe's core for mu <= 0.1 (1: none)")
     args = ap.parse_args()
     mus = [float(m) for m in args.mus.split(",")]
     for name in args.maps.split(","):
@@ -79,8 +83,9 @@ def main() -> None:
             seed = int(mu * 1000) + 7
             cfg = configs(lamp, mu, 16, seed) + grazing_configs(lamp, mu, seed + 1,
                                                                (65.0, 70.0, 75.0, 80.0))
+            refine = args.refine if mu <= 0.1 and args.model == "bilinear" else 1
             ref = np.array([brute_gloss(img, n, v, mu, 1.5, rotation=rot, ss=args.ss,
-                                        model=args.model) for n, v in cfg])
+                                        model=args.model, refine=refine) for n, v in cfg])
             ns = jnp.asarray(np.array([c[0] for c in cfg]), jnp.float32)
             vs = jnp.asarray(np.array([c[1] for c in cfg]), jnp.float32)
             for q, fn in fns.items():

@@ -198,7 +198,7 @@ class GlossQuadrature:
 
     radial: int = 16
     azimuthal: int = 32
-    prefilter_ratio: float = 0.2
+    prefilter_ratio: float = 0.1
     render_radial: int = 8
     render_azimuthal: int = 16
     render_prefilter_ratio: float = 0.3
@@ -212,7 +212,7 @@ class GlossQuadrature:
     source_subpoints: int = 4
     nodes: str = "grid"
     grid_along: int = 128
-    grid_across: int = 24
+    grid_across: int = 36
     grid_extent: float = 4.0
     texel_sum_from: float = 0.12
     texel_sum_full: float = 0.18
@@ -1120,11 +1120,17 @@ def gloss_integral(
       From μ = ``texel_sum_from`` (0.12) to ``texel_sum_full`` (0.18) the two are blended
       with a C² weight in μ; only the branches a given μ needs run (``jax.lax.cond``).
     - ``"exact"``, narrow lobes: the nodes are a Cartesian grid in the half-vector tangent
-      plane (:func:`_grid_nodes`, 128 along the plane of incidence × 24 across, r = 0.2),
+      plane (:func:`_grid_nodes`, 128 along the plane of incidence × 36 across, r = 0.1),
       dense along the plane of incidence so that at grazing views, where the prefilter must
-      be as narrow as the lobe is across (∝ cosθr), the map is still sampled within ~2
-      prefilter stds; the across-narrowing uses each column's own V·H. (The polar rule of
+      be as narrow as the lobe is across (∝ cosθr), the map is still sampled finely; the
+      across-narrowing uses each column's own V·H. (The polar rule of
       :func:`_visible_nodes`, kept for ``"render"``, aliased there: up to 6.8 % at θr = 75°.)
+      The prefilter is kept small (r = 0.1): narrowing the lobe restores its variance, not
+      its exact shape (the reflected lobe is not the flat Gaussian the narrowing assumes,
+      and two blended levels are a mix of two Gaussians), and an edge of high contrast in
+      the lobe's tail weighs that difference: on the room map at μ = 0.07, θr = 45° (the
+      dim bands next to the window) a 512 × 256 grid gives 0.1 % at r = 0.05, 0.5 % at
+      0.1, 1.0–1.2 % at 0.15–0.3. r = 0.1 needs the 36 columns against aliasing (24: 1.5 %).
     - Bright sources taken out of the map (:func:`_extract_sources`) are added exactly
       at sub-points: in ``"exact"`` by a product Gauss rule (8 × 8 points) over each source
       texel's footprint in the bilinear map (:func:`_tent_gauss_subpoints`), in the map's
@@ -1134,7 +1140,7 @@ def gloss_integral(
     so the result is smooth in μ and n (no tables in μ or n; the level blend and the method
     blend are C²; the bilinear lookups make it piecewise smooth, with slope jumps of ~1/M of
     the lobe where one of the M nodes crosses a texel line). ``quality`` picks the node
-    counts and r: ``"exact"`` (128 × 24 grid, r = 0.2, texel sum for wide lobes) or
+    counts and r: ``"exact"`` (128 × 36 grid, r = 0.1, texel sum for wide lobes) or
     ``"render"`` (8 × 16 polar nodes, r = 0.3; see
     docs/lighting.md for the measured accuracy of each). Zero if N·V <= 0.
 
@@ -1227,8 +1233,9 @@ def _grid_nodes(
     then spaced 4·extent·w_t/along along the plane of incidence and
     4·extent·w_b·cosθr/across across it, so at grazing views, where the isotropic prefilter
     must be as narrow as the lobe across (∝ cosθr), the many nodes along keep the spacing
-    at 0.44/cosθr prefilter stds (r = 0.2; 2.5 at θr = 80°; the polar rule of
-    :func:`_visible_nodes` had ~10 there and aliased). Half vectors that reflect V below the surface
+    at 0.88/cosθr prefilter stds (r = 0.1; 5 at θr = 80°, where the lobe itself is then
+    only a few texels across; the polar rule of :func:`_visible_nodes` had ~20 there and
+    aliased). Half vectors that reflect V below the surface
     get zero weight from G in the caller's lobe factor (the integrand goes to zero
     continuously at the horizon). Nodes move smoothly with μ, N and V."""
     dtype = N.dtype

@@ -66,6 +66,13 @@ def _bilinear_taps(h, w, ss):
     mean between the pole and the first/last row centre), independently of the library."""
     v = (np.arange(h * ss) + 0.5) / (h * ss)
     u = (np.arange(w * ss) + 0.5) / (w * ss)
+    return _taps_uv(h, w, *np.broadcast_arrays(u[None, :], v[:, None]))
+
+
+def _taps_uv(h, w, u, v):
+    """(F, 4) indices and weights of the bilinear reconstruction (as in :func:`_bilinear_taps`)
+    at map coordinates u, v (any equal shapes, F elements)."""
+    u, v = np.asarray(u, np.float64).reshape(-1), np.asarray(v, np.float64).reshape(-1)
     ty, tx = v * h - 0.5, u * w - 0.5
     x0 = np.floor(tx).astype(int)
     fx = tx - x0
@@ -80,25 +87,27 @@ def _bilinear_taps(h, w, ss):
     def index(r, col):
         return np.where(r == -1, h * w, np.where(r == -2, h * w + 1, r * w + col))
 
-    A, B, FY = ra[:, None], rb[:, None], fy[:, None]
-    idx = np.stack(np.broadcast_arrays(index(A, xa[None]), index(A, xb[None]),
-                                       index(B, xa[None]), index(B, xb[None])), axis=-1)
-    wgt = np.stack(np.broadcast_arrays((1 - FY) * (1 - fx)[None], (1 - FY) * fx[None],
-                                       FY * (1 - fx)[None], FY * fx[None]), axis=-1)
-    return idx.reshape(-1, 4), wgt.reshape(-1, 4)
+    idx = np.stack([index(ra, xa), index(ra, xb), index(rb, xa), index(rb, xb)], axis=-1)
+    wgt = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=-1)
+    return idx, wgt
 
 
 _GEOMETRY = {}
 
 
 def brute_gloss(img, n, v, mu, eta, *, rotation=None, ss=2, distribution="gaussian",
-                geometry="vcavity", model="bilinear"):
+                geometry="vcavity", model="bilinear", refine=1, refine_tol=1e-3):
     """∫ L F D G /(4 cosθr) dω (C,) for world unit N, V under the (H, W, C) map placed by
     ``rotation`` (world-from-map), by a texel sum over the map upsampled ss×: ``model``
     "bilinear" upsamples it as the library's lookup defines the map between texel centres
     (the map the library integrates), "box" repeats each texel (constant radiance per texel).
     The two differ only for lobes narrower than a few texels. The integrand's weights are
-    accumulated onto the map's own texels, so the cost does not grow with the channels."""
+    accumulated onto the map's own texels, so the cost does not grow with the channels.
+
+    ``refine`` > 1 (bilinear model): the map texels where the integrand per solid angle
+    reaches ``refine_tol`` × its maximum somewhere (the lobe's core) are summed ss·refine×
+    finer instead (adaptive supersampling, for lobes less than a texel across: narrow lobes
+    at grazing views on a small bright source)."""
     rotation = np.eye(3) if rotation is None else np.asarray(rotation)
     h, w, c = img.shape
     key = (h, w, ss)
@@ -106,7 +115,48 @@ def brute_gloss(img, n, v, mu, eta, *, rotation=None, ss=2, distribution="gaussi
         _GEOMETRY[key] = (texel_directions(h * ss, w * ss).reshape(-1, 3),
                           texel_solid_angles(h * ss, w * ss).reshape(-1))
     d, sa = _GEOMETRY[key]
-    d = d @ rotation.T
+    f = _integrand(d @ rotation.T, sa, n, v, mu, eta, distribution, geometry)
+    flat = np.asarray(img, np.float64).reshape(-1, c)
+    if model == "box":
+        return f.reshape(h, ss, w, ss).sum(axis=(1, 3)).reshape(-1) @ flat
+    if (key, "taps") not in _GEOMETRY:
+        _GEOMETRY[(key, "taps")] = _bilinear_taps(h, w, ss)
+    idx, wt = _GEOMETRY[(key, "taps")]
+    extra = None
+    if refine > 1:
+        dens = (f / sa).reshape(h, ss, w, ss).max(axis=(1, 3))
+        rows, cols = np.nonzero(dens >= refine_tol * dens.max())
+        cell = np.zeros((h, w), bool)
+        cell[rows, cols] = True
+        f = np.where(np.repeat(np.repeat(cell, ss, 0), ss, 1).reshape(-1), 0.0, f)
+        s = ss * refine
+        k = (np.arange(s) + 0.5) / s
+        fv = (rows[:, None, None] + k[None, :, None]) / h  # (K, s, 1)
+        fu = np.broadcast_to((cols[:, None, None] + k[None, None, :]) / w, (rows.size, s, s))
+        edges = (rows[:, None] + np.arange(s + 1)[None, :] / s) * (math.pi / h)
+        sa_row = (2 * math.pi / (w * s)) * (np.cos(edges[:, :-1]) - np.cos(edges[:, 1:]))
+        sa_f = np.broadcast_to(sa_row[:, :, None], fu.shape).reshape(-1)
+        fv = np.broadcast_to(fv, fu.shape).reshape(-1)
+        st = np.sin(math.pi * fv)
+        df = np.stack([np.sin(2 * math.pi * fu.reshape(-1)) * st, np.cos(math.pi * fv),
+                       -np.cos(2 * math.pi * fu.reshape(-1)) * st], axis=-1)
+        extra = (_integrand(df @ rotation.T, sa_f, n, v, mu, eta, distribution, geometry),
+                 *_taps_uv(h, w, fu, fv))
+    coarse = _accumulate(f, idx, wt, h * w + 2)
+    if extra is not None:
+        coarse += _accumulate(*extra, h * w + 2)
+    poles = np.stack([img[0].mean(axis=0), img[-1].mean(axis=0)])
+    return coarse[: h * w] @ flat + coarse[h * w:] @ poles
+
+
+def _accumulate(f, idx, wt, size):
+    m = f > 0
+    return np.bincount(idx[m].reshape(-1), weights=(wt[m] * f[m, None]).reshape(-1),
+                       minlength=size)
+
+
+def _integrand(d, sa, n, v, mu, eta, distribution, geometry):
+    """L-free integrand F D G /(4 cosθr) Δω at world directions d (F, 3) of cells sa (F,)."""
     nl, nv = d @ n, float(n @ v)
     hv = d + v
     hv /= np.linalg.norm(hv, axis=1, keepdims=True)
@@ -123,18 +173,7 @@ def brute_gloss(img, n, v, mu, eta, *, rotation=None, ss=2, distribution="gaussi
     else:
         G = smith_g1(nv, mu) * smith_g1(nl, mu)
     G = np.where(vh > 0, G, 0.0)
-    f = np.where(nl > 0, fresnel(vh, eta) * D * G / (4 * nv), 0.0) * sa
-    flat = np.asarray(img, np.float64).reshape(-1, c)
-    if model == "box":
-        return f.reshape(h, ss, w, ss).sum(axis=(1, 3)).reshape(-1) @ flat
-    if (key, "taps") not in _GEOMETRY:
-        _GEOMETRY[(key, "taps")] = _bilinear_taps(h, w, ss)
-    idx, wt = _GEOMETRY[(key, "taps")]
-    m = f > 0
-    coarse = np.bincount(idx[m].reshape(-1), weights=(wt[m] * f[m, None]).reshape(-1),
-                         minlength=h * w + 2)
-    poles = np.stack([img[0].mean(axis=0), img[-1].mean(axis=0)])
-    return coarse[: h * w] @ flat + coarse[h * w:] @ poles
+    return np.where(nl > 0, fresnel(vh, eta) * D * G / (4 * nv), 0.0) * sa
 
 
 def configs(lamp, mu, k, seed, theta_max_deg=60.0):
