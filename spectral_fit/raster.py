@@ -328,24 +328,23 @@ def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def _edge_setup(hv):
-    """Canonical edge functions of triangles with homogeneous pixel vertices ``hv``: a list of 3
-    corners, each a tuple (X, Y, w) of arrays.
+def _edge_rows(hv, one):
+    """Canonical edges of triangles with homogeneous pixel vertices ``hv`` (3 corners, each a
+    tuple (X, Y, w) of arrays): edge i (opposite corner i) with its two vertices in canonical
+    (lexicographic) order, as 3 materialised (6, T) arrays (X, Y, w of the first vertex, then
+    of the second), and the orientations ``o`` (3, T) (−1 where the order swapped corners
+    i+1, i+2). Its edge function at pixel p is ``o_i · (lo × hi) · (px, py, 1)``.
 
-    Returns ``n`` (3 edges × 3 components; edge i is opposite corner i, its edge function at
-    pixel p is ``o_i · n_i · (px, py, 1)``), ``o`` (3 arrays of ±1) and the edges' vertices in
-    canonical order (3 × (lo, hi), each a tuple (X, Y, w)).
-    """
-    ns, os_, ends = [], [], []
-    for i in range(3):
-        a, b = hv[(i + 1) % 3], hv[(i + 2) % 3]
-        swap = _lex_less(b, a)
-        lo = tuple(jnp.where(swap, bb, aa) for aa, bb in zip(a, b, strict=True))
-        hi = tuple(jnp.where(swap, aa, bb) for aa, bb in zip(a, b, strict=True))
-        ns.append(_cross(lo, hi))
-        os_.append(jnp.where(swap, -1.0, 1.0).astype(a[0].dtype))
-        ends.append((lo, hi))
-    return ns, os_, ends
+    The swaps are materialised first, so that each row reads them instead of repeating the
+    comparison (XLA would then copy the corner values out into kernels of their own)."""
+    pairs = [(hv[(i + 1) % 3], hv[(i + 2) % 3]) for i in range(3)]
+    o = _rows([jnp.where(_lex_less(b, a), -1.0, 1.0) for a, b in pairs], one)
+    rows = []
+    for i, (a, b) in enumerate(pairs):
+        swap = o[i] < 0
+        rows.append(_rows([jnp.where(swap, bb, aa) for aa, bb in zip(a, b, strict=True)]
+                          + [jnp.where(swap, aa, bb) for aa, bb in zip(a, b, strict=True)], one))
+    return rows, o
 
 
 # rows of the per-triangle data (float32, (_NCOL, T): one row per quantity, triangles along
@@ -436,14 +435,15 @@ def _triangle_setup(clip, triangles, shape, cull):
     # triangles). Anchor the plane at the corner with the largest w instead: z/w there is
     # exact to rounding, and the gradient's error only acts over the triangle's extent.
     zc += [jnp.where(wmax > 0, za, sum(z[i] * cr[i][2] for i in range(3)) * inv_det), pxa, pya]
-    n, o, ends = _edge_setup(hv)
+    edges, o = _edge_rows(hv, one)
+    n = [_cross(e[:3], e[3:]) for e in edges]
     sigma = [o[i] * s for i in range(3)]
     # tie rule: a centre exactly on an edge goes to the side the edge function takes at the
     # centre moved by +ε in x (then +ε² in y); n_i[0], n_i[1] are its x and y derivatives
     tie = [jnp.sign(sigma[i] * jnp.where(n[i][0] != 0, n[i][0], n[i][1])) for i in range(3)]
     x0, y0, nx, ny, any_ok = _pixel_box(_clipped_box(hv, z, one), shape)
     valid &= any_ok & (nx > 0) & (ny > 0)
-    groups = [_rows([*lo, *hi], one) for lo, hi in ends] + [
+    groups = edges + [
         _rows(sigma + tie, one), _rows(zc, one),
         _rows([valid.astype(f32), x0.astype(f32), y0.astype(f32), nx.astype(f32),
                ny.astype(f32)], one)]
