@@ -359,9 +359,9 @@ _NCOL = 34
 
 # Compile time: XLA:CPU compiles every kernel, and every operand of a concatenation fused into
 # one, as a loop body of its own (~8–12 ms each), and does not fuse a concatenation of more
-# than 8 operands at all. The setup is therefore written as a few expressions vectorised over
-# small leading axes (components, corners, edges) with the triangles along the minor axis,
-# not as one expression per output row.
+# than 8 operands at all (each operand then becomes a kernel). The setup therefore computes
+# its rows in stages of at most 8 stacked rows, one kernel each, with the triangles along the
+# minor axis, instead of one kernel per output column (docs/raster.md, "Compile time").
 
 
 def _materialise(x, one):
