@@ -1021,12 +1021,13 @@ def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: ja
     return mats["beta"][o][:, None] * (out @ sh.basis)
 
 
-#: receivers per chunk of the gloss quadrature (only chunks with a lobe near a neighbour run)
-_GLOSS_CHUNK = 128
-#: receivers evaluated in one batch before the chunks: this fraction of the slots, at least
-#: ``_GLOSS_MAIN`` (the active ones come first)
-_GLOSS_FRACTION = 0.1
-_GLOSS_MAIN = 1024
+#: the gloss quadrature runs over the receivers in this many equal chunks (the active ones
+#: sorted first; chunks without an active receiver are skipped), each at least
+#: ``_GLOSS_MIN_CHUNK`` receivers: one traced copy of the quadrature (compile time), at most
+#: one partly active chunk of wasted work, and few enough iterations that the loop's
+#: per-iteration overhead does not count
+_GLOSS_CHUNKS = 64
+_GLOSS_MIN_CHUNK = 128
 #: a receiver's lobe is evaluated against a neighbour when its mirror direction is within the
 #: neighbour's angular radius plus this many lobe widths μ (+ 0.05 rad): the lobe's reflected
 #: directions have an angular std of about √2 μ, so beyond that the lobe keeps < e^-6 of its
@@ -1038,7 +1039,7 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                  nrm: jax.Array, view: jax.Array, obj: jax.Array) -> jax.Array:
     """Gloss and mirror interreflection (N, C): β A(x) Σ_q w_q (neighbour − hidden environment)
     over the receiver's lobe nodes, χ F(θr) (…) along R. Receivers whose lobe cannot reach a
-    neighbour are sorted into chunks of ``_GLOSS_CHUNK`` that are skipped."""
+    neighbour are sorted last, into chunks (``_GLOSS_CHUNKS``) that are skipped."""
     k_per = geom.n_objects - 1
     c = sh.env.channels
     mats = sh.mats
@@ -1060,11 +1061,9 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     active = (obj >= 0) & (nv_all > 0.0) & reach
     n = pos.shape[0]
     order = jnp.argsort(jnp.where(active, 0, 1))
-    # the first ``main`` receivers in that order (all the active ones, normally) are
-    # evaluated in one batch; the rest in chunks that are skipped unless active
-    main = min(n, -(-max(_GLOSS_MAIN, int(_GLOSS_FRACTION * n)) // _GLOSS_CHUNK) * _GLOSS_CHUNK)
-    nc = -(-(n - main) // _GLOSS_CHUNK)
-    pad = main + nc * _GLOSS_CHUNK - n
+    size = max(_GLOSS_MIN_CHUNK, -(-n // _GLOSS_CHUNKS))
+    nc = -(-n // size)
+    pad = nc * size - n
 
     def padded(x: jax.Array, fill: Any = 0) -> jax.Array:
         x = x[order]
@@ -1125,11 +1124,8 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     z = (0.0, 0.0, 1.0)
     args = (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z), padded(obj, -1),
             padded(active, False))
-    res = run(tuple(a[:main] for a in args))
-    if nc:
-        rest = jax.lax.map(chunk, tuple(a[main:].reshape(nc, _GLOSS_CHUNK, *a.shape[1:])
-                                        for a in args))
-        res = jnp.concatenate([res, rest.reshape(nc * _GLOSS_CHUNK, c)])
+    res = jax.lax.map(chunk, tuple(a.reshape(nc, size, *a.shape[1:]) for a in args))
+    res = res.reshape(nc * size, c)
     return jnp.zeros((n, c), res.dtype).at[order].set(res[:n])
 
 
