@@ -891,9 +891,13 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.
                                geom.radius_i[:, None])
     cov = geom.s_cov * (geom.s_area > 0)
     # Σ w cov F_s (net_s/F_s) / Σ w cov F_s
-    tex = jnp.concatenate([net * cov[..., None], (cov * ff_s)[..., None]], -1).reshape(
-        p_count, g, g, c + 1)
-    tex = jnp.pad(tex, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, c + 1)
+    def table(x: jax.Array) -> jax.Array:
+        x = x.reshape(p_count, g, g, x.shape[-1])
+        return jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, x.shape[-1])
+
+    # two tables, each tap sum consumed whole (slicing one (N, C + 1) tap sum made XLA gather
+    # every tap of every channel into memory first)
+    tex, tex_w = table(net * cov[..., None]), table((cov * ff_s)[..., None])
     rev = jnp.asarray(_reverse_pairs(geom.n_objects))
     o = jnp.maximum(obj, 0)
     acc = jnp.zeros((pos.shape[0], c), net.dtype)
@@ -916,9 +920,9 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.
         idx = jnp.stack([base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
                          base + y1 * row + x1], -1)
         w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
-        val = _taps_sum(tex, idx, w)
         ff = _sphere_form_factor(pos, nrm, geom.centre_i[q], geom.radius_i[q])
-        lum = val[:, :c] * (ff / jnp.maximum(val[:, c], 1e-30))[:, None]
+        lum = _taps_sum(tex, idx, w) * (ff / jnp.maximum(_taps_sum(tex_w, idx, w)[:, 0],
+                                                         1e-30))[:, None]
         # the grid holds the hemisphere of i facing j (its axis is −fr[:, 2] = c_i − c_j)
         face = jnp.maximum(_dot3(nrm, fr[:, 2]), 0.0)
         acc = acc + face[:, None] * lum
