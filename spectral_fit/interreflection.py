@@ -891,9 +891,13 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.
                                geom.radius_i[:, None])
     cov = geom.s_cov * (geom.s_area > 0)
     # Σ w cov F_s (net_s/F_s) / Σ w cov F_s
-    tex = jnp.concatenate([net * cov[..., None], (cov * ff_s)[..., None]], -1).reshape(
-        p_count, g, g, c + 1)
-    tex = jnp.pad(tex, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, c + 1)
+    def table(x: jax.Array) -> jax.Array:
+        x = x.reshape(p_count, g, g, x.shape[-1])
+        return jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, x.shape[-1])
+
+    # two tables, each tap sum consumed whole (slicing one (N, C + 1) tap sum made XLA gather
+    # every tap of every channel into memory first)
+    tex, tex_w = table(net * cov[..., None]), table((cov * ff_s)[..., None])
     rev = jnp.asarray(_reverse_pairs(geom.n_objects))
     o = jnp.maximum(obj, 0)
     acc = jnp.zeros((pos.shape[0], c), net.dtype)
@@ -916,9 +920,9 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.
         idx = jnp.stack([base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
                          base + y1 * row + x1], -1)
         w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
-        val = _taps_sum(tex, idx, w)
         ff = _sphere_form_factor(pos, nrm, geom.centre_i[q], geom.radius_i[q])
-        lum = val[:, :c] * (ff / jnp.maximum(val[:, c], 1e-30))[:, None]
+        lum = _taps_sum(tex, idx, w) * (ff / jnp.maximum(_taps_sum(tex_w, idx, w)[:, 0],
+                                                         1e-30))[:, None]
         # the grid holds the hemisphere of i facing j (its axis is −fr[:, 2] = c_i − c_j)
         face = jnp.maximum(_dot3(nrm, fr[:, 2]), 0.0)
         acc = acc + face[:, None] * lum
@@ -1021,12 +1025,14 @@ def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: ja
     return mats["beta"][o][:, None] * (out @ sh.basis)
 
 
-#: receivers per chunk of the gloss quadrature (only chunks with a lobe near a neighbour run)
-_GLOSS_CHUNK = 128
-#: receivers evaluated in one batch before the chunks: this fraction of the slots, at least
-#: ``_GLOSS_MAIN`` (the active ones come first)
-_GLOSS_FRACTION = 0.1
-_GLOSS_MAIN = 1024
+#: the gloss quadrature runs over the receivers in this many equal chunks (the active ones
+#: sorted first; chunks without an active receiver are skipped), each at least
+#: ``_GLOSS_MIN_CHUNK`` receivers (or all of them): one traced copy of the quadrature (compile
+#: time), at most one partly active chunk of wasted work, and few enough iterations that the
+#: loop's per-iteration overhead does not count (benchmark frame's 8,192 slots: 1024-receiver
+#: chunks 10 % less CPU than 128)
+_GLOSS_CHUNKS = 64
+_GLOSS_MIN_CHUNK = 1024
 #: a receiver's lobe is evaluated against a neighbour when its mirror direction is within the
 #: neighbour's angular radius plus this many lobe widths μ (+ 0.05 rad): the lobe's reflected
 #: directions have an angular std of about √2 μ, so beyond that the lobe keeps < e^-6 of its
@@ -1034,11 +1040,60 @@ _GLOSS_MAIN = 1024
 _LOBE_REACH = 5.0
 
 
-def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading, pos: jax.Array,
-                 nrm: jax.Array, view: jax.Array, obj: jax.Array) -> jax.Array:
+def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], step: int,
+                   pos: jax.Array, refl: jax.Array, gap: jax.Array, width: jax.Array
+                   ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Screen-space subsampling of receivers that are pixels of one image (``pixel`` (N,) flat
+    index row·W + column, −1 = not a pixel; ``shape`` (H, W)): the anchors are the pixels
+    whose row and column are multiples of ``step``; every other receiver is the bilinear
+    blend of the (up to) four anchors around it.
+
+    A receiver is evaluated itself (``own`` (N,) bool) when it is an anchor, when an anchor of
+    non-zero weight is not a receiver on the same object (silhouettes, image borders,
+    non-pixels), and where the lobe's view of the neighbour changes fast between it and an
+    anchor: the change of the mirror direction ``refl`` (N, 3) plus the parallax |Δx| / ``gap``
+    (N,) (distance to the nearest neighbour's bounding sphere) above ``_GLOSS_SMOOTH`` ×
+    ``width`` (N,) (the lobe's angular width), e.g. near a sphere's silhouette where the normal
+    turns fast from pixel to pixel. Returns ``own`` and, for the others, the anchors' receiver
+    indices (N, 4) and bilinear weights (N, 4)."""
+    h, w = shape
+    n = pixel.shape[0]
+    ok = (pixel >= 0) & (obj >= 0)
+    slot = jnp.full((h * w,), -1, jnp.int32).at[jnp.where(ok, pixel, h * w)].set(
+        jnp.arange(n, dtype=jnp.int32), mode="drop")
+    row, col = jnp.divmod(jnp.maximum(pixel, 0), w)
+    r0, c0 = row - row % step, col - col % step
+    fy = (row % step).astype(jnp.float32) / step
+    fx = (col % step).astype(jnp.float32) / step
+    idx, wts, bad = [], [], jnp.zeros((n,), bool)
+    for dr, dc, wk in ((0, 0, (1 - fy) * (1 - fx)), (0, step, (1 - fy) * fx),
+                       (step, 0, fy * (1 - fx)), (step, step, fy * fx)):
+        r, cc = r0 + dr, c0 + dc
+        inside = (r < h) & (cc < w)
+        a = jnp.where(inside, slot[jnp.where(inside, r * w + cc, 0)], -1)
+        am = jnp.maximum(a, 0)
+        change = (jnp.sqrt(_dot3(refl[am] - refl, refl[am] - refl))
+                  + jnp.sqrt(_dot3(pos[am] - pos, pos[am] - pos)) / gap)
+        good = (a >= 0) & (obj[am] == obj) & (change <= _GLOSS_SMOOTH * width)
+        bad = bad | ((wk > 0.0) & ~good)
+        idx.append(jnp.maximum(a, 0))
+        wts.append(jnp.where(good, wk, 0.0))
+    anchor = (row % step == 0) & (col % step == 0)
+    own = ~ok | anchor | bad
+    return own, jnp.stack(idx, -1), jnp.stack(wts, -1)
+
+
+def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+                 pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
+                 grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
     """Gloss and mirror interreflection (N, C): β A(x) Σ_q w_q (neighbour − hidden environment)
     over the receiver's lobe nodes, χ F(θr) (…) along R. Receivers whose lobe cannot reach a
-    neighbour are sorted into chunks of ``_GLOSS_CHUNK`` that are skipped."""
+    neighbour are sorted last, into chunks (``_GLOSS_CHUNKS``) that are skipped.
+
+    ``grid`` = (pixel (N,), image shape (H, W), step): the receivers are pixels of one image;
+    the quadrature runs at every ``step``-th row and column only (:func:`_image_anchors`) and
+    the pixels between are interpolated bilinearly (the gloss interreflection is a blurred
+    image of the neighbour: smooth at the pixel scale)."""
     k_per = geom.n_objects - 1
     c = sh.env.channels
     mats = sh.mats
@@ -1047,10 +1102,12 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     nv_all = _dot3(nrm, view)
     refl_all = 2.0 * nv_all[:, None] * nrm - view
     reach = jnp.zeros(obj.shape, bool)
+    gap = jnp.full(obj.shape, jnp.inf, pos.dtype)
     for k in range(k_per):
         pair = o_all * k_per + k
         oc = geom.centre_j[pair] - pos
         d2 = jnp.maximum(_dot3(oc, oc), 1e-30)
+        gap = jnp.minimum(gap, jnp.maximum(jnp.sqrt(d2) - geom.radius_j[pair], 1e-6))
         # angle(R, c_j − x) < asin(r_j/d) + reach, by cosines (no arccos per receiver)
         lim = jnp.minimum(_atan2_poly(geom.radius_j[pair],
                                       jnp.sqrt(jnp.maximum(d2 - geom.radius_j[pair] ** 2,
@@ -1058,13 +1115,15 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                           + _LOBE_REACH * mats["mu"][o_all] + 0.05, math.pi)
         reach = reach | (_dot3(oc, refl_all) > jnp.cos(lim) * jnp.sqrt(d2))
     active = (obj >= 0) & (nv_all > 0.0) & reach
+    if grid is not None:
+        own, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl_all, gap,
+                                         math.sqrt(2.0) * mats["mu"][o_all])
+        active = active & own
     n = pos.shape[0]
     order = jnp.argsort(jnp.where(active, 0, 1))
-    # the first ``main`` receivers in that order (all the active ones, normally) are
-    # evaluated in one batch; the rest in chunks that are skipped unless active
-    main = min(n, -(-max(_GLOSS_MAIN, int(_GLOSS_FRACTION * n)) // _GLOSS_CHUNK) * _GLOSS_CHUNK)
-    nc = -(-(n - main) // _GLOSS_CHUNK)
-    pad = main + nc * _GLOSS_CHUNK - n
+    size = max(1, min(n, max(_GLOSS_MIN_CHUNK, -(-n // _GLOSS_CHUNKS))))
+    nc = -(-n // size)
+    pad = nc * size - n
 
     def padded(x: jax.Array, fill: Any = 0) -> jax.Array:
         x = x[order]
@@ -1125,12 +1184,12 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     z = (0.0, 0.0, 1.0)
     args = (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z), padded(obj, -1),
             padded(active, False))
-    res = run(tuple(a[:main] for a in args))
-    if nc:
-        rest = jax.lax.map(chunk, tuple(a[main:].reshape(nc, _GLOSS_CHUNK, *a.shape[1:])
-                                        for a in args))
-        res = jnp.concatenate([res, rest.reshape(nc * _GLOSS_CHUNK, c)])
-    return jnp.zeros((n, c), res.dtype).at[order].set(res[:n])
+    res = jax.lax.map(chunk, tuple(a.reshape(nc, size, *a.shape[1:]) for a in args))
+    res = res.reshape(nc * size, c)
+    res = jnp.zeros((n, c), res.dtype).at[order].set(res[:n])
+    if grid is not None:
+        res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
+    return res
 
 
 def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> jax.Array:
@@ -1145,7 +1204,8 @@ def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> j
 
 def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
              net: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
-             obj: jax.Array, *, gloss: bool = True) -> jax.Array:
+             obj: jax.Array, *, gloss: bool = True,
+             grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
     """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) given the diffuse
     net light ``net`` (N, C) they receive (before α S/π) and the senders' mip ``atlas``."""
     o = jnp.maximum(obj, 0)
@@ -1153,7 +1213,7 @@ def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
     out = mats["alpha"][o][:, None] * _times_reflectance(sh.env, mats["reflectance"][o], net)
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
     if gloss:
-        out = out + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj)
+        out = out + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid)
     hsrc = _hidden_source_gloss(sh, geom, obj, pos, nrm, view)
     if hsrc is not None:
         out = out - hsrc
@@ -1226,10 +1286,18 @@ def _sample_diffuse(geom: IRGeometry, sh: _Shading) -> jax.Array:
 
 
 DIFFUSE_AT = ("samples", "receivers")
+#: default screen-space step of the gloss quadrature for receivers that are pixels of an image
+#: (``image_shape``): evaluated at every 2nd row and column, interpolated between
+GLOSS_STEP = 2
+#: ... unless the lobe's view of the neighbour changes by more than this many lobe widths
+#: between a pixel and an anchor (:func:`_image_anchors`)
+_GLOSS_SMOOTH = 0.7
 
 
 def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
-                 receivers: GBuffer, bounces: int, diffuse_at: str = "samples") -> jax.Array:
+                 receivers: GBuffer, bounces: int, diffuse_at: str = "samples",
+                 image_shape: tuple[int, int] | None = None, gloss_step: int = 1
+                 ) -> jax.Array:
     pairs = geom.pairs
     senders = [j for _, j in pairs]
     p_count, m_count = geom.s_area.shape
@@ -1267,7 +1335,9 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
         rnet = _interpolate_net(geom, net, pos, nrm, obj)
     else:
         rnet = _direct_diffuse(geom, snd, env, pos, nrm, obj)
-    return _receive(geom, sh, atlas, rnet, pos, nrm, receivers.view, obj)
+    grid = None if image_shape is None or gloss_step < 2 else (receivers.pixel, image_shape,
+                                                                gloss_step)
+    return _receive(geom, sh, atlas, rnet, pos, nrm, receivers.view, obj, grid=grid)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1385,6 +1455,8 @@ def interreflection_from(
     mode: str | None = None,
     bounces: int = 1,
     diffuse_at: str = "samples",
+    image_shape: tuple[int, int] | None = None,
+    gloss_step: int = GLOSS_STEP,
 ) -> jax.Array:
     """Shading pass of the interreflection: radiance (N, C) to ADD to
     ``shade(materials[obj], env, normal, view)`` at every receiver (DESIGN §1 eq. 6 / §2).
@@ -1402,6 +1474,12 @@ def interreflection_from(
         diffuse_at: gather mode: where the diffuse transfer (form-factor sums) is evaluated:
             "samples" (default: at the receiving objects' own pass-1 samples, interpolated to
             the receivers) or "receivers" (at every receiver; ~10× the cost on a frame).
+        image_shape: gather mode: (H, W) of the image whose pixels the receivers are
+            (``receivers.pixel`` = row·W + column): the gloss/mirror quadrature then runs at
+            every ``gloss_step``-th row and column and is interpolated bilinearly between
+            (receivers at silhouettes, and those that are not pixels, are evaluated
+            themselves). None: at every receiver.
+        gloss_step: that subsampling step in pixels (1 = none).
 
     Returns:
         (N, C) float32, W·sr⁻¹·m⁻²·nm⁻¹ per band (or coefficients).
@@ -1413,6 +1491,12 @@ def interreflection_from(
     if diffuse_at not in DIFFUSE_AT:
         raise InputError(f"must be one of {DIFFUSE_AT}, got {diffuse_at!r}",
                          field="diffuse_at")
+    gloss_step = _check_int(gloss_step, "gloss_step", 1, 64)
+    if image_shape is not None:
+        if len(image_shape) != 2:
+            raise InputError(f"must be (H, W), got {image_shape!r}", field="image_shape")
+        image_shape = (_check_int(image_shape[0], "image_shape", 1, 1 << 15),
+                       _check_int(image_shape[1], "image_shape", 1, 1 << 15))
     zeros = jnp.zeros((receivers.object.shape[0], env.channels), jnp.float32)
     if mode == "none" or n < 2 or bounces == 0:
         return zeros
@@ -1421,7 +1505,8 @@ def interreflection_from(
                          field="mode")
     if mode == "paper":
         return _paper_mode(geometry, materials, env, receivers)
-    return _gather_mode(geometry, materials, env, receivers, bounces, diffuse_at)
+    return _gather_mode(geometry, materials, env, receivers, bounces, diffuse_at,
+                        image_shape, gloss_step)
 
 
 def interreflection(
@@ -1433,6 +1518,8 @@ def interreflection(
     mode: str = "gather",
     texture_size: int = 128,
     bounces: int = 1,
+    image_shape: tuple[int, int] | None = None,
+    gloss_step: int = GLOSS_STEP,
 ) -> jax.Array:
     """Interreflection radiance (N, C) to ADD to the environment-only shading of every receiver
     sample: :func:`prepare_interreflection` then :func:`interreflection_from`.
@@ -1440,11 +1527,13 @@ def interreflection(
     Modes: "paper" — eq. (6) literally (α_paper T_d + γ T_s, pass-1 textures of
     ``texture_size``² from the receiver's centre); "gather" — the neighbours' full radiance
     through the receiver's BRDF with per-fragment parallax, minus the environment they hide,
-    ``bounces`` exchanges (DESIGN §2); "none" — zeros. See the module docstring.
+    ``bounces`` exchanges (DESIGN §2); "none" — zeros. ``image_shape``, ``gloss_step``: see
+    :func:`interreflection_from`. See the module docstring.
     """
     _check_mode(mode)
     if mode == "none":
         _check_inputs(len(objects), materials, env, receivers)
         return jnp.zeros((receivers.object.shape[0], env.channels), jnp.float32)
     geom = prepare_interreflection(objects, mode=mode, texture_size=texture_size)
-    return interreflection_from(geom, materials, env, receivers, mode=mode, bounces=bounces)
+    return interreflection_from(geom, materials, env, receivers, mode=mode, bounces=bounces,
+                                image_shape=image_shape, gloss_step=gloss_step)

@@ -754,7 +754,7 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
     geom = prepare_interreflection(geoms, mode=prep.ir_mode, texture_size=prep.ir_texture_size,
                                    raster_config=prep.ir_raster_config)
     extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
-                                 bounces=prep.ir_bounces)
+                                 bounces=prep.ir_bounces, image_shape=prep.shape)
     return extra, jnp.asarray(geom.overflow, bool)
 
 

@@ -9,7 +9,8 @@ renderer passes them. Each case times the jitted ``interreflection`` (pass-1 ras
 pass, what a frame with moving objects pays) and, where marked ``_shade``, only
 ``interreflection_from`` on a prepared geometry (what the fitter pays per iteration);
 ``_receivers``: the diffuse transfer summed at every receiver (``diffuse_at="receivers"``)
-instead of at the objects' own samples.
+instead of at the objects' own samples. The receivers are passed as the pixels of the camera
+image (``image_shape``), as the renderer does (gloss quadrature subsampled).
 """
 
 from __future__ import annotations
@@ -125,11 +126,13 @@ def _case(opts: BenchOptions, *, mode: str, z: float = -0.275, k: int | None = N
     if shade_only:
         geom = prepare_interreflection(objs, mode=mode)
         fn = jax.jit(lambda g, m, e, r: interreflection_from(g, m, e, r, bounces=bounces,
-                                                              diffuse_at=diffuse_at))
+                                                              diffuse_at=diffuse_at,
+                                                              image_shape=sc["shape"]))
         out = measure(fn, geom, mats, env, rec, repeats=opts.repeats)
     else:
         fn = jax.jit(lambda o, m, e, r: interreflection(o, m, e, r, mode=mode,
-                                                         bounces=bounces))
+                                                         bounces=bounces,
+                                                         image_shape=sc["shape"]))
         out = measure(fn, objs, mats, env, rec, repeats=opts.repeats)
     out.update(receivers=sc["pixels"], channels=int(env.channels), mode=mode, bounces=bounces,
                diffuse_at=diffuse_at)
