@@ -966,12 +966,43 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     return jnp.concatenate(out)
 
 
+def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple[int, ...]
+                        ) -> tuple[Any, list[jax.Array]]:
+    """The covered pixels of each object compacted into its own list of ``capacities[o]``
+    slots (row-major order), the lists one after the other: the
+    :func:`~spectral_fit.raster.covered_pixels` of each object's part of the raster, from one
+    prefix count per object and one scatter for all (not a search per object and slot).
+    ``tri_id``, ``obj_img`` (H, W) int32 (−1 = none). Returns the
+    :class:`~spectral_fit.raster.PixelList` (count = all objects' covered pixels, overflow =
+    any object's list overflowed) and the per-object covered counts (may exceed capacity)."""
+    from .raster import PixelList, _count_cumsum
+
+    h, w = tri_id.shape
+    flat = tri_id.reshape(-1)
+    obj = obj_img.reshape(-1)
+    total = sum(capacities)
+    ranks = _count_cumsum((obj[None, :] == jnp.arange(len(capacities), dtype=jnp.int32)[:, None]
+                           ).astype(jnp.int32))  # (O, H·W) inclusive counts
+    slot = jnp.full(flat.shape, total, jnp.int32)  # out of range: dropped
+    counts, start = [], 0
+    for o, cap in enumerate(capacities):
+        rank = ranks[o]
+        counts.append(rank[-1])
+        slot = jnp.where((obj == o) & (rank <= cap), start + rank - 1, slot)
+        start += cap
+    index = jnp.zeros((total,), jnp.int32).at[slot].set(
+        jnp.arange(h * w, dtype=jnp.int32), mode="drop")
+    tri = jnp.full((total,), -1, jnp.int32).at[slot].set(flat, mode="drop")
+    overflow = jnp.any(jnp.stack([c > cap for c, cap in zip(counts, capacities, strict=True)]))
+    return PixelList(index, tri, sum(counts), overflow, (h, w)), counts
+
+
 def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
                  visible: jax.Array, spectral: bool) -> PixelFrame:
     """Steps 1–3 of the frame (traced): geometry, raster, covered pixels, G-buffer, shading
     and interreflection of the covered pixels, in the output channels (see
     :class:`PixelFrame`)."""
-    from .raster import PixelList, covered_pixels, interpolate_pixels, rasterize
+    from .raster import interpolate_pixels, rasterize
 
     TRACE_COUNT["render_frame"] += 1
     h, w = prep.shape
@@ -995,13 +1026,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     # covered pixels, one fixed-capacity list per object (each object is shaded with its own
     # material, whose per-material precomputations then run once per object)
     obj_img = jnp.where(ras.tri_id >= 0, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
-    lists = [covered_pixels(eqx.tree_at(lambda r: r.tri_id, ras,
-                                        jnp.where(obj_img == o, ras.tri_id, -1)), cap)
-             for o, cap in enumerate(prep.pixel_capacity)]
-    pix = PixelList(index=jnp.concatenate([q.index for q in lists]),
-                    tri_id=jnp.concatenate([q.tri_id for q in lists]),
-                    count=sum(q.count for q in lists),
-                    overflow=jnp.any(jnp.stack([q.overflow for q in lists])), shape=(h, w))
+    pix, counts = _object_pixel_lists(ras.tri_id, obj_img, prep.pixel_capacity)
     attrs = jnp.concatenate([world, wnorm], axis=1)
     vals = interpolate_pixels(attrs, pix, prep.triangles, clip)
     pos = vals[:, :3]
@@ -1033,7 +1058,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         to_out = prep.to_xyz
         mirror_table = prep.env_xyz
     if prep.quality == "fast":
-        radiance = _shade_out(prep, mats, gb, [q.count for q in lists], to_out, mirror_table)
+        radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table)
     else:
         radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
                                   prep.quality, prep.pixel_capacity, prep.split_map,
