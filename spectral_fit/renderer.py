@@ -975,14 +975,14 @@ def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple
     ``tri_id``, ``obj_img`` (H, W) int32 (−1 = none). Returns the
     :class:`~spectral_fit.raster.PixelList` (count = all objects' covered pixels, overflow =
     any object's list overflowed) and the per-object covered counts (may exceed capacity)."""
-    from .raster import PixelList, _count_cumsum
+    from .raster import PixelList
 
     h, w = tri_id.shape
     flat = tri_id.reshape(-1)
     obj = obj_img.reshape(-1)
     total = sum(capacities)
-    ranks = _count_cumsum((obj[None, :] == jnp.arange(len(capacities), dtype=jnp.int32)[:, None]
-                           ).astype(jnp.int32))  # (O, H·W) inclusive counts
+    ranks = jnp.cumsum((obj[None, :] == jnp.arange(len(capacities), dtype=jnp.int32)[:, None]
+                        ).astype(jnp.int32), axis=1)  # (O, H·W) inclusive counts (exact)
     slot = jnp.full(flat.shape, total, jnp.int32)  # out of range: dropped
     counts, start = [], 0
     for o, cap in enumerate(capacities):
