@@ -36,6 +36,7 @@ DESIGN §3), so diffuse objects never clip.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import warnings
 from collections.abc import Sequence
@@ -867,28 +868,41 @@ def _chunk_size(capacity: int) -> int:
     return capacity
 
 
-def _chunked(fn: Any, count: jax.Array, out_channels: int, *arrays: jax.Array) -> jax.Array:
-    """``fn(*chunks)`` (B, K) over consecutive chunks of the (cap, …) ``arrays``, skipping
-    (zeros) the chunks that start at or after ``count`` (the valid slots come first)."""
-    cap = arrays[0].shape[0]
-    b = _chunk_size(cap)
-    nc = -(-cap // b)
-    pad = nc * b - cap
-    if nc == 1:
-        return fn(*arrays)
-    if pad:
-        arrays = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))])
-                       for a in arrays)
+def _chunked(fn: Any, counts: Sequence[jax.Array], out_channels: int,
+             arrays: Sequence[tuple[jax.Array, ...]]) -> list[jax.Array]:
+    """``fn(o, *chunk)`` (B, K) over consecutive chunks of segment o's (cap_o, …) ``arrays[o]``
+    for every segment o (one traced body for all segments: o is a traced int32), skipping
+    (zeros) the chunks that start at or after ``counts[o]`` (the valid slots come first).
+    Returns the (cap_o, K) results per segment."""
+    caps = [a[0].shape[0] for a in arrays]
+    b = min(_chunk_size(c) for c in caps)
+    nchunks = [-(-c // b) for c in caps]
+    if sum(nchunks) == 1:
+        return [fn(jnp.int32(0), *arrays[0])]
+    padded = []
+    for seg, nc in zip(arrays, nchunks, strict=True):
+        pad = nc * b - seg[0].shape[0]
+        if pad:
+            seg = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))])
+                        for a in seg)
+        padded.append([a.reshape(nc, b, *a.shape[1:]) for a in seg])
+    chunks = [jnp.concatenate(parts) for parts in zip(*padded, strict=True)]
+    seg_of = jnp.asarray(np.repeat(np.arange(len(caps)), nchunks), jnp.int32)
+    first = jnp.asarray(np.concatenate([np.arange(nc) * b for nc in nchunks]), jnp.int32)
+    count = jnp.stack([jnp.asarray(c, jnp.int32) for c in counts])
     dtype = jnp.float32
 
     def body(x: tuple[jax.Array, ...]) -> jax.Array:
-        i, *chunk = x
-        return jax.lax.cond(i * b < count, lambda *c: fn(*c).astype(dtype),
+        o, start, *chunk = x
+        return jax.lax.cond(start < count[o], lambda *c: fn(o, *c).astype(dtype),
                             lambda *c: jnp.zeros((b, out_channels), dtype), *chunk)
 
-    out = jax.lax.map(body, (jnp.arange(nc, dtype=jnp.int32),
-                             *[a.reshape(nc, b, *a.shape[1:]) for a in arrays]))
-    return out.reshape(nc * b, out_channels)[:cap]
+    out = jax.lax.map(body, (seg_of, first, *chunks))
+    res, at = [], 0
+    for cap, nc in zip(caps, nchunks, strict=True):
+        res.append(out[at:at + nc].reshape(nc * b, out_channels)[:cap])
+        at += nc
+    return res
 
 
 def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[jax.Array],
@@ -899,8 +913,10 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     split-sum levels' principal spectra times ``to_out``; ``mirror_table`` = the map's texels
     + 2 pole rows times ``to_out``); the diffuse term α S(λ) I_d(N)/π is one lookup of a
     per-object table (the irradiance map filtered by S(λ), times α/π, times ``to_out``, built
-    per frame: 2,050 rows). Per object, in chunks of slots; chunks past the object's covered
-    count are skipped."""
+    per frame: 2,050 rows). In chunks of slots, chunks past each object's covered count
+    skipped; the objects whose materials share a distribution and geometry share one traced
+    shading body (their per-object tables and parameters selected by object), which halves
+    the compilation of a two-object frame."""
     from .environment import (
         fast_lookup,
         irradiance,
@@ -913,30 +929,72 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     env_g = eqx.tree_at(lambda e: e.spectral_basis, env, env.spectral_basis @ to_out)
     mirror_env = _lut_env(env, mirror_table, env.texels.shape[:2])
     lut = prep.irradiance_lut
-    out = []
-    for m, cnt, (nrm, v) in zip(mats, counts, _object_slices(gb, prep.pixel_capacity),
-                                strict=True):
-        kw = dict(distribution=m.distribution, geometry=m.geometry)
-        moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
-        dtable = None
+    slices = list(_object_slices(gb, prep.pixel_capacity))
+    groups: dict[tuple[str, str], list[int]] = {}
+    for i, m in enumerate(mats):
+        groups.setdefault((m.distribution, m.geometry), []).append(i)
+    out: list[Any] = [None] * len(mats)
+    for (dist, geom), members in groups.items():
+        kw = dict(distribution=dist, geometry=geom)
+        group = [mats[i] for i in members]
+        stacked = jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x, jnp.float32)
+                                                      for x in xs]), *group)
+        moments = jax.vmap(functools.partial(lobe_moment_table, settings=settings, **kw))(
+            stacked.mu, stacked.n)  # (O, size, 4), one compiled table for the group
+        dflat = None
         if lut is not None:
-            dtable = _lut_env(env, (m.alpha / math.pi) * _filtered_irradiance(m, env, lut)
-                              @ to_out)
+            dflat = jnp.stack([(m.alpha / math.pi) * _filtered_irradiance(m, env, lut) @ to_out
+                               for m in group])
 
-        def shade(nn: jax.Array, vv: jax.Array, m: Material = m, moments: jax.Array = moments,
-                  dtable: Any = dtable) -> jax.Array:
-            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.split_map, mirror_env, moments,
-                                                  nn, vv, m, settings)
-            if dtable is None:
+        def shade(o: jax.Array, nn: jax.Array, vv: jax.Array, stacked: Material = stacked,
+                  moments: jax.Array = moments, dflat: Any = dflat) -> jax.Array:
+            m = jax.tree.map(lambda x: x[o], stacked)
+            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.split_map, mirror_env,
+                                                  moments[o], nn, vv, m, settings)
+            if dflat is None:
                 e = jax.vmap(lambda d: irradiance(env, d))(nn)
                 diffuse = (m.alpha / math.pi) * _filtered_irradiance(m, env, e) @ to_out
             else:
-                diffuse = fast_lookup(dtable, nn)
+                diffuse = fast_lookup(_lut_env(env, dflat[o]), nn)
             rad = diffuse + m.beta * gloss + m.chi * mirror
             return jnp.where(nv > 0.0, rad, 0.0)
 
-        out.append(_chunked(shade, cnt, k_out, nrm, v))
+        res = _chunked(shade, [counts[i] for i in members], k_out,
+                       [slices[i] for i in members])
+        for i, r in zip(members, res, strict=True):
+            out[i] = r
     return jnp.concatenate(out)
+
+
+def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple[int, ...]
+                        ) -> tuple[Any, list[jax.Array]]:
+    """The covered pixels of each object compacted into its own list of ``capacities[o]``
+    slots (row-major order), the lists one after the other: the
+    :func:`~spectral_fit.raster.covered_pixels` of each object's part of the raster, from one
+    prefix count per object and one scatter for all (not a search per object and slot).
+    ``tri_id``, ``obj_img`` (H, W) int32 (−1 = none). Returns the
+    :class:`~spectral_fit.raster.PixelList` (count = all objects' covered pixels, overflow =
+    any object's list overflowed) and the per-object covered counts (may exceed capacity)."""
+    from .raster import PixelList
+
+    h, w = tri_id.shape
+    flat = tri_id.reshape(-1)
+    obj = obj_img.reshape(-1)
+    total = sum(capacities)
+    ranks = jnp.cumsum((obj[None, :] == jnp.arange(len(capacities), dtype=jnp.int32)[:, None]
+                        ).astype(jnp.int32), axis=1)  # (O, H·W) inclusive counts (exact)
+    slot = jnp.full(flat.shape, total, jnp.int32)  # out of range: dropped
+    counts, start = [], 0
+    for o, cap in enumerate(capacities):
+        rank = ranks[o]
+        counts.append(rank[-1])
+        slot = jnp.where((obj == o) & (rank <= cap), start + rank - 1, slot)
+        start += cap
+    index = jnp.zeros((total,), jnp.int32).at[slot].set(
+        jnp.arange(h * w, dtype=jnp.int32), mode="drop")
+    tri = jnp.full((total,), -1, jnp.int32).at[slot].set(flat, mode="drop")
+    overflow = jnp.any(jnp.stack([c > cap for c, cap in zip(counts, capacities, strict=True)]))
+    return PixelList(index, tri, sum(counts), overflow, (h, w)), counts
 
 
 def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
@@ -944,7 +1002,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     """Steps 1–3 of the frame (traced): geometry, raster, covered pixels, G-buffer, shading
     and interreflection of the covered pixels, in the output channels (see
     :class:`PixelFrame`)."""
-    from .raster import PixelList, covered_pixels, interpolate_pixels, rasterize
+    from .raster import interpolate_pixels, rasterize
 
     TRACE_COUNT["render_frame"] += 1
     h, w = prep.shape
@@ -968,13 +1026,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     # covered pixels, one fixed-capacity list per object (each object is shaded with its own
     # material, whose per-material precomputations then run once per object)
     obj_img = jnp.where(ras.tri_id >= 0, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
-    lists = [covered_pixels(eqx.tree_at(lambda r: r.tri_id, ras,
-                                        jnp.where(obj_img == o, ras.tri_id, -1)), cap)
-             for o, cap in enumerate(prep.pixel_capacity)]
-    pix = PixelList(index=jnp.concatenate([q.index for q in lists]),
-                    tri_id=jnp.concatenate([q.tri_id for q in lists]),
-                    count=sum(q.count for q in lists),
-                    overflow=jnp.any(jnp.stack([q.overflow for q in lists])), shape=(h, w))
+    pix, counts = _object_pixel_lists(ras.tri_id, obj_img, prep.pixel_capacity)
     attrs = jnp.concatenate([world, wnorm], axis=1)
     vals = interpolate_pixels(attrs, pix, prep.triangles, clip)
     pos = vals[:, :3]
@@ -1006,7 +1058,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         to_out = prep.to_xyz
         mirror_table = prep.env_xyz
     if prep.quality == "fast":
-        radiance = _shade_out(prep, mats, gb, [q.count for q in lists], to_out, mirror_table)
+        radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table)
     else:
         radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
                                   prep.quality, prep.pixel_capacity, prep.split_map,

@@ -126,7 +126,7 @@ def test_threaded_run_gives_the_sequential_frames(session, tables):
               for n, eye in enumerate([(0.0, 0.3, 0.25), (0.05, 0.3, 0.24), (-0.05, 0.31, 0.25),
                                        (0.02, 0.29, 0.26)])]
     want = [session.process(f) for f in frames]
-    for threads in (True, False):
+    for threads in (True, False, None):  # None: the backend's default
         got = []
         st = session.run(iter(frames), got.append, threads=threads)
         assert st.frames == 4 and len(got) == 4

@@ -262,6 +262,31 @@ def test_chunked_xyz_shading_matches_the_band_shading(prep):
         assert np.all(new[o * cap + first_skipped:(o + 1) * cap] == 0.0)
 
 
+def test_object_pixel_lists_match_covered_pixels_per_object():
+    """The frame's per-object pixel lists (one prefix count per object, one scatter) equal
+    raster.covered_pixels of each object's part of the raster, concatenated, on a random
+    object image with three objects, one of them overflowing its capacity."""
+    from spectral_fit.raster import Raster, covered_pixels
+    from spectral_fit.renderer import _object_pixel_lists
+
+    rng = np.random.default_rng(11)
+    h, w = 37, 53
+    obj = rng.integers(-1, 3, size=(h, w)).astype(np.int32)
+    tri = np.where(obj >= 0, rng.integers(0, 1000, size=(h, w)), -1).astype(np.int32)
+    caps = (int((obj == 0).sum()) + 7, int((obj == 1).sum()) - 5, 64 * 64)
+    pix, counts = _object_pixel_lists(jnp.asarray(tri), jnp.asarray(obj), caps)
+    want = [covered_pixels(Raster(tri_id=jnp.asarray(np.where(obj == o, tri, -1)), bary=None,
+                                  depth=None, overflow=None, needed=None), cap)
+            for o, cap in enumerate(caps)]
+    np.testing.assert_array_equal(np.asarray(pix.index),
+                                  np.concatenate([np.asarray(q.index) for q in want]))
+    np.testing.assert_array_equal(np.asarray(pix.tri_id),
+                                  np.concatenate([np.asarray(q.tri_id) for q in want]))
+    assert [int(c) for c in counts] == [int(q.count) for q in want]
+    assert int(pix.count) == int((obj >= 0).sum())
+    assert bool(pix.overflow) and [bool(q.overflow) for q in want] == [False, True, False]
+
+
 def test_bad_inputs_name_the_option(prep, folder):
     from spectral_fit.renderer import prepare, render_frame
 

@@ -30,10 +30,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="linear frame level of a white sheet on the table (exposure)")
     p.add_argument("--fps", type=float, default=None,
                    help="output frame rate (default: the input's, or 25)")
-    p.add_argument("--pipeline", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--pipeline", action=argparse.BooleanOptionalAction, default=None,
                    help="overlap the stages with threads (decode, detection and undistortion "
-                   "of frame n+1 and encoding of frame n-1 run while frame n renders; the "
-                   "default); --no-pipeline runs them one after the other")
+                   "of frame n+1 and encoding of frame n-1 run while frame n renders); "
+                   "--no-pipeline runs them one after the other; default: threads on a GPU, "
+                   "one after the other on the CPU backend (there the render already uses "
+                   "every core and threads beside it slow it down)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -49,7 +51,7 @@ def _bar(i: int, n: int | None, render_fps: float, e2e_fps: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
-    from ..live import LiveSession
+    from ..live import LiveSession, pipeline_pays
     from ..scene import load_scene
     from ..video import VideoSink, VideoSource, count_frames
 
@@ -58,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.white_level <= 1:
         raise InputError("must be in (0, 1]", field="--white-level")
     scene = load_scene(args.config)
+    pipeline = pipeline_pays() if args.pipeline is None else bool(args.pipeline)
     t_start = time.perf_counter()
     source = VideoSource(args.camera if args.camera is not None else args.video,
                          field="--camera" if args.camera is not None else "--video")
@@ -84,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         t_run = time.perf_counter()
         with ctx:
             stats = session.run(source, sink.write if sink is not None else None,
-                                threads=args.pipeline, max_frames=args.max_frames,
+                                threads=pipeline, max_frames=args.max_frames,
                                 on_frame=progress)
         if not args.quiet:
             print(file=sys.stderr)
@@ -108,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         "output": args.output,
         "output_frames": written,
         "pixel_capacity": session.prep.pixel_capacity,
-        "pipeline": bool(args.pipeline),
+        "pipeline": pipeline,
         "colour": ("sensitivities " + (args.sensitivities or "Nikon 5100 (NPL)")
                    if args.sensitivities or scene.camera_colour is None
                    else "[camera_colour]"),
