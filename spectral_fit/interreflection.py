@@ -76,6 +76,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .backend import on_accelerator
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
@@ -1033,6 +1034,9 @@ def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: ja
 #: chunks 10 % less CPU than 128)
 _GLOSS_CHUNKS = 64
 _GLOSS_MIN_CHUNK = 1024
+#: with the accelerator layout (:mod:`spectral_fit.backend`) the receivers run in chunks of
+#: up to this many, all of them when fewer (no sort, loop or conditional)
+_GLOSS_ACCEL_CHUNK = 65536
 #: a receiver's lobe is evaluated against a neighbour when its mirror direction is within the
 #: neighbour's angular radius plus this many lobe widths μ (+ 0.05 rad): the lobe's reflected
 #: directions have an angular std of about √2 μ, so beyond that the lobe keeps < e^-6 of its
@@ -1088,7 +1092,8 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                  grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
     """Gloss and mirror interreflection (N, C): β A(x) Σ_q w_q (neighbour − hidden environment)
     over the receiver's lobe nodes, χ F(θr) (…) along R. Receivers whose lobe cannot reach a
-    neighbour are sorted last, into chunks (``_GLOSS_CHUNKS``) that are skipped.
+    neighbour are sorted last, into chunks (``_GLOSS_CHUNKS``) that are skipped; with the
+    accelerator layout (:mod:`spectral_fit.backend`) all receivers run at once.
 
     ``grid`` = (pixel (N,), image shape (H, W), step): the receivers are pixels of one image;
     the quadrature runs at every ``step``-th row and column only (:func:`_image_anchors`) and
@@ -1120,8 +1125,10 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                                          math.sqrt(2.0) * mats["mu"][o_all])
         active = active & own
     n = pos.shape[0]
-    order = jnp.argsort(jnp.where(active, 0, 1))
-    size = max(1, min(n, max(_GLOSS_MIN_CHUNK, -(-n // _GLOSS_CHUNKS))))
+    if on_accelerator():
+        size = max(1, min(n, _GLOSS_ACCEL_CHUNK))
+    else:
+        size = max(1, min(n, max(_GLOSS_MIN_CHUNK, -(-n // _GLOSS_CHUNKS))))
     nc = -(-n // size)
     pad = nc * size - n
 
@@ -1182,11 +1189,17 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                             lambda a: jnp.zeros(shape.shape, shape.dtype), args)
 
     z = (0.0, 0.0, 1.0)
-    args = (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z), padded(obj, -1),
-            padded(active, False))
-    res = jax.lax.map(chunk, tuple(a.reshape(nc, size, *a.shape[1:]) for a in args))
-    res = res.reshape(nc * size, c)
-    res = jnp.zeros((n, c), res.dtype).at[order].set(res[:n])
+    if nc == 1:  # one chunk (accelerator layout, or few receivers): no sort, loop or cond
+        zz = jnp.asarray(z, nrm.dtype)
+        res = run((pos, jnp.where(active[:, None], nrm, zz), jnp.where(active[:, None], view, zz),
+                   obj, active))
+    else:
+        order = jnp.argsort(jnp.where(active, 0, 1))
+        args = (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z),
+                padded(obj, -1), padded(active, False))
+        res = jax.lax.map(chunk, tuple(a.reshape(nc, size, *a.shape[1:]) for a in args))
+        res = res.reshape(nc * size, c)
+        res = jnp.zeros((n, c), res.dtype).at[order].set(res[:n])
     if grid is not None:
         res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
     return res

@@ -181,8 +181,10 @@ def pipeline_pays() -> bool:
     the step's parallel loops over every core; a reader thread beside it preempts one of the
     step's workers and each loop then waits for that one (measured on a quiet 2-core CPU,
     ``live_paper``: 58.7 ms per frame sequential, 80 ms threaded), so the stages run one after
-    the other there."""
-    return jax.default_backend() != "cpu"
+    the other there. Follows :func:`spectral_fit.backend.on_accelerator`."""
+    from .backend import on_accelerator
+
+    return on_accelerator()
 
 
 class LiveSession:

@@ -70,6 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .backend import on_accelerator
 from .errors import InputError
 
 __all__ = [
@@ -561,7 +562,8 @@ def _hs_scan(op, x, identity):
         shifted = lax.dynamic_slice_in_dim(jnp.concatenate([pad, y], axis=-1), n - d, n, axis=-1)
         return op(y, shifted)
 
-    return lax.fori_loop(0, steps, body, x)
+    # unrolled on accelerators: a device loop costs a host round trip per step there
+    return lax.fori_loop(0, steps, body, x, unroll=True if on_accelerator() else 1)
 
 
 def _scan(op, x, identity, block: int = 64):

@@ -47,6 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .backend import on_accelerator
 from .camera import eye_position, inverse_3x3, inverse_4x4
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
@@ -855,12 +856,19 @@ def with_output(prep: Prepared, matrix: Any) -> Prepared:
                                env_xyz=jnp.asarray(flat @ m, jnp.float32))
 
 
+#: largest shading chunk with the accelerator layout (slots)
+_ACCEL_CHUNK = 65536
+
+
 def _chunk_size(capacity: int) -> int:
     """Slots per shading chunk: chunks beyond the covered-pixel count are skipped, so the
     shading cost follows the count (to within one chunk), not the planned capacity; chunks of
     a few thousand points also keep the gloss's intermediates in cache (measured on the
     close-up: 57,344 slots at once 45 ms CPU, in chunks of 2048–4096 20 ms, for 32,894
-    covered pixels)."""
+    covered pixels). With the accelerator layout (:mod:`spectral_fit.backend`) the chunks are
+    as large as the capacity, up to 65,536 slots."""
+    if on_accelerator():
+        return min(capacity, _ACCEL_CHUNK)
     if capacity >= 32768:
         return 4096
     if capacity >= 4096:
@@ -873,6 +881,8 @@ def _chunked(fn: Any, counts: Sequence[jax.Array], out_channels: int,
     """``fn(o, *chunk)`` (B, K) over consecutive chunks of segment o's (cap_o, …) ``arrays[o]``
     for every segment o (one traced body for all segments: o is a traced int32), skipping
     (zeros) the chunks that start at or after ``counts[o]`` (the valid slots come first).
+    With the accelerator layout all chunks run at once (``vmap``, nothing skipped): a device
+    loop and a conditional per chunk cost more there than the skipped work.
     Returns the (cap_o, K) results per segment."""
     caps = [a[0].shape[0] for a in arrays]
     b = min(_chunk_size(c) for c in caps)
@@ -897,7 +907,10 @@ def _chunked(fn: Any, counts: Sequence[jax.Array], out_channels: int,
         return jax.lax.cond(start < count[o], lambda *c: fn(o, *c).astype(dtype),
                             lambda *c: jnp.zeros((b, out_channels), dtype), *chunk)
 
-    out = jax.lax.map(body, (seg_of, first, *chunks))
+    if on_accelerator():
+        out = jax.vmap(lambda o, *c: fn(o, *c).astype(dtype))(seg_of, *chunks)
+    else:
+        out = jax.lax.map(body, (seg_of, first, *chunks))
     res, at = [], 0
     for cap, nc in zip(caps, nchunks, strict=True):
         res.append(out[at:at + nc].reshape(nc * b, out_channels)[:cap])
@@ -1135,12 +1148,18 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
 _render_jit = eqx.filter_jit(_render_impl)
 
 
+@functools.cache
+def _all_visible(n: int) -> jax.Array:
+    """(n,) True, made once (a new array per frame costs a dispatch on the frame's path)."""
+    return jnp.ones((n,), bool)
+
+
 def _check_frame_inputs(prep: Prepared, materials: Any, model: Any, view: Any, visible: Any
                         ) -> tuple[Any, jax.Array, jax.Array, jax.Array]:
     mats = prep.materials if materials is None else materials
     model = prep.model if model is None else model
     view = prep.view if view is None else view
-    visible = jnp.ones((prep.num_objects,), bool) if visible is None else visible
+    visible = _all_visible(prep.num_objects) if visible is None else visible
     if not isinstance(model, jax.core.Tracer):
         m = np.shape(model)
         if m != (prep.num_objects, 4, 4):

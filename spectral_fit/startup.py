@@ -139,6 +139,7 @@ def _environment_digest() -> str:
         f"backend={jax.default_backend()}", f"device={dev.platform}:{dev.device_kind}",
         f"devices={jax.device_count()}",
         f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}",
+        f"layout={os.environ.get('SPECTRAL_FIT_LAYOUT', '')}",
         f"x64={jax.config.jax_enable_x64}",
         f"matmul={jax.config.jax_default_matmul_precision}",
     ]

@@ -1,0 +1,87 @@
+"""The two work layouts (spectral_fit.backend): the accelerator layout (whole batches at once,
+no device loops or conditionals) renders the same frame, with the same gradients, as the CPU
+layout (chunks in a loop, empty chunks skipped). Both run here on the CPU."""
+
+from __future__ import annotations
+
+import importlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _rendering_util import write_scene
+
+from spectral_fit import backend, raster, renderer
+from spectral_fit.errors import InputError
+
+# the module (the package exports a function of the same name)
+interreflection = importlib.import_module("spectral_fit.interreflection")
+
+
+def test_layout_variable(monkeypatch):
+    monkeypatch.setenv(backend.LAYOUT_VARIABLE, "accelerator")
+    assert backend.on_accelerator()
+    monkeypatch.setenv(backend.LAYOUT_VARIABLE, "CPU")
+    assert not backend.on_accelerator()
+    monkeypatch.setenv(backend.LAYOUT_VARIABLE, "auto")
+    assert backend.on_accelerator() == (jax.default_backend() != "cpu")
+    monkeypatch.delenv(backend.LAYOUT_VARIABLE)
+    assert backend.on_accelerator() == (jax.default_backend() != "cpu")
+    monkeypatch.setenv(backend.LAYOUT_VARIABLE, "gpu")
+    with pytest.raises(InputError, match="SPECTRAL_FIT_LAYOUT.*'gpu'"):
+        backend.on_accelerator()
+
+
+@pytest.fixture(scope="module")
+def prep(tmp_path_factory):
+    # gather interreflection, two colours, a mirror term: every layout-dependent path runs
+    return renderer.prepare(write_scene(tmp_path_factory.mktemp("layout"), mode="gather",
+                                        same_colour=False, chi=0.3))
+
+
+def _with_layout(monkeypatch, accelerator: bool, fn):
+    """fn() traced afresh with the given layout; returns (result, layout queries made)."""
+    calls = []
+
+    def layout() -> bool:
+        calls.append(accelerator)
+        return accelerator
+
+    # small chunks: the CPU layout runs the gloss quadrature of these few receivers in a loop
+    monkeypatch.setattr(interreflection, "_GLOSS_MIN_CHUNK", 128)
+    monkeypatch.setattr(renderer, "on_accelerator", layout)
+    monkeypatch.setattr(raster, "on_accelerator", layout)
+    monkeypatch.setattr(interreflection, "on_accelerator", layout)
+    jax.clear_caches()
+    out = jax.block_until_ready(fn())
+    jax.clear_caches()
+    return out, len(calls)
+
+
+def test_accelerator_layout_renders_the_cpu_layout_frame(prep, monkeypatch):
+    cpu, n_cpu = _with_layout(monkeypatch, False, lambda: renderer.render_frame(prep))
+    acc, n_acc = _with_layout(monkeypatch, True, lambda: renderer.render_frame(prep))
+    assert n_cpu > 0 and n_acc > 0  # both traced, each with its layout
+    assert sum(prep.pixel_capacity) >= 2 * 128  # the CPU layout's gloss ran in chunks
+    a, b = np.asarray(cpu.xyz), np.asarray(acc.xyz)
+    mask = np.asarray(cpu.mask)
+    assert mask.sum() > 200 and np.array_equal(mask, np.asarray(acc.mask))
+    assert np.max(np.abs(a - b)) <= 1e-5 * np.max(a[mask])
+
+
+@pytest.mark.slow
+def test_accelerator_layout_gradients_match_the_cpu_layout(prep, monkeypatch):
+    mats = prep.materials
+    wgt = jnp.asarray(np.random.default_rng(5).uniform(0.5, 1.5, prep.shape + (3,)),
+                      jnp.float32)
+
+    def grad():
+        return jax.grad(lambda m: jnp.sum(renderer.render_frame(prep, m).xyz * wgt))(mats)
+
+    g_cpu, _ = _with_layout(monkeypatch, False, grad)
+    g_acc, _ = _with_layout(monkeypatch, True, grad)
+    for name in ("alpha", "beta", "chi", "mu", "n", "gamma", "reflectance"):
+        x, y = np.asarray(getattr(g_cpu, name)), np.asarray(getattr(g_acc, name))
+        assert np.all(np.isfinite(y)), name
+        assert np.max(np.abs(x - y)) <= 1e-4 * np.max(np.abs(x)) + 1e-8, name
