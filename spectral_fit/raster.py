@@ -329,27 +329,27 @@ def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def _edge_rows(hv, one):
-    """Canonical edges of triangles with homogeneous pixel vertices ``hv`` (3 corners, each a
-    tuple (X, Y, w) of arrays): edge i (opposite corner i) with its two vertices in canonical
-    (lexicographic) order, as 3 materialised (6, T) arrays (X, Y, w of the first vertex, then
-    of the second), and the orientations ``o`` (3, T) (−1 where the order swapped corners
-    i+1, i+2). Its edge function at pixel p is ``o_i · (lo × hi) · (px, py, 1)``.
+def _edge_setup(hv):
+    """Canonical edge functions of triangles with homogeneous pixel vertices ``hv``: a list of 3
+    corners, each a tuple (X, Y, w) of arrays.
 
-    The swaps are materialised first, so that each row reads them instead of repeating the
-    comparison (XLA would then copy the corner values out into kernels of their own)."""
-    pairs = [(hv[(i + 1) % 3], hv[(i + 2) % 3]) for i in range(3)]
-    o = _rows([jnp.where(_lex_less(b, a), -1.0, 1.0) for a, b in pairs], one)
-    rows = []
-    for i, (a, b) in enumerate(pairs):
-        swap = o[i] < 0
-        rows.append(_rows([jnp.where(swap, bb, aa) for aa, bb in zip(a, b, strict=True)]
-                          + [jnp.where(swap, aa, bb) for aa, bb in zip(a, b, strict=True)], one))
-    return rows, o
+    Returns ``n`` (3 edges × 3 components; edge i is opposite corner i, its edge function at
+    pixel p is ``o_i · n_i · (px, py, 1)``), ``o`` (3 arrays of ±1) and the edges' vertices in
+    canonical order (3 × (lo, hi), each a tuple (X, Y, w)).
+    """
+    ns, os_, ends = [], [], []
+    for i in range(3):
+        a, b = hv[(i + 1) % 3], hv[(i + 2) % 3]
+        swap = _lex_less(b, a)
+        lo = tuple(jnp.where(swap, bb, aa) for aa, bb in zip(a, b, strict=True))
+        hi = tuple(jnp.where(swap, aa, bb) for aa, bb in zip(a, b, strict=True))
+        ns.append(_cross(lo, hi))
+        os_.append(jnp.where(swap, -1.0, 1.0).astype(a[0].dtype))
+        ends.append((lo, hi))
+    return ns, os_, ends
 
 
-# rows of the per-triangle data (float32, (_NCOL, T): one row per quantity, triangles along
-# the minor axis)
+# columns of the per-triangle data rows (float32)
 _C_EDGE = 0  # 3 edges × (X, Y, w of the canonical first vertex, then of the second)
 _C_SIGN = 18  # 3 inside signs σ_i (inside: σ_i·e_i > 0)
 _C_TIE = 21  # 3 values σ_i·(tie direction): the verdict where e_i == 0 exactly
@@ -358,63 +358,33 @@ _C_VALID = 29  # 1 / 0
 _C_BOX = 30  # pixel-centre index box x0, y0, nx, ny
 _NCOL = 34
 
-# Compile time: XLA:CPU compiles every kernel, and every operand of a concatenation fused into
-# one, as a loop body of its own (~8–12 ms each), and does not fuse a concatenation of more
-# than 8 operands at all (each operand then becomes a kernel). The setup therefore computes
-# its rows in stages of at most 8 stacked rows, one kernel each, with the triangles along the
-# minor axis, instead of one kernel per output column (docs/raster.md, "Compile time").
-
-
-def _materialise(x, one):
-    """``x / one`` with ``one`` a runtime 1.0 (exact): XLA:CPU never recomputes an "expensive"
-    op (a divide) in several consumers or per gathered element, so ``x`` is computed once, in
-    the kernel that produces it."""
-    return x / one
-
-
-def _rows(parts, one):
-    """≤ 8 per-triangle rows stacked into one (k, T) array: one kernel, materialised."""
-    return _materialise(jnp.stack(parts), one)
-
 
 def _triangle_setup(clip, triangles, shape, cull):
-    """Per-triangle data packed in one float32 array (_NCOL, T) (rows: see the ``_C_*``
-    constants), computed in stages of a few kernels: the corners, the anchor and determinant,
-    the conservative box, then the rows of the result."""
+    """Per-triangle data packed in one float32 array (T, _NCOL), computed component-wise
+    (columns: see the ``_C_*`` constants)."""
     h, w = shape
-    f32 = jnp.float32
-    one = jnp.where(clip[0, 3] == clip[0, 3], f32(1.0), f32(2.0))
-    # homogeneous pixel coordinates and z of every vertex, rows (X, Y, w, z) (4, V):
-    # X = (x + w)·W/2, Y = (w − y)·H/2 (as clip_to_pixel), gathered per corner (4, 3, T)
-    p = clip.T[jnp.asarray([0, 1, 3, 2])]
-    a = jnp.asarray([1.0, -1.0, 1.0, 1.0], f32)[:, None]
-    b = jnp.asarray([1.0, 1.0, 0.0, 0.0], f32)[:, None]
-    c = jnp.asarray([0.5 * w, 0.5 * h, 1.0, 1.0], f32)[:, None]
-    hz = (a * p + b * clip[:, 3]) * c
-    corners = triangles.T.reshape(-1)
-    # one gather per row (a gather of whole columns would come out corner-major and need
-    # transposing copies)
-    g = _rows([hz[j][corners] for j in range(4)], one).reshape(4, 3, -1)
-    hv = [(g[0, k], g[1, k], g[2, k]) for k in range(3)]
-    z = [g[3, k] for k in range(3)]
+    comp = [clip[:, j] for j in range(4)]
+    corners = [[comp[j][triangles[:, k]] for j in range(4)] for k in range(3)]
+    hv = [((c[0] + c[3]) * (0.5 * w), (c[3] - c[1]) * (0.5 * h), c[3]) for c in corners]
+    # Dividing by a runtime 1.0 materialises a value: XLA:CPU does not duplicate an
+    # "expensive" op (a divide) into several consumers, whereas it recomputes chains of cheap
+    # ops inside every consumer kernel (measured: the setup ran several times slower).
+    one = jnp.where(clip[0, 3] == clip[0, 3], jnp.float32(1.0), jnp.float32(2.0))
+    n, o, ends = _edge_setup(hv)
     # det = det[hv0; hv1; hv2], evaluated with the origin moved to the projection of the
     # corner with the largest w (a column operation: same value, no large cancelling terms).
     # Its sign decides which side of the edges is inside (and that the point seen is in
     # front of the eye), so it must be right even for edge-on slivers at a silhouette.
-    wmax = jnp.maximum(jnp.maximum(hv[0][2], hv[1][2]), hv[2][2])
-    anchor = [hv[k][2] == wmax for k in range(3)]
-
-    def at_anchor(v):
-        return jnp.where(anchor[0], v[0], jnp.where(anchor[1], v[1], v[2]))
-
+    wmax = jnp.maximum(jnp.maximum(corners[0][3], corners[1][3]), corners[2][3])
+    anchor = [corners[k][3] == wmax for k in range(3)]
+    xa = jnp.where(anchor[0], hv[0][0], jnp.where(anchor[1], hv[1][0], hv[2][0]))
+    ya = jnp.where(anchor[0], hv[0][1], jnp.where(anchor[1], hv[1][1], hv[2][1]))
     inv_wa = 1.0 / jnp.where(wmax > 0, wmax, 1.0)
-    pxa = jnp.where(wmax > 0, at_anchor([v[0] for v in hv]) * inv_wa, 0.0)
-    pya = jnp.where(wmax > 0, at_anchor([v[1] for v in hv]) * inv_wa, 0.0)
+    pxa = jnp.where(wmax > 0, xa * inv_wa, 0.0) / one
+    pya = jnp.where(wmax > 0, ya * inv_wa, 0.0) / one
     rel = [(v[0] - pxa * v[2], v[1] - pya * v[2], v[2]) for v in hv]
     c12 = _cross(rel[1], rel[2])
-    det = rel[0][0] * c12[0] + rel[0][1] * c12[1] + rel[0][2] * c12[2]
-    anch = _rows([pxa, pya, det, jnp.where(wmax > 0, at_anchor(z) * inv_wa, 0.0)], one)
-    pxa, pya, det, za = (anch[k] for k in range(4))
+    det = (rel[0][0] * c12[0] + rel[0][1] * c12[1] + rel[0][2] * c12[2]) / one
     # In pixel coordinates y points down, so a front face (counter-clockwise in NDC) has det < 0.
     valid = jnp.isfinite(det) & (det != 0)
     if cull == "back":
@@ -423,40 +393,29 @@ def _triangle_setup(clip, triangles, shape, cull):
         valid &= det > 0
     s = jnp.sign(det)
     inv_det = 1.0 / jnp.where(valid, det, 1.0)
+    z = [c[2] for c in corners]
     # NDC depth z/w is affine in pixel coordinates: z/w = d_a + a·(px − pxa) + b·(py − pya),
     # anchored at the projection of the corner with the largest w (exact to rounding there);
     # the gradient comes from edge normals of the anchored coordinates (little cancellation)
     # and only acts over the distance to the anchor (a plane stored as a·px + b·py + c loses
     # ~1e−5 for edge-on triangles far from the frame's origin).
-    rel = [(v[0] - pxa * v[2], v[1] - pya * v[2], v[2]) for v in hv]
     cr = [_cross(rel[(i + 1) % 3], rel[(i + 2) % 3]) for i in range(3)]
     zc = [sum(z[i] * cr[i][k] for i in range(3)) * inv_det for k in range(2)]
     # The constant term of the depth plane from the homogeneous formula cancels badly (its
     # terms are ~X·Y of the pixel coordinates; errors ~1e-4 in NDC depth for small, distant
     # triangles). Anchor the plane at the corner with the largest w instead: z/w there is
     # exact to rounding, and the gradient's error only acts over the triangle's extent.
-    zc += [jnp.where(wmax > 0, za, sum(z[i] * cr[i][2] for i in range(3)) * inv_det), pxa, pya]
-    edges, o = _edge_rows(hv, one)
-    n = [_cross(e[:3], e[3:]) for e in edges]
+    za = jnp.where(anchor[0], z[0], jnp.where(anchor[1], z[1], z[2]))
+    zc += [jnp.where(wmax > 0, za * inv_wa, sum(z[i] * cr[i][2] for i in range(3)) * inv_det),
+           pxa, pya]
     sigma = [o[i] * s for i in range(3)]
     # tie rule: a centre exactly on an edge goes to the side the edge function takes at the
     # centre moved by +ε in x (then +ε² in y); n_i[0], n_i[1] are its x and y derivatives
     tie = [jnp.sign(sigma[i] * jnp.where(n[i][0] != 0, n[i][0], n[i][1])) for i in range(3)]
-    x0, y0, nx, ny, any_ok = _pixel_box(_clipped_box(hv, z, one), shape)
-    valid &= any_ok & (nx > 0) & (ny > 0)
-    groups = edges + [
-        _rows(sigma + tie, one), _rows(zc, one),
-        _rows([valid.astype(f32), x0.astype(f32), y0.astype(f32), nx.astype(f32),
-               ny.astype(f32)], one)]
-    # one kernel assembles the rows (6 operands, none a concatenation itself: fused), and
-    # the divide keeps the result materialised instead of recomputed per gathered window
-    return _materialise(jnp.concatenate(groups), one)
+    comps = [c for lo, hi in ends for c in (*lo, *hi)] + sigma + tie + zc
 
-
-def _clipped_box(hv, z, one):
-    """(5, T): xmin, xmax, ymin, ymax of the triangle's polygon clipped to z ≥ −w, in pixel
-    coordinates, then a code: 1 if some point of it exists, +2 if some has w ≤ 0."""
-    d = [zz + v[2] for zz, v in zip(z, hv, strict=True)]
+    # conservative box: the polygon clipped to z >= -w
+    d = [c[2] + c[3] for c in corners]
     pts, ok = [], []
     for i in range(3):
         j = (i + 1) % 3
@@ -469,7 +428,8 @@ def _clipped_box(hv, z, one):
     big = jnp.float32(1e9)
     xmin = ymin = big
     xmax = ymax = -big
-    bad_w = any_ok = jnp.zeros(d[0].shape, bool)
+    bad_w = jnp.zeros_like(valid)
+    any_ok = jnp.zeros_like(valid)
     for (px_, py_, pw), k in zip(pts, ok, strict=True):
         front = pw > 0
         bad_w |= k & ~front
@@ -480,22 +440,15 @@ def _clipped_box(hv, z, one):
         xmax = jnp.maximum(xmax, jnp.where(k, x, -big))
         ymin = jnp.minimum(ymin, jnp.where(k, y, big))
         ymax = jnp.maximum(ymax, jnp.where(k, y, -big))
-    code = jnp.where(any_ok, 1.0, 0.0) + jnp.where(bad_w, 2.0, 0.0)
-    return _rows([xmin, xmax, ymin, ymax, code], one)
-
-
-def _pixel_box(box, shape):
-    """Pixel-centre index box (x0, y0, nx, ny) of a :func:`_clipped_box` with a margin against
-    rounding (the whole frame when part of the polygon lies behind the eye), and whether the
-    polygon is non-empty."""
-    h, w = shape
-    xmin, xmax, ymin, ymax, code = (box[k] for k in range(5))
-    full = (code >= 2.0) | ~(jnp.isfinite(xmin) & jnp.isfinite(xmax) & jnp.isfinite(ymin)
-                             & jnp.isfinite(ymax))
+    xmin, xmax, ymin, ymax = (v / one for v in (xmin, xmax, ymin, ymax))
+    full = bad_w | ~(jnp.isfinite(xmin) & jnp.isfinite(xmax) & jnp.isfinite(ymin)
+                     & jnp.isfinite(ymax))
     xmin = jnp.where(full, 0.0, xmin)
     ymin = jnp.where(full, 0.0, ymin)
     xmax = jnp.where(full, w, xmax)
     ymax = jnp.where(full, h, ymax)
+    valid &= any_ok
+    # pixel-centre index ranges with a margin against rounding of the box
     mx = 1.0 / 64 + 1e-6 * jnp.maximum(jnp.abs(xmin), jnp.abs(xmax))
     my = 1.0 / 64 + 1e-6 * jnp.maximum(jnp.abs(ymin), jnp.abs(ymax))
     lim = jnp.float32(1 << 15)
@@ -505,7 +458,14 @@ def _pixel_box(box, shape):
     y1 = jnp.floor(jnp.clip(ymax - 0.5 + my, -2.0, lim)).astype(jnp.int32)
     x0, y0 = jnp.maximum(x0, 0), jnp.maximum(y0, 0)
     x1, y1 = jnp.minimum(x1, w - 1), jnp.minimum(y1, h - 1)
-    return x0, y0, x1 - x0 + 1, y1 - y0 + 1, (code == 1.0) | (code == 3.0)
+    nx, ny = x1 - x0 + 1, y1 - y0 + 1
+    valid &= (nx > 0) & (ny > 0)
+    f32 = jnp.float32
+    data = jnp.stack(comps + [valid.astype(f32), x0.astype(f32), y0.astype(f32), nx.astype(f32),
+                              ny.astype(f32)], axis=1)
+    # materialised once, instead of recomputed per gathered window (a barrier: a divide by
+    # the runtime 1.0 here would cost one more pass over the rows)
+    return lax.optimization_barrier(data)
 
 
 def _plane(zp, px, py):
@@ -514,8 +474,7 @@ def _plane(zp, px, py):
 
 
 def _cover(rows, px, py):
-    """Coverage and depth of pixel centres (px, py) (..., S, S) for triangle rows (..., _NCOL)
-    (rows of the transposed :func:`_triangle_setup`).
+    """Coverage and depth of pixel centres (px, py) (..., S, S) for triangle rows (..., _NCOL).
 
     Edge functions are evaluated relative to the pixel, e = (X_lo − px·w_lo)(Y_hi − py·w_hi)
     − (Y_lo − py·w_lo)(X_hi − px·w_hi), from the edge's two vertices in canonical order: the
@@ -625,9 +584,9 @@ def _ladder_masks(shorter, valid, sizes):
 
 def _window_counts(data, config):
     """Windows per triangle and ladder size: (m (NB, T), tx (NB, T)) (static divisors)."""
-    valid = data[_C_VALID] > 0
-    nx = data[_C_BOX + 2].astype(jnp.int32)
-    ny = data[_C_BOX + 3].astype(jnp.int32)
+    valid = data[:, _C_VALID] > 0
+    nx = data[:, _C_BOX + 2].astype(jnp.int32)
+    ny = data[:, _C_BOX + 3].astype(jnp.int32)
     sizes = config.tile_sizes
     ms, txs = [], []
     masks = _ladder_masks(jnp.minimum(nx, ny), valid, sizes)
@@ -639,7 +598,7 @@ def _window_counts(data, config):
     return jnp.stack(ms), jnp.stack(txs)
 
 
-def _window_lists(data, rows, config):
+def _window_lists(data, config):
     """Per ladder size: (S, window origins (C, 2) (y, x), triangle ids (C,), triangle data
     (C, _NCOL), live (C,), windows needed).
 
@@ -649,7 +608,7 @@ def _window_lists(data, rows, config):
     a running max fills the slots of its further windows (keys grow along the list, so one
     scan serves every size). The sizes' lists are static slices of the result.
     """
-    t = data.shape[1]
+    t = data.shape[0]
     sizes, caps = config.tile_sizes, config.capacities
     nb = len(sizes)
     offs = [sum(caps[:b]) for b in range(nb + 1)]
@@ -672,7 +631,7 @@ def _window_lists(data, rows, config):
     live = local_slot < sum(jnp.where(b == i, total[i], 0) for i in range(nb))
     key = jnp.clip(key, b * t, b * t + (t - 1))  # dead slots: any triangle of the size
     tri = key - b * t
-    box = data[_C_BOX:_C_BOX + 2].astype(jnp.int32)[:, tri]  # (2, ΣC) x0, y0
+    box = data[:, _C_BOX:_C_BOX + 2].astype(jnp.int32)[tri]  # (ΣC, 2) x0, y0
     local = local_slot - start.reshape(-1)[key]  # window number within its triangle
     txt = jnp.maximum(tx.reshape(-1)[key], 1)
     # row = local // txt in float32: exact while row·txt < 2^22 (always here: at most
@@ -680,15 +639,15 @@ def _window_lists(data, rows, config):
     row = jnp.floor((local.astype(jnp.float32) + 0.5) / txt.astype(jnp.float32))
     row = row.astype(jnp.int32)
     col = local - row * txt
-    ox = jnp.where(live, box[0] + col * s_slot, 0)
-    oy = jnp.where(live, box[1] + row * s_slot, 0)
+    ox = jnp.where(live, box[:, 0] + col * s_slot, 0)
+    oy = jnp.where(live, box[:, 1] + row * s_slot, 0)
     # materialised once: otherwise XLA recomputes the chain above in every window pixel
     idx = jnp.stack([oy, ox], -1)
     out = []
     for i, s in enumerate(sizes):
         tri_b = tri[offs[i]:offs[i + 1]]
         # the rows are gathered by each consumer (fused; not materialised)
-        out.append((s, idx[offs[i]:offs[i + 1]], tri_b, rows[tri_b], live[offs[i]:offs[i + 1]],
+        out.append((s, idx[offs[i]:offs[i + 1]], tri_b, data[tri_b], live[offs[i]:offs[i + 1]],
                     total[i]))
     return out
 
@@ -732,7 +691,7 @@ def _resolve(lists, dvals, bshape):
     return ibuf
 
 
-def _finish(rows, clip, triangles, ibuf, shape, block_capacity):
+def _finish(data, clip, triangles, ibuf, shape, block_capacity):
     """Raster fields: barycentrics and depth of the winners, computed only in the 8×8 pixel
     blocks that contain a visible triangle (a fixed-capacity list of blocks). Blocks of the
     last row/column are shifted inside the frame when H or W is not a multiple of 8 (they
@@ -762,7 +721,7 @@ def _finish(rows, clip, triangles, ibuf, shape, block_capacity):
                      mode=lax.GatherScatterMode.PROMISE_IN_BOUNDS)  # (B, bh, bw)
     hit = ids != _INT_MAX
     tid = jnp.where(hit, ids, 0)
-    zplane = rows[:, _C_DEPTH:_C_DEPTH + 5][tid]  # (B, bh, bw, 5)
+    zplane = data[:, _C_DEPTH:_C_DEPTH + 5][tid]  # (B, bh, bw, 5)
     pxs = idx[:, 1].astype(jnp.float32)[:, None, None] + (jnp.arange(bw) + 0.5)[None, None, :]
     pys = idx[:, 0].astype(jnp.float32)[:, None, None] + (jnp.arange(bh) + 0.5)[None, :, None]
     pxs = jnp.broadcast_to(pxs, ids.shape)
@@ -786,13 +745,10 @@ def _finish(rows, clip, triangles, ibuf, shape, block_capacity):
 def _raster_single(clip, triangles, shape, cull, config):
     clip = lax.stop_gradient(clip.astype(jnp.float32))
     data = _triangle_setup(clip, triangles, shape, cull)
-    # row-major copy for the gathers of whole rows (per window and per pixel); the window
-    # counts read the triangle-minor rows directly
-    rows = data.T
-    lists = _window_lists(data, rows, config)
+    lists = _window_lists(data, config)
     dvals = _evaluate(lists)
     ibuf = _resolve(lists, dvals, _buffer_shape(shape, config))
-    tri_id, bary, depth, nblocks = _finish(rows, clip, triangles, ibuf, shape,
+    tri_id, bary, depth, nblocks = _finish(data, clip, triangles, ibuf, shape,
                                            config.block_capacity)
     needed = jnp.stack([lst[5] for lst in lists] + [nblocks]).astype(jnp.int32)
     caps = jnp.asarray((*config.capacities, config.block_capacity), jnp.int32)

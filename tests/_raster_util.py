@@ -98,8 +98,8 @@ def _coverage_counts_jit(clip, tris, valid_mask, h_iota, w_iota):
     data = raster._triangle_setup(clip, tris, (h_iota.shape[0], w_iota.shape[0]), "none")
     px = w_iota[None, :] + 0.5
     py = h_iota[:, None] + 0.5
-    inside, _ = raster._cover(data.T, px, py)  # (T, H, W)
-    inside &= (data[raster._C_VALID] > 0)[:, None, None] & valid_mask[:, None, None]
+    inside, _ = raster._cover(data, px, py)  # (T, H, W)
+    inside &= (data[:, 15] > 0)[:, None, None] & valid_mask[:, None, None]
     return inside
 
 
