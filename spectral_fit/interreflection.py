@@ -1196,11 +1196,6 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                 acc = acc + (chi * fres)[:, None] * m_along
         return jnp.where(act[:, None], acc, 0.0)
 
-    def chunk(args: tuple[jax.Array, ...]) -> jax.Array:
-        shape = jax.eval_shape(run, args)
-        return jax.lax.cond(jnp.any(args[-1]), run,
-                            lambda a: jnp.zeros(shape.shape, shape.dtype), args)
-
     z = (0.0, 0.0, 1.0)
     if nc == 1:  # one chunk (accelerator layout, or few receivers): no sort, loop or cond
         zz = jnp.asarray(z, nrm.dtype)
@@ -1212,11 +1207,20 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
         _, order = _partition(active)
         args = (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z),
                 padded(obj, -1), padded(active, False))
-        res = jax.lax.map(chunk, tuple(a.reshape(nc, size, *a.shape[1:]) for a in args))
-        # back in receiver order by a scatter (a gather ``res[rank]`` was fused into its
-        # consumers by XLA:CPU and cost several times more there)
-        res = jnp.zeros((n, c), res.dtype).at[order].set(res.reshape(nc * size, c)[:n],
-                                                         unique_indices=True)
+        # each chunk's result is scattered back to its receivers inside the loop (into one
+        # (N, C) buffer: no stacked per-chunk results to fill and copy; padding rows and
+        # skipped chunks are dropped)
+        slots = jnp.concatenate([order, jnp.full((pad,), n, jnp.int32)]).reshape(nc, size)
+        chunks = tuple(a.reshape(nc, size, *a.shape[1:]) for a in args)
+        out = jax.eval_shape(run, tuple(a[0] for a in chunks))
+
+        def step(acc: jax.Array, a: tuple[jax.Array, ...]) -> tuple[jax.Array, None]:
+            *xs, sl = a
+            live = jnp.any(xs[-1])
+            r = jax.lax.cond(live, run, lambda b: jnp.zeros(out.shape, out.dtype), tuple(xs))
+            return acc.at[jnp.where(live, sl, n)].set(r, mode="drop", unique_indices=True), None
+
+        res, _ = jax.lax.scan(step, jnp.zeros((n, c), out.dtype), (*chunks, slots))
     if grid is not None:
         res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
     return res
