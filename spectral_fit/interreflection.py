@@ -1087,6 +1087,19 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
     return own, jnp.stack(idx, -1), jnp.stack(wts, -1)
 
 
+def _partition(first: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Stable partition of N items, those with ``first`` (N,) bool before the others, each
+    part in index order (= ``argsort(where(first, 0, 1))``): the rank (N,) of every item and
+    the permutation ``order`` (N,) (order[rank[i]] = i)."""
+    n = first.shape[0]
+    ones = first.astype(jnp.int32)
+    before = jnp.cumsum(ones) - ones  # items with ``first`` before i
+    idx = jnp.arange(n, dtype=jnp.int32)
+    rank = jnp.where(first, before, jnp.sum(ones) + idx - before)
+    order = jnp.zeros((n,), jnp.int32).at[rank].set(idx, unique_indices=True)
+    return rank, order
+
+
 def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
                  pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
                  grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
@@ -1183,23 +1196,31 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                 acc = acc + (chi * fres)[:, None] * m_along
         return jnp.where(act[:, None], acc, 0.0)
 
-    def chunk(args: tuple[jax.Array, ...]) -> jax.Array:
-        shape = jax.eval_shape(run, args)
-        return jax.lax.cond(jnp.any(args[-1]), run,
-                            lambda a: jnp.zeros(shape.shape, shape.dtype), args)
-
     z = (0.0, 0.0, 1.0)
     if nc == 1:  # one chunk (accelerator layout, or few receivers): no sort, loop or cond
         zz = jnp.asarray(z, nrm.dtype)
         res = run((pos, jnp.where(active[:, None], nrm, zz), jnp.where(active[:, None], view, zz),
                    obj, active))
     else:
-        order = jnp.argsort(jnp.where(active, 0, 1))
+        # the active receivers first, each part in index order (a stable partition, found
+        # by counting: a sort of the N keys cost more than the whole rest of the bookkeeping)
+        _, order = _partition(active)
         args = (padded(pos, (0.0, 0.0, 0.0)), padded(nrm, z), padded(view, z),
                 padded(obj, -1), padded(active, False))
-        res = jax.lax.map(chunk, tuple(a.reshape(nc, size, *a.shape[1:]) for a in args))
-        res = res.reshape(nc * size, c)
-        res = jnp.zeros((n, c), res.dtype).at[order].set(res[:n])
+        # each chunk's result is scattered back to its receivers inside the loop (into one
+        # (N, C) buffer: no stacked per-chunk results to fill and copy; padding rows and
+        # skipped chunks are dropped)
+        slots = jnp.concatenate([order, jnp.full((pad,), n, jnp.int32)]).reshape(nc, size)
+        chunks = tuple(a.reshape(nc, size, *a.shape[1:]) for a in args)
+        out = jax.eval_shape(run, tuple(a[0] for a in chunks))
+
+        def step(acc: jax.Array, a: tuple[jax.Array, ...]) -> tuple[jax.Array, None]:
+            *xs, sl = a
+            live = jnp.any(xs[-1])
+            r = jax.lax.cond(live, run, lambda b: jnp.zeros(out.shape, out.dtype), tuple(xs))
+            return acc.at[jnp.where(live, sl, n)].set(r, mode="drop", unique_indices=True), None
+
+        res, _ = jax.lax.scan(step, jnp.zeros((n, c), out.dtype), (*chunks, slots))
     if grid is not None:
         res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
     return res

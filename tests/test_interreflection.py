@@ -530,3 +530,18 @@ def test_gloss_subsampled_on_image_pixels():
     # quadrature itself jumps 4× from pixel to pixel (node aliasing of a sharp highlight)
     assert np.quantile(err, 0.99) <= 0.02 * peak
     assert err.mean() <= 0.005 * peak
+
+
+def test_partition_is_the_stable_argsort():
+    """The gloss quadrature's compaction of the active receivers (a stable partition by
+    counting) vs numpy's stable argsort of the 0/1 keys, and its rank the inverse
+    permutation."""
+    from spectral_fit.interreflection import _partition
+
+    rng = np.random.default_rng(3)
+    for n, frac in ((1, 0.5), (7, 0.0), (64, 1.0), (5000, 0.3)):
+        first = rng.random(n) < frac
+        rank, order = jax.jit(_partition)(jnp.asarray(first))
+        ref = np.argsort(np.where(first, 0, 1), kind="stable")
+        np.testing.assert_array_equal(np.asarray(order), ref)
+        np.testing.assert_array_equal(np.asarray(rank)[ref], np.arange(n))
