@@ -1150,8 +1150,10 @@ _render_jit = eqx.filter_jit(_render_impl)
 
 @functools.cache
 def _all_visible(n: int) -> jax.Array:
-    """(n,) True, made once (a new array per frame costs a dispatch on the frame's path)."""
-    return jnp.ones((n,), bool)
+    """(n,) True, made once (a new array per frame costs a dispatch on the frame's path);
+    concrete even when first asked for inside a caller's trace (a cached tracer would leak)."""
+    with jax.ensure_compile_time_eval():
+        return jnp.ones((n,), bool)
 
 
 def _check_frame_inputs(prep: Prepared, materials: Any, model: Any, view: Any, visible: Any

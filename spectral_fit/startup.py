@@ -131,6 +131,8 @@ def _environment_digest() -> str:
     """The package sources, library versions, backend and the settings that change lowering."""
     import jax
 
+    from .backend import on_accelerator
+
     dev = jax.devices()[0]
     parts = [
         _source_digest(),
@@ -139,7 +141,7 @@ def _environment_digest() -> str:
         f"backend={jax.default_backend()}", f"device={dev.platform}:{dev.device_kind}",
         f"devices={jax.device_count()}",
         f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}",
-        f"layout={os.environ.get('SPECTRAL_FIT_LAYOUT', '')}",
+        f"accelerator_layout={on_accelerator()}",
         f"x64={jax.config.jax_enable_x64}",
         f"matmul={jax.config.jax_default_matmul_precision}",
     ]
