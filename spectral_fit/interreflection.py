@@ -67,6 +67,7 @@ mode: the S·L product goes through ``env.product_tensor``, as in ``environment.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -582,10 +583,36 @@ class _Shading(eqx.Module):
     albedo: jax.Array
     materials: tuple[Material, ...]
     mirror: bool = eqx.field(static=True)
+    #: (C, D) linear map into the caller's output channels (None: the C channels)
+    output: jax.Array | None = None
 
     @property
     def basis(self) -> jax.Array:
-        return self.env.spectral_basis
+        """(r, D) the environment's principal channels → the output channels."""
+        b = self.env.spectral_basis
+        return b if self.output is None else b @ self.output
+
+    @property
+    def channels(self) -> int:
+        """D: the number of output channels."""
+        return self.env.channels if self.output is None else self.output.shape[1]
+
+    def to_output(self, x: jax.Array) -> jax.Array:
+        """(..., C) radiance → (..., D) output channels."""
+        return x if self.output is None else x @ self.output
+
+    def diffuse_matrices(self) -> jax.Array:
+        """(n, C, D) per object: net diffuse light (C) → α S(λ) ⊙ net in the output channels
+        (bands: α diag(S) M; coefficients: through the basis product tensor)."""
+        mats = self.mats
+        out = (jnp.eye(self.env.channels, dtype=jnp.float32) if self.output is None
+               else self.output)
+        s = mats["reflectance"]
+        if self.env.product_tensor is None:
+            m = s[:, :, None] * out[None]
+        else:
+            m = jnp.einsum("oi,ijk,kd->ojd", s, self.env.product_tensor, out)
+        return mats["alpha"][:, None, None] * m
 
 
 def _shading(materials: Sequence[Material], env: EnvironmentMap) -> _Shading:
@@ -963,7 +990,6 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     receiver point; the environment it hides is prefiltered to ``sigma_env`` (N,)."""
     n, nq = dirs.shape[:2]
     g = geom.gather_size
-    c = sh.env.channels
     cj = geom.centre_j[pair]  # (N, 3)
     rj = geom.radius_j[pair][:, None]
     oc = cj - pos
@@ -1004,7 +1030,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     out = jnp.einsum(ein, wq, _taps_sum(lum_atlas, idx, w))  # L·cov
     out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1) - hidden) @ sh.basis
     if mirror is not None:
-        out = out + jnp.einsum(ein, wc, mirror.reshape(n, nq, c))
+        out = out + sh.to_output(jnp.einsum(ein, wc, mirror.reshape(n, nq, -1)))
     return out
 
 
@@ -1113,7 +1139,7 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     the pixels between are interpolated bilinearly (the gloss interreflection is a blurred
     image of the neighbour: smooth at the pixel scale)."""
     k_per = geom.n_objects - 1
-    c = sh.env.channels
+    c = sh.channels
     mats = sh.mats
     materials = sh.materials
     o_all = jnp.maximum(obj, 0)
@@ -1236,15 +1262,28 @@ def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> j
     return sees & (obj >= 0)
 
 
-def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
-             net: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
-             obj: jax.Array, *, gloss: bool = True,
-             grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
-    """Interreflection (N, C) at receivers (pos, nrm, view (N, 3), obj (N,)) given the diffuse
-    net light ``net`` (N, C) they receive (before α S/π) and the senders' mip ``atlas``."""
+def _reflect_diffuse(sh: _Shading, net: jax.Array, obj: jax.Array) -> jax.Array:
+    """α S(λ) ⊙ net (N, C) per receiver object ``obj`` (N,), in ``sh``'s output channels."""
     o = jnp.maximum(obj, 0)
     mats = sh.mats
-    out = mats["alpha"][o][:, None] * _times_reflectance(sh.env, mats["reflectance"][o], net)
+    if sh.output is None:
+        return mats["alpha"][o][:, None] * _times_reflectance(sh.env, mats["reflectance"][o],
+                                                              net)
+    a = sh.diffuse_matrices()
+    out = jnp.zeros((net.shape[0], sh.channels), net.dtype)
+    for k in range(a.shape[0]):
+        out = jnp.where((o == k)[:, None], net @ a[k], out)
+    return out
+
+
+def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
+             diffuse: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
+             obj: jax.Array, *, gloss: bool = True,
+             grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
+    """Interreflection (N, D) at receivers (pos, nrm, view (N, 3), obj (N,)) in ``sh``'s output
+    channels, given their diffuse term ``diffuse`` (N, D) (α S ⊙ the net light they receive,
+    :func:`_reflect_diffuse`) and the senders' mip ``atlas`` (in the output channels)."""
+    out = diffuse
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
     if gloss:
         out = out + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid)
@@ -1330,8 +1369,8 @@ _GLOSS_SMOOTH = 0.7
 
 def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
                  receivers: GBuffer, bounces: int, diffuse_at: str = "samples",
-                 image_shape: tuple[int, int] | None = None, gloss_step: int = 1
-                 ) -> jax.Array:
+                 image_shape: tuple[int, int] | None = None, gloss_step: int = 1,
+                 output: jax.Array | None = None) -> jax.Array:
     pairs = geom.pairs
     senders = [j for _, j in pairs]
     p_count, m_count = geom.s_area.shape
@@ -1360,18 +1399,27 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
             net = _sample_diffuse_net(geom, snd, env)
         if b == bounces - 1:
             break
-        extra = _receive(geom, sh, atlas, net.reshape(-1, net.shape[-1]), s_pos, s_nrm,
-                         geom.s_view.reshape(-1, 3), s_obj, gloss=True)
+        extra = _receive(geom, sh, atlas,
+                         _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj), s_pos,
+                         s_nrm, geom.s_view.reshape(-1, 3), s_obj, gloss=True)
         lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
         snd, atlas = senders_with(lum)
     pos, nrm, obj = receivers.position, receivers.normal, receivers.object
+    # the receivers' terms in the output channels: the diffuse net light of each pair's
+    # samples reflected by their object (α S ⊙ net, then the output map) before it is
+    # interpolated, the senders' atlas mapped before it is gathered from (all linear)
+    sh = dataclasses.replace(sh, output=None if output is None else jnp.asarray(output,
+                                                                              jnp.float32))
     if diffuse_at == "samples":
-        rnet = _interpolate_net(geom, net, pos, nrm, obj)
+        refl = sh.diffuse_matrices()[jnp.asarray(senders, jnp.int32)]  # (P, C, D)
+        diffuse = _interpolate_net(geom, jnp.einsum("pmc,pcd->pmd", net, refl), pos, nrm, obj)
     else:
-        rnet = _direct_diffuse(geom, snd, env, pos, nrm, obj)
+        diffuse = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, pos, nrm, obj), obj)
+    if output is not None:
+        atlas = (atlas[0] @ sh.output, atlas[1])
     grid = None if image_shape is None or gloss_step < 2 else (receivers.pixel, image_shape,
                                                                 gloss_step)
-    return _receive(geom, sh, atlas, rnet, pos, nrm, receivers.view, obj, grid=grid)
+    return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1491,6 +1539,7 @@ def interreflection_from(
     diffuse_at: str = "samples",
     image_shape: tuple[int, int] | None = None,
     gloss_step: int = GLOSS_STEP,
+    output: Any = None,
 ) -> jax.Array:
     """Shading pass of the interreflection: radiance (N, C) to ADD to
     ``shade(materials[obj], env, normal, view)`` at every receiver (DESIGN §1 eq. 6 / §2).
@@ -1514,9 +1563,14 @@ def interreflection_from(
             (receivers at silhouettes, and those that are not pixels, are evaluated
             themselves). None: at every receiver.
         gloss_step: that subsampling step in pixels (1 = none).
+        output: optional (C, D) linear map into the caller's output channels (the frame's
+            channels → XYZ or camera RGB): returns ``result @ output``. Gather mode then
+            works in the D channels from the receivers on (the samples' net light is
+            reflected and mapped before it is interpolated, the senders' atlas before it is
+            gathered from), which is cheaper than mapping the (N, C) result when D < C.
 
     Returns:
-        (N, C) float32, W·sr⁻¹·m⁻²·nm⁻¹ per band (or coefficients).
+        (N, C) float32, W·sr⁻¹·m⁻²·nm⁻¹ per band (or coefficients); (N, D) with ``output``.
     """
     mode = geometry.mode if mode is None else _check_mode(mode)
     n = geometry.n_objects
@@ -1531,16 +1585,24 @@ def interreflection_from(
             raise InputError(f"must be (H, W), got {image_shape!r}", field="image_shape")
         image_shape = (_check_int(image_shape[0], "image_shape", 1, 1 << 15),
                        _check_int(image_shape[1], "image_shape", 1, 1 << 15))
-    zeros = jnp.zeros((receivers.object.shape[0], env.channels), jnp.float32)
+    d = env.channels
+    if output is not None:
+        if not hasattr(output, "shape") or len(output.shape) != 2 or output.shape[0] != d:
+            raise InputError(f"must be a ({d}, D) matrix (the environment's channels → the "
+                             f"output's), got shape {getattr(output, 'shape', None)}",
+                             field="output")
+        d = output.shape[1]
+    zeros = jnp.zeros((receivers.object.shape[0], d), jnp.float32)
     if mode == "none" or n < 2 or bounces == 0:
         return zeros
     if mode != geometry.mode:
         raise InputError(f"the geometry was prepared for mode {geometry.mode!r}, not {mode!r}",
                          field="mode")
     if mode == "paper":
-        return _paper_mode(geometry, materials, env, receivers)
+        out = _paper_mode(geometry, materials, env, receivers)
+        return out if output is None else out @ jnp.asarray(output, jnp.float32)
     return _gather_mode(geometry, materials, env, receivers, bounces, diffuse_at,
-                        image_shape, gloss_step)
+                        image_shape, gloss_step, output)
 
 
 def interreflection(
@@ -1554,6 +1616,7 @@ def interreflection(
     bounces: int = 1,
     image_shape: tuple[int, int] | None = None,
     gloss_step: int = GLOSS_STEP,
+    output: Any = None,
 ) -> jax.Array:
     """Interreflection radiance (N, C) to ADD to the environment-only shading of every receiver
     sample: :func:`prepare_interreflection` then :func:`interreflection_from`.
@@ -1561,13 +1624,14 @@ def interreflection(
     Modes: "paper" — eq. (6) literally (α_paper T_d + γ T_s, pass-1 textures of
     ``texture_size``² from the receiver's centre); "gather" — the neighbours' full radiance
     through the receiver's BRDF with per-fragment parallax, minus the environment they hide,
-    ``bounces`` exchanges (DESIGN §2); "none" — zeros. ``image_shape``, ``gloss_step``: see
-    :func:`interreflection_from`. See the module docstring.
+    ``bounces`` exchanges (DESIGN §2); "none" — zeros. ``image_shape``, ``gloss_step``,
+    ``output``: see :func:`interreflection_from`. See the module docstring.
     """
     _check_mode(mode)
     if mode == "none":
         _check_inputs(len(objects), materials, env, receivers)
-        return jnp.zeros((receivers.object.shape[0], env.channels), jnp.float32)
+        d = env.channels if output is None else output.shape[1]
+        return jnp.zeros((receivers.object.shape[0], d), jnp.float32)
     geom = prepare_interreflection(objects, mode=mode, texture_size=texture_size)
     return interreflection_from(geom, materials, env, receivers, mode=mode, bounces=bounces,
-                                image_shape=image_shape, gloss_step=gloss_step)
+                                image_shape=image_shape, gloss_step=gloss_step, output=output)

@@ -739,8 +739,9 @@ _IR_WARNED: set[str] = set()
 
 
 def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Material],
-                     gb: GBuffer) -> tuple[jax.Array | None, jax.Array]:
-    """Interreflection radiance (N, C) to add (None when off) and the pass-1 overflow flag."""
+                     gb: GBuffer, to_out: jax.Array | None) -> tuple[jax.Array | None, jax.Array]:
+    """Interreflection radiance (N, D) to add, in the output channels of ``to_out`` (C, D)
+    (the C channels when ``to_out`` is None; None when off), and the pass-1 overflow flag."""
     no = jnp.zeros((), bool)
     if prep.ir_mode == "none" or len(geoms) < 2:
         return None, no
@@ -756,7 +757,8 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
     geom = prepare_interreflection(geoms, mode=prep.ir_mode, texture_size=prep.ir_texture_size,
                                    raster_config=prep.ir_raster_config)
     extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
-                                 bounces=prep.ir_bounces, image_shape=prep.shape)
+                                 bounces=prep.ir_bounces, image_shape=prep.shape,
+                                 output=to_out)
     return extra, jnp.asarray(geom.overflow, bool)
 
 
@@ -1084,9 +1086,10 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                             triangles=prep.triangles[ta:tb] - a, centre=centres[i] + away[i])
              for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
                                                         prep.triangle_slices, strict=True))]
-    ir, ir_overflow = _interreflection(prep, geoms, mats, gb)
+    # (in the output channels: the receivers' side of the gather works in those)
+    ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
     if ir is not None:
-        radiance = radiance + ir @ to_out
+        radiance = radiance + ir
     radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
     stats = {
         "covered_pixels": pix.count,
