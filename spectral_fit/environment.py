@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .backend import materialise as _materialise
 from .errors import InputError
 from .reflectance import (
     Material,
@@ -1675,15 +1676,6 @@ def _split_levels(pre: SplitSumMap, sigma: jax.Array
     frac = (sigma * sigma - slo * slo) / (shi * shi - slo * slo)
     w = jnp.where(below, _smootherstep(sigma / s1), _smootherstep(frac))
     return lo, hi, w
-
-
-def _materialise(x: jax.Array) -> jax.Array:
-    """x, computed once into memory: an optimisation barrier cuts the fusion, so that
-    XLA:CPU does not recompute x's whole expression inside every consumer (measured: 7× less
-    CPU time for the split-sum gloss). Exact. (It was a product with the identity, which
-    also cuts the fusion, but YNNPACK's dot of an (N, 5) by (5, 5) cost ~20 % of the gloss;
-    the barrier measured 12–15 % less CPU for the gloss, 5–8 % for the close-up frame.)"""
-    return jax.lax.optimization_barrier(x)
 
 
 def _split_lookup(pre: SplitSumMap, u: jax.Array, v: jax.Array, lo: jax.Array,

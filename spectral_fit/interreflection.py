@@ -77,7 +77,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .backend import on_accelerator
+from .backend import materialise, on_accelerator
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
@@ -1112,8 +1112,8 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
     own = ~ok | anchor | bad
     # computed once into memory: fused into the consumers, XLA:CPU recomputed the whole test
     # for every tap and channel of the interpolation (7.5 ms of the close-up frame)
-    wts = _materialise(jnp.stack([*wts, own.astype(pos.dtype)], -1))
-    return wts[:, 4] > 0.5, _materialise(jnp.stack(idx, -1)), wts[:, :4]
+    wts = materialise(jnp.stack([*wts, own.astype(pos.dtype)], -1), cut=True)
+    return wts[:, 4] > 0.5, materialise(jnp.stack(idx, -1), cut=True), wts[:, :4]
 
 
 def _partition(first: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -1248,7 +1248,7 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
 
         _, ys = jax.lax.scan(step, None, (jnp.arange(nc, dtype=jnp.int32), slots))
         # back to the receivers' order: receiver i's result is row rank[i] (a gather)
-        res = _materialise(ys.reshape(nc * size, c)[rank])
+        res = materialise(ys.reshape(nc * size, c)[rank], cut=True)
     if grid is not None:
         res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
     return res

@@ -70,7 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from .backend import on_accelerator
+from .backend import materialise, on_accelerator
 from .errors import InputError
 
 __all__ = [
@@ -463,9 +463,9 @@ def _triangle_setup(clip, triangles, shape, cull):
     f32 = jnp.float32
     data = jnp.stack(comps + [valid.astype(f32), x0.astype(f32), y0.astype(f32), nx.astype(f32),
                               ny.astype(f32)], axis=1)
-    # materialised once, instead of recomputed per gathered window (a barrier: a divide by
-    # the runtime 1.0 here would cost one more pass over the rows)
-    return lax.optimization_barrier(data)
+    # materialised once, instead of recomputed per gathered window (a divide by the runtime
+    # 1.0 here would cost one more pass over the rows)
+    return materialise(data)
 
 
 def _plane(zp, px, py):

@@ -96,3 +96,29 @@ def test_default_visibility_is_concrete_when_first_made_inside_a_trace():
     assert not isinstance(outside, jax.core.Tracer)
     np.testing.assert_array_equal(np.asarray(outside), [True, True, True])
     np.testing.assert_array_equal(np.asarray(inside), np.asarray(outside))
+
+
+@pytest.mark.parametrize("x", [np.linspace(-2.0, 3.0, 64), np.array([0.0, -0.0, np.nan, 1.0]),
+                               np.zeros((0, 3))])
+def test_materialise_cut_is_the_identity(monkeypatch, x):
+    """``materialise(x, cut=True)`` (a conditional that XLA cannot fold, so x is computed once
+    instead of inside every consumer) returns x, whatever its first element (±0, NaN, empty),
+    with the gradient of the identity; on the CPU layout the compiled program holds the
+    conditional, with the accelerator layout it does not."""
+    monkeypatch.setenv(backend.LAYOUT_VARIABLE, "cpu")
+    idx = jnp.asarray(np.arange(x.shape[0])[::-1].copy())
+
+    def f(a):
+        return jnp.sum(backend.materialise(jnp.sin(a) * a, cut=True)[idx] ** 2)
+
+    a = jnp.asarray(x, jnp.float32)
+    got = jax.jit(lambda a: backend.materialise(jnp.sin(a) * a, cut=True))(a)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(jnp.sin(a) * a))
+    if x.size and np.all(np.isfinite(x)):
+        g = jax.grad(f)(a)
+        ref = jax.grad(lambda a: jnp.sum((jnp.sin(a) * a)[idx] ** 2))(a)
+        np.testing.assert_allclose(np.asarray(g), np.asarray(ref), rtol=1e-6)
+        assert "conditional" in jax.jit(f).lower(a).compile().as_text()
+        monkeypatch.setenv(backend.LAYOUT_VARIABLE, "accelerator")
+        # (a new function: the trace of f is cached, and the layout is read when tracing)
+        assert "conditional" not in jax.jit(lambda a: f(a)).lower(a).compile().as_text()
