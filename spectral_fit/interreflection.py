@@ -1217,9 +1217,8 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                 acc = acc + (chi * fres)[:, None] * m_along
         return jnp.where(act[:, None], acc, 0.0)
 
-    z = (0.0, 0.0, 1.0)
+    zz = jnp.asarray((0.0, 0.0, 1.0), nrm.dtype)
     if nc == 1:  # one chunk (accelerator layout, or few receivers): no sort, loop or cond
-        zz = jnp.asarray(z, nrm.dtype)
         res = run((pos, jnp.where(active[:, None], nrm, zz), jnp.where(active[:, None], view, zz),
                    obj, active))
     else:
@@ -1228,8 +1227,6 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
         rank, order = _partition(active)
         count = jnp.sum(active.astype(jnp.int32))
         slots = jnp.concatenate([order, jnp.full((pad,), n, jnp.int32)]).reshape(nc, size)
-        zz = jnp.asarray(z, nrm.dtype)
-        out = jax.ShapeDtypeStruct((size, c), pos.dtype)
 
         def do(sl: jax.Array) -> jax.Array:
             # the chunk's receivers are gathered here: skipped chunks gather nothing
@@ -1244,7 +1241,7 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
             # own (size, C) result (a carried (N, C) buffer was copied through every
             # conditional: 17 ms of the close-up frame's 64 iterations)
             return None, jax.lax.cond(i * size < count, do,
-                                      lambda _: jnp.zeros(out.shape, out.dtype), sl)
+                                      lambda _: jnp.zeros((size, c), pos.dtype), sl)
 
         _, ys = jax.lax.scan(step, None, (jnp.arange(nc, dtype=jnp.int32), slots))
         # back to the receivers' order: receiver i's result is row rank[i] (a gather)
@@ -1268,14 +1265,8 @@ def _reflect_diffuse(sh: _Shading, net: jax.Array, obj: jax.Array) -> jax.Array:
     """α S(λ) ⊙ net (N, C) per receiver object ``obj`` (N,), in ``sh``'s output channels."""
     o = jnp.maximum(obj, 0)
     mats = sh.mats
-    if sh.output is None:
-        return mats["alpha"][o][:, None] * _times_reflectance(sh.env, mats["reflectance"][o],
-                                                              net)
-    a = sh.diffuse_matrices()
-    out = jnp.zeros((net.shape[0], sh.channels), net.dtype)
-    for k in range(a.shape[0]):
-        out = jnp.where((o == k)[:, None], net @ a[k], out)
-    return out
+    return sh.to_output(mats["alpha"][o][:, None]
+                        * _times_reflectance(sh.env, mats["reflectance"][o], net))
 
 
 def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
@@ -1530,6 +1521,17 @@ def _check_inputs(n: int, materials: Sequence[Material], env: EnvironmentMap,
                          field="receivers")
 
 
+def _output_channels(env: EnvironmentMap, output: Any) -> int:
+    """D of an ``output`` map (C, D) (C without one); InputError for another shape."""
+    if output is None:
+        return env.channels
+    shape = getattr(output, "shape", None)
+    if shape is None or len(shape) != 2 or shape[0] != env.channels:
+        raise InputError(f"must be a ({env.channels}, D) matrix (the environment's channels → "
+                         f"the output's), got shape {shape}", field="output")
+    return int(shape[1])
+
+
 def interreflection_from(
     geometry: IRGeometry,
     materials: Sequence[Material],
@@ -1587,14 +1589,7 @@ def interreflection_from(
             raise InputError(f"must be (H, W), got {image_shape!r}", field="image_shape")
         image_shape = (_check_int(image_shape[0], "image_shape", 1, 1 << 15),
                        _check_int(image_shape[1], "image_shape", 1, 1 << 15))
-    d = env.channels
-    if output is not None:
-        if not hasattr(output, "shape") or len(output.shape) != 2 or output.shape[0] != d:
-            raise InputError(f"must be a ({d}, D) matrix (the environment's channels → the "
-                             f"output's), got shape {getattr(output, 'shape', None)}",
-                             field="output")
-        d = output.shape[1]
-    zeros = jnp.zeros((receivers.object.shape[0], d), jnp.float32)
+    zeros = jnp.zeros((receivers.object.shape[0], _output_channels(env, output)), jnp.float32)
     if mode == "none" or n < 2 or bounces == 0:
         return zeros
     if mode != geometry.mode:
@@ -1632,8 +1627,8 @@ def interreflection(
     _check_mode(mode)
     if mode == "none":
         _check_inputs(len(objects), materials, env, receivers)
-        d = env.channels if output is None else output.shape[1]
-        return jnp.zeros((receivers.object.shape[0], d), jnp.float32)
+        return jnp.zeros((receivers.object.shape[0], _output_channels(env, output)),
+                         jnp.float32)
     geom = prepare_interreflection(objects, mode=mode, texture_size=texture_size)
     return interreflection_from(geom, materials, env, receivers, mode=mode, bounces=bounces,
                                 image_shape=image_shape, gloss_step=gloss_step, output=output)
