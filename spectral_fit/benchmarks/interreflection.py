@@ -48,7 +48,7 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
     from ..exr import read_spectral_exr
     from ..gbuffer import GBuffer, ObjectGeometry
     from ..mesh import concat_meshes, translate, uv_sphere
-    from ..raster import covered_pixels, interpolate_pixels, rasterize
+    from ..raster import RasterConfig, covered_pixels, interpolate_pixels, plan_counts, rasterize
     from ..reflectance import make_material
 
     wl, img = read_spectral_exr(env_path or _ENV)
@@ -85,7 +85,10 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
     clip = project(cam, both.vertices)
     # back faces culled: with cull="none" the rasteriser returned the far side of the spheres
     # at ~9 % of the covered pixels of this frame (605 of 6,933)
-    ras = rasterize(clip, both.triangles, shape, cull="back")
+    # window capacities planned for this view (the default sizing overflowed and was grown)
+    cfg = RasterConfig.from_counts(plan_counts(np.asarray(clip), np.asarray(both.triangles),
+                                               shape), headroom=1.5)
+    ras = rasterize(clip, both.triangles, shape, cull="back", config=cfg)
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(both.vertices, pix, both.triangles, clip)
     nrm = interpolate_pixels(both.normals, pix, both.triangles, clip)
