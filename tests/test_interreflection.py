@@ -547,13 +547,16 @@ def test_partition_is_the_stable_argsort():
         np.testing.assert_array_equal(np.asarray(rank)[ref], np.arange(n))
 
 
-@pytest.mark.parametrize("k", [None, 8])
-def test_output_channels_match_the_mapped_result(k):
+@pytest.mark.parametrize(("k", "diffuse_at"), [(None, "samples"), (8, "samples"),
+                                               (None, "receivers")])
+def test_output_channels_match_the_mapped_result(k, diffuse_at):
     """``output=M`` (gather: the receivers' terms computed in the D output channels: the
     samples' net light reflected and mapped per pair before it is interpolated, the senders'
-    atlas mapped before it is gathered from) vs the C-channel result mapped afterwards, a
-    second evaluation of the same linear terms: bands and K = 8 coefficients, two bounces,
-    gloss subsampled on image pixels, a mirror term on one object. Within 1e-5 of the peak."""
+    atlas mapped before it is gathered from; with ``diffuse_at="receivers"`` the diffuse
+    transfer summed at every receiver, then reflected and mapped) vs the C-channel result
+    mapped afterwards, a second evaluation of the same linear terms: bands and K = 8
+    coefficients, two bounces, gloss subsampled on image pixels, a mirror term on one object.
+    Within 1e-5 of the peak."""
     import dataclasses
 
     from spectral_fit.benchmarks.interreflection import benchmark_scene
@@ -564,11 +567,11 @@ def test_output_channels_match_the_mapped_result(k):
     mats[1] = dataclasses.replace(mats[1], chi=jnp.float32(0.3))
     m = jnp.asarray(np.random.default_rng(5).uniform(-0.2, 1.0, (env.channels, 3)),
                     jnp.float32)
-    fn = jax.jit(lambda o, mt, e, r, out: interreflection(
-        o, mt, e, r, bounces=2, image_shape=(120, 180), output=out))
-    got = np.asarray(fn(objs, mats, env, rec, m))
-    ref = np.asarray(jax.jit(lambda o, mt, e, r: interreflection(
-        o, mt, e, r, bounces=2, image_shape=(120, 180)))(objs, mats, env, rec)) @ np.asarray(m)
+    geom = prepare_interreflection(objs, mode="gather")
+    fn = jax.jit(lambda g, mt, e, r, out: interreflection_from(
+        g, mt, e, r, bounces=2, image_shape=(120, 180), diffuse_at=diffuse_at, output=out))
+    got = np.asarray(fn(geom, mats, env, rec, m))
+    ref = np.asarray(fn(geom, mats, env, rec, None)) @ np.asarray(m)
     assert got.shape == (rec.object.shape[0], 3)
     peak = np.abs(ref).max()
     assert peak > 0 and np.mean(np.abs(ref).max(-1) > 1e-3 * peak) > 0.05
