@@ -918,6 +918,18 @@ def _lobe_albedo(
     the arc is integrated and doubled). The integrand vanishes or jumps only at the domain
     boundary, so the rule converges fast, and the nodes move smoothly with μ and θr. Only
     scalars: V·H = cosθh cosθr + sinθh sinθr cosφ', N·L = 2 (V·H) cosθh − cosθr."""
+    g, *_ = _lobe_grid(nv, width, mu, n, distribution=distribution, geometry=geometry,
+                       fresnel=fresnel, radial=radial, azimuthal=azimuthal)
+    return jnp.sum(g)
+
+
+def _lobe_grid(nv: jax.Array, width: jax.Array, mu: jax.Array, n: jax.Array, *,
+               distribution: str, geometry: str, fresnel: bool, radial: int, azimuthal: int
+               ) -> tuple[jax.Array, ...]:
+    """The node set of :func:`_lobe_albedo` and :func:`_lobe_moments` (see the former): the
+    weights w F G (V·H)/(N·V) (R, A) of the distribution of roughness ``width`` with the
+    geometry and Fresnel factor of ``mu`` and ``n``, and per node V·H, N·L (R, A), the ring's
+    cosθh, sinθh (R,), sinθr and the azimuth φ' (R, A). Scalars only."""
     dtype = nv.dtype
     xr, wr = np.polynomial.legendre.leggauss(radial)
     xa, wa = np.polynomial.legendre.leggauss(azimuthal)
@@ -933,13 +945,13 @@ def _lobe_albedo(
         ws = ws * jac / math.pi
     sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
     phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
-    cphi = jnp.cos(phi_max[:, None] * jnp.asarray(xa, dtype)[None, :])  # (R, A)
+    phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A)
     w = (ws * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
-    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * cphi
+    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * jnp.cos(phi)
     nl = 2.0 * vh * cos_h[:, None] - nv
     ch = jnp.broadcast_to(cos_h[:, None], vh.shape)
-    g = _microfacet_factor(nv, nl, vh, ch, mu, n, geometry=geometry, fresnel=fresnel)
-    return jnp.sum(w * g)
+    g = w * _microfacet_factor(nv, nl, vh, ch, mu, n, geometry=geometry, fresnel=fresnel)
+    return g, vh, nl, cos_h, sin_h, sin_r, phi
 
 
 def _microfacet_factor(nv: jax.Array, nl: jax.Array, vh: jax.Array, nh: jax.Array,
@@ -1439,26 +1451,11 @@ def _lobe_moments(
     direction across m within the plane of incidence and perpendicular to it (the lobe's
     angular variances, long and short axis). Same nodes as :func:`_lobe_albedo`; scalars only.
     """
-    dtype = nv.dtype
-    xr, wr = np.polynomial.legendre.leggauss(radial)
-    xa, wa = np.polynomial.legendre.leggauss(azimuthal)
-    xr, wr = 0.5 * (xr + 1.0), 0.5 * wr
-    xa = 0.5 * (xa + 1.0)
+    g, vh, nl, _, sin_h, sin_r, phi = _lobe_grid(
+        nv, mu, mu, n, distribution=distribution, geometry=geometry, fresnel=fresnel,
+        radial=radial, azimuthal=azimuthal)
     nv = jnp.clip(nv, 0.0, 1.0)
-    _, ws, cos_h, sin_h, jac = _lobe_rings(nv, mu, xr, wr, distribution=distribution)
-    if distribution == "gaussian":
-        ws = ws * gaussian_normalisation(mu) * mu * mu * jac
-    else:
-        ws = ws * jac / math.pi
-    sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
-    phi_max = _visible_arc(nv, cos_h, sin_h)
-    phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]
     cphi, sphi = jnp.cos(phi), jnp.sin(phi)
-    w = (ws * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
-    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * cphi
-    nl = 2.0 * vh * cos_h[:, None] - nv
-    ch = jnp.broadcast_to(cos_h[:, None], vh.shape)
-    g = w * _microfacet_factor(nv, nl, vh, ch, mu, n, geometry=geometry, fresnel=fresnel)
     # reflected direction L = 2 (V·H) H − V in the frame (T, B, N), V = (sinθr, 0, cosθr)
     lt = 2.0 * vh * sin_h[:, None] * cphi - sin_r
     lb = 2.0 * vh * sin_h[:, None] * sphi
