@@ -108,7 +108,7 @@ from .raster import (
     interpolate_pixels,
     rasterize,
 )
-from .reflectance import Material, fresnel_dielectric, microfacet_d, microfacet_g
+from .reflectance import Material, fresnel_dielectric, microfacet_fdg
 
 __all__ = [
     "MODES",
@@ -562,16 +562,9 @@ def _gloss_weights(nrm: jax.Array, view: jax.Array, light: jax.Array, mu: jax.Ar
                    eta: jax.Array, distribution: str, geometry: str) -> jax.Array:
     """F D G / (4 cosθr) (the gloss BRDF times cosθi) for unit vectors (..., 3) (broadcast),
     0 unless both directions are above the surface."""
-    nv = jnp.sum(nrm * view, -1)
-    nl = jnp.sum(nrm * light, -1)
-    h = _normalize(light + view)
-    nh = jnp.sum(nrm * h, -1)
-    vh = jnp.sum(view * h, -1)
-    d = microfacet_d(nh, mu, distribution)
-    g = microfacet_g(nh, nv, nl, vh, mu, geometry)
+    fdg, nv, nl = microfacet_fdg(nrm, view, light, mu, eta, distribution, geometry)
     ok = (nl > 0.0) & (nv > 0.0)
-    return jnp.where(ok, fresnel_dielectric(vh, eta) * d * g / (4.0 * jnp.where(ok, nv, 1.0)),
-                     0.0)
+    return jnp.where(ok, fdg / (4.0 * jnp.where(ok, nv, 1.0)), 0.0)
 
 
 class _Shading(eqx.Module):

@@ -338,21 +338,29 @@ def _normalize(v: jax.Array) -> jax.Array:
     return v / jnp.sqrt(jnp.maximum(_dot(v, v), 1e-30))[..., None]
 
 
+def microfacet_fdg(normal: Any, view: Any, light: Any, mu: Any, n: Any, distribution: str,
+                   geometry: str) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """F(n, θd) D(μ, θh) G and the cosines N·V, N·L for unit vectors (..., 3) (broadcasting;
+    ``mu`` and ``n`` broadcast with the cosines): the numerator of the gloss BRDF."""
+    N, V, L = (jnp.asarray(x) for x in (normal, view, light))
+    nv, nl = _dot(N, V), _dot(N, L)
+    H = _normalize(L + V)
+    nh, vh = _dot(N, H), _dot(V, H)
+    fdg = (fresnel_dielectric(vh, n) * microfacet_d(nh, mu, distribution)
+           * microfacet_g(nh, nv, nl, vh, mu, geometry))
+    return fdg, nv, nl
+
+
 def gloss_brdf(material: Material, normal: Any, view: Any, light: Any) -> jax.Array:
     """Scalar microfacet BRDF F(n, θd) D(μ, θh) G / (4 cosθi cosθr) (1/sr), without β.
 
     Zero unless both L and V are above the surface. Unbatched: unit 3-vectors.
     """
-    N, V, L = (jnp.asarray(x) for x in (normal, view, light))
-    nv, nl = _dot(N, V), _dot(N, L)
-    H = _normalize(L + V)
-    nh, vh = _dot(N, H), _dot(V, H)
-    F = fresnel_dielectric(vh, material.n)
-    D = microfacet_d(nh, material.mu, material.distribution)
-    G = microfacet_g(nh, nv, nl, vh, material.mu, material.geometry)
+    fdg, nv, nl = microfacet_fdg(normal, view, light, material.mu, material.n,
+                                 material.distribution, material.geometry)
     ok = (nv > 0.0) & (nl > 0.0)
     denom = jnp.where(ok, 4.0 * nv * nl, 1.0)
-    return jnp.where(ok, F * D * G / denom, 0.0)
+    return jnp.where(ok, fdg / denom, 0.0)
 
 
 def brdf(material: Material, normal: Any, view: Any, light: Any) -> jax.Array:
