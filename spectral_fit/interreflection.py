@@ -1088,7 +1088,7 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
     r0, c0 = row - row % step, col - col % step
     fy = (row % step).astype(jnp.float32) / step
     fx = (col % step).astype(jnp.float32) / step
-    idx, wts, bad = [], [], jnp.zeros((n,), bool)
+    idx, goods, wks = [], [], []
     for dr, dc, wk in ((0, 0, (1 - fy) * (1 - fx)), (0, step, (1 - fy) * fx),
                        (step, 0, fy * (1 - fx)), (step, step, fy * fx)):
         r, cc = r0 + dr, c0 + dc
@@ -1097,16 +1097,19 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
         am = jnp.maximum(a, 0)
         change = (jnp.sqrt(_dot3(refl[am] - refl, refl[am] - refl))
                   + jnp.sqrt(_dot3(pos[am] - pos, pos[am] - pos)) / gap)
-        good = (a >= 0) & (obj[am] == obj) & (change <= _GLOSS_SMOOTH * width)
-        bad = bad | ((wk > 0.0) & ~good)
-        idx.append(jnp.maximum(a, 0))
-        wts.append(jnp.where(good, wk, 0.0))
+        goods.append((a >= 0) & (obj[am] == obj) & (change <= _GLOSS_SMOOTH * width))
+        idx.append(am)
+        wks.append(wk)
+    # the four tests computed once into memory (N, 4): fused into the consumers, XLA:CPU
+    # recomputed them for every tap and channel of the interpolation (7.5 ms of the close-up
+    # frame), and for the 'own' flag again beside each tap's weight
+    good = materialise(jnp.stack(goods, -1), cut=True)
+    wk = jnp.stack(wks, -1)
+    bad = jnp.any((wk > 0.0) & ~good, axis=-1)
     anchor = (row % step == 0) & (col % step == 0)
     own = ~ok | anchor | bad
-    # computed once into memory: fused into the consumers, XLA:CPU recomputed the whole test
-    # for every tap and channel of the interpolation (7.5 ms of the close-up frame)
-    wts = materialise(jnp.stack([*wts, own.astype(pos.dtype)], -1), cut=True)
-    return wts[:, 4] > 0.5, materialise(jnp.stack(idx, -1), cut=True), wts[:, :4]
+    wts = materialise(jnp.where(good, wk, 0.0), cut=True)
+    return own, materialise(jnp.stack(idx, -1), cut=True), wts
 
 
 def _partition(first: jax.Array) -> tuple[jax.Array, jax.Array]:
