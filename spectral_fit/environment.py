@@ -861,10 +861,15 @@ _S_MAX = 4.5  # lobe truncation in s = θh/μ (Gaussian) or tanθh/m (Beckmann):
 
 
 def _lobe_rings(nv: jax.Array, width: jax.Array, xr: np.ndarray, wr: np.ndarray, *,
-                distribution: str) -> tuple[jax.Array, ...]:
+                distribution: str, radial_rule: str = "uniform") -> tuple[jax.Array, ...]:
     """Radial rings of a microfacet lobe of ``width``: s = θh/width (Gaussian) or tanθh/width
     (Beckmann) at Gauss–Legendre nodes ``xr`` (weights ``wr``, both on [0, 1]) scaled to
     [0, s_max], s_max from the horizon (θh <= π/4 + θr/2) and the truncation s <= 4.5.
+
+    ``radial_rule`` "uniform": the nodes uniform in s (weight s e^{−s²} in the integrand);
+    "mass": uniform in the radial mass t = 1 − e^{−s²} (s = √(−ln(1 − t)), ds s e^{−s²} =
+    dt/2), every ring at the lobe's weight — for few rings (with 2 uniform rings on [0, 4.5]
+    the outer one, at s = 3.5, carries e^−12 of the weight and the lobe is one ring at s ≈ 1).
 
     Returns (R,) arrays: s, the ring weight s e^{−s²} ds, cosθh, sinθh and the Jacobian
     factor sinθh/θh (Gaussian) or 1/cosθh (Beckmann) of dω_H in s ds dφ."""
@@ -877,8 +882,15 @@ def _lobe_rings(nv: jax.Array, width: jax.Array, xr: np.ndarray, wr: np.ndarray,
         s_max = jnp.minimum(jnp.tan(theta_max) / width, _S_MAX)
     else:
         raise InputError(f"unknown distribution {distribution!r}", field="distribution")
-    s = s_max * jnp.asarray(xr, dtype)  # (R,)
-    ring = s_max * jnp.asarray(wr, dtype) * s * jnp.exp(-s * s)  # s e^{-s²} ds
+    if radial_rule == "uniform":
+        s = s_max * jnp.asarray(xr, dtype)  # (R,)
+        ring = s_max * jnp.asarray(wr, dtype) * s * jnp.exp(-s * s)  # s e^{-s²} ds
+    elif radial_rule == "mass":
+        t_max = -jnp.expm1(-s_max * s_max)
+        s = jnp.sqrt(-jnp.log1p(-t_max * jnp.asarray(xr, dtype)))
+        ring = 0.5 * t_max * jnp.asarray(wr, dtype)
+    else:
+        raise InputError(f"unknown radial rule {radial_rule!r}", field="radial_rule")
     if distribution == "gaussian":
         th = width * s
         cos_h, sin_h = jnp.cos(th), jnp.sin(th)
@@ -1027,7 +1039,7 @@ def _narrowed_nodes(
 
 def _visible_nodes(
     N: jax.Array, V: jax.Array, mu: jax.Array, var: jax.Array, nv: jax.Array, *,
-    distribution: str, radial: int, azimuthal: int,
+    distribution: str, radial: int, azimuthal: int, radial_rule: str = "uniform",
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Half vectors (M, 3), relative weights (M,) and cosθh (M,) of a quadrature of the gloss
     lobe narrowed for a reflected-direction prefilter of variance ``var`` per axis, restricted to
@@ -1042,7 +1054,8 @@ def _visible_nodes(
     the azimuth φ' (from V's azimuth) over the whole visible arc |φ'| <= φ_max(θh) (N·L > 0 ⟺
     sin2θh sinθr cosφ' > −cosθr cos2θh). The across-axis narrowing enters the weights as
     exp(−s² sin²φ' (w_t²/w_b² − 1)). The nodes move smoothly with μ, N and V and never sample
-    the map below the horizon, so the quadrature converges on the visible lobe alone."""
+    the map below the horizon, so the quadrature converges on the visible lobe alone.
+    ``radial_rule``: see :func:`_lobe_rings` ("mass" for few rings)."""
     dtype = N.dtype
     xr, wr = np.polynomial.legendre.leggauss(radial)
     xa, wa = np.polynomial.legendre.leggauss(azimuthal)
@@ -1052,7 +1065,8 @@ def _visible_nodes(
     wt2 = jnp.maximum(mu * mu - 0.5 * var, floor)
     wb2 = jnp.maximum(mu * mu - 0.5 * var / jnp.maximum(nv * nv, 1e-4), floor)
     wt = jnp.sqrt(wt2)
-    s, wring, cos_h, sin_h, jac = _lobe_rings(nv, wt, xr, wr, distribution=distribution)
+    s, wring, cos_h, sin_h, jac = _lobe_rings(nv, wt, xr, wr, distribution=distribution,
+                                              radial_rule=radial_rule)
     phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
     phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A), xa in [-1, 1]
     wgt = (wring * jac * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]

@@ -953,6 +953,9 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.
 
 #: receiver's gloss lobe quadrature against the neighbour (radial × azimuthal nodes)
 _LOBE_NODES = (2, 4)
+#: its rings at equal shares of the lobe's radial mass (:func:`environment._lobe_rings`): with
+#: 2 rings uniform in θh/μ the outer one carried e^−12 of the weight
+_LOBE_RADIAL_RULE = "mass"
 #: soft edge of a lobe node's hit on the neighbour's bounding sphere, as a fraction of the
 #: lobe's angular std √2 μ (times the distance), capped at ``_EDGE_CAP`` × the neighbour's
 #: radius (so a tiny or far neighbour's soft edge shrinks with it: no leak)
@@ -966,7 +969,8 @@ def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, 
     receiver's gloss lobe D F G (V·H)/(N·V) dω_H over its visible part (one receiver)."""
     nv = jnp.clip(jnp.dot(nrm, view), 0.0, 1.0)
     h, w, ch = _visible_nodes(nrm, view, mu, jnp.zeros_like(mu), nv, distribution=distribution,
-                              radial=_LOBE_NODES[0], azimuthal=_LOBE_NODES[1])
+                              radial=_LOBE_NODES[0], azimuthal=_LOBE_NODES[1],
+                              radial_rule=_LOBE_RADIAL_RULE)
     g, light = _lobe_factor(nrm, view, h, ch, mu, eta, geometry=geometry, fresnel=True)
     f = w * g
     return light, f / jnp.maximum(jnp.sum(f), 1e-30)

@@ -259,12 +259,17 @@ def brute_force_single_bounce(x, n, v, receiver, neighbour, centre, radius, env,
         parts.append(np.full(int(hit.sum()), part))
     rays, dw, part = np.concatenate(rays), np.concatenate(weights), np.concatenate(parts)
     k = len(rays)
-    size = max(_PAD, -(-k // _PAD) * _PAD)  # one compilation for every call
+    size = max(_PAD, -(-k // _PAD) * _PAD)
     pad = np.tile([[0.0, 0.0, 1.0, 0.0, 0.0, 1.0]], (size - k, 1))
     arr = jnp.asarray(np.concatenate([rays, pad]), jnp.float32)
-    lj, le, g = (np.asarray(a, np.float64)[:k] for a in _bf_eval(
-        mat_j, receiver, env, arr[:, :3], arr[:, 3:], jnp.asarray(n, jnp.float32),
-        jnp.asarray(v, jnp.float32)))
+    # _PAD rays per call: one compilation for every call, and bounded memory (the vmapped
+    # shading of 4,096 rays holds ~2.6 GB of intermediates; all of the fine test's rays in
+    # one call made its process peak at 15.8 GB, in calls of _PAD at 3.6 GB)
+    nj, vj = jnp.asarray(n, jnp.float32), jnp.asarray(v, jnp.float32)
+    evals = [_bf_eval(mat_j, receiver, env, arr[a:a + _PAD, :3], arr[a:a + _PAD, 3:], nj, vj)
+             for a in range(0, size, _PAD)]
+    lj, le, g = (np.concatenate([np.asarray(e_[i], np.float64) for e_ in evals])[:k]
+                 for i in range(3))
     dirs = rays[:, :3]
     cos = dirs @ n
     diffuse = (float(receiver.alpha) / math.pi) * np.asarray(receiver.reflectance,
