@@ -399,11 +399,7 @@ def test_gradients_match_finite_differences():
     for key, rows in data.items():
         nonzero = 0
         for o, name, c, g, fd in rows:
-            # known open discrepancy: d/dμ of the gather's receiver lobe quadrature differs from
-            # float64 central differences by 1.9 % for object 0 (object 1's μ and every other
-            # parameter agree to 0.1 %); tracked in docs/interreflection.md
-            rel = 2.5e-2 if (key.startswith("gather"), name) == (True, "mu") else 1e-3
-            assert g == pytest.approx(fd, rel=rel, abs=1e-7), (key, o, name, c, g, fd)
+            assert g == pytest.approx(fd, rel=1e-3, abs=1e-7), (key, o, name, c, g, fd)
             nonzero += abs(fd) > 1e-8
         # every parameter but gamma (paper only) moves the gather result, and so on
         assert nonzero >= (16 if key.startswith("gather") else 10), (key, nonzero)
