@@ -45,6 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``spectral-fit`` console script."""
+    if argv is None:  # run as a program (not called from Python): steady frame memory
+        from .startup import retain_freed_memory
+
+        retain_freed_memory()
     args = build_parser().parse_args(argv)
     try:
         return int(args._run(args) or 0)
