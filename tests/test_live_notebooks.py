@@ -1,4 +1,5 @@
-"""The notebooks in notebooks/ execute top to bottom (nbclient, small settings)."""
+"""The notebooks in notebooks/ execute top to bottom (nbclient, small settings), in the default
+tier (about 30 s for the three)."""
 
 from __future__ import annotations
 
@@ -28,13 +29,11 @@ def _text(nb) -> str:
                      for o in c.get("outputs", []))
 
 
-@pytest.mark.slow
 def test_render_explore_notebook():
     nb = _run("render_explore.ipynb")
     assert "recompilations caused by the sliders: 0" in _text(nb)
 
 
-@pytest.mark.slow
 def test_live_mr_notebook():
     nb = _run("live_mr.ipynb")
     text = _text(nb)
@@ -42,7 +41,6 @@ def test_live_mr_notebook():
     assert "recompiles 0" in text
 
 
-@pytest.mark.slow
 def test_fit_session_notebook():
     nb = _run("fit_session.ipynb")
     text = _text(nb)
