@@ -60,8 +60,9 @@ def materialise(x: Any, *, cut: bool = False) -> Any:
     ``lax.cond`` whose predicate is always true but unknown to the compiler (from the bits of
     x's first element). That costs a conditional and a buffer, and it stops fusions that
     paid: used everywhere it made the benchmark frame 39 -> 55 ms of CPU, so only where it
-    was measured to pay (the gloss anchors of a frame's pixels: 7.5 ms of the close-up's
-    single fusion of its interreflection tail). With the accelerator layout
+    was measured to pay (the gloss anchors' tests and taps of a frame's pixels: 7.5 ms of the
+    close-up's single fusion of its interreflection tail; the gloss quadrature's reordered
+    result). With the accelerator layout
     (:func:`on_accelerator`: a conditional there waits for the host) it is the barrier;
     under a batching ``vmap`` the conditional becomes a select (no cut)."""
     import jax

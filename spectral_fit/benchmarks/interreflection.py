@@ -48,8 +48,9 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
     from ..exr import read_spectral_exr
     from ..gbuffer import GBuffer, ObjectGeometry
     from ..mesh import concat_meshes, translate, uv_sphere
-    from ..raster import RasterConfig, covered_pixels, interpolate_pixels, plan_counts, rasterize
+    from ..raster import covered_pixels, interpolate_pixels, rasterize
     from ..reflectance import make_material
+    from ..renderer import plan_capacities
 
     wl, img = read_spectral_exr(env_path or _ENV)
     if wavelengths is not None:
@@ -86,8 +87,7 @@ def benchmark_scene(z: float = -0.275, *, stacks: int = 100, shape: tuple[int, i
     # back faces culled: with cull="none" the rasteriser returned the far side of the spheres
     # at ~9 % of the covered pixels of this frame (605 of 6,933)
     # window capacities planned for this view (the default sizing overflowed and was grown)
-    cfg = RasterConfig.from_counts(plan_counts(np.asarray(clip), np.asarray(both.triangles),
-                                               shape), headroom=1.5)
+    cfg, _ = plan_capacities(np.asarray(clip), np.asarray(both.triangles), shape)
     ras = rasterize(clip, both.triangles, shape, cull="back", config=cfg)
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(both.vertices, pix, both.triangles, clip)
