@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .backend import on_accelerator
+from .backend import materialise, on_accelerator
 from .camera import eye_position, inverse_3x3, inverse_4x4
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
@@ -1090,7 +1090,10 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
     if ir is not None:
         radiance = radiance + ir
-    radiance = jnp.where(pix.valid[:, None], radiance, 0.0)
+    # materialised: otherwise the interreflection's tail (its chunks' results put back in
+    # slot order, the anchors' interpolation) was fused into each consumer's every channel
+    # (the live composite's tone curve, the frame's scatter) and computed again there
+    radiance = materialise(jnp.where(pix.valid[:, None], radiance, 0.0), cut=True)
     stats = {
         "covered_pixels": pix.count,
         "pixel_overflow": pix.overflow,
