@@ -45,7 +45,7 @@ from .errors import InputError
 from .scene import Scene
 
 __all__ = ["LiveSession", "FrameTimings", "RunStats", "scene_intrinsics", "white_reference",
-           "scene_camera_model", "pipeline_pays", "STEP_TRACES"]
+           "scene_camera_model", "camera_output_matrix", "pipeline_pays", "STEP_TRACES"]
 
 #: number of times the live step has been traced (compiled), for tests and reports
 STEP_TRACES = {"step": 0}
@@ -153,6 +153,15 @@ class RunStats:
 #: background buffers in the ring (frames queued + in flight + being written, with margin)
 _RING = 6
 _QUEUE = 2
+
+
+def camera_output_matrix(prep: Any, camera: CameraModel) -> np.ndarray:
+    """(C, 3) map from ``prep``'s radiance channels to the video camera's linear RGB: through
+    the camera's spectral sensitivities (a model with them) or through XYZ and its 3 × 3
+    (for :func:`~spectral_fit.renderer.with_output`)."""
+    if camera.has_spectral:
+        return np.asarray(prep.to_spectrum) @ np.asarray(camera.spectral_weights)
+    return np.asarray(prep.to_xyz) @ np.asarray(camera.xyz_matrix).T
 
 
 def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
@@ -330,11 +339,7 @@ class LiveSession:
         h, w = self.size
         prep = prepare(self._planning_scene(), size=(w, h), headroom=headroom,
                        **self._options)
-        if self.camera.has_spectral:
-            to_out = np.asarray(prep.to_spectrum) @ np.asarray(self.camera.spectral_weights)
-        else:
-            to_out = np.asarray(prep.to_xyz) @ np.asarray(self.camera.xyz_matrix).T
-        return with_output(prep, to_out)
+        return with_output(prep, camera_output_matrix(prep, self.camera))
 
     # ------------------------------------------------------------------ per frame
 

@@ -71,6 +71,10 @@ def test_bench_quick_json_schema(capsys):
         assert figures["n"] == 2, name
         assert 0 < figures["min_ms"] <= figures["median_ms"] <= figures["max_ms"], name
         assert figures["compile_s"] > 0, name
+    # the live step on BENCHMARK.md's scene (the live target's scene) beside the video's own
+    bs = result["live_paper"]["benchmark_scene"]
+    assert 0 < bs["min_ms"] <= bs["median_ms"] and bs["compile_s"] > 0
+    assert bs["covered_pixels"] > 0 and not bs["overflow"]
     assert result["_meta"]["quick"] is True
 
 
