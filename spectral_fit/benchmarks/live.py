@@ -103,8 +103,8 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
 
         out = measure(step, repeats=opts.repeats)
         out["compile_s"] = first_frame_s  # the first frame: planning + compilation + render
-        out["benchmark_scene"] = _benchmark_scene_step(
-            session, bg, extra.get("mode"), quick=opts.quick, repeats=3 if opts.quick else 20)
+        out["benchmark_scene"] = _benchmark_scene_step(session, bg, quick=opts.quick,
+                                                       repeats=3 if opts.quick else 20)
         runs = {}
         with tempfile.TemporaryDirectory() as tmp:
             for threads in (False, True):
@@ -144,8 +144,8 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
     return out
 
 
-def _benchmark_scene_step(session: Any, background: Any, mode: str | None, *,
-                          quick: bool = False, repeats: int = 20) -> dict[str, Any]:
+def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
+                          repeats: int = 20) -> dict[str, Any]:
     """The compiled live step on BENCHMARK.md's paper scene (camera, poses, capacities
     planned for it) at the video's frame size (720×480, the scene's own, for the sample
     video), composited over ``background`` (an undistorted video frame), in the session's
@@ -154,14 +154,13 @@ def _benchmark_scene_step(session: Any, background: Any, mode: str | None, *,
     import jax.numpy as jnp
 
     from ..live import _step, camera_output_matrix
-    from ..renderer import prepare, with_output
+    from ..renderer import _all_visible, prepare, with_output
     from .frame import benchmark_scene
 
     h, w = session.size
-    prep = prepare(benchmark_scene(quick=quick), size=(w, h), mode=mode,
-                   **{k: v for k, v in session._options.items() if k != "mode"})
+    prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
     prep = with_output(prep, camera_output_matrix(prep, session.camera))
-    args = (prep.materials, prep.model, prep.view, jnp.ones((prep.num_objects,), bool),
+    args = (prep.materials, prep.model, prep.view, _all_visible(prep.num_objects),
             jnp.asarray(background), session.camera)
 
     def step():
