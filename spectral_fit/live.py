@@ -165,15 +165,16 @@ def camera_output_matrix(prep: Any, camera: CameraModel) -> np.ndarray:
 
 
 def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
-               visible: jax.Array, background: jax.Array, camera: CameraModel
-               ) -> tuple[jax.Array, dict[str, jax.Array]]:
+               visible: jax.Array, background: jax.Array, camera: CameraModel,
+               mirror: bool = True) -> tuple[jax.Array, dict[str, jax.Array]]:
     from .renderer import render_pixels
 
     STEP_TRACES["step"] += 1
     # only the covered pixels are shaded (in the camera's linear RGB: prep's output matrix),
     # encoded and written into the video frame: no environment background, no full-frame
     # display encoding, no decoding of the video
-    px = render_pixels(prep, materials, model=model, view=view, visible=visible)
+    px = render_pixels(prep, materials, model=model, view=view, visible=visible,
+                       mirror=mirror)
     out = composite_pixels(background, px.values, px.index, px.valid, camera)
     stats = {"covered_pixels": px.stats["covered_pixels"],
              "overflow": px.stats["pixel_overflow"] | px.stats["raster_overflow"],
@@ -240,6 +241,11 @@ class LiveSession:
         self._planned = False
         self.timings = FrameTimings()
         self.prep = self._prepare(self.headroom)
+        # compiled without the mirror term when every χ of the scene is 0 (exact; see
+        # renderer.mirror_needed): the materials are the scene's for the whole session
+        from .renderer import mirror_needed
+
+        self._mirror = mirror_needed(self.prep.materials)
 
     # ------------------------------------------------------------------ preparation
 
@@ -359,7 +365,7 @@ class LiveSession:
         """Dispatch the compiled step (asynchronous; block on the result to time it)."""
         return _step(self.prep, self.prep.materials, jnp.asarray(poses.model),
                      jnp.asarray(poses.view), jnp.asarray(poses.visible),
-                     jnp.asarray(background), self.camera)
+                     jnp.asarray(background), self.camera, self._mirror)
 
     def _check(self, frame: np.ndarray) -> None:
         if frame.shape != (*self.size, 3) or frame.dtype != np.uint8:
@@ -385,7 +391,7 @@ class LiveSession:
         if not self._planned and poses.visible.any():
             self._replan(poses, self.headroom)  # size the buffers on the first real poses
             self._planned = True
-        return _step(self.prep, self.prep.materials, *inputs, bg, self.camera)
+        return _step(self.prep, self.prep.materials, *inputs, bg, self.camera, self._mirror)
 
     def submit(self, frame: np.ndarray) -> _Pending:
         """CPU stages of one frame (detect, track, undistort) and the DISPATCH of its compiled

@@ -61,6 +61,7 @@ __all__ = [
     "prepare",
     "render_frame",
     "render_pixels",
+    "mirror_needed",
     "with_output",
     "render",
     "scene_materials",
@@ -618,6 +619,34 @@ def _as_stacked(materials: Any, n_objects: int) -> list[Material]:
     return mats
 
 
+def mirror_needed(materials: Any) -> bool:
+    """Whether a frame of ``materials`` needs the perfect-mirror term (χ) at all: False only
+    when every χ is a concrete 0 (not traced: under ``jax.grad``, ``vmap`` or a caller's
+    ``jit`` it is True). The frame is then compiled without the mirror: the direct term's
+    lookup along R and, the larger part, the neighbours' mirror radiance that the
+    interreflection would otherwise carry in every channel (the paper's plastics have χ = 0).
+    Exact: a term multiplied by a concrete 0 is left out, nothing else changes."""
+    for x in _chi_leaves(materials):
+        if isinstance(x, jax.core.Tracer):
+            return True
+        a = np.asarray(x)
+        if not np.all(a == 0.0):  # NaN included
+            return True
+    return False
+
+
+def _chi_leaves(materials: Any) -> list[Any]:
+    """χ of a stacked Material or of each Material of a sequence."""
+    return [materials.chi] if isinstance(materials, Material) else [m.chi for m in materials]
+
+
+def _without_mirror(mats: list[Material]) -> list[Material]:
+    """The materials with χ a concrete 0 (see :func:`mirror_needed`): the shading and the
+    interreflection then leave the mirror term out at trace time."""
+    return [eqx.tree_at(lambda m: m.chi, m, np.zeros(np.shape(m.chi), np.float32))
+            for m in mats]
+
+
 def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
                    lut: jax.Array | None = None, quality: str = "render",
                    capacities: tuple[int, ...] | None = None, split_map: Any = None,
@@ -674,7 +703,8 @@ def _gloss_and_mirror(env_gloss: Any, split_map: Any, env_mirror: Any, moments: 
                       ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Quality "fast" gloss and mirror of eq. (5) at points nrm, v (N, 3): the split-sum gloss
     per unit β looked up in ``env_gloss``'s channels, F(n, N·V) times the mirror radiance
-    along R from ``env_mirror`` (N, C), and N·V (N, 1)."""
+    along R from ``env_mirror`` (N, C; None when ``env_mirror`` is None: no mirror term), and
+    N·V (N, 1)."""
     from .environment import _materialise, fast_lookup, fresnel_dielectric, gloss_split_sum
 
     gloss = gloss_split_sum(env_gloss, split_map, moments, nrm, v, m.mu, m.n,
@@ -684,7 +714,8 @@ def _gloss_and_mirror(env_gloss: Any, split_map: Any, env_mirror: Any, moments: 
     refl = 2.0 * nv * nrm - v
     # per-point factors computed once (not inside each of the C channels' expressions)
     fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
-    return gloss, fac[:, 0:1] * fast_lookup(env_mirror, refl), fac[:, 1:2]
+    mirror = None if env_mirror is None else fac[:, 0:1] * fast_lookup(env_mirror, refl)
+    return gloss, mirror, fac[:, 1:2]
 
 
 def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | None,
@@ -704,15 +735,18 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
     for m, (nrm, v) in zip(mats, _object_slices(gb, capacities), strict=True):
         kw = dict(distribution=m.distribution, geometry=m.geometry)
         moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
-        gloss, mirror, nv = _gloss_and_mirror(env, split_map, env, moments, nrm, v, m,
-                                              settings)
+        gloss, mirror, nv = _gloss_and_mirror(env, split_map,
+                                              env if mirror_needed([m]) else None, moments,
+                                              nrm, v, m, settings)
         if table is None:
             e = jax.vmap(lambda d: irradiance(env, d))(nrm)
         else:
             e = fast_lookup(table, nrm)
         se = _filtered_irradiance(m, env, e)
         front = nv > 0.0
-        rad = (m.alpha / math.pi) * se + m.beta * gloss + m.chi * mirror
+        rad = (m.alpha / math.pi) * se + m.beta * gloss
+        if mirror is not None:
+            rad = rad + m.chi * mirror
         out.append(jnp.where(front, rad, 0.0))
     return jnp.concatenate(out)
 
@@ -956,22 +990,26 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                                                       for x in xs]), *group)
         moments = jax.vmap(functools.partial(lobe_moment_table, settings=settings, **kw))(
             stacked.mu, stacked.n)  # (O, size, 4), one compiled table for the group
+        group_mirror = mirror_env if mirror_needed(group) else None
         dflat = None
         if lut is not None:
             dflat = jnp.stack([(m.alpha / math.pi) * _filtered_irradiance(m, env, lut) @ to_out
                                for m in group])
 
         def shade(o: jax.Array, nn: jax.Array, vv: jax.Array, stacked: Material = stacked,
-                  moments: jax.Array = moments, dflat: Any = dflat) -> jax.Array:
+                  moments: jax.Array = moments, dflat: Any = dflat,
+                  group_mirror: Any = group_mirror) -> jax.Array:
             m = jax.tree.map(lambda x: x[o], stacked)
-            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.split_map, mirror_env,
+            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.split_map, group_mirror,
                                                   moments[o], nn, vv, m, settings)
             if dflat is None:
                 e = jax.vmap(lambda d: irradiance(env, d))(nn)
                 diffuse = (m.alpha / math.pi) * _filtered_irradiance(m, env, e) @ to_out
             else:
                 diffuse = fast_lookup(_lut_env(env, dflat[o]), nn)
-            rad = diffuse + m.beta * gloss + m.chi * mirror
+            rad = diffuse + m.beta * gloss
+            if mirror is not None:
+                rad = rad + m.chi * mirror
             return jnp.where(nv > 0.0, rad, 0.0)
 
         res = _chunked(shade, [counts[i] for i in members], k_out,
@@ -1013,16 +1051,19 @@ def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple
 
 
 def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
-                 visible: jax.Array, spectral: bool) -> PixelFrame:
+                 visible: jax.Array, spectral: bool, mirror: bool = True) -> PixelFrame:
     """Steps 1–3 of the frame (traced): geometry, raster, covered pixels, G-buffer, shading
     and interreflection of the covered pixels, in the output channels (see
-    :class:`PixelFrame`)."""
+    :class:`PixelFrame`). ``mirror`` False (static): every χ taken as 0, the mirror term left
+    out (see :func:`mirror_needed`)."""
     from .raster import interpolate_pixels, rasterize
 
     TRACE_COUNT["render_frame"] += 1
     h, w = prep.shape
     n_obj = prep.num_objects
     mats = _as_stacked(materials, n_obj)
+    if not mirror:
+        mats = _without_mirror(mats)
     model = jnp.asarray(model, jnp.float32)
     view = jnp.asarray(view, jnp.float32)
     visible = jnp.asarray(visible, bool)
@@ -1112,11 +1153,12 @@ def _scatter(values: jax.Array, px: PixelFrame, image: jax.Array) -> jax.Array:
 
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
-                 visible: jax.Array, spectral: bool, background: bool = True) -> Frame:
+                 visible: jax.Array, spectral: bool, background: bool = True,
+                 mirror: bool = True) -> Frame:
     from .display import to_display
 
     h, w = prep.shape
-    px = _pixels_impl(prep, materials, model, view, visible, spectral)
+    px = _pixels_impl(prep, materials, model, view, visible, spectral, mirror)
     # 4. background and XYZ
     if background:
         bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
@@ -1186,28 +1228,48 @@ def _check_frame_inputs(prep: Prepared, materials: Any, model: Any, view: Any, v
 
 
 def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
-                  view: Any = None, visible: Any = None, spectral: bool = False
-                  ) -> PixelFrame:
+                  view: Any = None, visible: Any = None, spectral: bool = False,
+                  mirror: bool | None = None) -> PixelFrame:
     """The covered pixels of one frame, shaded (with interreflection), without background,
     image scatter or display encoding: for callers that put the pixels somewhere else (the
     live composite writes them straight into the video frame). Same inputs as
     :func:`render_frame`; meant to be called inside the caller's own ``jit``. Returns a
     :class:`PixelFrame`; its values are in ``prep.to_xyz``'s output space (:func:`with_output`)
-    or, with ``spectral``, in the C radiance channels."""
+    or, with ``spectral``, in the C radiance channels. ``mirror``: as for
+    :func:`render_frame`; inside a caller's ``jit`` the materials are traced, so the default
+    keeps the mirror term: pass :func:`mirror_needed` of the concrete materials from outside."""
     mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
-    return _pixels_impl(prep, mats, model, view, visible, spectral)
+    return _pixels_impl(prep, mats, model, view, visible, spectral,
+                        _mirror_flag(mats, mirror))
+
+
+def _mirror_flag(mats: Any, mirror: bool | None) -> bool:
+    """The static mirror switch of a frame: ``mirror`` when given (False with a concrete χ
+    that is not 0 is refused: it would drop light silently), else :func:`mirror_needed`."""
+    needed = mirror_needed(mats)
+    if mirror is None:
+        return needed
+    if not mirror and needed and not _traced_chi(mats):
+        raise InputError("mirror=False but a material has χ != 0 (its mirror term would be "
+                         "dropped)", field="materials.chi")
+    return bool(mirror)
+
+
+def _traced_chi(mats: Any) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in _chi_leaves(mats))
 
 
 def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, view: Any = None,
-                 visible: Any = None, spectral: bool = False, background: bool = True
-                 ) -> Frame:
+                 visible: Any = None, spectral: bool = False, background: bool = True,
+                 mirror: bool | None = None) -> Frame:
     """Render one frame (jit-compiled once per :class:`Prepared` shape; differentiable).
 
     Args:
         prep: from :func:`prepare`.
         materials: a stacked :class:`~spectral_fit.reflectance.Material` (leading axis O) or a
             sequence of O Materials (reflectance in bands, or K coefficients in basis mode);
-            default the config's. Traced: new values never recompile.
+            default the config's. Traced: new values never recompile, except χ going from
+            all zero to not (see ``mirror``).
         model: (O, 4, 4) world-from-object matrices (default the config's poses). Traced.
         view: (4, 4) world → OpenGL eye view matrix (default the config's camera). Traced.
         visible: (O,) bool per-object visibility (default all visible). Traced.
@@ -1216,13 +1278,22 @@ def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, vi
         background: False: uncovered pixels are black (0) instead of the environment seen
             through them (for callers that replace them, e.g. by a video frame; a separate
             compilation).
+        mirror: whether the frame is compiled with the perfect-mirror term (χ). Default
+            (None): :func:`mirror_needed`: without it only when every χ is a concrete 0 (the
+            paper's plastics; not under ``jax.grad``/``vmap``/``jit``, where χ is traced),
+            which leaves out the neighbours' mirror radiance the interreflection would
+            otherwise carry in every channel (~13 % of the benchmark frame); the first χ
+            that is not 0 then compiles the frame with it. True: always with it (e.g. a slider
+            for χ that should never recompile). False: every χ taken as 0 (refused when a
+            concrete χ is not 0).
 
     Returns:
         :class:`Frame`. Gradients flow to every material parameter of every object (and to
         the model/view matrices through shading, not through visibility).
     """
     mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
-    return _render_jit(prep, mats, model, view, visible, bool(spectral), bool(background))
+    return _render_jit(prep, mats, model, view, visible, bool(spectral), bool(background),
+                       _mirror_flag(mats, mirror))
 
 
 def render(scene: Any, materials: Any = None, *, spectral: bool = False,

@@ -376,7 +376,8 @@ _PROGRAMS: dict[str, Any] = {}
 
 
 def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
-                 compiler_options: dict[str, Any] | None, background: bool = True) -> str:
+                 compiler_options: dict[str, Any] | None, background: bool = True,
+                 mirror: bool = True) -> str:
     import jax
     import numpy as np
 
@@ -386,7 +387,7 @@ def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
                          suppress=False, nanstr="nan", infstr="inf", sign="-",
                          floatmode="unique", legacy=False):
         parts = [_environment_digest(), repr(treedef), f"spectral={bool(spectral)}",
-                 f"background={bool(background)}",
+                 f"background={bool(background)}", f"mirror={bool(mirror)}",
                  f"options={sorted((compiler_options or {}).items())!r}"]
         for x in leaves:
             if isinstance(x, jax.Array | np.ndarray):
@@ -398,20 +399,20 @@ def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
 
 def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
                         view: Any = None, visible: Any = None, spectral: bool = False,
-                        background: bool = True,
+                        background: bool = True, mirror: bool | None = None,
                         cache_dir: str | os.PathLike[str] | None = None,
                         compiler_options: dict[str, Any] | None = None) -> Any:
     """:func:`~spectral_fit.renderer.render_frame` through a compiled program kept on disk.
 
     The first call for a given argument structure (the :class:`Prepared` scene's static
-    fields, every array's shape and dtype, ``spectral``, ``background``,
+    fields, every array's shape and dtype, ``spectral``, ``background``, the mirror switch,
     ``compiler_options``) in any process
     traces, compiles and stores the executable (``<root>/programs``); later calls, in this
     process or a new one, load it and run it without tracing. The result is the same Frame as
     ``render_frame``'s, from the same XLA program (with ``compiler_options`` None).
 
     Args:
-        prep, materials, model, view, visible, spectral, background: as for
+        prep, materials, model, view, visible, spectral, background, mirror: as for
             ``render_frame`` (the same checks and defaults).
         cache_dir: cache root (default :func:`cache_root`; with the cache disabled the
             program is still kept in memory for this process).
@@ -427,15 +428,16 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     import jax
     import numpy as np
 
-    from .renderer import Frame, _check_frame_inputs
+    from .renderer import Frame, _check_frame_inputs, _mirror_flag
 
     if visible is None:  # a NumPy default: jnp.ones would compile a program in a new process
         visible = np.ones((prep.num_objects,), bool)
     args = (prep, *_check_frame_inputs(prep, materials, model, view, visible))
+    mirror = _mirror_flag(args[1], mirror)
     leaves, treedef = jax.tree_util.tree_flatten(args)
     is_arr = [isinstance(x, jax.Array | np.ndarray) for x in leaves]
     arrays = [x for x, a in zip(leaves, is_arr, strict=True) if a]
-    key = _program_key(treedef, leaves, spectral, compiler_options, background)
+    key = _program_key(treedef, leaves, spectral, compiler_options, background, mirror)
     prog = _PROGRAMS.get(key)
     out = None
     if prog is not None:
@@ -450,7 +452,7 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
             full = [next(it_a) if a else next(it_s) for a in is_arr]
             p, mats, mod, v, vis = jax.tree_util.tree_unflatten(treedef, full)
             frame = render_frame(p, mats, model=mod, view=v, visible=vis, spectral=spectral,
-                                 background=background)
+                                 background=background, mirror=mirror)
             return {f.name: getattr(frame, f.name) for f in dataclasses.fields(frame)}
 
         hits = CACHE_STATS["program_hit"]

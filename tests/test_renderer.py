@@ -460,3 +460,37 @@ def test_gather_mode_matches_the_path_traced_reference():
     ir = ref.interreflection
     assert np.median(de[~ir]) <= 0.5 and np.percentile(de[~ir], 90) <= 1.0
     assert np.median(de[ir]) <= 0.5 and np.percentile(de[ir], 90) <= 1.5
+
+
+@pytest.mark.skipif(not _interreflection_available(),
+                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+def test_mirror_switch_is_exact_and_follows_chi(folder):
+    """Every χ a concrete 0: the frame is compiled without the mirror term, and equals the
+    frame compiled with it; a χ that is not 0 compiles it in (its light reaches the other
+    object through the interreflection); χ traced keeps it; mirror=False with χ != 0 is
+    refused."""
+    from spectral_fit.renderer import mirror_needed, prepare, render_frame
+
+    p = prepare(write_scene(folder, mode="gather"))
+    assert not mirror_needed(p.materials)
+    auto = render_frame(p)
+    full = render_frame(p, mirror=True)
+    y_max = float(np.asarray(full.xyz)[..., 1].max())
+    np.testing.assert_allclose(np.asarray(auto.xyz), np.asarray(full.xyz), rtol=1e-5,
+                               atol=1e-6 * y_max)
+
+    mats = eqx_replace(p.materials, chi=jnp.array([0.3, 0.0], jnp.float32))
+    assert mirror_needed(mats)
+    shiny = render_frame(p, mats)
+    oid = np.asarray(auto.object_id)
+    dy = np.abs(np.asarray(shiny.xyz)[..., 1] - np.asarray(auto.xyz)[..., 1])
+    assert dy[oid == 0].max() > 0.05 * y_max  # sphere 0's own mirror term
+    # sphere 1 (χ = 0) changes only through what it receives from sphere 0's mirror
+    assert dy[oid == 1].max() > 1e-4 * y_max
+    with pytest.raises(InputError, match="chi"):
+        render_frame(p, mats, mirror=False)
+
+    seen = []
+    jax.make_jaxpr(lambda c: seen.append(mirror_needed(eqx_replace(p.materials, chi=c))))(
+        jnp.zeros(2))
+    assert seen == [True]

@@ -154,14 +154,14 @@ def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
     import jax.numpy as jnp
 
     from ..live import _step, camera_output_matrix
-    from ..renderer import _all_visible, prepare, with_output
+    from ..renderer import _all_visible, mirror_needed, prepare, with_output
     from .frame import benchmark_scene
 
     h, w = session.size
     prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
     prep = with_output(prep, camera_output_matrix(prep, session.camera))
     args = (prep.materials, prep.model, prep.view, _all_visible(prep.num_objects),
-            jnp.asarray(background), session.camera)
+            jnp.asarray(background), session.camera, mirror_needed(prep.materials))
 
     def step():
         return _step(prep, *args)
