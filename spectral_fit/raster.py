@@ -85,6 +85,7 @@ __all__ = [
     "PlanCounts",
     "interpolate",
     "covered_pixels",
+    "compact_flags",
     "interpolate_pixels",
     "scatter_pixels",
     "clip_to_pixel",
@@ -979,6 +980,54 @@ class PixelList(eqx.Module):
         return self.tri_id >= 0
 
 
+def compact_flags(flags: jax.Array, capacity: int) -> tuple[jax.Array, jax.Array]:
+    """The positions of the first ``capacity`` True entries of ``flags`` ``(N,)`` bool, in
+    increasing order, and how many True entries there are (int32 scalar; may exceed
+    ``capacity``): ``jnp.nonzero(flags, size=capacity)`` without a prefix sum or a scatter
+    over all N entries (XLA:CPU runs both as serial loops: ~10 ns per entry, 3–4 ms each for a
+    720 × 480 frame).
+
+    The flags are packed 32 to a uint32 word (a reduction); a prefix sum of the words'
+    population counts (N/32 entries) gives the word that holds each rank (a binary search),
+    and a 5-step binary search over prefix population counts the bit within it (the "select"
+    of succinct bit vectors, Jacobson 1989). Work O(N + capacity · log N); exact.
+
+    Args:
+        flags: ``(N,)`` bool.
+        capacity: static number of output slots (≥ 1).
+    Returns:
+        ``(index, count)``: index ``(capacity,)`` int32 (0 in slots past ``count``).
+    """
+    flags = jnp.asarray(flags, bool).reshape(-1)
+    n = flags.shape[0]
+    nw = max(1, -(-n // 32))
+    bits = jnp.pad(flags, (0, nw * 32 - n)).reshape(nw, 32)
+    weights = jnp.left_shift(jnp.uint32(1), jnp.arange(32, dtype=jnp.uint32))
+    words = jnp.sum(jnp.where(bits, weights, jnp.uint32(0)), axis=1, dtype=jnp.uint32)
+    pop = lax.population_count(words).astype(jnp.int32)
+    incl = _count_cumsum(pop)  # (nw,) inclusive: set bits up to and including each word
+    count = incl[-1]
+    rank = jnp.arange(1, capacity + 1, dtype=jnp.int32)  # 1-based rank of each slot
+    # the word of rank r is the number of words with fewer than r set bits up to and
+    # including them: a histogram of the words' inclusive counts, prefix-summed over the
+    # slots (no search per slot: that cost capacity · log2(N/32) gathers)
+    hist = jnp.zeros((capacity,), jnp.int32).at[incl].add(1, mode="drop")
+    word = jnp.minimum(_count_cumsum(hist), nw - 1)
+    x = words[word]
+    r = rank - (incl[word] - pop[word])  # rank within the word, 1-based
+    lo = jnp.zeros_like(rank)
+    hi = jnp.full_like(rank, 31)
+    for _ in range(5):  # smallest bit b with popcount(x & bits 0..b) >= r
+        mid = (lo + hi) // 2
+        below = jnp.left_shift(jnp.uint32(2), mid.astype(jnp.uint32)) - jnp.uint32(1)
+        below = jnp.where(mid >= 31, jnp.uint32(0xFFFFFFFF), below)
+        ge = lax.population_count(x & below).astype(jnp.int32) >= r
+        hi = jnp.where(ge, mid, hi)
+        lo = jnp.where(ge, lo, mid + 1)
+    index = jnp.where(rank <= count, word * 32 + lo, 0)
+    return index, count
+
+
 def covered_pixels(raster: Raster, capacity: int) -> PixelList:
     """Compact the covered pixels of ``raster`` into a list of ``capacity`` entries (static),
     so that shading runs only where there is geometry. Check ``overflow`` (or size the
@@ -987,12 +1036,8 @@ def covered_pixels(raster: Raster, capacity: int) -> PixelList:
         raise InputError(f"must be a positive int, got {capacity!r}", field="capacity")
     h, w = raster.tri_id.shape
     flat = raster.tri_id.reshape(-1)
-    csum = _scan(jnp.add, (flat >= 0).astype(jnp.int32), 0)
-    count = csum[-1]
-    k = jnp.arange(capacity, dtype=jnp.int32)
-    index = jnp.searchsorted(csum, k, side="right", method="scan").astype(jnp.int32)
-    live = k < count
-    index = jnp.where(live, index, 0)
+    index, count = compact_flags(flat >= 0, int(capacity))
+    live = jnp.arange(capacity, dtype=jnp.int32) < count
     tri = jnp.where(live, flat[index], -1)
     return PixelList(index, tri, count, count > capacity, (h, w))
 
