@@ -178,6 +178,7 @@ def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
     out = composite_pixels(background, px.values, px.index, px.valid, camera)
     stats = {"covered_pixels": px.stats["covered_pixels"],
              "overflow": px.stats["pixel_overflow"] | px.stats["raster_overflow"],
+             "interreflection_overflow": px.stats["interreflection_overflow"],
              "object_id": px.object_id}
     return out, stats
 
@@ -310,13 +311,17 @@ class LiveSession:
         camera = dataclasses.replace(cam, distortion=None)
         return self.scene.replace(objects=tuple(objs), camera=camera)
 
-    def _replan(self, poses: Any, headroom: float) -> bool:
-        """Grow the buffers to fit ``poses`` (× ``headroom``); True when they changed (the
-        next render recompiles)."""
+    def _replan(self, poses: Any, headroom: float, *, interreflection: bool = False) -> bool:
+        """Grow the buffers to fit ``poses`` (× ``headroom``), and the interreflection's
+        pass-1 rasters to their generic capacities after they overflowed; True when they
+        changed (the next render recompiles)."""
         from .raster import RasterConfig
-        from .renderer import plan_capacities
+        from .renderer import _ir_fallback, plan_capacities
 
         p = self.prep
+        ir_cfg = _ir_fallback(p) if interreflection else None
+        if ir_cfg is not None:
+            p = self.prep = dataclasses.replace(p, ir_raster_config=ir_cfg)
         v = np.asarray(p.vertices, np.float64)
         m = np.asarray(poses.model, np.float64)[np.asarray(p.vertex_object)]
         world = np.einsum("vij,vj->vi", m[:, :3, :3], v) + m[:, :3, 3]
@@ -335,7 +340,7 @@ class LiveSession:
             caps.append(max(c, min(h * w, 1024 * -(-int(headroom * bound + 64) // 1024))))
         cap = tuple(caps)
         if cfg == old and cap == p.pixel_capacity:
-            return False
+            return ir_cfg is not None
         self.prep = dataclasses.replace(p, raster_config=cfg, pixel_capacity=cap)
         return True
 
@@ -409,11 +414,16 @@ class LiveSession:
         poses, bg, out, stats = pending.poses, pending.background, pending.out, pending.stats
         t0, t1, t2 = pending.times
         out = jax.block_until_ready(out)
+        from .renderer import _ir_fallback
+
         for _ in range(3):
-            if not bool(stats["overflow"]):
+            # the pass-1 rasters' planned capacities overflowed: their generic ones, once
+            ir = bool(stats["interreflection_overflow"]) and _ir_fallback(self.prep) is not None
+            if not (bool(stats["overflow"]) or ir):
                 break
-            self.headroom *= 1.5
-            self._replan(poses, self.headroom)
+            if bool(stats["overflow"]):
+                self.headroom *= 1.5
+            self._replan(poses, self.headroom, interreflection=ir)
             self.recompiles += 1
             out, stats = self.render(poses, bg)
             out = jax.block_until_ready(out)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import math
 import warnings
 from collections.abc import Sequence
@@ -336,23 +337,46 @@ def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
     return np.maximum(normals @ src.T, 0.0) @ rad
 
 
-def _ir_raster_config(mode: str, texture_size: int, triangles: int,
-                      paper_clips: list[np.ndarray] | None = None,
-                      paper_tris: list[np.ndarray] | None = None) -> Any:
-    """Window capacities of the interreflection pass-1 rasters (inside the compiled frame, so
-    they cannot be grown there): the rasteriser's generic sizes for the largest object with room
-    for every 8×8 block of the pass-1 frame (64² for gather: 4× supersampled 16² samples;
-    ``texture_size``² for paper), and in paper mode at least twice what the configured poses
-    need (:func:`plan_capacities` on each pair's view)."""
-    if mode == "none":
-        return None
+def _ir_generic_config(mode: str, texture_size: int, triangles: int) -> Any:
+    """The rasteriser's generic window capacities for a pass-1 raster of ``triangles``
+    triangles, with room for every 8×8 block of the pass-1 frame (64² for gather: 4×
+    supersampled 16² samples; ``texture_size``² for paper)."""
     from .raster import default_config
 
     side = texture_size if mode == "paper" else 64
     blocks = (-(-side // 8)) ** 2
-    cfg = default_config(triangles, (side, side))._replace(block_capacity=blocks)
+    return default_config(triangles, (side, side))._replace(block_capacity=blocks)
+
+
+def _ir_raster_config(mode: str, texture_size: int, triangles: int,
+                      paper_clips: list[np.ndarray] | None = None,
+                      paper_tris: list[np.ndarray] | None = None,
+                      meshes: list[tuple[np.ndarray, np.ndarray]] | None = None) -> Any:
+    """Window capacities of the interreflection pass-1 rasters (inside the compiled frame, so
+    they cannot be grown there; an overflow is flagged and :func:`render` / the live session
+    then fall back to :func:`_ir_generic_config`). Gather: planned per sender mesh for any
+    pose (``meshes``: (vertices in the object's frame, triangles);
+    :func:`~spectral_fit.interreflection.plan_gather_pass1`, 1.5× the most an axis view needs:
+    the generic sizes gave the 4×4 windows 80× what the benchmark spheres use, 6 ms of CPU per
+    frame); without meshes the generic sizes. Paper: the generic sizes, and at least twice
+    what the configured poses need (:func:`plan_capacities` on each pair's view)."""
+    if mode == "none":
+        return None
+    if mode == "gather" and meshes:
+        from .interreflection import plan_gather_pass1
+
+        planned: dict[bytes, Any] = {}
+        for v, t in meshes:  # identical meshes (the paper's two spheres) planned once
+            key = hashlib.sha1(np.ascontiguousarray(v, np.float32).tobytes()
+                               + np.ascontiguousarray(t, np.int32).tobytes()).digest()
+            if key not in planned:
+                planned[key] = plan_gather_pass1(v, t)
+        cfgs = list(planned.values())
+        return cfgs[0]._replace(
+            capacities=tuple(max(c) for c in zip(*(g.capacities for g in cfgs), strict=True)))
+    cfg = _ir_generic_config(mode, texture_size, triangles)
     for clip, tris in zip(paper_clips or [], paper_tris or [], strict=True):
-        need, _ = plan_capacities(clip, tris, (side, side), headroom=2.0)
+        need, _ = plan_capacities(clip, tris, (texture_size, texture_size), headroom=2.0)
         cfg = cfg._replace(capacities=tuple(max(a, b) for a, b in
                                             zip(cfg.capacities, need.capacities, strict=True)))
     return cfg
@@ -561,7 +585,8 @@ def prepare(
                     paper_clips.append(world[a:b] @ m[:, :3].T + m[:, 3])
                     paper_tris.append(triangles[ta:tb] - a)
     ir_cfg = _ir_raster_config(ir_mode, ts, max(b - a for a, b in tsl), paper_clips,
-                               paper_tris)
+                               paper_tris, [(vertices[a:b], triangles[ta:tb] - a) for (a, b),
+                                            (ta, tb) in zip(vsl, tsl, strict=True)])
 
     return Prepared(
         vertices=jnp.asarray(vertices), normals=jnp.asarray(np.concatenate(norms), jnp.float32),
@@ -1307,9 +1332,12 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
     for _ in range(4):
         pix_over = bool(frame.stats["pixel_overflow"])
         ras_over = bool(frame.stats["raster_overflow"])
-        if not (pix_over or ras_over):
+        ir_cfg = _ir_fallback(prep) if bool(frame.stats["interreflection_overflow"]) else None
+        if not (pix_over or ras_over or ir_cfg is not None):
             return frame
-        changes = {}
+        changes: dict[str, Any] = {}
+        if ir_cfg is not None:
+            changes["ir_raster_config"] = ir_cfg
         if pix_over:
             h, w = prep.shape
             counts = np.bincount(np.asarray(frame.object_id).reshape(-1) + 1,
@@ -1330,6 +1358,20 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
         prep = _replace_static(prep, **changes)
         frame = render_frame(prep, materials, spectral=spectral)
     raise RuntimeError("render: buffers still overflow after growing them")
+
+
+def _ir_fallback(prep: Prepared) -> Any:
+    """The pass-1 raster capacities after an interreflection overflow: at least the generic
+    ones (:func:`_ir_generic_config`); None when they are there already (nothing to grow)."""
+    cur = prep.ir_raster_config
+    if cur is None:
+        return None
+    tris = max(tb - ta for ta, tb in prep.triangle_slices)
+    gen = _ir_generic_config(prep.ir_mode, prep.ir_texture_size, tris)
+    new = cur._replace(capacities=tuple(max(a, b) for a, b in zip(
+        cur.capacities, gen.capacities, strict=True)),
+        block_capacity=max(cur.block_capacity, gen.block_capacity))
+    return None if new == cur else new
 
 
 def _replace_static(prep: Prepared, **changes: Any) -> Prepared:

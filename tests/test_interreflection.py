@@ -601,3 +601,40 @@ def test_output_channels_match_the_mapped_result(k, diffuse_at):
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5 * peak)
     with pytest.raises(InputError, match="output"):
         interreflection(objs, mats, env, rec, output=m[:5])
+
+
+def test_planned_pass1_capacities_hold_for_any_orientation():
+    """plan_gather_pass1 counts six axis views of the mesh; the pass-1 raster of that mesh
+    seen along 24 random directions, each with a random roll, must fit its capacities
+    (overflow is what the rasteriser itself reports), and they are far below the generic
+    ones (the 4×4 windows: T for the generic sizing)."""
+    from spectral_fit.gbuffer import ObjectGeometry
+    from spectral_fit.interreflection import plan_gather_pass1, prepare_interreflection
+    from spectral_fit.mesh import rotate, uv_sphere
+
+    sph = uv_sphere(0.0375, 100, 100)  # the paper's spheres: 19,800 triangles
+    cfg = plan_gather_pass1(sph.vertices, sph.triangles)
+    t = len(sph.triangles)
+    assert cfg.capacities[1] < t / 8 and cfg.capacities[0] < t
+
+    def overflow(rot, cj):
+        objs = [ObjectGeometry(jnp.asarray(sph.vertices) @ rot.T + c, jnp.asarray(sph.normals)
+                               @ rot.T, jnp.asarray(sph.triangles), c)
+                for c in (jnp.zeros(3, jnp.float32), cj)]
+        return prepare_interreflection(objs, mode="gather", raster_config=cfg).overflow
+
+    f = jax.jit(overflow)
+    rng = np.random.default_rng(7)
+    for _ in range(24):
+        axis = rng.normal(size=3)
+        rot = rotate(axis / np.linalg.norm(axis), rng.uniform(0, 2 * np.pi))[:3, :3]
+        d = rng.normal(size=3)
+        cj = 0.09 * d / np.linalg.norm(d)
+        assert not bool(f(jnp.asarray(rot, jnp.float32), jnp.asarray(cj, jnp.float32)))
+    # and the check can fail: a quarter of the capacities overflows
+    small = cfg._replace(capacities=tuple(max(16, c // 4) for c in cfg.capacities))
+    objs = [ObjectGeometry(jnp.asarray(sph.vertices) + c, jnp.asarray(sph.normals),
+                           jnp.asarray(sph.triangles), c)
+            for c in (jnp.zeros(3, jnp.float32), jnp.array([0.09, 0.0, 0.0], jnp.float32))]
+    assert bool(jax.jit(lambda o: prepare_interreflection(o, mode="gather",
+                                                         raster_config=small).overflow)(objs))

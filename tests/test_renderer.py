@@ -494,3 +494,28 @@ def test_mirror_switch_is_exact_and_follows_chi(folder):
     jax.make_jaxpr(lambda c: seen.append(mirror_needed(eqx_replace(p.materials, chi=c))))(
         jnp.zeros(2))
     assert seen == [True]
+
+
+@pytest.mark.skipif(not _interreflection_available(),
+                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
+    """Gather pass-1 capacities are planned per mesh (small); a pose that overflows them is
+    reported, and render's regrow re-renders with the generic capacities (the frame then
+    equals one rendered with those from the start)."""
+    import dataclasses
+
+    from spectral_fit.renderer import _ir_generic_config, _regrow, prepare, render_frame
+
+    p = prepare(write_scene(folder, mode="gather"))
+    tris = max(tb - ta for ta, tb in p.triangle_slices)
+    generic = _ir_generic_config("gather", p.ir_texture_size, tris)
+    assert not bool(render_frame(p).stats["interreflection_overflow"])
+    tiny = dataclasses.replace(p, ir_raster_config=p.ir_raster_config._replace(
+        capacities=(16, 16, 16)))
+    f = render_frame(tiny)
+    assert bool(f.stats["interreflection_overflow"])
+    with pytest.warns(RuntimeWarning, match="ir_raster_config"):
+        g = _regrow(tiny, f, None, False)
+    assert not bool(g.stats["interreflection_overflow"])
+    ref = render_frame(dataclasses.replace(p, ir_raster_config=generic))
+    np.testing.assert_allclose(np.asarray(g.xyz), np.asarray(ref.xyz), rtol=1e-6, atol=1e-7)
