@@ -238,3 +238,27 @@ def test_lost_marker_object_leaves_no_interreflection():
         # with both visible the interreflection is there (so the comparison can fail)
         xb, oidb = out[m, (True, True)]
         assert np.abs(xb[oidb == 0] - x0[oid0 == 0]).max() > 1e-2 * peak, m
+
+
+@pytest.mark.slow  # two gather-mode live steps compiled (~2 min on a slow 2-core machine)
+def test_interreflection_overflow_falls_back_in_the_live_session(tables):
+    """A frame whose pass-1 rasters overflow their planned capacities is re-rendered with the
+    generic ones (one recompilation), and equals the frame of a session that never overflowed."""
+    import dataclasses
+
+    from spectral_fit.live import LiveSession
+    from spectral_fit.renderer import _ir_generic_config
+
+    both, _ = tables
+    img, _, _ = _frame(both, (0.0, 0.3, 0.25), seed=3)
+    ok = LiveSession(_scene(hold_frames=0), size=SIZE, mode="gather")
+    want = ok.process(img)
+    s = LiveSession(_scene(hold_frames=0), size=SIZE, mode="gather")
+    s.prep = dataclasses.replace(s.prep, ir_raster_config=s.prep.ir_raster_config._replace(
+        capacities=(16, 16, 16)))
+    got = s.process(img)
+    tris = max(tb - ta for ta, tb in s.prep.triangle_slices)
+    assert s.prep.ir_raster_config.capacities == _ir_generic_config(
+        "gather", s.prep.ir_texture_size, tris).capacities
+    assert s.recompiles == 1 and ok.recompiles == 0
+    assert np.abs(got.astype(int) - want.astype(int)).max() <= 1
