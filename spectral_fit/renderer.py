@@ -356,7 +356,8 @@ def _ir_raster_config(mode: str, texture_size: int, triangles: int,
     they cannot be grown there; an overflow is flagged and :func:`render` / the live session
     then fall back to :func:`_ir_generic_config`). Gather: planned per sender mesh for any
     pose (``meshes``: (vertices in the object's frame, triangles);
-    :func:`~spectral_fit.interreflection.plan_gather_pass1`, 1.5× the most an axis view needs:
+    :func:`~spectral_fit.interreflection.plan_gather_pass1`: 1.5× the most that 24 views (six
+    axes, four rolls each) need;
     the generic sizes gave the 4×4 windows 80× what the benchmark spheres use, 6 ms of CPU per
     frame); without meshes the generic sizes. Paper: the generic sizes, and at least twice
     what the configured poses need (:func:`plan_capacities` on each pair's view)."""
