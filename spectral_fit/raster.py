@@ -988,9 +988,10 @@ def compact_flags(flags: jax.Array, capacity: int) -> tuple[jax.Array, jax.Array
     720 × 480 frame).
 
     The flags are packed 32 to a uint32 word (a reduction); a prefix sum of the words'
-    population counts (N/32 entries) gives the word that holds each rank (a binary search),
-    and a 5-step binary search over prefix population counts the bit within it (the "select"
-    of succinct bit vectors, Jacobson 1989). Work O(N + capacity · log N); exact.
+    population counts (N/32 entries), turned into a histogram over the slots and prefix-summed
+    again, gives the word that holds each rank, and a 5-step binary search over prefix
+    population counts the bit within it (the "select" of succinct bit vectors, Jacobson 1989).
+    Work O(N + capacity); exact.
 
     Args:
         flags: ``(N,)`` bool.
