@@ -35,12 +35,12 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .compositing import CameraModel, camera_model_from_sensitivities, composite_pixels
+from .dispatch import array_jit
 from .errors import InputError
 from .scene import Scene
 
@@ -183,7 +183,7 @@ def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
     return out, stats
 
 
-_step = eqx.filter_jit(_step_impl)
+_step = array_jit(_step_impl)
 
 
 def pipeline_pays() -> bool:

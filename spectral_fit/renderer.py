@@ -50,6 +50,7 @@ import numpy as np
 
 from .backend import materialise, on_accelerator
 from .camera import eye_position, inverse_3x3, inverse_4x4
+from .dispatch import array_jit
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
 from .reflectance import Material
@@ -655,10 +656,29 @@ def mirror_needed(materials: Any) -> bool:
     for x in _chi_leaves(materials):
         if isinstance(x, jax.core.Tracer):
             return True
-        a = np.asarray(x)
-        if not np.all(a == 0.0):  # NaN included
+        if not _all_zero(x):
             return True
     return False
+
+
+#: the last device arrays :func:`_all_zero` read, with the answer (weak references): the frame's
+#: default materials are the same arrays every frame, and reading them is a device → host copy
+_ZERO_MEMO: list[tuple[Any, bool]] = []
+
+
+def _all_zero(x: Any) -> bool:
+    """Whether every element of the concrete array ``x`` is 0 (NaN is not)."""
+    import weakref
+
+    if not isinstance(x, jax.Array):
+        return bool(np.all(np.asarray(x) == 0.0))
+    for ref, answer in _ZERO_MEMO:
+        if ref() is x:
+            return answer
+    answer = bool(np.all(np.asarray(x) == 0.0))
+    _ZERO_MEMO.insert(0, (weakref.ref(x), answer))
+    del _ZERO_MEMO[4:]
+    return answer
 
 
 def _chi_leaves(materials: Any) -> list[Any]:
@@ -1215,7 +1235,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                  object_id=px.object_id, spectral=spec, stats=stats)
 
 
-_render_jit = eqx.filter_jit(_render_impl)
+_render_jit = array_jit(_render_impl)
 
 
 @functools.cache
@@ -1245,8 +1265,16 @@ def _check_frame_inputs(prep: Prepared, materials: Any, model: Any, view: Any, v
     if not isinstance(mats, Material):
         mats = _stack(_as_stacked(mats, prep.num_objects)) if len(
             {(m.distribution, m.geometry) for m in mats}) == 1 else list(mats)
-    return (mats, jnp.asarray(model, jnp.float32), jnp.asarray(view, jnp.float32),
-            jnp.asarray(visible, bool))
+    return (mats, _as_dtype(model, jnp.float32), _as_dtype(view, jnp.float32),
+            _as_dtype(visible, jnp.bool_))
+
+
+def _as_dtype(x: Any, dtype: Any) -> jax.Array:
+    """``jnp.asarray(x, dtype)``, skipped for a ``jax.Array`` that has the dtype already (the
+    per-frame inputs: the conversion is a dispatch of its own on the frame's path)."""
+    if isinstance(x, jax.Array) and x.dtype == dtype:
+        return x
+    return jnp.asarray(x, dtype)
 
 
 def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
