@@ -1425,15 +1425,18 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
     sh = _shading(materials, env)
     live = geom.s_area > 0
     frames = _view_frames(geom)
-    spec, mirror = _sample_specular(geom, sh, frames)
-    l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh), 0.0)
+    with jax.named_scope("ir_sample_shading"):
+        spec, mirror = _sample_specular(geom, sh, frames)
+        l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh), 0.0)
     cov = geom.s_cov[..., None]
 
     def senders_with(lum: jax.Array) -> tuple[_Senders, jax.Array]:
         snd = _Senders(pos=geom.s_pos, nrm=geom.s_nrm, area=geom.s_area, frames=frames,
                        lum=lum, spec=spec, mirror=mirror)
-        atlas = (_build_mips(lum * cov, geom.gather_size),
-                 _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1), geom.gather_size))
+        with jax.named_scope("ir_atlas"):
+            atlas = (_build_mips(lum * cov, geom.gather_size),
+                     _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1),
+                                 geom.gather_size))
         return snd, atlas
 
     lum = l0
@@ -1444,12 +1447,14 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
     net = None
     for b in range(bounces):
         if diffuse_at == "samples" or b < bounces - 1:
-            net = _sample_diffuse_net(geom, snd, env)
+            with jax.named_scope("ir_sample_transfer"):
+                net = _sample_diffuse_net(geom, snd, env)
         if b == bounces - 1:
             break
-        extra = _receive(geom, sh, atlas,
-                         _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj), s_pos,
-                         s_nrm, geom.s_view.reshape(-1, 3), s_obj, gloss=True)
+        with jax.named_scope("ir_sample_bounce"):
+            extra = _receive(geom, sh, atlas,
+                             _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj),
+                             s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj, gloss=True)
         lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
         snd, atlas = senders_with(lum)
     pos, nrm, obj = receivers.position, receivers.normal, receivers.object
@@ -1458,16 +1463,20 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
     # interpolated, the senders' atlas mapped before it is gathered from (all linear)
     sh = dataclasses.replace(sh, output=None if output is None else jnp.asarray(output,
                                                                               jnp.float32))
-    if diffuse_at == "samples":
-        refl = sh.diffuse_matrices()[jnp.asarray(senders, jnp.int32)]  # (P, C, D)
-        diffuse = _interpolate_net(geom, jnp.einsum("pmc,pcd->pmd", net, refl), pos, nrm, obj)
-    else:
-        diffuse = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, pos, nrm, obj), obj)
+    with jax.named_scope("ir_receiver_diffuse"):
+        if diffuse_at == "samples":
+            refl = sh.diffuse_matrices()[jnp.asarray(senders, jnp.int32)]  # (P, C, D)
+            diffuse = _interpolate_net(geom, jnp.einsum("pmc,pcd->pmd", net, refl), pos, nrm,
+                                       obj)
+        else:
+            diffuse = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, pos, nrm, obj),
+                                       obj)
     if output is not None:
         atlas = (atlas[0] @ sh.output, atlas[1])
     grid = None if image_shape is None or gloss_step < 2 else (receivers.pixel, image_shape,
                                                                 gloss_step)
-    return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid)
+    with jax.named_scope("ir_receiver_gloss"):
+        return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid)
 
 
 # --------------------------------------------------------------------------------------------

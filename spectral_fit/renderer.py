@@ -834,8 +834,10 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
                           "installation (spectral_fit.interreflection missing); rendering "
                           "without interreflection", RuntimeWarning, stacklevel=4)
         return None, no
-    geom = prepare_interreflection(geoms, mode=prep.ir_mode, texture_size=prep.ir_texture_size,
-                                   raster_config=prep.ir_raster_config)
+    with jax.named_scope("ir_pass1"):
+        geom = prepare_interreflection(geoms, mode=prep.ir_mode,
+                                       texture_size=prep.ir_texture_size,
+                                       raster_config=prep.ir_raster_config)
     extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
                                  bounces=prep.ir_bounces, image_shape=prep.shape,
                                  output=to_out)
@@ -1120,11 +1122,13 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     clip = world @ vp[:, :3].T + vp[:, 3]
 
     # 2. rasterise, compact covered pixels, G-buffer
-    ras = rasterize(clip, prep.triangles, (h, w), config=prep.raster_config, check=False)
+    with jax.named_scope("raster"):
+        ras = rasterize(clip, prep.triangles, (h, w), config=prep.raster_config, check=False)
     # covered pixels, one fixed-capacity list per object (each object is shaded with its own
     # material, whose per-material precomputations then run once per object)
-    obj_img = jnp.where(ras.tri_id >= 0, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
-    pix, counts = _object_pixel_lists(ras.tri_id, obj_img, prep.pixel_capacity)
+    with jax.named_scope("pixel_lists"):
+        obj_img = jnp.where(ras.tri_id >= 0, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
+        pix, counts = _object_pixel_lists(ras.tri_id, obj_img, prep.pixel_capacity)
     attrs = jnp.concatenate([world, wnorm], axis=1)
     vals = interpolate_pixels(attrs, pix, prep.triangles, clip)
     pos = vals[:, :3]
@@ -1155,12 +1159,13 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     else:
         to_out = prep.to_xyz
         mirror_table = prep.env_xyz
-    if prep.quality == "fast":
-        radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table)
-    else:
-        radiance = _shade_samples(mats, prep.env, gb, prep.batch_size, prep.irradiance_lut,
-                                  prep.quality, prep.pixel_capacity, prep.split_map,
-                                  prep.split_settings) @ to_out
+    with jax.named_scope("shading"):
+        if prep.quality == "fast":
+            radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table)
+        else:
+            radiance = _shade_samples(mats, prep.env, gb, prep.batch_size,
+                                      prep.irradiance_lut, prep.quality, prep.pixel_capacity,
+                                      prep.split_map, prep.split_settings) @ to_out
     # interreflection sees a hidden object intact (no degenerate triangles, which gave NaN)
     # but 1 km below the scene: its light and shadow on the others are ~1e-9 of a neighbour's
     away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
@@ -1203,7 +1208,8 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     px = _pixels_impl(prep, materials, model, view, visible, spectral, mirror)
     # 4. background and XYZ
     if background:
-        bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
+        with jax.named_scope("background"):
+            bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
     else:
         bg_xyz = jnp.zeros((h, w, 3), jnp.float32)
     spec = None
@@ -1221,8 +1227,9 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         xyz = _scatter(px.values, px, bg_xyz)
 
     # 5. display
-    d = to_display(xyz, exposure_luminance=prep.exposure, display=prep.display,
-                   scene_white_xy=prep.scene_white_xy, mask=px.mask)
+    with jax.named_scope("display"):
+        d = to_display(xyz, exposure_luminance=prep.exposure, display=prep.display,
+                       scene_white_xy=prep.scene_white_xy, mask=px.mask)
     count = px.stats["covered_pixels"]
     stats = {
         "out_of_gamut_fraction": d.out_of_gamut_fraction,
