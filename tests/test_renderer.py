@@ -519,3 +519,17 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
     assert not bool(g.stats["interreflection_overflow"])
     ref = render_frame(dataclasses.replace(p, ir_raster_config=generic))
     np.testing.assert_allclose(np.asarray(g.xyz), np.asarray(ref.xyz), rtol=1e-6, atol=1e-7)
+
+
+def test_frame_stages_are_named_for_profilers(folder):
+    """The frame program's operations carry the stage names that docs/rendering.md lists for
+    reading profiler traces (jax.named_scope: they appear in the HLO op names)."""
+    from spectral_fit import renderer
+
+    p = renderer.prepare(write_scene(folder, mode="gather"))
+    args = renderer._check_frame_inputs(p, None, None, None, None)
+    text = renderer._render_jit.lower(p, *args, False, True, False).as_text(debug_info=True)
+    for stage in ("raster", "pixel_lists", "shading", "ir_pass1", "ir_sample_shading",
+                  "ir_atlas", "ir_sample_transfer", "ir_receiver_diffuse", "ir_receiver_gloss",
+                  "background", "display"):
+        assert f"/{stage}/" in text, stage
