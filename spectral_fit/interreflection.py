@@ -105,6 +105,7 @@ from .raster import (
     RasterConfig,
     _ladder,
     covered_pixels,
+    default_config,
     interpolate,
     interpolate_pixels,
     plan_counts,
@@ -117,6 +118,7 @@ __all__ = [
     "IRGeometry",
     "prepare_interreflection",
     "plan_gather_pass1",
+    "pass1_config",
     "interreflection_from",
     "interreflection",
     "pair_list",
@@ -230,17 +232,23 @@ def _ortho_clip(view: jax.Array, vertices: jax.Array, extent: jax.Array, near: j
     return xp.stack([q[:, 0] / extent, q[:, 1] / extent, z, xp.ones_like(z)], axis=-1)
 
 
-def _pass1_config(num_triangles: int, side: int) -> RasterConfig:
-    """Window capacities of a pass-1 raster (side², back faces culled, so at most half the
-    triangles are drawn) that hold for any pose, one per size of the rasteriser's window
-    ladder (``raster.TILE_SIZES``): T/2 windows for the smaller sizes, T/4 plus four tilings
-    of the target for the largest, and all 8×8 blocks of the target. Overflow is still
-    flagged."""
+def pass1_config(num_triangles: int, side: int) -> RasterConfig:
+    """Generic window capacities of a pass-1 raster (side × side, back faces culled) of a
+    sender with ``num_triangles`` triangles, used where no per-mesh plan exists (the direct
+    calls of this module without ``raster_config``, and the renderer's fallback after a
+    planned capacity overflowed): per size of the rasteriser's window ladder
+    (``raster.TILE_SIZES``) the larger of :func:`~spectral_fit.raster.default_config`'s
+    (T windows, the largest size enough for half the target) and a closed mesh's (T/2 + 16,
+    since at most half its faces are front faces; T/4 + 16 plus four tilings of the target
+    for the largest size), and every 8×8 block of the target. A pose needing more still
+    sets the overflow flag."""
+    side = int(side)
+    base = default_config(num_triangles, (side, side))
     half = max(16, num_triangles // 2 + 16)
     tiling = (-(-side // TILE_SIZES[-1])) ** 2
-    caps = (*([half] * (len(TILE_SIZES) - 1)), max(16, num_triangles // 4 + 16) + 4 * tiling)
-    blocks = (-(-side // 8)) ** 2
-    return RasterConfig(TILE_SIZES, tuple(int(c) for c in caps), int(blocks))
+    closed = (*([half] * (len(TILE_SIZES) - 1)), max(16, num_triangles // 4 + 16) + 4 * tiling)
+    caps = tuple(int(max(a, b)) for a, b in zip(base.capacities, closed, strict=True))
+    return RasterConfig(TILE_SIZES, caps, (-(-side // 8)) ** 2)
 
 
 #: views (object frame) at which :func:`plan_gather_pass1` counts the windows: the six axes,
@@ -313,7 +321,7 @@ def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = _ortho_clip(view, verts, extent, near, far)
     if config is None:
-        config = _pass1_config(int(tris.shape[0]), side)
+        config = pass1_config(int(tris.shape[0]), side)
     ras = rasterize(clip, tris, (side, side), cull="back", config=config)
     hit = (ras.tri_id >= 0)
     # barycentrics recomputed from the clip positions (independent of the raster's block list)
@@ -351,7 +359,7 @@ def _paper_texels(obj_i: ObjectGeometry, obj_j: ObjectGeometry, t: int, capacity
     tris = jnp.asarray(obj_j.triangles, jnp.int32)
     clip = project(cam, verts)
     if config is None:
-        config = _pass1_config(int(tris.shape[0]), t)
+        config = pass1_config(int(tris.shape[0]), t)
     ras = rasterize(clip, tris, (t, t), cull="back", config=config)
     pix = covered_pixels(ras, capacity)
     pos = interpolate_pixels(verts, pix, tris, clip)
@@ -387,7 +395,7 @@ def prepare_interreflection(
             ``texture_size``² (j subtends at most 26 % of the view for two equal spheres that
             do not intersect); more sets ``overflow``.
         raster_config: :class:`~spectral_fit.raster.RasterConfig` of the pass-1 rasters
-            (default: the rasteriser's own sizing).
+            (default: :func:`pass1_config`).
 
     Returns:
         :class:`IRGeometry` with P = n(n − 1) pairs. Jit-able (shapes depend only on n,

@@ -339,14 +339,12 @@ def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
 
 
 def _ir_generic_config(mode: str, texture_size: int, triangles: int) -> Any:
-    """The rasteriser's generic window capacities for a pass-1 raster of ``triangles``
-    triangles, with room for every 8×8 block of the pass-1 frame (64² for gather: 4×
-    supersampled 16² samples; ``texture_size``² for paper)."""
-    from .raster import default_config
+    """The generic window capacities of a pass-1 raster of ``triangles`` triangles
+    (:func:`~spectral_fit.interreflection.pass1_config`) on the pass-1 frame: 64² for
+    gather (4× supersampled 16² samples), ``texture_size``² for paper."""
+    from .interreflection import SUPERSAMPLE, pass1_config
 
-    side = texture_size if mode == "paper" else 64
-    blocks = (-(-side // 8)) ** 2
-    return default_config(triangles, (side, side))._replace(block_capacity=blocks)
+    return pass1_config(triangles, texture_size if mode == "paper" else SUPERSAMPLE * 16)
 
 
 def _ir_raster_config(mode: str, texture_size: int, triangles: int,

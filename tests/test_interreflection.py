@@ -638,3 +638,37 @@ def test_planned_pass1_capacities_hold_for_any_orientation():
             for c in (jnp.zeros(3, jnp.float32), jnp.array([0.09, 0.0, 0.0], jnp.float32))]
     assert bool(jax.jit(lambda o: prepare_interreflection(o, mode="gather",
                                                          raster_config=small).overflow)(objs))
+
+
+@pytest.mark.parametrize("kind", ["ico", "uv"])
+def test_generic_pass1_capacities_hold_for_coarse_and_fine_meshes(kind):
+    """pass1_config (the direct calls' default and the renderer's fallback after a planned
+    capacity overflowed) holds what the pass-1 raster of a coarse icosphere (80 large
+    triangles: many 16×16 windows each) and of a finer UV sphere needs along random
+    directions (the rasteriser's own overflow flag), and the renderer's fallback is it."""
+    from spectral_fit.gbuffer import ObjectGeometry
+    from spectral_fit.interreflection import SUPERSAMPLE, pass1_config, prepare_interreflection
+    from spectral_fit.mesh import icosphere, rotate, uv_sphere
+    from spectral_fit.renderer import _ir_generic_config
+
+    sph = icosphere(0.0375, 1) if kind == "ico" else uv_sphere(0.0375, 24, 24)
+    t = len(sph.triangles)
+    assert _ir_generic_config("gather", 128, t) == pass1_config(t, SUPERSAMPLE * 16)
+    assert _ir_generic_config("paper", 96, t) == pass1_config(t, 96)
+
+    def overflow(rot, cj):
+        objs = [ObjectGeometry(jnp.asarray(sph.vertices) @ rot.T + c, jnp.asarray(sph.normals)
+                               @ rot.T, jnp.asarray(sph.triangles), c)
+                for c in (jnp.zeros(3, jnp.float32), cj)]
+        return (prepare_interreflection(objs, mode="gather").overflow,
+                prepare_interreflection(objs, mode="paper", texture_size=96).overflow)
+
+    f = jax.jit(overflow)
+    rng = np.random.default_rng(11)
+    for _ in range(8):
+        axis = rng.normal(size=3)
+        rot = rotate(axis / np.linalg.norm(axis), rng.uniform(0, 2 * np.pi))[:3, :3]
+        d = rng.normal(size=3)
+        cj = 0.08 * d / np.linalg.norm(d)
+        g, p = f(jnp.asarray(rot, jnp.float32), jnp.asarray(cj, jnp.float32))
+        assert not bool(g) and not bool(p)
