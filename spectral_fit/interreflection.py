@@ -119,6 +119,9 @@ __all__ = [
     "prepare_interreflection",
     "plan_gather_pass1",
     "pass1_config",
+    "GatherSenders",
+    "gather_senders",
+    "gather_receivers",
     "interreflection_from",
     "interreflection",
     "pair_list",
@@ -1427,10 +1430,47 @@ GLOSS_STEP = 2
 _GLOSS_SMOOTH = 0.7
 
 
-def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
-                 receivers: GBuffer, bounces: int, diffuse_at: str = "samples",
-                 image_shape: tuple[int, int] | None = None, gloss_step: int = 1,
-                 output: jax.Array | None = None) -> jax.Array:
+class GatherSenders(eqx.Module):
+    """The camera-independent half of the gather interreflection of one scene state
+    (:func:`gather_senders`): pass-1 geometry, the senders' samples with their radiance after
+    all the bounces, their mip atlases and the diffuse net light at the samples. A pytree of
+    arrays; :func:`gather_receivers` turns it into the light at any receivers. It depends on
+    the objects' poses, the materials and the environment, not on the camera.
+
+    Attributes:
+        geometry: :class:`IRGeometry` (gather mode).
+        senders: the senders' samples as the last gather saw them.
+        atlas: (radiance (P, A, C), normal·coverage and coverage (P, A, 4)) mip atlases.
+        net: (P, M, C) diffuse net light at the samples, or None (``diffuse_at`` =
+            "receivers" with one bounce).
+    """
+
+    geometry: IRGeometry
+    senders: _Senders
+    atlas: tuple[jax.Array, jax.Array]
+    net: jax.Array | None
+
+
+def gather_senders(geometry: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                   *, bounces: int = 1, diffuse_at: str = "samples") -> GatherSenders:
+    """The senders' side of :func:`interreflection_from` in gather mode (pass-1 shading, mip
+    atlases, the sample-to-sample transfer and the bounces): everything that does not depend
+    on the receivers, so a caller whose objects and materials did not change (a camera
+    moving around static objects) computes it once and calls :func:`gather_receivers` per
+    frame. ``gather_receivers(gather_senders(g, m, e), m, e, r)`` equals
+    ``interreflection_from(g, m, e, r)`` exactly."""
+    if geometry.mode != "gather":
+        raise InputError(f"needs a gather-mode geometry, got {geometry.mode!r}", field="mode")
+    _check_materials(geometry.n_objects, materials, env)
+    bounces = _check_int(bounces, "bounces", 1, 64)
+    if diffuse_at not in DIFFUSE_AT:
+        raise InputError(f"must be one of {DIFFUSE_AT}, got {diffuse_at!r}",
+                         field="diffuse_at")
+    return _gather_senders(geometry, materials, env, bounces, diffuse_at)
+
+
+def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                    bounces: int, diffuse_at: str) -> GatherSenders:
     pairs = geom.pairs
     senders = [j for _, j in pairs]
     p_count, m_count = geom.s_area.shape
@@ -1469,6 +1509,34 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
                              s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj, gloss=True)
         lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
         snd, atlas = senders_with(lum)
+    return GatherSenders(geometry=geom, senders=snd, atlas=atlas,
+                         net=net if diffuse_at == "samples" else None)
+
+
+def gather_receivers(state: GatherSenders, materials: Sequence[Material], env: EnvironmentMap,
+                     receivers: GBuffer, *, image_shape: tuple[int, int] | None = None,
+                     gloss_step: int = GLOSS_STEP, output: Any = None) -> jax.Array:
+    """The receivers' side of the gather interreflection: radiance (N, C) (or (N, D) with
+    ``output``) to add at ``receivers``, from :func:`gather_senders`'s state of the same
+    objects, ``materials`` and ``env`` (options as :func:`interreflection_from`; the
+    diffuse transfer is evaluated where the state was made for)."""
+    geom = state.geometry
+    _check_materials(geom.n_objects, materials, env)
+    _check_receivers(receivers)
+    gloss_step = _check_int(gloss_step, "gloss_step", 1, 64)
+    image_shape = _check_image_shape(image_shape)
+    diffuse_at = "samples" if state.net is not None else "receivers"
+    return _gather_receivers(state, materials, env, receivers, diffuse_at, image_shape,
+                             gloss_step, output)
+
+
+def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
+                      env: EnvironmentMap, receivers: GBuffer, diffuse_at: str,
+                      image_shape: tuple[int, int] | None, gloss_step: int,
+                      output: jax.Array | None) -> jax.Array:
+    geom, snd, atlas, net = state.geometry, state.senders, state.atlas, state.net
+    senders = [j for _, j in geom.pairs]
+    sh = _shading(materials, env)
     pos, nrm, obj = receivers.position, receivers.normal, receivers.object
     # the receivers' terms in the output channels: the diffuse net light of each pair's
     # samples reflected by their object (α S ⊙ net, then the output map) before it is
@@ -1489,6 +1557,15 @@ def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: Environme
                                                                 gloss_step)
     with jax.named_scope("ir_receiver_gloss"):
         return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid)
+
+
+def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                 receivers: GBuffer, bounces: int, diffuse_at: str = "samples",
+                 image_shape: tuple[int, int] | None = None, gloss_step: int = 1,
+                 output: jax.Array | None = None) -> jax.Array:
+    state = _gather_senders(geom, materials, env, bounces, diffuse_at)
+    return _gather_receivers(state, materials, env, receivers, diffuse_at, image_shape,
+                             gloss_step, output)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1580,8 +1657,7 @@ def _paper_mode(geom: IRGeometry, materials: Sequence[Material], env: Environmen
 # public entry points
 
 
-def _check_inputs(n: int, materials: Sequence[Material], env: EnvironmentMap,
-                  receivers: GBuffer) -> None:
+def _check_materials(n: int, materials: Sequence[Material], env: EnvironmentMap) -> None:
     if len(materials) != n:
         raise InputError(f"{len(materials)} materials for {n} objects", field="materials")
     c = env.channels
@@ -1592,9 +1668,27 @@ def _check_inputs(n: int, materials: Sequence[Material], env: EnvironmentMap,
         if jnp.shape(m.reflectance)[-1] != c:
             raise InputError(f"reflectance has {jnp.shape(m.reflectance)[-1]} channels, the "
                              f"environment {c}", field=f"materials[{k}].reflectance")
+
+
+def _check_receivers(receivers: GBuffer) -> None:
     if not isinstance(receivers, GBuffer):
         raise InputError(f"expected a GBuffer, got {type(receivers).__name__}",
                          field="receivers")
+
+
+def _check_inputs(n: int, materials: Sequence[Material], env: EnvironmentMap,
+                  receivers: GBuffer) -> None:
+    _check_materials(n, materials, env)
+    _check_receivers(receivers)
+
+
+def _check_image_shape(image_shape: Any) -> tuple[int, int] | None:
+    if image_shape is None:
+        return None
+    if len(image_shape) != 2:
+        raise InputError(f"must be (H, W), got {image_shape!r}", field="image_shape")
+    return (_check_int(image_shape[0], "image_shape", 1, 1 << 15),
+            _check_int(image_shape[1], "image_shape", 1, 1 << 15))
 
 
 def _output_channels(env: EnvironmentMap, output: Any) -> int:
@@ -1660,11 +1754,7 @@ def interreflection_from(
         raise InputError(f"must be one of {DIFFUSE_AT}, got {diffuse_at!r}",
                          field="diffuse_at")
     gloss_step = _check_int(gloss_step, "gloss_step", 1, 64)
-    if image_shape is not None:
-        if len(image_shape) != 2:
-            raise InputError(f"must be (H, W), got {image_shape!r}", field="image_shape")
-        image_shape = (_check_int(image_shape[0], "image_shape", 1, 1 << 15),
-                       _check_int(image_shape[1], "image_shape", 1, 1 << 15))
+    image_shape = _check_image_shape(image_shape)
     zeros = jnp.zeros((receivers.object.shape[0], _output_channels(env, output)), jnp.float32)
     if mode == "none" or n < 2 or bounces == 0:
         return zeros

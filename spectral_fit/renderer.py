@@ -63,6 +63,7 @@ __all__ = [
     "prepare",
     "render_frame",
     "render_pixels",
+    "render_senders",
     "mirror_needed",
     "with_output",
     "render",
@@ -72,7 +73,7 @@ __all__ = [
 ]
 
 #: number of times :func:`render_frame` has been traced (i.e. compiled), for tests and reports
-TRACE_COUNT = {"render_frame": 0}
+TRACE_COUNT = {"render_frame": 0, "ir_senders": 0}
 
 _IR_MODES = ("gather", "paper", "none")
 #: environment shading qualities of frames (see :func:`prepare`)
@@ -1092,12 +1093,68 @@ def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple
     return PixelList(index, tri, sum(counts), overflow, (h, w)), counts
 
 
+def _ir_geometries(prep: Prepared, world_full: jax.Array, wnorm: jax.Array,
+                   model: jax.Array, visible: jax.Array) -> list[ObjectGeometry]:
+    """The objects as the interreflection sees them: a hidden object intact (no degenerate
+    triangles, which gave NaN) but 1 km below the scene: its light and shadow on the others
+    are ~1e-9 of a neighbour's."""
+    centres = model[:, :3, 3]
+    away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
+    world_ir = world_full + away[prep.vertex_object]
+    return [ObjectGeometry(vertices=world_ir[a:b], normals=wnorm[a:b],
+                           triangles=prep.triangles[ta:tb] - a, centre=centres[i] + away[i])
+            for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
+                                                       prep.triangle_slices, strict=True))]
+
+
+def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax.Array,
+                  mirror: bool = True) -> Any:
+    from .interreflection import gather_senders, prepare_interreflection
+
+    TRACE_COUNT["ir_senders"] += 1
+    mats = _as_stacked(materials, prep.num_objects)
+    if not mirror:
+        mats = _without_mirror(mats)
+    model = jnp.asarray(model, jnp.float32)
+    visible = jnp.asarray(visible, bool)
+    world_full = _to_world(prep.vertices, prep.vertex_object, model)
+    wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
+    geoms = _ir_geometries(prep, world_full, wnorm, model, visible)
+    with jax.named_scope("ir_pass1"):
+        geom = prepare_interreflection(geoms, mode="gather", texture_size=prep.ir_texture_size,
+                                       raster_config=prep.ir_raster_config)
+    return gather_senders(geom, mats, prep.env, bounces=prep.ir_bounces)
+
+
+_senders_jit = array_jit(_senders_impl)
+
+
+def render_senders(prep: Prepared, materials: Any = None, *, model: Any = None,
+                   visible: Any = None, mirror: bool | None = None) -> Any:
+    """The camera-independent half of a gather-mode frame's interreflection (pass 1, the
+    senders' shading, atlases, transfer and bounces;
+    :class:`~spectral_fit.interreflection.GatherSenders`), for the objects at ``model`` /
+    ``visible`` (defaults as :func:`render_frame`; traced, compiled once per ``prep``).
+    Pass it to :func:`render_pixels` (``senders=``) for any number of camera views of that
+    same object state: the result equals the frame that computes it itself. Its
+    ``geometry.overflow`` is the pass-1 overflow flag. ``mirror``: as for
+    :func:`render_frame`, and the same for the frames that use it."""
+    if prep.ir_mode != "gather" or prep.num_objects < 2:
+        raise InputError("needs a gather-mode interreflection of at least two objects, got "
+                         f"mode {prep.ir_mode!r} with {prep.num_objects} objects",
+                         field="interreflection.mode")
+    mats, model, _, visible = _check_frame_inputs(prep, materials, model, None, visible)
+    return _senders_jit(prep, mats, model, visible, _mirror_flag(mats, mirror))
+
+
 def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
-                 visible: jax.Array, spectral: bool, mirror: bool = True) -> PixelFrame:
+                 visible: jax.Array, spectral: bool, mirror: bool = True,
+                 senders: Any = None) -> PixelFrame:
     """Steps 1–3 of the frame (traced): geometry, raster, covered pixels, G-buffer, shading
     and interreflection of the covered pixels, in the output channels (see
     :class:`PixelFrame`). ``mirror`` False (static): every χ taken as 0, the mirror term left
-    out (see :func:`mirror_needed`)."""
+    out (see :func:`mirror_needed`). ``senders``: the gather interreflection's senders' half
+    (:func:`render_senders`) instead of computing it here."""
     from .raster import interpolate_pixels, rasterize
 
     TRACE_COUNT["render_frame"] += 1
@@ -1164,16 +1221,16 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
             radiance = _shade_samples(mats, prep.env, gb, prep.batch_size,
                                       prep.irradiance_lut, prep.quality, prep.pixel_capacity,
                                       prep.split_map, prep.split_settings) @ to_out
-    # interreflection sees a hidden object intact (no degenerate triangles, which gave NaN)
-    # but 1 km below the scene: its light and shadow on the others are ~1e-9 of a neighbour's
-    away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
-    world_ir = world_full + away[prep.vertex_object]
-    geoms = [ObjectGeometry(vertices=world_ir[a:b], normals=wnorm[a:b],
-                            triangles=prep.triangles[ta:tb] - a, centre=centres[i] + away[i])
-             for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
-                                                        prep.triangle_slices, strict=True))]
     # (in the output channels: the receivers' side of the gather works in those)
-    ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
+    if senders is not None:
+        from .interreflection import gather_receivers
+
+        ir = gather_receivers(senders, mats, prep.env, gb, image_shape=prep.shape,
+                              output=None if spectral else to_out)
+        ir_overflow = jnp.asarray(senders.geometry.overflow, bool)
+    else:
+        geoms = _ir_geometries(prep, world_full, wnorm, model, visible)
+        ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
     if ir is not None:
         radiance = radiance + ir
     # materialised: otherwise the interreflection's tail (its chunks' results put back in
@@ -1284,7 +1341,7 @@ def _as_dtype(x: Any, dtype: Any) -> jax.Array:
 
 def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
                   view: Any = None, visible: Any = None, spectral: bool = False,
-                  mirror: bool | None = None) -> PixelFrame:
+                  mirror: bool | None = None, senders: Any = None) -> PixelFrame:
     """The covered pixels of one frame, shaded (with interreflection), without background,
     image scatter or display encoding: for callers that put the pixels somewhere else (the
     live composite writes them straight into the video frame). Same inputs as
@@ -1292,10 +1349,16 @@ def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
     :class:`PixelFrame`; its values are in ``prep.to_xyz``'s output space (:func:`with_output`)
     or, with ``spectral``, in the C radiance channels. ``mirror``: as for
     :func:`render_frame`; inside a caller's ``jit`` the materials are traced, so the default
-    keeps the mirror term: pass :func:`mirror_needed` of the concrete materials from outside."""
+    keeps the mirror term: pass :func:`mirror_needed` of the concrete materials from outside.
+    ``senders``: :func:`render_senders` of the same ``prep``, materials, mirror switch and
+    object state (``model``, ``visible``: the caller keeps them consistent), used instead of
+    the frame's own pass 1 (gather mode only)."""
     mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
+    if senders is not None and prep.ir_mode != "gather":
+        raise InputError(f"senders given but the interreflection mode is {prep.ir_mode!r}",
+                         field="senders")
     return _pixels_impl(prep, mats, model, view, visible, spectral,
-                        _mirror_flag(mats, mirror))
+                        _mirror_flag(mats, mirror), senders)
 
 
 def _mirror_flag(mats: Any, mirror: bool | None) -> bool:
