@@ -166,7 +166,8 @@ def camera_output_matrix(prep: Any, camera: CameraModel) -> np.ndarray:
 
 def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
                visible: jax.Array, background: jax.Array, camera: CameraModel,
-               mirror: bool = True) -> tuple[jax.Array, dict[str, jax.Array]]:
+               mirror: bool = True, senders: Any = None
+               ) -> tuple[jax.Array, dict[str, jax.Array]]:
     from .renderer import render_pixels
 
     STEP_TRACES["step"] += 1
@@ -174,7 +175,7 @@ def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
     # encoded and written into the video frame: no environment background, no full-frame
     # display encoding, no decoding of the video
     px = render_pixels(prep, materials, model=model, view=view, visible=visible,
-                       mirror=mirror)
+                       mirror=mirror, senders=senders)
     out = composite_pixels(background, px.values, px.index, px.valid, camera)
     stats = {"covered_pixels": px.stats["covered_pixels"],
              "overflow": px.stats["pixel_overflow"] | px.stats["raster_overflow"],
@@ -220,6 +221,14 @@ class LiveSession:
         detect_downscale: marker detection on the frame shrunk by this factor, corners
             refined at full resolution (:class:`~spectral_fit.markers.MarkerDetector`; None:
             2 for frames of 400 px and more).
+        ir_reuse_mm: gather interreflection: the senders' half (pass 1, the senders'
+            shading, transfer and bounces: :func:`~spectral_fit.renderer.render_senders`;
+            it does not depend on the camera) is computed again only when some vertex of an
+            object moved more than this many millimetres in the world (or an object's
+            visibility changed) since it was last computed; otherwise the frame reuses it
+            (a camera moving around objects that stay put). 0: reused only for identical
+            poses. None: every frame computes it inside the step (one program). Counted in
+            ``ir_updates`` and ``ir_reuses``.
     """
 
     def __init__(self, scene: Scene, *, size: tuple[int, int] | None = None,
@@ -227,7 +236,8 @@ class LiveSession:
                  sensitivities: str | None = None, white_level: float = 0.85,
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
-                 headroom: float = 1.6, detect_downscale: int | None = None) -> None:
+                 headroom: float = 1.6, detect_downscale: int | None = None,
+                 ir_reuse_mm: float | None = 0.5) -> None:
         self._init_cpu(scene, size, detect_downscale=detect_downscale)
         scene = self.scene
         if camera is None:
@@ -247,6 +257,15 @@ class LiveSession:
         from .renderer import mirror_needed
 
         self._mirror = mirror_needed(self.prep.materials)
+        if ir_reuse_mm is not None and not (np.isfinite(ir_reuse_mm) and ir_reuse_mm >= 0):
+            raise InputError(f"must be a number >= 0 or None, got {ir_reuse_mm!r}",
+                             field="ir_reuse_mm")
+        self.ir_reuse_mm = None if ir_reuse_mm is None else float(ir_reuse_mm)
+        self.ir_updates = 0
+        self.ir_reuses = 0
+        self._senders: Any = None
+        self._senders_key: Any = None
+        self._corners = _object_corners(self.prep)
 
     # ------------------------------------------------------------------ preparation
 
@@ -368,9 +387,32 @@ class LiveSession:
 
     def render(self, poses: Any, background: Any) -> tuple[jax.Array, dict[str, Any]]:
         """Dispatch the compiled step (asynchronous; block on the result to time it)."""
-        return _step(self.prep, self.prep.materials, jnp.asarray(poses.model),
-                     jnp.asarray(poses.view), jnp.asarray(poses.visible),
-                     jnp.asarray(background), self.camera, self._mirror)
+        inputs = (jnp.asarray(poses.model), jnp.asarray(poses.view),
+                  jnp.asarray(poses.visible))
+        return _step(self.prep, self.prep.materials, *inputs, jnp.asarray(background),
+                     self.camera, self._mirror, self._senders_for(poses, inputs))
+
+    def _senders_for(self, poses: Any, inputs: Any) -> Any:
+        """The gather interreflection's senders' half for these poses: reused when no vertex
+        moved more than ``ir_reuse_mm`` (and visibility and the prepared scene are the same),
+        else computed (dispatched) again; None when the step computes it itself."""
+        if self.ir_reuse_mm is None or self.prep.ir_mode != "gather" or \
+                self.prep.num_objects < 2:
+            return None
+        from .renderer import render_senders
+
+        model = np.asarray(poses.model, np.float64)
+        visible = np.asarray(poses.visible, bool)
+        key = self._senders_key
+        if (key is not None and key[0] is self.prep and np.array_equal(key[2], visible)
+                and _max_displacement(self._corners, key[1], model) <= self.ir_reuse_mm * 1e-3):
+            self.ir_reuses += 1
+            return self._senders
+        self._senders = render_senders(self.prep, self.prep.materials, model=inputs[0],
+                                       visible=inputs[2], mirror=self._mirror)
+        self._senders_key = (self.prep, model, visible)
+        self.ir_updates += 1
+        return self._senders
 
     def _check(self, frame: np.ndarray) -> None:
         if frame.shape != (*self.size, 3) or frame.dtype != np.uint8:
@@ -396,7 +438,8 @@ class LiveSession:
         if not self._planned and poses.visible.any():
             self._replan(poses, self.headroom)  # size the buffers on the first real poses
             self._planned = True
-        return _step(self.prep, self.prep.materials, *inputs, bg, self.camera, self._mirror)
+        return _step(self.prep, self.prep.materials, *inputs, bg, self.camera, self._mirror,
+                     self._senders_for(poses, inputs))
 
     def submit(self, frame: np.ndarray) -> _Pending:
         """CPU stages of one frame (detect, track, undistort) and the DISPATCH of its compiled
@@ -588,6 +631,27 @@ class _Pending:
     out: Any
     stats: dict[str, Any]
     times: tuple[float, float, float]
+
+
+def _object_corners(prep: Any) -> np.ndarray:
+    """(O, 8, 4) homogeneous corners of each object's bounding box in its own frame."""
+    v = np.asarray(prep.vertices, np.float64)
+    out = []
+    for a, b in prep.object_slices:
+        lo, hi = v[a:b].min(axis=0), v[a:b].max(axis=0)
+        c = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                      for z in (lo[2], hi[2])])
+        out.append(c)
+    return np.stack(out)
+
+
+def _max_displacement(corners: np.ndarray, model_a: np.ndarray, model_b: np.ndarray) -> float:
+    """The largest distance (m) any point of an object's bounding box moves between the
+    world-from-object matrices ``model_a`` and ``model_b`` (O, 4, 4): the displacement of an
+    affine map is a convex function of the point, so its maximum over the box is at a
+    corner, and it bounds every vertex's."""
+    d = np.einsum("oij,okj->oki", model_b - model_a, corners)[..., :3]
+    return float(np.sqrt(np.max(np.sum(d * d, axis=-1))))
 
 
 def _default_markers():

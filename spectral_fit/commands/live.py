@@ -36,8 +36,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "--no-pipeline runs them one after the other; default: threads on a GPU, "
                    "one after the other on the CPU backend (there the render already uses "
                    "every core and threads beside it slow it down)")
+    p.add_argument("--ir-reuse-mm", type=_reuse_mm, default=0.5, metavar="MM|off",
+                   help="gather interreflection: compute its camera-independent half again "
+                   "only when an object moved more than MM millimetres (default 0.5; 0: only "
+                   "for identical poses; off: every frame)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _reuse_mm(text: str) -> float | None:
+    if text.strip().lower() == "off":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (v >= 0 and v < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a number >= 0 or 'off', got {text!r}")
+    return v
 
 
 def _bar(i: int, n: int | None, render_fps: float, e2e_fps: float) -> str:
@@ -67,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
     with source:
         session = LiveSession(scene, size=(source.height, source.width), mode=args.mode,
                               spectral_mode=args.spectral_mode, k=args.k,
-                              sensitivities=args.sensitivities, white_level=args.white_level)
+                              sensitivities=args.sensitivities, white_level=args.white_level,
+                              ir_reuse_mm=args.ir_reuse_mm)
         fps_out = args.fps or (source.fps if source.fps and source.fps > 0 else 25.0)
         total = source.frame_count
         if args.max_frames is not None:
@@ -107,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
         "end_to_end_fps": 1e3 / med["interval"] if med["interval"] else None,
         "stage_median_ms": {k: v for k, v in med.items() if k != "interval"},
         "recompiles": session.recompiles,
+        "interreflection_senders": {"computed": session.ir_updates,
+                                    "reused": session.ir_reuses,
+                                    "reuse_mm": session.ir_reuse_mm},
         "frames_masked": {o.name: c for o, c in zip(scene.objects, lost, strict=True)},
         "output": args.output,
         "output_frames": written,

@@ -1,0 +1,173 @@
+"""The gather interreflection's camera-independent half computed once and reused: the split
+frame equals the frame that computes it itself, and the live session reuses it only while the
+objects stay within its tolerance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("spectral_fit.renderer")
+
+import jax.numpy as jnp
+
+from spectral_fit.errors import InputError
+
+
+def _views():
+    from spectral_fit.camera import look_at
+
+    up = jnp.array([0.0, 1.0, 0.0])
+    target = jnp.array([0.0, 0.0, -0.275])
+    return [look_at(jnp.array(e), target, up) for e in
+            ([0.0, 0.0, 0.0], [0.05, 0.03, -0.02], [-0.06, 0.08, -0.05])]
+
+
+@pytest.fixture(scope="module")
+def prep():
+    from spectral_fit.benchmarks.frame import benchmark_scene
+    from spectral_fit.renderer import prepare
+
+    return prepare(benchmark_scene(quick=True), size=(96, 64), mode="gather")
+
+
+def test_split_frame_equals_the_frame_that_computes_its_senders(prep):
+    """render_pixels(senders=render_senders(...)) against render_pixels alone, for three
+    camera views of one object state (one senders' computation), and for moved objects; the
+    interreflection is a visible part of those pixels (so the comparison can fail)."""
+    from spectral_fit.dispatch import array_jit
+    from spectral_fit.renderer import TRACE_COUNT, render_pixels, render_senders
+
+    pixels = array_jit(lambda p, model, view, senders: render_pixels(
+        p, model=model, view=view, senders=senders, mirror=False).values)
+    senders = render_senders(prep, mirror=False)
+    n0 = TRACE_COUNT["ir_senders"]
+    for view in _views():
+        a = pixels(prep, prep.model, view, None)
+        b = pixels(prep, prep.model, view, senders)
+        peak = float(jnp.abs(a).max())
+        assert float(jnp.abs(a - b).max()) <= 1e-6 * peak
+    # the neighbour 1 km away: the interreflection is a visible part of those pixels
+    far = pixels(prep, prep.model.at[1, 1, 3].add(-1e3), prep.view, None)
+    a = pixels(prep, prep.model, prep.view, None)
+    assert float(jnp.abs(a - far).max()) > 1e-3 * float(jnp.abs(a).max())
+    # another object state: the senders of that state, same compiled programs
+    model = prep.model.at[1, 0, 3].add(0.01)
+    s2 = render_senders(prep, model=model, mirror=False)
+    a = pixels(prep, model, prep.view, None)
+    b = pixels(prep, model, prep.view, s2)
+    c = pixels(prep, model, prep.view, senders)  # stale senders: differs
+    peak = float(jnp.abs(a).max())
+    assert float(jnp.abs(a - b).max()) <= 1e-6 * peak
+    assert float(jnp.abs(a - c).max()) > 1e-4 * peak
+    assert TRACE_COUNT["ir_senders"] == n0
+
+
+def test_senders_need_gather_mode():
+    from spectral_fit.benchmarks.frame import benchmark_scene
+    from spectral_fit.renderer import prepare, render_pixels, render_senders
+
+    p = prepare(benchmark_scene(quick=True), size=(48, 32), mode="none")
+    with pytest.raises(InputError, match="gather"):
+        render_senders(p)
+    with pytest.raises(InputError, match="senders"):
+        render_pixels(p, senders=object())
+
+
+def test_max_displacement_is_the_largest_vertex_displacement():
+    """The bounding-box corner bound against the displacement of every vertex of a mesh,
+    brute force, for random rigid motions and a scaled one."""
+    from spectral_fit.live import _max_displacement
+    from spectral_fit.mesh import rotate, uv_sphere
+
+    sph = uv_sphere(0.03, 16, 16)
+    v = np.c_[sph.vertices, np.ones(len(sph.vertices))]
+    lo, hi = sph.vertices.min(0), sph.vertices.max(0)
+    corners = np.array([[[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                         for z in (lo[2], hi[2])]])
+    rng = np.random.default_rng(3)
+    for k in range(20):
+        a = rotate(rng.normal(size=3), rng.uniform(0, 6.3))
+        a[:3, 3] = rng.normal(size=3) * 0.1
+        b = rotate(rng.normal(size=3), rng.uniform(0, 0.01)) @ a
+        b[:3, 3] += rng.normal(size=3) * 1e-3
+        if k == 0:
+            b[:3, :3] *= 1.01
+        brute = np.sqrt((((v @ (b - a).T)[:, :3]) ** 2).sum(-1)).max()
+        bound = _max_displacement(corners, a[None], b[None])
+        assert brute <= bound + 1e-12
+        # and it is not loose by more than the box's corners beyond the sphere (√3)
+        assert bound <= np.sqrt(3) * brute + 1e-12
+
+
+@pytest.mark.slow  # two live steps in gather mode and the senders' program compiled
+def test_live_session_reuses_senders_while_objects_stay_put():
+    """A session with reuse against one without (``ir_reuse_mm=None``: every step computes
+    it): the same frames (within one 8-bit level) for a moving camera; the senders' half is
+    computed once for objects that stay put, again after a move beyond the tolerance or a
+    visibility change, and nothing recompiles."""
+    import dataclasses
+
+    from _live_util import scene_dict
+
+    from spectral_fit.live import STEP_TRACES, LiveSession
+    from spectral_fit.markers import Poses
+    from spectral_fit.renderer import TRACE_COUNT
+    from spectral_fit.scene import parse_scene
+
+    d = scene_dict(markers={"size": 0.08}, width=120, height=80, intrinsics=False)
+    for o in d["objects"]:
+        o["stacks"] = o["slices"] = 16
+    d["interreflection"] = {"mode": "gather"}
+    scene = parse_scene(d)
+    fused = LiveSession(scene, size=(80, 120), ir_reuse_mm=None)
+    reuse = LiveSession(scene, size=(80, 120), ir_reuse_mm=0.5)
+    base = np.array(fused.prep.model, np.float64)
+    base[0, :3, 3] = (-0.04, 0.0, -0.3)
+    base[1, :3, 3] = (0.04, 0.0, -0.3)
+    views = [np.asarray(v, np.float64) for v in _views()]
+    bg = np.full((80, 120, 3), 90, np.uint8)
+    vis = np.array([True, True])
+
+    def frame(s, model, view, visible=vis):
+        p = Poses(model.astype(np.float32), view.astype(np.float32), visible)
+        out, _ = s.render(p, bg)
+        return np.asarray(out).astype(int)
+
+    for v in views:  # the camera moves, the objects stay
+        np.testing.assert_allclose(frame(reuse, base, v), frame(fused, base, v), atol=1)
+    assert (reuse.ir_updates, reuse.ir_reuses) == (1, 2)
+    traces = (STEP_TRACES["step"], TRACE_COUNT["ir_senders"])
+    small = base.copy()
+    small[1, 0, 3] += 0.3e-3  # within 0.5 mm: reused
+    frame(reuse, small, views[1])
+    assert (reuse.ir_updates, reuse.ir_reuses) == (1, 3)
+    big = base.copy()
+    big[1, 0, 3] += 2e-3  # beyond: computed again, and the frame is the fused one's
+    np.testing.assert_allclose(frame(reuse, big, views[1]), frame(fused, big, views[1]),
+                               atol=1)
+    assert (reuse.ir_updates, reuse.ir_reuses) == (2, 3)
+    hidden = np.array([True, False])
+    np.testing.assert_allclose(frame(reuse, big, views[0], hidden),
+                               frame(fused, big, views[0], hidden), atol=1)
+    assert (reuse.ir_updates, reuse.ir_reuses) == (3, 3)
+    assert (STEP_TRACES["step"], TRACE_COUNT["ir_senders"]) == traces
+    with pytest.raises(InputError, match="ir_reuse_mm"):
+        LiveSession(dataclasses.replace(scene), size=(80, 120), ir_reuse_mm=-1.0)
+
+
+def test_live_command_reuse_option():
+    """``--ir-reuse-mm``: millimetres >= 0 or 'off'; anything else is refused by name."""
+    import argparse
+
+    from spectral_fit.commands.live import _reuse_mm, add_arguments
+
+    assert _reuse_mm("0.5") == 0.5 and _reuse_mm("0") == 0.0 and _reuse_mm("OFF") is None
+    for bad in ("-1", "nan", "inf", "half"):
+        with pytest.raises(argparse.ArgumentTypeError, match="'off'"):
+            _reuse_mm(bad)
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    assert p.parse_args(["c.toml", "--video", "v.mp4"]).ir_reuse_mm == 0.5
+    assert p.parse_args(["c.toml", "--video", "v.mp4", "--ir-reuse-mm", "off"]).ir_reuse_mm \
+        is None
