@@ -396,8 +396,9 @@ class LiveSession:
         """The gather interreflection's senders' half for these poses: reused when no vertex
         moved more than ``ir_reuse_mm`` (and visibility and the prepared scene are the same),
         else computed (dispatched) again; None when the step computes it itself."""
-        if self.ir_reuse_mm is None or self.prep.ir_mode != "gather" or \
-                self.prep.num_objects < 2:
+        p = self.prep
+        if self.ir_reuse_mm is None or p.ir_mode != "gather" or p.num_objects < 2 or \
+                p.ir_bounces < 1:
             return None
         from .renderer import render_senders
 

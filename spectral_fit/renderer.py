@@ -1139,10 +1139,10 @@ def render_senders(prep: Prepared, materials: Any = None, *, model: Any = None,
     same object state: the result equals the frame that computes it itself. Its
     ``geometry.overflow`` is the pass-1 overflow flag. ``mirror``: as for
     :func:`render_frame`, and the same for the frames that use it."""
-    if prep.ir_mode != "gather" or prep.num_objects < 2:
-        raise InputError("needs a gather-mode interreflection of at least two objects, got "
-                         f"mode {prep.ir_mode!r} with {prep.num_objects} objects",
-                         field="interreflection.mode")
+    if prep.ir_mode != "gather" or prep.num_objects < 2 or prep.ir_bounces < 1:
+        raise InputError("needs a gather-mode interreflection of at least two objects and "
+                         f"one bounce, got mode {prep.ir_mode!r} with {prep.num_objects} "
+                         f"objects and {prep.ir_bounces} bounces", field="interreflection.mode")
     mats, model, _, visible = _check_frame_inputs(prep, materials, model, None, visible)
     return _senders_jit(prep, mats, model, visible, _mirror_flag(mats, mirror))
 

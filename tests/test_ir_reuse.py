@@ -72,6 +72,11 @@ def test_senders_need_gather_mode():
         render_senders(p)
     with pytest.raises(InputError, match="senders"):
         render_pixels(p, senders=object())
+    import dataclasses
+
+    p0 = dataclasses.replace(p, ir_mode="gather", ir_bounces=0)  # bounces = 0: nothing to send
+    with pytest.raises(InputError, match="0 bounces"):
+        render_senders(p0)
 
 
 def test_max_displacement_is_the_largest_vertex_displacement():
