@@ -1463,9 +1463,7 @@ def gather_senders(geometry: IRGeometry, materials: Sequence[Material], env: Env
         raise InputError(f"needs a gather-mode geometry, got {geometry.mode!r}", field="mode")
     _check_materials(geometry.n_objects, materials, env)
     bounces = _check_int(bounces, "bounces", 1, 64)
-    if diffuse_at not in DIFFUSE_AT:
-        raise InputError(f"must be one of {DIFFUSE_AT}, got {diffuse_at!r}",
-                         field="diffuse_at")
+    _check_diffuse_at(diffuse_at)
     return _gather_senders(geometry, materials, env, bounces, diffuse_at)
 
 
@@ -1682,6 +1680,12 @@ def _check_inputs(n: int, materials: Sequence[Material], env: EnvironmentMap,
     _check_receivers(receivers)
 
 
+def _check_diffuse_at(diffuse_at: str) -> None:
+    if diffuse_at not in DIFFUSE_AT:
+        raise InputError(f"must be one of {DIFFUSE_AT}, got {diffuse_at!r}",
+                         field="diffuse_at")
+
+
 def _check_image_shape(image_shape: Any) -> tuple[int, int] | None:
     if image_shape is None:
         return None
@@ -1750,9 +1754,7 @@ def interreflection_from(
     n = geometry.n_objects
     _check_inputs(n, materials, env, receivers)
     bounces = _check_int(bounces, "bounces", 0, 64)
-    if diffuse_at not in DIFFUSE_AT:
-        raise InputError(f"must be one of {DIFFUSE_AT}, got {diffuse_at!r}",
-                         field="diffuse_at")
+    _check_diffuse_at(diffuse_at)
     gloss_step = _check_int(gloss_step, "gloss_step", 1, 64)
     image_shape = _check_image_shape(image_shape)
     zeros = jnp.zeros((receivers.object.shape[0], _output_channels(env, output)), jnp.float32)

@@ -825,7 +825,7 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
     if prep.ir_mode == "none" or len(geoms) < 2:
         return None, no
     try:
-        from .interreflection import interreflection_from, prepare_interreflection
+        from .interreflection import interreflection_from
     except ImportError:
         if prep.ir_mode not in _IR_WARNED:
             _IR_WARNED.add(prep.ir_mode)
@@ -833,14 +833,22 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
                           "installation (spectral_fit.interreflection missing); rendering "
                           "without interreflection", RuntimeWarning, stacklevel=4)
         return None, no
-    with jax.named_scope("ir_pass1"):
-        geom = prepare_interreflection(geoms, mode=prep.ir_mode,
-                                       texture_size=prep.ir_texture_size,
-                                       raster_config=prep.ir_raster_config)
+    geom = _ir_pass1(prep, geoms)
     extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
                                  bounces=prep.ir_bounces, image_shape=prep.shape,
                                  output=to_out)
     return extra, jnp.asarray(geom.overflow, bool)
+
+
+def _ir_pass1(prep: Prepared, geoms: list[ObjectGeometry]) -> Any:
+    """The interreflection's pass 1 (geometry only) of the objects, with ``prep``'s mode,
+    texture size and planned raster capacities."""
+    from .interreflection import prepare_interreflection
+
+    with jax.named_scope("ir_pass1"):
+        return prepare_interreflection(geoms, mode=prep.ir_mode,
+                                       texture_size=prep.ir_texture_size,
+                                       raster_config=prep.ir_raster_config)
 
 
 def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
@@ -1109,7 +1117,7 @@ def _ir_geometries(prep: Prepared, world_full: jax.Array, wnorm: jax.Array,
 
 def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax.Array,
                   mirror: bool = True) -> Any:
-    from .interreflection import gather_senders, prepare_interreflection
+    from .interreflection import gather_senders
 
     TRACE_COUNT["ir_senders"] += 1
     mats = _as_stacked(materials, prep.num_objects)
@@ -1119,10 +1127,7 @@ def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax
     visible = jnp.asarray(visible, bool)
     world_full = _to_world(prep.vertices, prep.vertex_object, model)
     wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
-    geoms = _ir_geometries(prep, world_full, wnorm, model, visible)
-    with jax.named_scope("ir_pass1"):
-        geom = prepare_interreflection(geoms, mode="gather", texture_size=prep.ir_texture_size,
-                                       raster_config=prep.ir_raster_config)
+    geom = _ir_pass1(prep, _ir_geometries(prep, world_full, wnorm, model, visible))
     return gather_senders(geom, mats, prep.env, bounces=prep.ir_bounces)
 
 

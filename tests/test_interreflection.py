@@ -603,6 +603,29 @@ def test_output_channels_match_the_mapped_result(k, diffuse_at):
         interreflection(objs, mats, env, rec, output=m[:5])
 
 
+def _rotated_pair(mesh, rot, cj):
+    """Two copies of ``mesh`` rotated by ``rot`` (3, 3): one at the origin, one at ``cj``."""
+    from spectral_fit.gbuffer import ObjectGeometry
+
+    return [ObjectGeometry(jnp.asarray(mesh.vertices) @ rot.T + c, jnp.asarray(mesh.normals)
+                           @ rot.T, jnp.asarray(mesh.triangles), c)
+            for c in (jnp.zeros(3, jnp.float32), cj)]
+
+
+def _random_placements(seed, n, distance):
+    """``n`` (rotation (3, 3), neighbour centre (3,)) float32 pairs: a random axis and angle,
+    and a random direction at ``distance``."""
+    from spectral_fit.mesh import rotate
+
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        axis = rng.normal(size=3)
+        rot = rotate(axis / np.linalg.norm(axis), rng.uniform(0, 2 * np.pi))[:3, :3]
+        d = rng.normal(size=3)
+        cj = distance * d / np.linalg.norm(d)
+        yield jnp.asarray(rot, jnp.float32), jnp.asarray(cj, jnp.float32)
+
+
 def test_planned_pass1_capacities_hold_for_any_orientation():
     """plan_gather_pass1 counts six axis views of the mesh; the pass-1 raster of that mesh
     seen along 24 random directions, each with a random roll, must fit its capacities
@@ -610,7 +633,7 @@ def test_planned_pass1_capacities_hold_for_any_orientation():
     ones (the 4×4 windows: T for the generic sizing)."""
     from spectral_fit.gbuffer import ObjectGeometry
     from spectral_fit.interreflection import plan_gather_pass1, prepare_interreflection
-    from spectral_fit.mesh import rotate, uv_sphere
+    from spectral_fit.mesh import uv_sphere
 
     sph = uv_sphere(0.0375, 100, 100)  # the paper's spheres: 19,800 triangles
     cfg = plan_gather_pass1(sph.vertices, sph.triangles)
@@ -618,19 +641,12 @@ def test_planned_pass1_capacities_hold_for_any_orientation():
     assert cfg.capacities[1] < t / 8 and cfg.capacities[0] < t
 
     def overflow(rot, cj):
-        objs = [ObjectGeometry(jnp.asarray(sph.vertices) @ rot.T + c, jnp.asarray(sph.normals)
-                               @ rot.T, jnp.asarray(sph.triangles), c)
-                for c in (jnp.zeros(3, jnp.float32), cj)]
-        return prepare_interreflection(objs, mode="gather", raster_config=cfg).overflow
+        return prepare_interreflection(_rotated_pair(sph, rot, cj), mode="gather",
+                                       raster_config=cfg).overflow
 
     f = jax.jit(overflow)
-    rng = np.random.default_rng(7)
-    for _ in range(24):
-        axis = rng.normal(size=3)
-        rot = rotate(axis / np.linalg.norm(axis), rng.uniform(0, 2 * np.pi))[:3, :3]
-        d = rng.normal(size=3)
-        cj = 0.09 * d / np.linalg.norm(d)
-        assert not bool(f(jnp.asarray(rot, jnp.float32), jnp.asarray(cj, jnp.float32)))
+    for rot, cj in _random_placements(7, 24, 0.09):
+        assert not bool(f(rot, cj))
     # and the check can fail: a quarter of the capacities overflows
     small = cfg._replace(capacities=tuple(max(16, c // 4) for c in cfg.capacities))
     objs = [ObjectGeometry(jnp.asarray(sph.vertices) + c, jnp.asarray(sph.normals),
@@ -646,9 +662,8 @@ def test_generic_pass1_capacities_hold_for_coarse_and_fine_meshes(kind):
     capacity overflowed) holds what the pass-1 raster of a coarse icosphere (80 large
     triangles: many 16×16 windows each) and of a finer UV sphere needs along random
     directions (the rasteriser's own overflow flag), and the renderer's fallback is it."""
-    from spectral_fit.gbuffer import ObjectGeometry
     from spectral_fit.interreflection import SUPERSAMPLE, pass1_config, prepare_interreflection
-    from spectral_fit.mesh import icosphere, rotate, uv_sphere
+    from spectral_fit.mesh import icosphere, uv_sphere
     from spectral_fit.renderer import _ir_generic_config
 
     sph = icosphere(0.0375, 1) if kind == "ico" else uv_sphere(0.0375, 24, 24)
@@ -657,18 +672,11 @@ def test_generic_pass1_capacities_hold_for_coarse_and_fine_meshes(kind):
     assert _ir_generic_config("paper", 96, t) == pass1_config(t, 96)
 
     def overflow(rot, cj):
-        objs = [ObjectGeometry(jnp.asarray(sph.vertices) @ rot.T + c, jnp.asarray(sph.normals)
-                               @ rot.T, jnp.asarray(sph.triangles), c)
-                for c in (jnp.zeros(3, jnp.float32), cj)]
+        objs = _rotated_pair(sph, rot, cj)
         return (prepare_interreflection(objs, mode="gather").overflow,
                 prepare_interreflection(objs, mode="paper", texture_size=96).overflow)
 
     f = jax.jit(overflow)
-    rng = np.random.default_rng(11)
-    for _ in range(8):
-        axis = rng.normal(size=3)
-        rot = rotate(axis / np.linalg.norm(axis), rng.uniform(0, 2 * np.pi))[:3, :3]
-        d = rng.normal(size=3)
-        cj = 0.08 * d / np.linalg.norm(d)
-        g, p = f(jnp.asarray(rot, jnp.float32), jnp.asarray(cj, jnp.float32))
+    for rot, cj in _random_placements(11, 8, 0.08):
+        g, p = f(rot, cj)
         assert not bool(g) and not bool(p)
