@@ -1261,11 +1261,11 @@ def _scatter(values: jax.Array, px: PixelFrame, image: jax.Array) -> jax.Array:
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
                  visible: jax.Array, spectral: bool, background: bool = True,
-                 mirror: bool = True) -> Frame:
+                 mirror: bool = True, senders: Any = None) -> Frame:
     from .display import to_display
 
     h, w = prep.shape
-    px = _pixels_impl(prep, materials, model, view, visible, spectral, mirror)
+    px = _pixels_impl(prep, materials, model, view, visible, spectral, mirror, senders)
     # 4. background and XYZ
     if background:
         with jax.named_scope("background"):
@@ -1359,11 +1359,15 @@ def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
     object state (``model``, ``visible``: the caller keeps them consistent), used instead of
     the frame's own pass 1 (gather mode only)."""
     mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
+    _check_senders(prep, senders)
+    return _pixels_impl(prep, mats, model, view, visible, spectral,
+                        _mirror_flag(mats, mirror), senders)
+
+
+def _check_senders(prep: Prepared, senders: Any) -> None:
     if senders is not None and prep.ir_mode != "gather":
         raise InputError(f"senders given but the interreflection mode is {prep.ir_mode!r}",
                          field="senders")
-    return _pixels_impl(prep, mats, model, view, visible, spectral,
-                        _mirror_flag(mats, mirror), senders)
 
 
 def _mirror_flag(mats: Any, mirror: bool | None) -> bool:
@@ -1384,7 +1388,7 @@ def _traced_chi(mats: Any) -> bool:
 
 def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, view: Any = None,
                  visible: Any = None, spectral: bool = False, background: bool = True,
-                 mirror: bool | None = None) -> Frame:
+                 mirror: bool | None = None, senders: Any = None) -> Frame:
     """Render one frame (jit-compiled once per :class:`Prepared` shape; differentiable).
 
     Args:
@@ -1409,14 +1413,20 @@ def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, vi
             that is not 0 then compiles the frame with it. True: always with it (e.g. a slider
             for χ that should never recompile). False: every χ taken as 0 (refused when a
             concrete χ is not 0).
+        senders: gather mode: the interreflection's camera-independent half from
+            :func:`render_senders` for the same ``prep``, materials, mirror switch, ``model``
+            and ``visible`` (the caller keeps them consistent), used instead of the frame's
+            own pass 1: camera paths around objects that stay put compute it once (a separate
+            compilation; the frame equals the one that computes it, to float rounding).
 
     Returns:
         :class:`Frame`. Gradients flow to every material parameter of every object (and to
         the model/view matrices through shading, not through visibility).
     """
     mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
+    _check_senders(prep, senders)
     return _render_jit(prep, mats, model, view, visible, bool(spectral), bool(background),
-                       _mirror_flag(mats, mirror))
+                       _mirror_flag(mats, mirror), senders)
 
 
 def render(scene: Any, materials: Any = None, *, spectral: bool = False,

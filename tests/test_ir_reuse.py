@@ -63,15 +63,36 @@ def test_split_frame_equals_the_frame_that_computes_its_senders(prep):
     assert TRACE_COUNT["ir_senders"] == n0
 
 
+def test_render_frame_with_senders_equals_the_frame(prep):
+    """render_frame(senders=...) (a turntable or camera path over objects that stay put)
+    against render_frame alone, two camera views of one senders' state; without the
+    interreflection the frame differs visibly (so the comparison can fail)."""
+    from spectral_fit.renderer import render_frame, render_senders
+
+    senders = render_senders(prep, mirror=False)
+    for view in _views()[1:]:
+        a = render_frame(prep, view=view, mirror=False).xyz
+        b = render_frame(prep, view=view, mirror=False, senders=senders).xyz
+        peak = float(jnp.abs(a).max())
+        assert float(jnp.abs(a - b).max()) <= 1e-6 * peak
+    vis = jnp.array([True, False])  # the neighbour hidden: no interreflection on object 0
+    lone = render_frame(prep, visible=vis, mirror=False)
+    full = render_frame(prep, mirror=False, senders=senders)
+    on0 = np.asarray(lone.object_id) == 0
+    assert float(jnp.abs(full.xyz - lone.xyz)[on0].max()) > 1e-3 * float(jnp.abs(full.xyz).max())
+
+
 def test_senders_need_gather_mode():
     from spectral_fit.benchmarks.frame import benchmark_scene
-    from spectral_fit.renderer import prepare, render_pixels, render_senders
+    from spectral_fit.renderer import prepare, render_frame, render_pixels, render_senders
 
     p = prepare(benchmark_scene(quick=True), size=(48, 32), mode="none")
     with pytest.raises(InputError, match="gather"):
         render_senders(p)
     with pytest.raises(InputError, match="senders"):
         render_pixels(p, senders=object())
+    with pytest.raises(InputError, match="senders"):
+        render_frame(p, senders=object())
     import dataclasses
 
     p0 = dataclasses.replace(p, ir_mode="gather", ir_bounces=0)  # bounces = 0: nothing to send
