@@ -31,6 +31,7 @@ planned) the session re-plans with twice the headroom, recompiles once and re-re
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -122,7 +123,10 @@ class RunStats:
     ``render`` (the compiled step, dispatch to ready) on the calling thread, ``encode`` (the
     ``write`` callback) on the writer thread; ``interval`` is the time between consecutive
     finished frames (the end-to-end frame time; its first entry is the first frame's
-    latency, compilation included); ``recompiled`` flags frames that re-planned buffers.
+    latency, compilation included); ``recompiled`` flags frames that re-planned buffers;
+    ``in_flight``: frames the run kept submitted (with more than one, frames finish in
+    bunches and the intervals alternate short and long, so :meth:`medians_ms` takes the
+    interval's median over means of ``in_flight`` consecutive intervals).
     """
 
     decode: list[float] = dataclasses.field(default_factory=list)
@@ -133,6 +137,7 @@ class RunStats:
     interval: list[float] = dataclasses.field(default_factory=list)
     recompiled: list[bool] = dataclasses.field(default_factory=list)
     visible: list[np.ndarray] = dataclasses.field(default_factory=list)
+    in_flight: int = 1
 
     @property
     def frames(self) -> int:
@@ -144,9 +149,14 @@ class RunStats:
 
         keep = [i for i in range(1, self.frames) if not self.recompiled[i]]
         out: dict[str, float | None] = {}
-        for name in ("decode", "detect", "undistort", "render", "encode", "interval"):
+        for name in ("decode", "detect", "undistort", "render", "encode"):
             vals = [getattr(self, name)[i] for i in keep if i < len(getattr(self, name))]
             out[name] = statistics.median(vals) * 1e3 if vals else None
+        k = max(1, self.in_flight)
+        windows = [sum(self.interval[i - k + 1:i + 1]) / k for i in keep if i >= k]
+        if not windows:  # fewer frames than a window
+            windows = [self.interval[i] for i in keep]
+        out["interval"] = statistics.median(windows) * 1e3 if windows else None
         return out
 
 
@@ -229,6 +239,12 @@ class LiveSession:
             (a camera moving around objects that stay put). 0: reused only for identical
             poses. None: every frame computes it inside the step (one program). Counted in
             ``ir_updates`` and ``ir_reuses``.
+        devices: the JAX devices that render the frames, in turn (frame i on device
+            i mod len(devices)), each with its own copy of the prepared scene and its own
+            compiled step; :meth:`run` keeps that many frames in flight. Default: every CPU
+            device when the default backend is the CPU (one, unless the process split it:
+            :func:`~spectral_fit.startup.split_cpu_devices`), else the first accelerator.
+            Frames are the same on every device (same program, same inputs).
     """
 
     def __init__(self, scene: Scene, *, size: tuple[int, int] | None = None,
@@ -237,7 +253,10 @@ class LiveSession:
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
                  headroom: float = 1.6, detect_downscale: int | None = None,
-                 ir_reuse_mm: float | None = 0.5) -> None:
+                 ir_reuse_mm: float | None = 0.5, devices: Any = None) -> None:
+        self.devices = _frame_devices(devices)
+        self._device_turn = 0
+        self._copies: dict[Any, tuple[Any, Any, Any]] = {}
         self._init_cpu(scene, size, detect_downscale=detect_downscale)
         scene = self.scene
         if camera is None:
@@ -263,7 +282,7 @@ class LiveSession:
         self.ir_reuse_mm = None if ir_reuse_mm is None else float(ir_reuse_mm)
         self.ir_updates = 0
         self.ir_reuses = 0
-        self._senders: Any = None
+        self._senders: dict[Any, Any] = {}  # device -> the current senders' half there
         self._senders_key: Any = None
         self._corners = _object_corners(self.prep)
 
@@ -386,34 +405,56 @@ class LiveSession:
         return cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR, dst=out)
 
     def render(self, poses: Any, background: Any) -> tuple[jax.Array, dict[str, Any]]:
-        """Dispatch the compiled step (asynchronous; block on the result to time it)."""
-        inputs = (jnp.asarray(poses.model), jnp.asarray(poses.view),
-                  jnp.asarray(poses.visible))
-        return _step(self.prep, self.prep.materials, *inputs, jnp.asarray(background),
-                     self.camera, self._mirror, self._senders_for(poses, inputs))
+        """Dispatch the compiled step (asynchronous; block on the result to time it), on
+        the device that holds ``background`` (a committed ``jax.Array``), else the first
+        of :attr:`devices`."""
+        dev = _device_of(background, self.devices)
+        if len(self.devices) == 1:
+            bg, put = jnp.asarray(background), jnp.asarray
+        else:
+            bg = jax.device_put(background, dev)
+            put = functools.partial(jax.device_put, device=dev)
+        inputs = (put(poses.model), put(poses.view), put(poses.visible))
+        return self._dispatch(poses, inputs, bg, plan=False)
 
-    def _senders_for(self, poses: Any, inputs: Any) -> Any:
-        """The gather interreflection's senders' half for these poses: reused when no vertex
-        moved more than ``ir_reuse_mm`` (and visibility and the prepared scene are the same),
-        else computed (dispatched) again; None when the step computes it itself."""
+    def _placed(self, dev: Any) -> tuple[Any, CameraModel]:
+        """The prepared scene and camera model on device ``dev`` (copied once per prepared
+        scene; with one device the session's own, uncommitted)."""
+        if len(self.devices) == 1:
+            return self.prep, self.camera
+        c = self._copies.get(dev)
+        if c is None or c[0] is not self.prep:
+            c = (self.prep, _put(self.prep, dev), _put(self.camera, dev))
+            self._copies[dev] = c
+        return c[1], c[2]
+
+    def _senders_for(self, poses: Any, inputs: Any, dev: Any = None) -> Any:
+        """The gather interreflection's senders' half for these poses, on device ``dev``:
+        reused when no vertex moved more than ``ir_reuse_mm`` (and visibility and the
+        prepared scene are the same; copied to another device once), else computed
+        (dispatched) again; None when the step computes it itself."""
         p = self.prep
         if self.ir_reuse_mm is None or p.ir_mode != "gather" or p.num_objects < 2 or \
                 p.ir_bounces < 1:
             return None
         from .renderer import render_senders
 
+        dev = self.devices[0] if dev is None else dev
         model = np.asarray(poses.model, np.float64)
         visible = np.asarray(poses.visible, bool)
         key = self._senders_key
         if (key is not None and key[0] is self.prep and np.array_equal(key[2], visible)
                 and _max_displacement(self._corners, key[1], model) <= self.ir_reuse_mm * 1e-3):
             self.ir_reuses += 1
-            return self._senders
-        self._senders = render_senders(self.prep, self.prep.materials, model=inputs[0],
-                                       visible=inputs[2], mirror=self._mirror)
+            if dev not in self._senders:
+                self._senders[dev] = _put(next(iter(self._senders.values())), dev)
+            return self._senders[dev]
+        prep = self._placed(dev)[0]
+        self._senders = {dev: render_senders(prep, prep.materials, model=inputs[0],
+                                             visible=inputs[2], mirror=self._mirror)}
         self._senders_key = (self.prep, model, visible)
         self.ir_updates += 1
-        return self._senders
+        return self._senders[dev]
 
     def _check(self, frame: np.ndarray) -> None:
         if frame.shape != (*self.size, 3) or frame.dtype != np.uint8:
@@ -421,7 +462,8 @@ class LiveSession:
                              f"{frame.dtype}", field="frame")
 
     def _cpu_stages(self, frame: np.ndarray) -> tuple[Any, Any, tuple[float, float, float]]:
-        """Detect + track, then undistort into the next ring buffer and upload it."""
+        """Detect + track, then undistort into the next ring buffer and upload it (to the
+        next of :attr:`devices` in turn)."""
         self._check(frame)
         t0 = time.perf_counter()
         poses = self.tracker.update(self.detector.detect(frame))
@@ -429,18 +471,27 @@ class LiveSession:
         self._last_detect = t1 - t0
         buf = self._ring[self._ring_next]
         self._ring_next = (self._ring_next + 1) % len(self._ring)
-        bg = jax.device_put(self.undistort(frame, out=buf))
-        inputs = (jax.device_put(poses.model), jax.device_put(poses.view),
-                  jax.device_put(poses.visible))
+        if len(self.devices) == 1:
+            put = jax.device_put
+        else:
+            put = functools.partial(jax.device_put,
+                                    device=self.devices[self._device_turn % len(self.devices)])
+            self._device_turn += 1
+        bg = put(self.undistort(frame, out=buf))
+        inputs = (put(poses.model), put(poses.view), put(poses.visible))
         t2 = time.perf_counter()
         return (poses, inputs), bg, (t0, t1, t2)
 
-    def _dispatch(self, poses: Any, inputs: Any, bg: Any) -> tuple[Any, Any]:
-        if not self._planned and poses.visible.any():
+    def _dispatch(self, poses: Any, inputs: Any, bg: Any, *, plan: bool = True
+                  ) -> tuple[Any, Any]:
+        """The compiled step on the device that holds ``bg`` (asynchronous)."""
+        if plan and not self._planned and poses.visible.any():
             self._replan(poses, self.headroom)  # size the buffers on the first real poses
             self._planned = True
-        return _step(self.prep, self.prep.materials, *inputs, bg, self.camera, self._mirror,
-                     self._senders_for(poses, inputs))
+        dev = _device_of(bg, self.devices)
+        prep, camera = self._placed(dev)
+        return _step(prep, prep.materials, *inputs, bg, camera, self._mirror,
+                     self._senders_for(poses, inputs, dev))
 
     def submit(self, frame: np.ndarray) -> _Pending:
         """CPU stages of one frame (detect, track, undistort) and the DISPATCH of its compiled
@@ -449,7 +500,7 @@ class LiveSession:
         :meth:`run` overlaps them with threads on any device."""
         (poses, inputs), bg, times = self._cpu_stages(frame)
         out, stats = self._dispatch(poses, inputs, bg)
-        return _Pending(poses, bg, out, stats, times)
+        return _Pending(poses, bg, out, stats, times, self.prep)
 
     def finish(self, pending: _Pending) -> np.ndarray:
         """Wait for a submitted frame; re-plans, recompiles and re-renders it when its buffers
@@ -460,15 +511,21 @@ class LiveSession:
         out = jax.block_until_ready(out)
         from .renderer import _ir_fallback
 
+        planned = pending.prep
         for _ in range(3):
             # the pass-1 rasters' planned capacities overflowed: their generic ones, once
-            ir = bool(stats["interreflection_overflow"]) and _ir_fallback(self.prep) is not None
+            ir = bool(stats["interreflection_overflow"]) and (
+                planned is not self.prep or _ir_fallback(self.prep) is not None)
             if not (bool(stats["overflow"]) or ir):
                 break
-            if bool(stats["overflow"]):
-                self.headroom *= 1.5
-            self._replan(poses, self.headroom, interreflection=ir)
-            self.recompiles += 1
+            if planned is None or planned is self.prep:
+                if bool(stats["overflow"]):
+                    self.headroom *= 1.5
+                self._replan(poses, self.headroom, interreflection=ir)
+                self.recompiles += 1
+            # else: re-planned since this frame was dispatched (a frame in flight before it
+            # overflowed): rendered again with that plan before growing it further
+            planned = self.prep
             out, stats = self.render(poses, bg)
             out = jax.block_until_ready(out)
         if bool(stats["overflow"]):
@@ -487,7 +544,8 @@ class LiveSession:
 
     def run(self, frames: Iterable[np.ndarray], write: Callable[[np.ndarray], Any] | None = None,
             *, threads: bool | None = None, max_frames: int | None = None,
-            on_frame: Callable[[int, RunStats], Any] | None = None) -> RunStats:
+            on_frame: Callable[[int, RunStats], Any] | None = None,
+            in_flight: int | None = None) -> RunStats:
         """Composite a stream of frames; returns per-stage timings (:class:`RunStats`).
 
         Args:
@@ -502,6 +560,12 @@ class LiveSession:
                 :func:`pipeline_pays` (threads when the step runs on an accelerator).
             max_frames: stop after this many frames.
             on_frame: called after each rendered frame with (index, stats so far).
+            in_flight: without threads, how many frames are submitted before the oldest is
+                finished (:meth:`submit` / :meth:`finish`): frame n+1's decoding, detection
+                and dispatch (to the next of :attr:`devices`) run while frame n renders.
+                Default: ``len(devices)``; 1 is one stage after the other. With threads, 1.
+                ``render`` times are then dispatch → ready of each frame (its latency, which
+                includes the other frames in flight); ``interval`` is the throughput.
 
         The output frames are identical either way (tracking stays in frame order on the
         reader thread; the compiled step is the same).
@@ -531,19 +595,27 @@ class LiveSession:
                 n += 1
             put(done)
 
-        def render_one(item: Any) -> np.ndarray:
-            t_dec, (poses, inputs), bg, (t0, t1, t2) = item
+        def start(item: Any) -> tuple[Any, _Pending]:
+            _, (poses, inputs), bg, _ = item
             t3 = time.perf_counter()
             out, st = self._dispatch(poses, inputs, bg)
+            return item, _Pending(poses, bg, out, st, (t3, t3, t3), self.prep)
+
+        def complete(started: tuple[Any, _Pending]) -> np.ndarray:
+            item, pending = started
+            t_dec, (poses, _), _, (t0, t1, t2) = item
             before = self.recompiles
-            img = self.finish(_Pending(poses, bg, out, st, (t3, t3, t3)))
+            img = self.finish(pending)
             stats.decode.append(t_dec)
             stats.detect.append(t1 - t0)
             stats.undistort.append(t2 - t1)
-            stats.render.append(time.perf_counter() - t3)
+            stats.render.append(time.perf_counter() - pending.times[0])
             stats.recompiled.append(self.recompiles != before)
             stats.visible.append(np.asarray(poses.visible).copy())
             return img
+
+        def render_one(item: Any) -> np.ndarray:
+            return complete(start(item))
 
         def emit(img: np.ndarray, put_out: Callable[[Any], Any]) -> None:
             nonlocal t_prev
@@ -562,9 +634,17 @@ class LiveSession:
 
         t_prev = time.perf_counter()
         if not threads:
+            depth = len(self.devices) if in_flight is None else int(in_flight)
+            if depth < 1:
+                raise InputError(f"must be >= 1, got {in_flight!r}", field="in_flight")
+            stats.in_flight = depth
+            started: list[tuple[Any, _Pending]] = []
+
             def step(item: Any) -> None:
                 if item is not done:
-                    emit(render_one(item), encode)
+                    started.append(start(item))
+                while started and (len(started) >= depth or item is done):
+                    emit(complete(started.pop(0)), encode)
 
             produce(step, None)
             return stats
@@ -632,6 +712,7 @@ class _Pending:
     out: Any
     stats: dict[str, Any]
     times: tuple[float, float, float]
+    prep: Any = None  # the session's prepared scene when it was dispatched
 
 
 def _object_corners(prep: Any) -> np.ndarray:
@@ -653,6 +734,47 @@ def _max_displacement(corners: np.ndarray, model_a: np.ndarray, model_b: np.ndar
     corner, and it bounds every vertex's."""
     d = np.einsum("oij,okj->oki", model_b - model_a, corners)[..., :3]
     return float(np.sqrt(np.max(np.sum(d * d, axis=-1))))
+
+
+def _frame_devices(devices: Any) -> tuple[Any, ...]:
+    """The session's rendering devices (see :class:`LiveSession` ``devices``)."""
+    if devices is None:
+        if jax.default_backend() == "cpu":
+            return tuple(jax.devices("cpu"))
+        return (jax.devices()[0],)
+    if isinstance(devices, jax.Device):
+        devices = (devices,)
+    try:
+        out = tuple(devices)
+    except TypeError:
+        out = ()
+    if not out or not all(isinstance(d, jax.Device) for d in out):
+        raise InputError(f"expected a sequence of jax devices, got {devices!r}",
+                         field="devices")
+    if len(set(out)) != len(out) or len({d.platform for d in out}) != 1:
+        raise InputError(f"expected distinct devices of one platform, got {out!r}",
+                         field="devices")
+    return out
+
+
+def _device_of(x: Any, devices: tuple[Any, ...]) -> Any:
+    """The device that holds ``x`` when it is one of ``devices`` (a committed array), else
+    the first of them."""
+    if len(devices) > 1 and isinstance(x, jax.Array):
+        held = x.devices()
+        if len(held) == 1:
+            (d,) = held
+            if d in devices:
+                return d
+    return devices[0]
+
+
+def _put(tree: Any, device: Any) -> Any:
+    """``tree`` with its arrays committed to ``device`` (other leaves unchanged: they are
+    static parts of the compiled step)."""
+    return jax.tree_util.tree_map(
+        lambda x: jax.device_put(x, device) if isinstance(x, jax.Array | np.ndarray) else x,
+        tree)
 
 
 def _default_markers():

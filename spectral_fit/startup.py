@@ -36,6 +36,7 @@ import hashlib
 import importlib.metadata
 import os
 import pickle
+import re
 import sys
 import tomllib
 from collections.abc import Iterable
@@ -49,6 +50,7 @@ __all__ = [
     "render_frame_cached",
     "single_threaded_blas",
     "retain_freed_memory",
+    "split_cpu_devices",
     "CACHE_STATS",
 ]
 
@@ -325,6 +327,38 @@ def retain_freed_memory() -> bool:
           # covers a whole heap (64 MB): XLA's threads free a frame's temporaries there
           mallopt(_M_TOP_PAD, 64 << 20)]
     return all(ok)
+
+
+def split_cpu_devices(n: int) -> int:
+    """Expose the CPU as ``n`` JAX devices (``jax_num_cpu_devices``; process-global). Returns
+    the number of CPU devices the process will have: ``n``, or the count already in force
+    when JAX's backend has started (then nothing changes; call this before any JAX array is
+    made).
+
+    Each CPU device runs its own programs in order while all of them share the process's
+    worker threads, so ``n`` devices can run ``n`` independent frames at once. A live step
+    that leaves cores idle (the benchmark scene's reusing step keeps one of two cores busy)
+    gains throughput with two frames in flight
+    (:class:`~spectral_fit.live.LiveSession` ``devices``; docs/live.md "Frames in flight").
+    A program placed on one device is compiled for it: the second device's first frame
+    compiles again, or loads the program from JAX's persistent cache
+    (:func:`enable_compilation_cache`)."""
+    import jax
+    from jax._src import xla_bridge
+
+    n = int(n)
+    if n < 1:
+        from .errors import InputError
+
+        raise InputError(f"must be >= 1, got {n}", field="cpu devices")
+    if xla_bridge.backends_are_initialized():
+        return len(jax.devices("cpu"))
+    forced = re.search(r"--xla_force_host_platform_device_count=(\d+)",
+                       os.environ.get("XLA_FLAGS", ""))
+    if forced:  # the user's XLA flag rules (JAX refuses both)
+        return int(forced.group(1))
+    jax.config.update("jax_num_cpu_devices", n)
+    return n
 
 
 def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = None,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -40,6 +41,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="gather interreflection: compute its camera-independent half again "
                    "only when an object moved more than MM millimetres (default 0.5; 0: only "
                    "for identical poses; off: every frame)")
+    p.add_argument("--cpu-devices", type=int, default=None, metavar="N",
+                   help="on the CPU backend, split the CPU into N JAX devices and keep N "
+                   "frames in flight (frame i renders on device i mod N while frame i+1 is "
+                   "decoded and detected): more frames per second, each device compiling its "
+                   "own step on the first run (later runs load them from the cache); default "
+                   "2 on a machine with 2 or more cores, 1 turns it off (docs/live.md "
+                   "'Frames in flight')")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -56,17 +64,34 @@ def _reuse_mm(text: str) -> float | None:
     return v
 
 
-def _bar(i: int, n: int | None, render_fps: float, e2e_fps: float) -> str:
+def _bar(i: int, n: int | None, render_ms: float, e2e_fps: float, in_flight: int = 1) -> str:
+    """One progress line. With one frame in flight the render readout is its rate; with
+    several each frame's render time includes the others', so it is shown as a latency."""
     if n:
         done = int(30 * i / n)
         head = f"[{'#' * done}{'.' * (30 - done)}] {i}/{n}"
     else:
         head = f"frame {i}"
-    return f"\rlive: {head}  render {render_fps:6.1f} fps  end-to-end {e2e_fps:6.1f} fps"
+    if in_flight == 1:
+        render = f"render {1e3 / render_ms if render_ms else 0.0:6.1f} fps"
+    else:
+        render = f"render latency {render_ms:6.1f} ms ({in_flight} in flight)"
+    return f"\rlive: {head}  {render}  end-to-end {e2e_fps:6.1f} fps"
 
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
+    from ..startup import enable_compilation_cache, split_cpu_devices
+
+    cpu_devices = args.cpu_devices
+    if cpu_devices is None:
+        cpu_devices = 2 if (os.cpu_count() or 1) >= 2 else 1
+    if cpu_devices < 1:
+        raise InputError("must be >= 1", field="--cpu-devices")
+    if cpu_devices > 1:
+        split_cpu_devices(cpu_devices)  # before anything starts JAX's backend
+    enable_compilation_cache(min_compile_time_s=1.0)  # a second run loads the programs
+
     from ..live import LiveSession, pipeline_pays
     from ..scene import load_scene
     from ..video import VideoSink, VideoSource, count_frames
@@ -85,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
                               spectral_mode=args.spectral_mode, k=args.k,
                               sensitivities=args.sensitivities, white_level=args.white_level,
                               ir_reuse_mm=args.ir_reuse_mm)
+        in_flight = 1 if pipeline else len(session.devices)  # LiveSession.run's choice
         fps_out = args.fps or (source.fps if source.fps and source.fps > 0 else 25.0)
         total = source.frame_count
         if args.max_frames is not None:
@@ -96,9 +122,9 @@ def run(args: argparse.Namespace) -> int:
             if args.quiet:
                 return
             med = st.medians_ms() if i > 0 else {}
-            rf = 1e3 / med["render"] if med.get("render") else 0.0
             ef = 1e3 / med["interval"] if med.get("interval") else 0.0
-            print(_bar(i + 1, total, rf, ef), end="", file=sys.stderr, flush=True)
+            print(_bar(i + 1, total, med.get("render") or 0.0, ef, in_flight),
+                  end="", file=sys.stderr, flush=True)
 
         ctx = sink if sink is not None else _Null()
         t_run = time.perf_counter()
@@ -120,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
         "first_frame_s": first_s,
         "render_median_ms": med["render"],
         "end_to_end_median_ms": med["interval"],
-        "render_fps": 1e3 / med["render"] if med["render"] else None,
+        "render_fps": (1e3 / med["render"] if med["render"] and in_flight == 1 else None),
+        "in_flight": in_flight,
         "end_to_end_fps": 1e3 / med["interval"] if med["interval"] else None,
         "stage_median_ms": {k: v for k, v in med.items() if k != "interval"},
         "recompiles": session.recompiles,
@@ -132,6 +159,7 @@ def run(args: argparse.Namespace) -> int:
         "output_frames": written,
         "pixel_capacity": session.prep.pixel_capacity,
         "pipeline": pipeline,
+        "devices": [str(d) for d in session.devices],
         "colour": ("sensitivities " + (args.sensitivities or "Nikon 5100 (NPL)")
                    if args.sensitivities or scene.camera_colour is None
                    else "[camera_colour]"),
@@ -142,9 +170,12 @@ def run(args: argparse.Namespace) -> int:
         def f(x: float | None, fmt: str) -> str:
             return "n/a" if x is None else format(x, fmt)
 
-        print(f"live: {n} frames; first frame (compile) {f(first_s, '.1f')} s; render "
-              f"{f(summary['render_median_ms'], '.1f')} ms ({f(summary['render_fps'], '.1f')} "
-              f"fps); end-to-end {f(summary['end_to_end_median_ms'], '.1f')} ms "
+        render = (f"render {f(summary['render_median_ms'], '.1f')} ms "
+                  f"({f(summary['render_fps'], '.1f')} fps)" if in_flight == 1 else
+                  f"render latency {f(summary['render_median_ms'], '.1f')} ms "
+                  f"({in_flight} frames in flight)")
+        print(f"live: {n} frames; first frame (compile) {f(first_s, '.1f')} s; {render}; "
+              f"end-to-end {f(summary['end_to_end_median_ms'], '.1f')} ms "
               f"({f(summary['end_to_end_fps'], '.1f')} fps); recompiles {session.recompiles}")
         if args.output:
             print(f"wrote {args.output} ({written} frames)")
