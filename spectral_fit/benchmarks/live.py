@@ -38,6 +38,23 @@ Figures:
 ``live_paper_none``: the same without interreflection (the frame program and the live stages
 alone).
 
+``live_in_flight``: two frames in flight, in a fresh process whose CPU is split into two JAX
+devices (:func:`~spectral_fit.startup.split_cpu_devices`; the split slows a lone frame by a
+few per cent, so the other cases run without it). Frame i runs on device i mod 2, at most two
+are dispatched and not yet finished; ``frame_interval_ms`` is the median interval between
+finished frames (throughput), ``one_at_a_time_ms`` the same step one frame at a time on one
+device of that process (latency):
+
+* ``benchmark_scene`` / ``benchmark_scene.objects_static``: the live step on BENCHMARK.md's
+  scene computing its interreflection every frame / reusing the senders' half (as in
+  ``live_paper``); the case's ``median_ms`` / ``min_ms`` / ``max_ms`` / ``render_fps`` are
+  the static step's frame intervals (the step computing everything where there is no
+  senders' half: ``--quick`` renders without interreflection);
+* ``end_to_end``: :meth:`~spectral_fit.live.LiveSession.run` without threads on the sample
+  video, ``in_flight`` 1 and 2 (``LiveSession(devices=both)``), median frame interval.
+
+CPU backend only (elsewhere the case reports ``skipped``).
+
 ``--quick``: frames at a third of the size (240×160, intrinsics scaled), interreflection
 "none", K = 8 basis, 3 end-to-end frames (figures not comparable).
 """
@@ -119,7 +136,7 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
                                size=size) as sink:
                     # +1: the first interval includes the wait for the pipeline to fill
                     runs[threads] = session.run(stream, sink.write, threads=threads,
-                                                max_frames=n_e2e + 1)
+                                                max_frames=n_e2e + 1, in_flight=1)
     jax.block_until_ready(step())
 
     def stage_medians(st) -> dict[str, float | None]:
@@ -264,5 +281,140 @@ def live_stages(opts: BenchOptions) -> dict[str, Any]:
     return out
 
 
+_IN_FLIGHT = r"""
+import json, sys
+from spectral_fit import startup
+startup.retain_freed_memory()
+assert startup.split_cpu_devices(2) == 2
+from spectral_fit.benchmarks.live import _in_flight_figures
+print(json.dumps(_in_flight_figures(sys.argv[1] == "quick", int(sys.argv[2]))))
+"""
+
+
+def live_in_flight(opts: BenchOptions) -> dict[str, Any]:
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return {"skipped": "CPU backend only (frames in flight on a split CPU)"}
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    r = subprocess.run([sys.executable, "-c", _IN_FLIGHT, "quick" if opts.quick else "full",
+                        str(opts.repeats)], capture_output=True, text=True, env=env,
+                       timeout=1800)
+    if r.returncode != 0:
+        raise RuntimeError(f"live_in_flight: the measuring process failed:\n{r.stderr[-2000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def _stream(calls: list[Any], frames: int) -> list[float]:
+    """Dispatch ``frames`` calls, call i with ``calls[i % len(calls)]``, keeping at most
+    ``len(calls)`` unfinished; returns the frame intervals (s): means of ``len(calls)``
+    consecutive intervals between finished frames (frames in flight finish in bunches, so
+    single intervals alternate short and long)."""
+    import jax
+
+    pending: list[Any] = []
+    done = [time.perf_counter()]
+    for i in range(frames):
+        pending.append(calls[i % len(calls)]())
+        if len(pending) == len(calls):
+            jax.block_until_ready(pending.pop(0))
+            done.append(time.perf_counter())
+    for p in pending:
+        jax.block_until_ready(p)
+        done.append(time.perf_counter())
+    k = len(calls)
+    return [(done[i + k] - done[i]) / k for i in range(1, len(done) - k)]
+
+
+def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
+    """The figures of ``live_in_flight`` (run in a process with two CPU devices)."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..live import LiveSession, _put, _step, camera_output_matrix
+    from ..renderer import _all_visible, mirror_needed, prepare, render_senders, with_output
+    from ..scene import load_scene
+    from ..video import VideoSink, VideoSource
+    from .frame import benchmark_scene
+
+    devs = jax.devices("cpu")[:2]
+    scene = load_scene(CONFIG)
+    extra: dict[str, Any] = {}
+    size = (480, 720)
+    if quick:
+        extra = {"mode": "none", "spectral_mode": "basis", "k": 8}
+        size = (160, 240)
+    n = max(2, repeats) + 2  # frames per stream: n - 2 windows of two
+    session = LiveSession(scene, size=size, devices=devs, **extra)
+    h, w = size
+    prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
+    prep = with_output(prep, camera_output_matrix(prep, session.camera))
+    bg = jnp.zeros((h, w, 3), jnp.uint8)
+    args = (prep, prep.materials, prep.model, prep.view, _all_visible(prep.num_objects), bg,
+            session.camera, mirror_needed(prep.materials))
+
+    def figures(full: tuple[Any, ...]) -> dict[str, Any]:
+        on = [_put(full, d) for d in devs]
+        calls = [lambda a=a: _step(*a)[0] for a in on]
+        t0 = time.perf_counter()
+        jax.block_until_ready(calls[0]())
+        t1 = time.perf_counter()
+        jax.block_until_ready(calls[1]())
+        t2 = time.perf_counter()
+        one = _stream(calls[:1], n)
+        two = _stream(calls, n)
+        iv = statistics.median(two) * 1e3
+        return {"frame_interval_ms": iv, "median_ms": iv, "min_ms": min(two) * 1e3,
+                "max_ms": max(two) * 1e3, "render_fps": 1e3 / iv,
+                "one_at_a_time_ms": statistics.median(one) * 1e3,
+                "compile_s": t2 - t0, "compile_s_per_device": [t1 - t0, t2 - t1],
+                "n": len(two)}
+
+    bench = figures(args)
+    bench["mode"] = prep.ir_mode
+    headline = bench
+    if prep.ir_mode == "gather":
+        state = render_senders(prep, args[1], model=args[2], visible=args[4], mirror=args[7])
+        headline = bench["objects_static"] = figures((*args, state))
+    res: dict[str, Any] = {k: headline[k] for k in ("median_ms", "min_ms", "max_ms", "n",
+                                                    "render_fps")}
+    res.update(compile_s=bench["compile_s"], devices=[str(d) for d in devs],
+               benchmark_scene=bench)
+    e2e: dict[str, Any] = {}
+    with VideoSource(VIDEO, field="video") as src, tempfile.TemporaryDirectory() as tmp:
+        def frames():
+            while (f := src.read()) is not None:
+                if quick:
+                    import cv2
+
+                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA)
+                yield f
+
+        stream = frames()
+        with VideoSink(Path(tmp) / "o.mp4", fps=25.0, size=size) as sink:
+            session.run(stream, sink.write, threads=False, max_frames=4)  # compile both
+            for depth in (1, 2):
+                st = session.run(stream, sink.write, threads=False, in_flight=depth,
+                                 max_frames=(3 if quick else 12) + depth)
+                med = st.medians_ms()  # frame interval: median over windows of `depth`
+                e2e[f"in_flight_{depth}"] = {"median_ms": med["interval"],
+                                             "fps": 1e3 / med["interval"],
+                                             "render_latency_ms": med["render"],
+                                             "stages_ms": {k: med[k] for k in (
+                                                 "decode", "detect", "undistort",
+                                                 "encode")}}
+    e2e["recompiles"] = int(session.recompiles)
+    e2e["interreflection_senders"] = {"computed": int(session.ir_updates),
+                                      "reused": int(session.ir_reuses)}
+    res["end_to_end"] = e2e
+    return res
+
+
 CASES = {"live_paper": live_paper, "live_paper_none": live_paper_none,
-         "live_stages": live_stages}
+         "live_stages": live_stages, "live_in_flight": live_in_flight}
