@@ -443,8 +443,10 @@ class LiveSession:
         model = np.asarray(poses.model, np.float64)
         visible = np.asarray(poses.visible, bool)
         key = self._senders_key
+        # hidden objects neither send nor receive: only the visible ones' motion counts
         if (key is not None and key[0] is self.prep and np.array_equal(key[2], visible)
-                and _max_displacement(self._corners, key[1], model) <= self.ir_reuse_mm * 1e-3):
+                and _max_displacement(self._corners[visible], key[1][visible],
+                                      model[visible]) <= self.ir_reuse_mm * 1e-3):
             self.ir_reuses += 1
             if dev not in self._senders:
                 self._senders[dev] = _put(next(iter(self._senders.values())), dev)
@@ -496,8 +498,9 @@ class LiveSession:
     def submit(self, frame: np.ndarray) -> _Pending:
         """CPU stages of one frame (detect, track, undistort) and the DISPATCH of its compiled
         step, which runs asynchronously: call :meth:`finish` on the result later. Submitting
-        frame n+1 before finishing frame n overlaps the CPU stages with the device (a GPU);
-        :meth:`run` overlaps them with threads on any device."""
+        frame n+1 before finishing frame n overlaps the CPU stages with the device (a GPU),
+        and with several :attr:`devices` (frame n+1 goes to the next one) the two frames'
+        steps with each other; :meth:`run` does either (threads, or frames in flight)."""
         (poses, inputs), bg, times = self._cpu_stages(frame)
         out, stats = self._dispatch(poses, inputs, bg)
         return _Pending(poses, bg, out, stats, times, self.prep)
@@ -731,7 +734,9 @@ def _max_displacement(corners: np.ndarray, model_a: np.ndarray, model_b: np.ndar
     """The largest distance (m) any point of an object's bounding box moves between the
     world-from-object matrices ``model_a`` and ``model_b`` (O, 4, 4): the displacement of an
     affine map is a convex function of the point, so its maximum over the box is at a
-    corner, and it bounds every vertex's."""
+    corner, and it bounds every vertex's. 0 for no objects (O = 0)."""
+    if len(corners) == 0:
+        return 0.0
     d = np.einsum("oij,okj->oki", model_b - model_a, corners)[..., :3]
     return float(np.sqrt(np.max(np.sum(d * d, axis=-1))))
 

@@ -124,6 +124,7 @@ def test_max_displacement_is_the_largest_vertex_displacement():
         assert brute <= bound + 1e-12
         # and it is not loose by more than the box's corners beyond the sphere (√3)
         assert bound <= np.sqrt(3) * brute + 1e-12
+    assert _max_displacement(corners[:0], a[None][:0], b[None][:0]) == 0.0  # none visible
 
 
 @pytest.mark.slow  # two live steps in gather mode and the senders' program compiled
@@ -177,6 +178,10 @@ def test_live_session_reuses_senders_while_objects_stay_put():
     np.testing.assert_allclose(frame(reuse, big, views[0], hidden),
                                frame(fused, big, views[0], hidden), atol=1)
     assert (reuse.ir_updates, reuse.ir_reuses) == (3, 3)
+    moved = big.copy()
+    moved[1, 0, 3] += 5e-3  # the hidden object moved (a held pose's noise): reused
+    frame(reuse, moved, views[2], hidden)
+    assert (reuse.ir_updates, reuse.ir_reuses) == (3, 4)
     assert (STEP_TRACES["step"], TRACE_COUNT["ir_senders"]) == traces
     with pytest.raises(InputError, match="ir_reuse_mm"):
         LiveSession(dataclasses.replace(scene), size=(80, 120), ir_reuse_mm=-1.0)
