@@ -233,8 +233,8 @@ class LiveSession:
             2 for frames of 400 px and more).
         ir_reuse_mm: gather interreflection: the senders' half (pass 1, the senders'
             shading, transfer and bounces: :func:`~spectral_fit.renderer.render_senders`;
-            it does not depend on the camera) is computed again only when some vertex of an
-            object moved more than this many millimetres in the world (or an object's
+            it does not depend on the camera) is computed again only when some vertex of a
+            visible object moved more than this many millimetres in the world (or an object's
             visibility changed) since it was last computed; otherwise the frame reuses it
             (a camera moving around objects that stay put). 0: reused only for identical
             poses. None: every frame computes it inside the step (one program). Counted in
