@@ -161,7 +161,7 @@ def test_live_command_writes_complete_video(tmp_path, tables, capsys):
         "[frame]", f"width = {SIZE[1]}", f"height = {SIZE[0]}", "",
         "[camera]",
         f"intrinsics = {{ fx = {KS[0, 0]}, fy = {KS[1, 1]}, cx = {KS[0, 2]}, cy = {KS[1, 2]} }}",
-        f"distortion = {list(DIST)}", "",
+        f"distortion = {[float(x) for x in DIST]}", "",
         "[environment]", f'file = "{d["environment"]["file"]}"', "rotation_y_deg = 180.0", "",
         "[spectral]", "start_nm = 400.0", "end_nm = 700.0", "step_nm = 10.0", "",
         "[interreflection]", 'mode = "none"', "",

@@ -46,8 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "frames in flight (frame i renders on device i mod N while frame i+1 is "
                    "decoded and detected): more frames per second, each device compiling its "
                    "own step on the first run (later runs load them from the cache); default "
-                   "2 on a machine with 2 or more cores, 1 turns it off (docs/live.md "
-                   "'Frames in flight')")
+                   "2 on a machine with 2 or more cores (1 with --pipeline), 1 turns it off "
+                   "(docs/live.md 'Frames in flight')")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -84,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
     from ..startup import enable_compilation_cache, split_cpu_devices
 
     cpu_devices = args.cpu_devices
-    if cpu_devices is None:
-        cpu_devices = 2 if (os.cpu_count() or 1) >= 2 else 1
+    if cpu_devices is None:  # threads keep one frame in flight: a second device only compiles
+        cpu_devices = 2 if (os.cpu_count() or 1) >= 2 and not args.pipeline else 1
     if cpu_devices < 1:
         raise InputError("must be >= 1", field="--cpu-devices")
     if cpu_devices > 1:
