@@ -41,9 +41,9 @@ alone).
 ``live_in_flight``: two frames in flight, in a fresh process whose CPU is split into two JAX
 devices (:func:`~spectral_fit.startup.split_cpu_devices`; the split slows a lone frame by a
 few per cent, so the other cases run without it). Frame i runs on device i mod 2, at most two
-are dispatched and not yet finished; ``frame_interval_ms`` is the median interval between
-finished frames (throughput), ``one_at_a_time_ms`` the same step one frame at a time on one
-device of that process (latency):
+are dispatched and not yet finished; ``frame_interval_ms`` is the median over means of two
+consecutive intervals between finished frames (throughput: frames in flight finish in bunches),
+``one_at_a_time_ms`` the same step one frame at a time on one device of that process (latency):
 
 * ``benchmark_scene`` / ``benchmark_scene.objects_static``: the live step on BENCHMARK.md's
   scene computing its interreflection every frame / reusing the senders' half (as in
@@ -51,7 +51,8 @@ device of that process (latency):
   the static step's frame intervals (the step computing everything where there is no
   senders' half: ``--quick`` renders without interreflection);
 * ``end_to_end``: :meth:`~spectral_fit.live.LiveSession.run` without threads on the sample
-  video, ``in_flight`` 1 and 2 (``LiveSession(devices=both)``), median frame interval.
+  video, ``in_flight`` 1 and 2 (``LiveSession(devices=both)``), frame interval as
+  :meth:`~spectral_fit.live.RunStats.medians_ms` takes it.
 
 CPU backend only (elsewhere the case reports ``skipped``).
 
@@ -104,16 +105,7 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
     with VideoSource(VIDEO, field="video") as src:
         div = 3 if opts.quick else 1
         size = (src.height // div, src.width // div)
-
-        def frames():
-            while (f := src.read()) is not None:
-                if div != 1:
-                    import cv2
-
-                    f = cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-                yield f
-
-        stream = frames()
+        stream = _frames(src, size)
         first = next(stream)
         session = LiveSession(scene, size=size, **extra)
         t0 = time.perf_counter()
@@ -171,6 +163,36 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
     return out
 
 
+def _frames(src: Any, size: tuple[int, int]) -> Any:
+    """The frames of ``src`` (a :class:`~spectral_fit.video.VideoSource`), resized to
+    ``size`` (H, W) when they are not that size already."""
+    while (f := src.read()) is not None:
+        if f.shape[:2] != tuple(size):
+            import cv2
+
+            f = cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+        yield f
+
+
+def _benchmark_scene_inputs(session: Any, background: Any, *, quick: bool = False
+                            ) -> tuple[Any, ...]:
+    """(prep, materials, model, view, visible, background, camera, mirror): the live step's
+    arguments for BENCHMARK.md's paper scene at the session's frame size, in its camera RGB
+    and with its renderer options, composited over ``background``. ``quick``: 20×20
+    spheres."""
+    import jax.numpy as jnp
+
+    from ..live import camera_output_matrix
+    from ..renderer import _all_visible, mirror_needed, prepare, with_output
+    from .frame import benchmark_scene
+
+    h, w = session.size
+    prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
+    prep = with_output(prep, camera_output_matrix(prep, session.camera))
+    return (prep, prep.materials, prep.model, prep.view, _all_visible(prep.num_objects),
+            jnp.asarray(background), session.camera, mirror_needed(prep.materials))
+
+
 def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
                           repeats: int = 20) -> dict[str, Any]:
     """The compiled live step on BENCHMARK.md's paper scene (camera, poses, capacities
@@ -178,17 +200,10 @@ def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
     video), composited over ``background`` (an undistorted video frame), in the session's
     camera RGB and with its renderer options. ``quick``: 20×20 spheres."""
     import jax
-    import jax.numpy as jnp
 
-    from ..live import _step, camera_output_matrix
-    from ..renderer import _all_visible, mirror_needed, prepare, with_output
-    from .frame import benchmark_scene
+    from ..live import _step
 
-    h, w = session.size
-    prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
-    prep = with_output(prep, camera_output_matrix(prep, session.camera))
-    args = (prep.materials, prep.model, prep.view, _all_visible(prep.num_objects),
-            jnp.asarray(background), session.camera, mirror_needed(prep.materials))
+    prep, *args = _benchmark_scene_inputs(session, background, quick=quick)
 
     def step():
         return _step(prep, *args)
@@ -337,11 +352,10 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
 
-    from ..live import LiveSession, _put, _step, camera_output_matrix
-    from ..renderer import _all_visible, mirror_needed, prepare, render_senders, with_output
+    from ..live import LiveSession, _put, _step
+    from ..renderer import render_senders
     from ..scene import load_scene
     from ..video import VideoSink, VideoSource
-    from .frame import benchmark_scene
 
     devs = jax.devices("cpu")[:2]
     scene = load_scene(CONFIG)
@@ -352,12 +366,8 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
         size = (160, 240)
     n = max(2, repeats) + 2  # frames per stream: n - 2 windows of two
     session = LiveSession(scene, size=size, devices=devs, **extra)
-    h, w = size
-    prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
-    prep = with_output(prep, camera_output_matrix(prep, session.camera))
-    bg = jnp.zeros((h, w, 3), jnp.uint8)
-    args = (prep, prep.materials, prep.model, prep.view, _all_visible(prep.num_objects), bg,
-            session.camera, mirror_needed(prep.materials))
+    args = _benchmark_scene_inputs(session, jnp.zeros((*size, 3), jnp.uint8), quick=quick)
+    prep = args[0]
 
     def figures(full: tuple[Any, ...]) -> dict[str, Any]:
         on = [_put(full, d) for d in devs]
@@ -388,15 +398,7 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
                benchmark_scene=bench)
     e2e: dict[str, Any] = {}
     with VideoSource(VIDEO, field="video") as src, tempfile.TemporaryDirectory() as tmp:
-        def frames():
-            while (f := src.read()) is not None:
-                if quick:
-                    import cv2
-
-                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA)
-                yield f
-
-        stream = frames()
+        stream = _frames(src, size)
         with VideoSink(Path(tmp) / "o.mp4", fps=25.0, size=size) as sink:
             session.run(stream, sink.write, threads=False, max_frames=4)  # compile both
             for depth in (1, 2):
