@@ -238,6 +238,7 @@ class MarkerDetector:
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = method
         dic = aruco_dictionary(spec.dictionary)
+        self._cells = int(dic.markerSize) + 2  # modules across a marker, black border included
         self._detector = cv2.aruco.ArucoDetector(dic, params)
         coarse = cv2.aruco.DetectorParameters()  # corners refined at full resolution instead
         coarse.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
@@ -273,13 +274,19 @@ class MarkerDetector:
         return r, t, c, err
 
     def _subpix(self, grey: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """Corners refined on the full-resolution frame (OpenCV's SUBPIX settings)."""
+        """Corners refined on the full-resolution frame (OpenCV's SUBPIX settings, window
+        scaled to the marker's module as OpenCV's ``relativeCornerRefinmentWinSize`` does:
+        a fixed 11×11 window reaches past a small marker's white margin and pulls the
+        corner outwards)."""
         if self.spec.refine == "none":
             return c
         cv2 = _cv2()
+        perimeter = float(np.sum(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+        module = perimeter / (4 * self._cells)  # px per marker cell
+        win = int(max(1, min(5, round(0.3 * module))))
         pts = np.ascontiguousarray(c, np.float32).reshape(-1, 1, 2)
         crit = (cv2.TERM_CRITERIA_MAX_ITER | cv2.TERM_CRITERIA_EPS, 30, 0.1)
-        cv2.cornerSubPix(grey, pts, (5, 5), (-1, -1), crit)
+        cv2.cornerSubPix(grey, pts, (win, win), (-1, -1), crit)
         return pts.reshape(4, 2).astype(np.float64)
 
     def _candidates(self, grey: np.ndarray) -> list[tuple[int, np.ndarray]]:
