@@ -75,6 +75,10 @@ def test_bench_quick_json_schema(capsys):
     bs = result["live_paper"]["benchmark_scene"]
     assert 0 < bs["min_ms"] <= bs["median_ms"] and bs["compile_s"] > 0
     assert bs["covered_pixels"] > 0 and not bs["overflow"]
+    # ... and its whole loop on the benchmark video (markers found: the spheres are drawn)
+    for e2e in (bs["end_to_end"], result["live_in_flight"]["benchmark_scene"]["end_to_end"]):
+        assert e2e["covered_pixels"] > 0 and e2e["recompiles"] == 0
+    assert bs["end_to_end"]["end_to_end_fps"] > 0
     assert result["_meta"]["quick"] is True
 
 

@@ -33,7 +33,13 @@ Figures:
   "benchmark scene" render-only figure, every frame computing its whole interreflection;
   the sample video's own scene is the larger one above); ``objects_static``: the same step
   reusing the interreflection's camera-independent half (objects that stay put while the
-  camera moves; ``renderer.render_senders``), and ``senders_ms``: that half alone.
+  camera moves; ``renderer.render_senders``), and ``senders_ms``: that half alone;
+  ``end_to_end``: the whole loop on BENCHMARK.md's scene as a live scene
+  (``configs/live_benchmark.toml`` on ``measurements/video/benchmark.mp4``: the benchmark's
+  camera, spheres, materials, environment and two-bounce interreflection, the spheres on
+  markers, the camera 0.275 m from them looking down at 40–50°; ~7,000 covered pixels like
+  the benchmark frame), the same fields as the sample video's above (``compile_s``: its first
+  frame; ``covered_pixels``: its last).
 
 ``live_paper_none``: the same without interreflection (the frame program and the live stages
 alone).
@@ -52,7 +58,8 @@ consecutive intervals between finished frames (throughput: frames in flight fini
   senders' half: ``--quick`` renders without interreflection);
 * ``end_to_end``: :meth:`~spectral_fit.live.LiveSession.run` without threads on the sample
   video, ``in_flight`` 1 and 2 (``LiveSession(devices=both)``), frame interval as
-  :meth:`~spectral_fit.live.RunStats.medians_ms` takes it.
+  :meth:`~spectral_fit.live.RunStats.medians_ms` takes it;
+  ``benchmark_scene.end_to_end``: the same on the benchmark video (``live_paper`` above).
 
 CPU backend only (elsewhere the case reports ``skipped``).
 
@@ -75,6 +82,8 @@ __all__ = ["CASES"]
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "live_sample.toml"
 VIDEO = ROOT / "measurements" / "video" / "sample.mp4"
+BENCH_CONFIG = ROOT / "configs" / "live_benchmark.toml"
+BENCH_VIDEO = ROOT / "measurements" / "video" / "benchmark.mp4"
 
 
 def live_paper(opts: BenchOptions) -> dict[str, Any]:
@@ -92,11 +101,12 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
     from ..errors import InputError
     from ..live import LiveSession
     from ..scene import load_scene
-    from ..video import VideoSink, VideoSource
+    from ..video import VideoSource
 
-    if not CONFIG.is_file() or not VIDEO.is_file():
-        raise InputError("live_paper needs the repository's configs/ and measurements/video/",
-                         path=CONFIG if not CONFIG.is_file() else VIDEO)
+    for path in (CONFIG, VIDEO, BENCH_CONFIG, BENCH_VIDEO):
+        if not path.is_file():
+            raise InputError("live_paper needs the repository's configs/ and "
+                             "measurements/video/", path=path)
     scene = load_scene(CONFIG)
     extra: dict[str, Any] = {} if mode is None else {"mode": mode}
     if opts.quick:
@@ -121,18 +131,35 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
         out["compile_s"] = first_frame_s  # the first frame: planning + compilation + render
         out["benchmark_scene"] = _benchmark_scene_step(session, bg, quick=opts.quick,
                                                        repeats=3 if opts.quick else 20)
-        runs = {}
-        with tempfile.TemporaryDirectory() as tmp:
-            for threads in (False, True):
-                with VideoSink(Path(tmp) / f"out{int(threads)}.mp4", fps=25.0,
-                               size=size) as sink:
-                    # +1: the first interval includes the wait for the pipeline to fill
-                    runs[threads] = session.run(stream, sink.write, threads=threads,
-                                                max_frames=n_e2e + 1, in_flight=1)
+        out.update(_end_to_end(session, stream, n_e2e))
+        out["benchmark_scene"]["end_to_end"] = _benchmark_video(opts, extra)
     jax.block_until_ready(step())
+    out.update({
+        "render_fps": 1e3 / out["median_ms"],
+        "covered_pixels": int(session.last_object_id.__ge__(0).sum()),
+        "pixel_capacity": list(session.prep.pixel_capacity),
+        "size": [int(x) for x in session.size],
+        "mode": extra.get("mode", scene.interreflection.mode),
+    })
+    return out
+
+
+def _end_to_end(session: Any, stream: Any, n: int) -> dict[str, Any]:
+    """The live loop on ``n`` + 1 frames of ``stream`` one stage after the other, then on the
+    next ``n`` + 1 with the stages overlapped by threads (``run(threads=...)``, one frame in
+    flight); medians over every frame after the first (which also waits for the pipeline to
+    fill). Frames are encoded as MPEG-4 into a temporary file."""
+    from ..video import VideoSink
+
+    runs = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for threads in (False, True):
+            with VideoSink(Path(tmp) / f"out{int(threads)}.mp4", fps=25.0,
+                           size=session.size) as sink:
+                runs[threads] = session.run(stream, sink.write, threads=threads,
+                                            max_frames=n + 1, in_flight=1)
 
     def stage_medians(st) -> dict[str, float | None]:
-        # every frame after the first (which also waits for the queue to fill)
         vals = {}
         for name in ("decode", "detect", "undistort", "render", "encode", "interval"):
             xs = getattr(st, name)[1:]
@@ -141,8 +168,7 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
 
     seq, piped = stage_medians(runs[False]), stage_medians(runs[True])
     e2e, e2e_p = seq.pop("interval"), piped.pop("interval")
-    out.update({
-        "render_fps": 1e3 / out["median_ms"],
+    return {
         "end_to_end_median_ms": e2e,
         "end_to_end_fps": 1e3 / e2e if e2e else None,
         "n_end_to_end": runs[False].frames - 1,
@@ -151,15 +177,33 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
         "end_to_end_pipelined_median_ms": e2e_p,
         "end_to_end_pipelined_fps": 1e3 / e2e_p if e2e_p else None,
         "stages_pipelined_ms": piped,
-        "covered_pixels": int(session.last_object_id.__ge__(0).sum()),
-        "pixel_capacity": list(session.prep.pixel_capacity),
         "recompiles": int(session.recompiles),
         "interreflection_senders": {"computed": int(session.ir_updates),
                                     "reused": int(session.ir_reuses),
                                     "reuse_mm": session.ir_reuse_mm},
-        "size": [int(x) for x in session.size],
-        "mode": extra.get("mode", scene.interreflection.mode),
-    })
+    }
+
+
+def _benchmark_video(opts: BenchOptions, extra: dict[str, Any]) -> dict[str, Any]:
+    """``_end_to_end`` on BENCHMARK.md's scene as a live scene (``configs/live_benchmark.toml``
+    on ``measurements/video/benchmark.mp4``), after a first frame that plans and compiles
+    (``compile_s``); ``covered_pixels``: the last frame's."""
+    from ..live import LiveSession
+    from ..scene import load_scene
+    from ..video import VideoSource
+
+    n = 3 if opts.quick else max(2, min(opts.repeats, 12))
+    with VideoSource(BENCH_VIDEO, field="video") as src:
+        div = 3 if opts.quick else 1
+        size = (src.height // div, src.width // div)
+        stream = _frames(src, size)
+        session = LiveSession(load_scene(BENCH_CONFIG), size=size, **extra)
+        t0 = time.perf_counter()
+        session.process(next(stream))
+        out: dict[str, Any] = {"compile_s": time.perf_counter() - t0}
+        out.update(_end_to_end(session, stream, n))
+    out["covered_pixels"] = int(session.last_object_id.__ge__(0).sum())
+    out["pixel_capacity"] = list(session.prep.pixel_capacity)
     return out
 
 
@@ -355,7 +399,6 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
     from ..live import LiveSession, _put, _step
     from ..renderer import render_senders
     from ..scene import load_scene
-    from ..video import VideoSink, VideoSource
 
     devs = jax.devices("cpu")[:2]
     scene = load_scene(CONFIG)
@@ -396,8 +439,21 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
                                                     "render_fps")}
     res.update(compile_s=bench["compile_s"], devices=[str(d) for d in devs],
                benchmark_scene=bench)
+    res["end_to_end"] = _in_flight_e2e(session, VIDEO, size, quick)
+    bench_session = LiveSession(load_scene(BENCH_CONFIG), size=size, devices=devs, **extra)
+    res["benchmark_scene"]["end_to_end"] = _in_flight_e2e(bench_session, BENCH_VIDEO, size,
+                                                          quick)
+    return res
+
+
+def _in_flight_e2e(session: Any, video: Path, size: tuple[int, int], quick: bool
+                   ) -> dict[str, Any]:
+    """:meth:`~spectral_fit.live.LiveSession.run` without threads on ``video`` with
+    ``in_flight`` 1 and 2, after 4 frames that compile the step on both devices."""
+    from ..video import VideoSink, VideoSource
+
     e2e: dict[str, Any] = {}
-    with VideoSource(VIDEO, field="video") as src, tempfile.TemporaryDirectory() as tmp:
+    with VideoSource(video, field="video") as src, tempfile.TemporaryDirectory() as tmp:
         stream = _frames(src, size)
         with VideoSink(Path(tmp) / "o.mp4", fps=25.0, size=size) as sink:
             session.run(stream, sink.write, threads=False, max_frames=4)  # compile both
@@ -414,8 +470,8 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
     e2e["recompiles"] = int(session.recompiles)
     e2e["interreflection_senders"] = {"computed": int(session.ir_updates),
                                       "reused": int(session.ir_reuses)}
-    res["end_to_end"] = e2e
-    return res
+    e2e["covered_pixels"] = int(session.last_object_id.__ge__(0).sum())
+    return e2e
 
 
 CASES = {"live_paper": live_paper, "live_paper_none": live_paper_none,
