@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
@@ -48,7 +46,9 @@ def test_missing_video_names_the_file(tmp_path):
     assert "nope.mp4" in str(e.value) and e.value.field == "--video"
 
 
-@pytest.mark.parametrize("content", [b"", os.urandom(4096), b"\x00\x00\x00\x18ftypmp42" * 50])
+@pytest.mark.parametrize("content", [b"", np.random.default_rng(5).bytes(4096),
+                                     b"\x00\x00\x00\x18ftypmp42" * 50],
+                         ids=["empty", "random", "truncated-mp4-header"])
 def test_corrupt_video_is_a_clear_error(tmp_path, content):
     p = tmp_path / "bad.mp4"
     p.write_bytes(content)
