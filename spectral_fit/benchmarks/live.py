@@ -132,11 +132,11 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
         out["benchmark_scene"] = _benchmark_scene_step(session, bg, quick=opts.quick,
                                                        repeats=3 if opts.quick else 20)
         out.update(_end_to_end(session, stream, n_e2e))
-        out["benchmark_scene"]["end_to_end"] = _benchmark_video(opts, extra)
+        out["benchmark_scene"]["end_to_end"] = _benchmark_video(size, n_e2e, extra)
     jax.block_until_ready(step())
     out.update({
         "render_fps": 1e3 / out["median_ms"],
-        "covered_pixels": int(session.last_object_id.__ge__(0).sum()),
+        "covered_pixels": _covered_pixels(session),
         "pixel_capacity": list(session.prep.pixel_capacity),
         "size": [int(x) for x in session.size],
         "mode": extra.get("mode", scene.interreflection.mode),
@@ -184,27 +184,30 @@ def _end_to_end(session: Any, stream: Any, n: int) -> dict[str, Any]:
     }
 
 
-def _benchmark_video(opts: BenchOptions, extra: dict[str, Any]) -> dict[str, Any]:
-    """``_end_to_end`` on BENCHMARK.md's scene as a live scene (``configs/live_benchmark.toml``
-    on ``measurements/video/benchmark.mp4``), after a first frame that plans and compiles
-    (``compile_s``); ``covered_pixels``: the last frame's."""
+def _benchmark_video(size: tuple[int, int], n: int, extra: dict[str, Any]) -> dict[str, Any]:
+    """``_end_to_end`` (``n`` frames) on BENCHMARK.md's scene as a live scene
+    (``configs/live_benchmark.toml`` on ``measurements/video/benchmark.mp4``, frames resized to
+    ``size`` (H, W) when needed; session options ``extra``), after a first frame that plans and
+    compiles (``compile_s``); ``covered_pixels``: the last frame's."""
     from ..live import LiveSession
     from ..scene import load_scene
     from ..video import VideoSource
 
-    n = 3 if opts.quick else max(2, min(opts.repeats, 12))
     with VideoSource(BENCH_VIDEO, field="video") as src:
-        div = 3 if opts.quick else 1
-        size = (src.height // div, src.width // div)
         stream = _frames(src, size)
         session = LiveSession(load_scene(BENCH_CONFIG), size=size, **extra)
         t0 = time.perf_counter()
         session.process(next(stream))
         out: dict[str, Any] = {"compile_s": time.perf_counter() - t0}
         out.update(_end_to_end(session, stream, n))
-    out["covered_pixels"] = int(session.last_object_id.__ge__(0).sum())
+    out["covered_pixels"] = _covered_pixels(session)
     out["pixel_capacity"] = list(session.prep.pixel_capacity)
     return out
+
+
+def _covered_pixels(session: Any) -> int:
+    """Pixels covered by an object in ``session``'s last frame."""
+    return int((session.last_object_id >= 0).sum())
 
 
 def _frames(src: Any, size: tuple[int, int]) -> Any:
@@ -470,7 +473,7 @@ def _in_flight_e2e(session: Any, video: Path, size: tuple[int, int], quick: bool
     e2e["recompiles"] = int(session.recompiles)
     e2e["interreflection_senders"] = {"computed": int(session.ir_updates),
                                       "reused": int(session.ir_reuses)}
-    e2e["covered_pixels"] = int(session.last_object_id.__ge__(0).sum())
+    e2e["covered_pixels"] = _covered_pixels(session)
     return e2e
 
 
