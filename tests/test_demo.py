@@ -5,6 +5,7 @@ import json
 import numpy as np
 from PIL import Image
 
+from spectral_fit import startup
 from spectral_fit.cli import main
 from spectral_fit.colorimetry import radiance_to_xyz
 from spectral_fit.exr import read_spectral_exr
@@ -12,7 +13,13 @@ from spectral_fit.exr import read_spectral_exr
 
 def test_demo_writes_pictures_and_summary(tmp_path, capsys):
     out = tmp_path / "demo"
+    before = dict(startup.CACHE_STATS)
     assert main(["demo", "-o", str(out), "--json"]) == 0
+    # the frame goes through the prepared-scene and program caches, as `spectral-fit render`
+    # (a hit after CI's demo run, or a miss that stores them): the checks below see its frame
+    used = {k: startup.CACHE_STATS[k] - before[k] for k in before}
+    assert used["prepared_hit"] + used["prepared_miss"] == 1, used
+    assert used["program_hit"] + used["program_miss"] + used["program_memory_hit"] >= 1, used
     summary = json.loads(capsys.readouterr().out)
     assert summary == json.loads((out / "summary.json").read_text())
     env = summary["environment"]
