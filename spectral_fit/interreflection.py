@@ -131,6 +131,8 @@ MODES = ("gather", "paper", "none")
 
 #: pass-1 supersampling of the gather samples (raster side = SUPERSAMPLE · gather_size)
 SUPERSAMPLE = 4
+#: default gather size g (samples per side of a sender's grid)
+GATHER_SIZE = 16
 #: smallest |n·axis| used for the area of a grazing pass-1 texel (caps 1/cos at 20)
 _MIN_COS = 0.05
 #: the ortho window is the bounding sphere's radius times this
@@ -263,7 +265,7 @@ _PLAN_DIRECTIONS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1
 _PLAN_ROLLS_DEG = (0.0, 22.5, 45.0, 67.5)
 
 
-def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = 16,
+def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHER_SIZE,
                       headroom: float = 1.5) -> RasterConfig:
     """Window capacities of the gather pass-1 raster of one sender mesh, for any pose.
 
@@ -381,7 +383,7 @@ def prepare_interreflection(
     *,
     mode: str = "gather",
     texture_size: int = 128,
-    gather_size: int = 16,
+    gather_size: int = GATHER_SIZE,
     capacity_fraction: float = 0.35,
     raster_config: Any = None,
 ) -> IRGeometry:

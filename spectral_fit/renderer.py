@@ -103,10 +103,14 @@ class Prepared(eqx.Module):
             map's texel layout plus two pole rows), or None (irradiance from ``env``).
         split_map: the :class:`~spectral_fit.environment.SplitSumMap` of quality "fast"
             (finely spaced prefiltered levels), else None.
+        ir_vertices, ir_normals, ir_triangles, ir_vertex_object: the same for the meshes the
+            interreflection's pass 1 rasterises (:func:`_ir_mesh`: in gather mode spheres
+            tessellated for its raster; otherwise the arrays above).
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
     ir_bounces, ir_texture_size, raster_config, pixel_capacity (covered-pixel list size per
     object), object_slices ((start, stop)
-    vertex ranges), triangle_slices, names, display (a Display), scene_white_xy, batch_size,
+    vertex ranges), triangle_slices, ir_object_slices, ir_triangle_slices (the same of the
+    pass-1 meshes), names, display (a Display), scene_white_xy, batch_size,
     quality, split_settings (a :class:`~spectral_fit.environment.SplitSum`).
     """
 
@@ -126,6 +130,10 @@ class Prepared(eqx.Module):
     materials: Material
     irradiance_lut: jax.Array | None
     split_map: Any
+    ir_vertices: jax.Array
+    ir_normals: jax.Array
+    ir_triangles: jax.Array
+    ir_vertex_object: jax.Array
     shape: tuple[int, int] = eqx.field(static=True)
     wavelengths: tuple[float, ...] = eqx.field(static=True)
     spectral_mode: str = eqx.field(static=True)
@@ -138,6 +146,8 @@ class Prepared(eqx.Module):
     pixel_capacity: tuple[int, ...] = eqx.field(static=True)
     object_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
     triangle_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    ir_object_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    ir_triangle_slices: tuple[tuple[int, int], ...] = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
     display: Any = eqx.field(static=True)
     scene_white_xy: tuple[float, float] | None = eqx.field(static=True)
@@ -213,6 +223,37 @@ def _mesh(obj: Any):
     if obj.shape == "icosphere":
         return icosphere(obj.radius, obj.subdivisions)
     return load_mesh(obj.mesh)
+
+
+def _ir_mesh(obj: Any, mesh: Any, mode: str) -> Any:
+    """The mesh the interreflection's pass 1 rasterises for ``obj`` (whose camera mesh is
+    ``mesh``). Gather mode resolves a sender on a (SUPERSAMPLE · g)² = 64² raster framed on
+    its bounding sphere, where the paper's 100 × 100 UV sphere puts ~10,000 front faces on
+    ~3,200 covered texels: an analytic sphere is tessellated for that raster instead, a UV
+    sphere with at most 64 slices × 32 stacks (~3 texels per slice at the equator; its
+    polygon lies within 0.0012 r = 0.04 texel of the sphere) and an icosphere subdivided at
+    most until it has ≥ 64² triangles (4 times: 5,120). Same sphere, same samples to well
+    below the raster's resolution (tests/test_interreflection.py), at a fifth of the
+    pass-1 raster's triangles (benchmark frame: pass 1 3.2 → 1.5 ms). Meshes from files and
+    the paper mode (eq. 6's textures, rasterised at texture_size in perspective) keep
+    ``mesh``."""
+    from .interreflection import GATHER_SIZE, SUPERSAMPLE
+    from .mesh import icosphere, uv_sphere
+
+    if mode != "gather":
+        return mesh
+    side = SUPERSAMPLE * GATHER_SIZE
+    if obj.shape == "uv_sphere":
+        stacks, slices = min(obj.stacks, side // 2), min(obj.slices, side)
+        if (stacks, slices) != (obj.stacks, obj.slices):
+            return uv_sphere(obj.radius, stacks, slices)
+    elif obj.shape == "icosphere":
+        s = 0
+        while 20 * 4 ** s < side * side:
+            s += 1
+        if s < obj.subdivisions:
+            return icosphere(obj.radius, s)
+    return mesh
 
 
 def scene_materials(scene: Any, *, basis: Any = None) -> list[Material]:
@@ -479,25 +520,16 @@ def prepare(
     nb = scene.interreflection.bounces if bounces is None else int(bounces)
     ts = scene.interreflection.texture_size if texture_size is None else int(texture_size)
 
-    # meshes in object frames, concatenated
-    verts, norms, tris, vobj, tobj, vsl, tsl, models = [], [], [], [], [], [], [], []
-    vbase = tbase = 0
-    for i, obj in enumerate(scene.objects):
-        mesh = _mesh(obj)
-        nv, nt = len(mesh.vertices), len(mesh.triangles)
-        verts.append(mesh.vertices)
-        norms.append(mesh.normals)
-        tris.append(mesh.triangles + vbase)
-        vobj.append(np.full(nv, i, np.int32))
-        tobj.append(np.full(nt, i, np.int32))
-        vsl.append((vbase, vbase + nv))
-        tsl.append((tbase, tbase + nt))
-        vbase += nv
-        tbase += nt
-        models.append(obj.model_matrix())
-    vertices = np.concatenate(verts).astype(np.float32)
-    triangles = np.concatenate(tris).astype(np.int32)
-    model = np.stack(models).astype(np.float32)
+    # meshes in object frames, concatenated (and those the interreflection's pass 1 uses)
+    meshes = [_mesh(obj) for obj in scene.objects]
+    vertices, normals, triangles, vobj_a, tobj_a, vsl, tsl = _concat_meshes(meshes)
+    model = np.stack([obj.model_matrix() for obj in scene.objects]).astype(np.float32)
+    ir_meshes = [_ir_mesh(obj, m, ir_mode) for obj, m in zip(scene.objects, meshes,
+                                                              strict=True)]
+    if all(a is b for a, b in zip(ir_meshes, meshes, strict=True)):
+        ir_v, ir_n, ir_t, ir_o, ir_vsl, ir_tsl = vertices, normals, triangles, vobj_a, vsl, tsl
+    else:
+        ir_v, ir_n, ir_t, ir_o, _, ir_vsl, ir_tsl = _concat_meshes(ir_meshes)
 
     cam = scene.camera
     view = np.asarray(_look_at_jit(np.asarray(cam.position, np.float32),
@@ -554,8 +586,8 @@ def prepare(
     mats = _stack(scene_materials(scene, basis=basis))
 
     # capacities from the configured poses (NumPy: no compilation)
-    world = np.einsum("vij,vj->vi", model[np.concatenate(vobj)][:, :3, :3].astype(np.float64),
-                      vertices) + model[np.concatenate(vobj)][:, :3, 3]
+    world = np.einsum("vij,vj->vi", model[vobj_a][:, :3, :3].astype(np.float64),
+                      vertices) + model[vobj_a][:, :3, 3]
     vp = proj.astype(np.float64) @ view.astype(np.float64)
     clip = world @ vp[:, :3].T + vp[:, 3]
     cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom)
@@ -577,22 +609,22 @@ def prepare(
         from .camera import interreflection_camera
 
         centres = model[:, :3, 3]
-        for i in range(len(models)):
-            for j in range(len(models)):
+        for i in range(len(model)):
+            for j in range(len(model)):
                 if i != j:
                     cam = interreflection_camera(centres[i], centres[j], aspect=1.0)
                     m = np.asarray(cam.view_projection, np.float64)
                     (a, b), (ta, tb) = vsl[j], tsl[j]
                     paper_clips.append(world[a:b] @ m[:, :3].T + m[:, 3])
                     paper_tris.append(triangles[ta:tb] - a)
-    ir_cfg = _ir_raster_config(ir_mode, ts, max(b - a for a, b in tsl), paper_clips,
-                               paper_tris, [(vertices[a:b], triangles[ta:tb] - a) for (a, b),
-                                            (ta, tb) in zip(vsl, tsl, strict=True)])
+    ir_cfg = _ir_raster_config(ir_mode, ts, max(b - a for a, b in ir_tsl), paper_clips,
+                               paper_tris, [(ir_v[a:b], ir_t[ta:tb] - a) for (a, b),
+                                            (ta, tb) in zip(ir_vsl, ir_tsl, strict=True)])
 
     return Prepared(
-        vertices=jnp.asarray(vertices), normals=jnp.asarray(np.concatenate(norms), jnp.float32),
-        triangles=jnp.asarray(triangles), vertex_object=jnp.asarray(np.concatenate(vobj)),
-        tri_object=jnp.asarray(np.concatenate(tobj)), model=jnp.asarray(model),
+        vertices=jnp.asarray(vertices), normals=jnp.asarray(normals),
+        triangles=jnp.asarray(triangles), vertex_object=jnp.asarray(vobj_a),
+        tri_object=jnp.asarray(tobj_a), model=jnp.asarray(model),
         view=jnp.asarray(view), projection=jnp.asarray(proj), env=env,
         env_xyz=jnp.asarray(env_xyz, jnp.float32), to_xyz=jnp.asarray(to_xyz, jnp.float32),
         to_spectrum=jnp.asarray(to_spectrum, jnp.float32),
@@ -607,7 +639,26 @@ def prepare(
         scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy),
         batch_size=int(batch_size), quality=quality, split_map=split_map,
         split_settings=split_settings if quality == "fast" else None,
+        ir_vertices=jnp.asarray(ir_v, jnp.float32), ir_normals=jnp.asarray(ir_n, jnp.float32),
+        ir_triangles=jnp.asarray(ir_t, jnp.int32), ir_vertex_object=jnp.asarray(ir_o, jnp.int32),
+        ir_object_slices=tuple(ir_vsl), ir_triangle_slices=tuple(ir_tsl),
     )
+
+
+def _concat_meshes(meshes: Sequence[Any]) -> tuple[Any, ...]:
+    """:func:`~spectral_fit.mesh.concat_meshes` as the renderer keeps it: vertices (V, 3),
+    normals (V, 3) float32, triangles (T, 3) int32, the object of each vertex (V,) and of each
+    triangle (T,) int32, and the (start, stop) vertex and triangle ranges per mesh."""
+    from .mesh import concat_meshes
+
+    mesh, toffs = concat_meshes(list(meshes))
+    nv = np.cumsum([0] + [len(m.vertices) for m in meshes])
+    vsl = [(int(a), int(b)) for a, b in zip(nv[:-1], nv[1:], strict=True)]
+    tsl = [(int(a), int(b)) for a, b in zip(toffs[:-1], toffs[1:], strict=True)]
+    vobj = np.repeat(np.arange(len(meshes), dtype=np.int32), np.diff(nv))
+    tobj = np.repeat(np.arange(len(meshes), dtype=np.int32), np.diff(toffs))
+    return (mesh.vertices.astype(np.float32), mesh.normals.astype(np.float32),
+            mesh.triangles.astype(np.int32), vobj, tobj, vsl, tsl)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1101,18 +1152,20 @@ def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple
     return PixelList(index, tri, sum(counts), overflow, (h, w)), counts
 
 
-def _ir_geometries(prep: Prepared, world_full: jax.Array, wnorm: jax.Array,
-                   model: jax.Array, visible: jax.Array) -> list[ObjectGeometry]:
-    """The objects as the interreflection sees them: a hidden object intact (no degenerate
-    triangles, which gave NaN) but 1 km below the scene: its light and shadow on the others
-    are ~1e-9 of a neighbour's."""
+def _ir_geometries(prep: Prepared, model: jax.Array, visible: jax.Array
+                   ) -> list[ObjectGeometry]:
+    """The objects as the interreflection sees them (its pass-1 meshes, placed by ``model``):
+    a hidden object intact (no degenerate triangles, which gave NaN) but 1 km below the
+    scene: its light and shadow on the others are ~1e-9 of a neighbour's."""
     centres = model[:, :3, 3]
     away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
-    world_ir = world_full + away[prep.vertex_object]
+    world_ir = (_to_world(prep.ir_vertices, prep.ir_vertex_object, model)
+                + away[prep.ir_vertex_object])
+    wnorm = _normals_to_world(prep.ir_normals, prep.ir_vertex_object, model)
     return [ObjectGeometry(vertices=world_ir[a:b], normals=wnorm[a:b],
-                           triangles=prep.triangles[ta:tb] - a, centre=centres[i] + away[i])
-            for i, ((a, b), (ta, tb)) in enumerate(zip(prep.object_slices,
-                                                       prep.triangle_slices, strict=True))]
+                           triangles=prep.ir_triangles[ta:tb] - a, centre=centres[i] + away[i])
+            for i, ((a, b), (ta, tb)) in enumerate(zip(prep.ir_object_slices,
+                                                       prep.ir_triangle_slices, strict=True))]
 
 
 def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax.Array,
@@ -1125,9 +1178,7 @@ def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax
         mats = _without_mirror(mats)
     model = jnp.asarray(model, jnp.float32)
     visible = jnp.asarray(visible, bool)
-    world_full = _to_world(prep.vertices, prep.vertex_object, model)
-    wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
-    geom = _ir_pass1(prep, _ir_geometries(prep, world_full, wnorm, model, visible))
+    geom = _ir_pass1(prep, _ir_geometries(prep, model, visible))
     return gather_senders(geom, mats, prep.env, bounces=prep.ir_bounces)
 
 
@@ -1234,7 +1285,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                               output=None if spectral else to_out)
         ir_overflow = jnp.asarray(senders.geometry.overflow, bool)
     else:
-        geoms = _ir_geometries(prep, world_full, wnorm, model, visible)
+        geoms = _ir_geometries(prep, model, visible)
         ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
     if ir is not None:
         radiance = radiance + ir
@@ -1478,7 +1529,7 @@ def _ir_fallback(prep: Prepared) -> Any:
     cur = prep.ir_raster_config
     if cur is None:
         return None
-    tris = max(tb - ta for ta, tb in prep.triangle_slices)
+    tris = max(tb - ta for ta, tb in prep.ir_triangle_slices)
     gen = _ir_generic_config(prep.ir_mode, prep.ir_texture_size, tris)
     new = cur._replace(capacities=tuple(max(a, b) for a, b in zip(
         cur.capacities, gen.capacities, strict=True)),

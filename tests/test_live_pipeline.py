@@ -257,7 +257,7 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
     s.prep = dataclasses.replace(s.prep, ir_raster_config=s.prep.ir_raster_config._replace(
         capacities=(16, 16, 16)))
     got = s.process(img)
-    tris = max(tb - ta for ta, tb in s.prep.triangle_slices)
+    tris = max(tb - ta for ta, tb in s.prep.ir_triangle_slices)
     assert s.prep.ir_raster_config.capacities == _ir_generic_config(
         "gather", s.prep.ir_texture_size, tris).capacities
     assert s.recompiles == 1 and ok.recompiles == 0

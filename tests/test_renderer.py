@@ -507,7 +507,7 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
     from spectral_fit.renderer import _ir_generic_config, _regrow, prepare, render_frame
 
     p = prepare(write_scene(folder, mode="gather"))
-    tris = max(tb - ta for ta, tb in p.triangle_slices)
+    tris = max(tb - ta for ta, tb in p.ir_triangle_slices)
     generic = _ir_generic_config("gather", p.ir_texture_size, tris)
     assert not bool(render_frame(p).stats["interreflection_overflow"])
     tiny = dataclasses.replace(p, ir_raster_config=p.ir_raster_config._replace(
