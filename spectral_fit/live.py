@@ -365,7 +365,8 @@ class LiveSession:
         world = np.einsum("vij,vj->vi", m[:, :3, :3], v) + m[:, :3, 3]
         vp = np.asarray(p.projection, np.float64) @ np.asarray(poses.view, np.float64)
         clip = world @ vp[:, :3].T + vp[:, 3]
-        cfg, _ = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom)
+        cfg, _ = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom,
+                                 cull=p.cull)
         old = p.raster_config
         cfg = RasterConfig(old.tile_sizes, tuple(max(a, b) for a, b in zip(
             cfg.capacities, old.capacities, strict=True)),
@@ -374,7 +375,8 @@ class LiveSession:
         tris = np.asarray(p.triangles)
         caps = []
         for (ta, tb), c in zip(p.triangle_slices, p.pixel_capacity, strict=True):
-            _, bound = plan_capacities(clip, tris[ta:tb], p.shape, headroom=headroom)
+            _, bound = plan_capacities(clip, tris[ta:tb], p.shape, headroom=headroom,
+                                       cull=p.cull)
             caps.append(max(c, min(h * w, 1024 * -(-int(headroom * bound + 64) // 1024))))
         cap = tuple(caps)
         if cfg == old and cap == p.pixel_capacity:

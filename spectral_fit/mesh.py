@@ -33,6 +33,7 @@ __all__ = [
     "load_obj",
     "load_ply",
     "vertex_normals",
+    "is_closed_outward",
     "translate",
     "scale",
     "rotate",
@@ -110,6 +111,27 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- generators
+
+
+def is_closed_outward(vertices, triangles) -> bool:
+    """Whether a triangle mesh is closed by its indices and consistently wound outward: every
+    directed edge (a, b) occurs once and its reverse (b, a) once (a closed, oriented 2-manifold;
+    vertices duplicated along a seam count as an opening), and the enclosed signed volume
+    Σ v0 · (v1 × v2) / 6 is positive (counter-clockwise seen from outside). A camera outside
+    such a mesh sees only its front faces, so back faces can be culled without changing a
+    pixel."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    if t.ndim != 2 or t.shape[0] == 0 or t.shape[1] != 3:
+        return False
+    n = int(t.max()) + 1
+    a = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
+    b = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
+    key, rev = a * n + b, b * n + a
+    if np.unique(key).size != key.size or not np.all(np.isin(rev, key)):
+        return False
+    p0, p1, p2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return bool(np.sum(p0 * np.cross(p1, p2)) > 0.0)
 
 
 def uv_sphere(radius: float = 1.0, stacks: int = 100, slices: int = 100, *,

@@ -108,10 +108,12 @@ class Prepared(eqx.Module):
             tessellated for its raster; otherwise the arrays above).
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
     ir_bounces, ir_texture_size, raster_config, pixel_capacity (covered-pixel list size per
-    object), object_slices ((start, stop)
-    vertex ranges), triangle_slices, ir_object_slices, ir_triangle_slices (the same of the
-    pass-1 meshes), names, display (a Display), scene_white_xy, batch_size,
-    quality, split_settings (a :class:`~spectral_fit.environment.SplitSum`).
+    object), object_slices ((start, stop) vertex ranges), triangle_slices, ir_object_slices,
+    ir_triangle_slices (the same of the pass-1 meshes), names, display (a Display),
+    scene_white_xy, batch_size, quality, split_settings (a
+    :class:`~spectral_fit.environment.SplitSum`), cull (the camera raster's face culling:
+    "back" when every mesh is closed and wound outward,
+    :func:`~spectral_fit.mesh.is_closed_outward`, else "none").
     """
 
     vertices: jax.Array
@@ -154,6 +156,7 @@ class Prepared(eqx.Module):
     batch_size: int = eqx.field(static=True, default=32)
     quality: str = eqx.field(static=True, default="fast")
     split_settings: Any = eqx.field(static=True, default=None)
+    cull: str = eqx.field(static=True, default="none")
 
     @property
     def num_objects(self) -> int:
@@ -339,14 +342,14 @@ def _white_luminance(y_map: np.ndarray, rotation_y_deg: float, normal: np.ndarra
 
 
 def plan_capacities(clip: np.ndarray, triangles: np.ndarray, shape: tuple[int, int], *,
-                    headroom: float = 1.5) -> tuple[Any, int]:
+                    headroom: float = 1.5, cull: str = "none") -> tuple[Any, int]:
     """Rasteriser window capacities and a bound on the covered pixels for one pose, in NumPy
     (no compilation): :func:`spectral_fit.raster.plan_counts` (the rasteriser's own window
-    counting). Returns (RasterConfig, pixel bound); the capacities are ``headroom`` × the
-    counts on the rasteriser's ladder."""
+    counting, with its ``cull`` mode). Returns (RasterConfig, pixel bound); the capacities
+    are ``headroom`` × the counts on the rasteriser's ladder."""
     from .raster import RasterConfig, plan_counts
 
-    counts = plan_counts(clip, triangles, shape)
+    counts = plan_counts(clip, triangles, shape, cull=cull)
     return RasterConfig.from_counts(counts, headroom=headroom), counts.pixels
 
 
@@ -526,6 +529,12 @@ def prepare(
     model = np.stack([obj.model_matrix() for obj in scene.objects]).astype(np.float32)
     ir_meshes = [_ir_mesh(obj, m, ir_mode) for obj, m in zip(scene.objects, meshes,
                                                               strict=True)]
+    # the camera culls back faces when no mesh has an opening or inward winding (the gather
+    # pass 1 always does: it assumes closed senders): half the raster's windows
+    from .mesh import is_closed_outward
+
+    cull = ("back" if all(is_closed_outward(m.vertices, m.triangles) for m in meshes)
+            else "none")
     if all(a is b for a, b in zip(ir_meshes, meshes, strict=True)):
         ir_v, ir_n, ir_t, ir_o, ir_vsl, ir_tsl = vertices, normals, triangles, vobj_a, vsl, tsl
     else:
@@ -590,11 +599,12 @@ def prepare(
                       vertices) + model[vobj_a][:, :3, 3]
     vp = proj.astype(np.float64) @ view.astype(np.float64)
     clip = world @ vp[:, :3].T + vp[:, 3]
-    cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom)
+    cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom, cull=cull)
     if pixel_capacity is None:
         caps = []
         for ta, tb in tsl:
-            _, bound = plan_capacities(clip, triangles[ta:tb], shape, headroom=headroom)
+            _, bound = plan_capacities(clip, triangles[ta:tb], shape, headroom=headroom,
+                                       cull=cull)
             caps.append(min(shape[0] * shape[1], _ladder(headroom * bound + 64)))
         cap = tuple(caps)
     elif isinstance(pixel_capacity, int | np.integer):
@@ -641,7 +651,7 @@ def prepare(
         split_settings=split_settings if quality == "fast" else None,
         ir_vertices=jnp.asarray(ir_v, jnp.float32), ir_normals=jnp.asarray(ir_n, jnp.float32),
         ir_triangles=jnp.asarray(ir_t, jnp.int32), ir_vertex_object=jnp.asarray(ir_o, jnp.int32),
-        ir_object_slices=tuple(ir_vsl), ir_triangle_slices=tuple(ir_tsl),
+        ir_object_slices=tuple(ir_vsl), ir_triangle_slices=tuple(ir_tsl), cull=cull,
     )
 
 
@@ -1234,7 +1244,8 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
 
     # 2. rasterise, compact covered pixels, G-buffer
     with jax.named_scope("raster"):
-        ras = rasterize(clip, prep.triangles, (h, w), config=prep.raster_config, check=False)
+        ras = rasterize(clip, prep.triangles, (h, w), cull=prep.cull,
+                        config=prep.raster_config, check=False)
     # covered pixels, one fixed-capacity list per object (each object is shaded with its own
     # material, whose per-material precomputations then run once per object)
     with jax.named_scope("pixel_lists"):
@@ -1514,7 +1525,7 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
             world = _to_world(prep.vertices, prep.vertex_object, prep.model)
             vp = prep.projection @ prep.view
             r = rasterize(world @ vp[:, :3].T + vp[:, 3], prep.triangles, prep.shape,
-                          config=prep.raster_config, check=False)
+                          cull=prep.cull, config=prep.raster_config, check=False)
             changes["raster_config"] = prep.raster_config.grown(np.asarray(r.needed), 1.5)
         warnings.warn(f"render: buffers grown ({sorted(changes)}); recompiling",
                       RuntimeWarning, stacklevel=3)

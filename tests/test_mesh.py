@@ -14,6 +14,7 @@ from spectral_fit.mesh import (
     Mesh,
     concat_meshes,
     icosphere,
+    is_closed_outward,
     load_mesh,
     load_obj,
     load_ply,
@@ -309,3 +310,23 @@ def test_unknown_extension_and_missing_file(tmp_path):
         load_mesh(tmp_path / "x.stl")
     with pytest.raises(InputError, match="cannot read"):
         load_mesh(tmp_path / "missing.obj")
+
+
+def test_is_closed_outward():
+    """Closed, consistently and outwardly wound meshes (the spheres, moved and rotated) pass;
+    an opening (one triangle removed, or the seam of a UV sphere with uvs), inward winding, a
+    single flipped triangle and a duplicated face do not."""
+    for m in (uv_sphere(0.0375, 100, 100), uv_sphere(1.0, 3, 3), icosphere(2.0, 2)):
+        moved = transform_points(translate((0.3, -2.0, 5.0)) @ rotate((1, 2, 3), 0.7),
+                                 m.vertices)
+        assert is_closed_outward(m.vertices, m.triangles)
+        assert is_closed_outward(moved, m.triangles)
+        assert not is_closed_outward(m.vertices, m.triangles[:, ::-1])  # inward
+        assert not is_closed_outward(m.vertices, m.triangles[1:])  # an opening
+        flip = m.triangles.copy()
+        flip[0] = flip[0, ::-1]
+        assert not is_closed_outward(m.vertices, flip)
+        assert not is_closed_outward(m.vertices, np.concatenate([m.triangles, m.triangles[:1]]))
+    seam = uv_sphere(1.0, 8, 8, with_uvs=True)
+    assert not is_closed_outward(seam.vertices, seam.triangles)
+    assert not is_closed_outward(np.zeros((3, 3)), np.zeros((0, 3), np.int32))

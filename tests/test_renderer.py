@@ -533,3 +533,27 @@ def test_frame_stages_are_named_for_profilers(folder):
                   "ir_atlas", "ir_sample_transfer", "ir_receiver_diffuse", "ir_receiver_gloss",
                   "background", "display"):
         assert f"/{stage}/" in text, stage
+
+
+def test_camera_culls_back_faces_of_closed_meshes_without_changing_a_pixel(prep, frame):
+    """The spheres are closed and wound outward, so prepare has the camera raster cull back
+    faces (about half the windows planned); rasterising the same pose without culling (the
+    capacities planned for it) gives the identical triangle ids, and so the frame's mask and
+    object ids."""
+    from spectral_fit.raster import plan_config, rasterize
+    from spectral_fit.renderer import _to_world
+
+    assert prep.cull == "back"
+    world = _to_world(prep.vertices, prep.vertex_object, prep.model)
+    vp = prep.projection @ prep.view
+    clip = np.asarray(world @ vp[:, :3].T + vp[:, 3])
+    tris = np.asarray(prep.triangles)
+    full = plan_config(clip, tris, prep.shape, cull="none")
+    assert sum(prep.raster_config.capacities) < 0.75 * sum(full.capacities)
+    r_none = rasterize(clip, tris, prep.shape, cull="none", config=full)
+    r_back = rasterize(clip, tris, prep.shape, cull="back", config=prep.raster_config)
+    ids = np.asarray(r_none.tri_id)
+    assert (ids >= 0).sum() > 100
+    np.testing.assert_array_equal(np.asarray(r_back.tri_id), ids)
+    obj = np.where(ids >= 0, np.asarray(prep.tri_object)[np.maximum(ids, 0)], -1)
+    np.testing.assert_array_equal(np.asarray(frame.object_id), obj)
