@@ -706,11 +706,12 @@ def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk
 
 
 def _select(table: Any, index: jax.Array) -> jax.Array:
-    """``table[index]`` for a short static table, as a sum of masked constants (elementwise, so
-    it fuses into the surrounding arithmetic instead of becoming a gather)."""
-    out = jnp.zeros(index.shape, jnp.asarray(table[0]).dtype)
-    for k, value in enumerate(table):
-        out = jnp.where(index == k, value, out)
+    """``table[index]`` for a short static table and an index in range, as masked constants
+    (elementwise, so it fuses into the surrounding arithmetic instead of becoming a
+    gather)."""
+    out = jnp.full(index.shape, table[0])
+    for k in range(1, len(table)):
+        out = jnp.where(index == k, table[k], out)
     return out
 
 
@@ -1477,7 +1478,7 @@ def _lobe_moments(
     a_safe = jnp.where(a > 0.0, a, 1.0)
     mt = jnp.sum(g * lt) / a_safe
     mn = jnp.sum(g * nl) / a_safe
-    theta_m = jnp.arctan2(-mt, mn)
+    theta_m = _atan2_poly(-mt, mn)
     delta = theta_m - jnp.arccos(nv)
     # coordinates of L in the tangent plane at m (azimuthal equidistant: angle γ from m),
     # e1 = (cosθm, 0, sinθm) in the plane of incidence, e2 = B across it
@@ -1485,7 +1486,9 @@ def _lobe_moments(
     l1 = lt * cm + nl * sm
     lm = jnp.clip(nl * cm - lt * sm, -1.0, 1.0)  # cos γ
     sin_g = jnp.sqrt(jnp.maximum(l1 * l1 + lb * lb, 1e-30))
-    scale = jnp.arctan2(sin_g, lm) / sin_g  # γ / sin γ
+    # (_atan2_poly: XLA:CPU's atan2 is a scalar call; the frame's two tables evaluate it at
+    # 16,384 nodes, 0.19 of 0.73 ms; results within 1.2e-7 of it)
+    scale = _atan2_poly(sin_g, lm) / sin_g  # γ / sin γ
     var_t = jnp.sum(g * (l1 * scale) ** 2) / a_safe
     var_b = jnp.sum(g * (lb * scale) ** 2) / a_safe
     return jnp.stack([a, delta, var_t, var_b])

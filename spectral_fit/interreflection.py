@@ -88,6 +88,7 @@ from .environment import (
     _lobe_albedo,
     _lobe_factor,
     _materialise,
+    _select,
     _smootherstep,
     _taps_sum,
     _to_map_fast,
@@ -553,15 +554,6 @@ def _build_mips(values: jax.Array, g: int) -> jax.Array:
                 lev = jax.lax.optimization_barrier(lev)
         flat.append(jnp.pad(lev, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(p, -1, c))
     return jnp.concatenate(flat, axis=1).reshape(-1, c)
-
-
-def _select(table: Sequence[Any], index: jax.Array) -> jax.Array:
-    """``table[index]`` for a short static table, as masked constants (elementwise: fuses into
-    the surrounding arithmetic instead of becoming a gather)."""
-    out = jnp.full(index.shape, table[0])
-    for k in range(1, len(table)):
-        out = jnp.where(index == k, table[k], out)
-    return out
 
 
 def _mip_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, level: jax.Array, g: int
