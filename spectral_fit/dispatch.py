@@ -16,18 +16,23 @@ differs in two ways that matter for a frame of a few milliseconds:
 Values, gradients and ``vmap`` are those of ``jax.jit`` on the same function (the function is
 traced with the same leaves as tracers). Runtime checks of ``equinox.error_if`` are not turned
 into readable errors here: the functions compiled with it use none.
+
+On the CPU the programs are compiled with :func:`cpu_compiler_options` (XLA's YNNPACK library
+fusions off: the frame's many reductions over 3 or 4 components and its tiny matrix products
+ran slower as library calls than as XLA's own loops).
 """
 
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable
 from typing import Any
 
 import jax
 import numpy as np
 
-__all__ = ["array_jit", "is_array"]
+__all__ = ["array_jit", "cpu_compiler_options", "is_array"]
 
 
 def is_array(x: Any) -> bool:
@@ -74,17 +79,65 @@ def array_jit(fun: Callable[..., Any], **jit_options: Any) -> Callable[..., Any]
         A function with ``fun``'s signature. Its result holds the arrays of an enqueued
         computation (``jax.block_until_ready`` waits for them).
     """
-    @functools.partial(jax.jit, static_argnums=0, **jit_options)
-    def run(skeleton: _Skeleton, arrays: list[Any]) -> Any:
+    def body(skeleton: _Skeleton, arrays: list[Any]) -> Any:
         args, kwargs = jax.tree_util.tree_unflatten(skeleton.treedef, skeleton.merge(arrays))
         return fun(*args, **kwargs)
 
+    # made at first use: the compiler options depend on the backend, which must not be
+    # started at import (startup.split_cpu_devices has to come first). JAX takes compiler
+    # options only on a top-level jit: inside a caller's trace the "nested" one is called
+    jitted: dict[str, Any] = {}
+
+    def run(kind: str = "top") -> Any:
+        if kind not in jitted:
+            options = {k: v for k, v in jit_options.items() if k != "compiler_options"}
+            if kind == "top":
+                options["compiler_options"] = {**cpu_compiler_options(),
+                                               **(jit_options.get("compiler_options") or {})}
+            jitted[kind] = jax.jit(body, static_argnums=0, **options)
+        return jitted[kind]
+
     @functools.wraps(fun)
     def call(*args: Any, **kwargs: Any) -> Any:
-        return run(*_split(args, kwargs))
+        skeleton, arrays = _split(args, kwargs)
+        if any(isinstance(x, jax.core.Tracer) for x in arrays):
+            return run("nested")(skeleton, arrays)
+        try:
+            return (jitted.get("top") or run())(skeleton, arrays)
+        except ValueError as e:  # concrete arguments inside a caller's trace
+            if "compiler_options" not in str(e):
+                raise
+            return run("nested")(skeleton, arrays)
 
-    call.lower = lambda *args, **kwargs: run.lower(*_split(args, kwargs))  # type: ignore[attr-defined]
+    call.lower = lambda *args, **kwargs: run().lower(*_split(args, kwargs))  # type: ignore[attr-defined]
     return call
+
+
+#: XLA options of the CPU programs (:func:`cpu_compiler_options`)
+_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+@functools.cache
+def cpu_compiler_options() -> dict[str, Any]:
+    """The XLA compile options of this package's frame programs on the CPU backend: YNNPACK
+    library fusions off (``xla_cpu_experimental_ynn_fusion_type = ""``), {} elsewhere.
+
+    jaxlib 0.10's XLA:CPU hands reductions and dot products to YNNPACK: for the frame's
+    (N, 3) norms and (N, 4) products a library call per kernel cost more than XLA's own
+    fused loops (a (12,288, 3) normalisation 0.31 → 0.09 ms; the benchmark frame with
+    interreflection −6 to −9 %, in-process interleaved; values within 1e-6 of the display
+    range). Checked once per process on the default backend with a one-op compile; a jaxlib
+    that does not know the option gets {} (its defaults). ``SPECTRAL_FIT_XLA_CPU_DEFAULTS=0``
+    in the environment keeps XLA's defaults."""
+    if os.environ.get("SPECTRAL_FIT_XLA_CPU_DEFAULTS", "1") in ("0", ""):
+        return {}
+    try:
+        if jax.default_backend() != "cpu":
+            return {}
+        jax.jit(lambda x: x + 1).lower(np.float32(0)).compile(compiler_options=_CPU_OPTIONS)
+    except Exception:  # an older or newer jaxlib without the option
+        return {}
+    return dict(_CPU_OPTIONS)
 
 
 def _split(args: tuple[Any, ...], kwargs: dict[str, Any]) -> tuple[_Skeleton, list[Any]]:

@@ -443,7 +443,9 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     ``compiler_options``) in any process
     traces, compiles and stores the executable (``<root>/programs``); later calls, in this
     process or a new one, load it and run it without tracing. The result is the same Frame as
-    ``render_frame``'s, from the same XLA program (with ``compiler_options`` None).
+    ``render_frame``'s, from the same XLA program (with ``compiler_options`` None: the
+    program is compiled with :func:`~spectral_fit.dispatch.cpu_compiler_options` as
+    ``render_frame``'s is, and the caller's options are added to those).
 
     Args:
         prep, materials, model, view, visible, spectral, background, mirror: as for
@@ -451,7 +453,8 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
         cache_dir: cache root (default :func:`cache_root`; with the cache disabled the
             program is still kept in memory for this process).
         compiler_options: XLA options of the compilation (``jax.stages.Lowered.compile``),
-            e.g. ``{"xla_cpu_use_fusion_emitters": False}``; part of the key.
+            e.g. ``{"xla_cpu_use_fusion_emitters": False}``, on top of
+            :func:`~spectral_fit.dispatch.cpu_compiler_options`; part of the key.
 
     Returns:
         :class:`~spectral_fit.renderer.Frame` (not differentiable: use ``render_frame`` for
@@ -462,12 +465,15 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     import jax
     import numpy as np
 
+    from .dispatch import cpu_compiler_options
     from .renderer import Frame, _check_frame_inputs, _mirror_flag
 
     if visible is None:  # a NumPy default: jnp.ones would compile a program in a new process
         visible = np.ones((prep.num_objects,), bool)
     args = (prep, *_check_frame_inputs(prep, materials, model, view, visible))
     mirror = _mirror_flag(args[1], mirror)
+    # the options render_frame's own program is compiled with, then the caller's
+    compiler_options = {**cpu_compiler_options(), **(compiler_options or {})}
     leaves, treedef = jax.tree_util.tree_flatten(args)
     is_arr = [isinstance(x, jax.Array | np.ndarray) for x in leaves]
     arrays = [x for x, a in zip(leaves, is_arr, strict=True) if a]

@@ -88,3 +88,28 @@ def test_unhashable_static_leaf_is_refused():
     f = array_jit(lambda x, s: x)
     with pytest.raises(TypeError, match="unhashable"):
         f(jnp.ones(2), bytearray(b"x"))
+
+
+def test_cpu_programs_compile_without_library_fusions_and_nest_in_a_callers_jit():
+    """On the CPU the top-level program carries cpu_compiler_options (XLA's YNNPACK fusions
+    off: the (N, 3) norm below is one of XLA's own loops, not a library call); inside a
+    caller's jit (tracers, or concrete arguments closed over) the same function runs without
+    them (JAX refuses compiler options on a nested jit) and gives the same values."""
+    from spectral_fit.dispatch import cpu_compiler_options
+
+    def unit(x):
+        return x / jnp.linalg.norm(x, axis=-1, keepdims=True)
+
+    f = array_jit(unit)
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(12288, 3)), jnp.float32)
+    want = np.asarray(x) / np.linalg.norm(np.asarray(x), axis=-1, keepdims=True)
+    np.testing.assert_allclose(np.asarray(f(x)), want, rtol=2e-6, atol=1e-7)
+    opts = cpu_compiler_options()
+    if jax.default_backend() == "cpu":
+        assert opts == {"xla_cpu_experimental_ynn_fusion_type": ""}
+        assert "ynn_fusion" in jax.jit(unit).lower(x).compile().as_text()  # XLA's default
+        assert "ynn_fusion" not in f.lower(x).compile().as_text()
+    traced = jax.jit(lambda y: f(y) * 2.0)(x)
+    closed = jax.jit(lambda: f(x) * 2.0)()
+    np.testing.assert_allclose(np.asarray(traced), 2 * want, rtol=2e-6, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(closed), 2 * want, rtol=2e-6, atol=1e-7)
