@@ -9,9 +9,9 @@ differs in two ways that matter for a frame of a few milliseconds:
   (``block_until_ready`` of a marker, equinox 0.13), so the host cannot prepare frame N + 1
   while the device renders frame N, and a caller that only enqueues work still waits for all of
   it;
-* a call costs one ``tree_flatten`` and one hash of the static parts before JAX's own
-  dispatch (``equinox.filter_jit`` partitions and recombines the arguments through
-  ``tree_map`` on every call).
+* a call costs one ``tree_flatten``, one hash of the static parts and a scan of the array
+  leaves for tracers before JAX's own dispatch (``equinox.filter_jit`` partitions and
+  recombines the arguments through ``tree_map`` on every call).
 
 Values, gradients and ``vmap`` are those of ``jax.jit`` on the same function (the function is
 traced with the same leaves as tracers). Runtime checks of ``equinox.error_if`` are not turned
@@ -117,6 +117,15 @@ def array_jit(fun: Callable[..., Any], **jit_options: Any) -> Callable[..., Any]
 _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 
 
+def requested_cpu_options() -> dict[str, Any]:
+    """The options :func:`cpu_compiler_options` asks for on this backend, without checking
+    that this jaxlib takes them (no compile; for keys of stored programs): ``_CPU_OPTIONS``
+    on the CPU backend, {} elsewhere or with ``SPECTRAL_FIT_XLA_CPU_DEFAULTS=0``."""
+    if os.environ.get("SPECTRAL_FIT_XLA_CPU_DEFAULTS", "1") in ("0", ""):
+        return {}
+    return dict(_CPU_OPTIONS) if jax.default_backend() == "cpu" else {}
+
+
 @functools.cache
 def cpu_compiler_options() -> dict[str, Any]:
     """The XLA compile options of this package's frame programs on the CPU backend: YNNPACK
@@ -125,19 +134,19 @@ def cpu_compiler_options() -> dict[str, Any]:
     jaxlib 0.10's XLA:CPU hands reductions and dot products to YNNPACK: for the frame's
     (N, 3) norms and (N, 4) products a library call per kernel cost more than XLA's own
     fused loops (a (12,288, 3) normalisation 0.31 → 0.09 ms; the benchmark frame with
-    interreflection −6 to −9 %, in-process interleaved; values within 1e-6 of the display
-    range). Checked once per process on the default backend with a one-op compile; a jaxlib
-    that does not know the option gets {} (its defaults). ``SPECTRAL_FIT_XLA_CPU_DEFAULTS=0``
-    in the environment keeps XLA's defaults."""
-    if os.environ.get("SPECTRAL_FIT_XLA_CPU_DEFAULTS", "1") in ("0", ""):
+    interreflection −3.5 to −9 %, in-process interleaved; values within 1e-6 of the display
+    range). :func:`requested_cpu_options`, checked once per process with a one-op compile
+    (~70 ms, so only where a program is compiled); a jaxlib that does not know the option
+    gets {} (its defaults). ``SPECTRAL_FIT_XLA_CPU_DEFAULTS=0`` in the environment keeps
+    XLA's defaults."""
+    opts = requested_cpu_options()
+    if not opts:
         return {}
     try:
-        if jax.default_backend() != "cpu":
-            return {}
-        jax.jit(lambda x: x + 1).lower(np.float32(0)).compile(compiler_options=_CPU_OPTIONS)
+        jax.jit(lambda x: x + 1).lower(np.float32(0)).compile(compiler_options=opts)
     except Exception:  # an older or newer jaxlib without the option
         return {}
-    return dict(_CPU_OPTIONS)
+    return opts
 
 
 def _split(args: tuple[Any, ...], kwargs: dict[str, Any]) -> tuple[_Skeleton, list[Any]]:

@@ -465,19 +465,21 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     import jax
     import numpy as np
 
-    from .dispatch import cpu_compiler_options
+    from .dispatch import requested_cpu_options
     from .renderer import Frame, _check_frame_inputs, _mirror_flag
 
     if visible is None:  # a NumPy default: jnp.ones would compile a program in a new process
         visible = np.ones((prep.num_objects,), bool)
     args = (prep, *_check_frame_inputs(prep, materials, model, view, visible))
     mirror = _mirror_flag(args[1], mirror)
-    # the options render_frame's own program is compiled with, then the caller's
-    compiler_options = {**cpu_compiler_options(), **(compiler_options or {})}
     leaves, treedef = jax.tree_util.tree_flatten(args)
     is_arr = [isinstance(x, jax.Array | np.ndarray) for x in leaves]
     arrays = [x for x, a in zip(leaves, is_arr, strict=True) if a]
-    key = _program_key(treedef, leaves, spectral, compiler_options, background, mirror)
+    # keyed by the options render_frame's own program asks for, then the caller's (checked
+    # against this jaxlib only when compiling: a program loaded from disk needs no compile)
+    key = _program_key(treedef, leaves, spectral,
+                       {**requested_cpu_options(), **(compiler_options or {})}, background,
+                       mirror)
     prog = _PROGRAMS.get(key)
     out = None
     if prog is not None:
@@ -546,7 +548,8 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
                      cache_dir: str | os.PathLike[str] | None, *, reload: bool = True) -> Any:
     """The compiled ``jax.jit(fn)`` for ``arrays`` (a list of arrays), loaded from
     ``<root>/programs/<key>.pkl`` when there (and ``reload``), else compiled and stored.
-    ``key`` must determine the program (see :func:`_program_key`).
+    ``key`` must determine the program (see :func:`_program_key`). A compile uses
+    :func:`~spectral_fit.dispatch.cpu_compiler_options` with ``compiler_options`` on top.
 
     The compilation bypasses JAX's persistent compilation cache, so what is stored is a fresh
     compile. A stored program can still fail in another process ("Function ... not found"):
@@ -570,6 +573,9 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
             except Exception:  # e.g. written by another jaxlib build: recompile
                 pass
     CACHE_STATS["program_miss"] += 1
+    from .dispatch import cpu_compiler_options
+
+    compiler_options = {**cpu_compiler_options(), **(compiler_options or {})}
     lowered = jax.jit(fn).lower(arrays)
     persistent = jax.config.jax_enable_compilation_cache
     jax.config.update("jax_enable_compilation_cache", False)
