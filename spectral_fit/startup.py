@@ -543,6 +543,28 @@ def _prepare_custom_calls(targets: list[str] | None) -> bool:
     return True
 
 
+def _strip_locations(lowered: Any) -> bool:
+    """Drop the source locations (op names, files, lines, stack frames) from a lowered
+    program before it is compiled, in place; False if this JAX does not allow it (then the
+    program is compiled with them: the same executable code either way).
+
+    XLA keeps each location as the op metadata of an HLO instruction, and a stored executable
+    carries its HLO module, which a new process parses again when it loads the program: on the
+    benchmark frame (45,000 HLO instructions) the locations were 28 % of the stored bytes
+    (8.9 → 6.4 MB) and 0.15 s of the 0.84 s load. Names in a profile of a loaded program are
+    lost with them (profile :func:`~spectral_fit.renderer.render_frame` instead)."""
+    try:
+        from jax._src.lib.mlir import passmanager
+
+        module = lowered.compiler_ir("stablehlo")  # the module that compile() compiles
+        with module.context:
+            passmanager.PassManager.parse("builtin.module(strip-debuginfo)").run(
+                module.operation)
+    except Exception:  # a JAX without this module or pass: keep the locations
+        return False
+    return True
+
+
 def _load_or_compile(key: str, fn: Any, arrays: list[Any],
                      compiler_options: dict[str, Any] | None,
                      cache_dir: str | os.PathLike[str] | None, *, reload: bool = True) -> Any:
@@ -577,6 +599,7 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
 
     compiler_options = {**cpu_compiler_options(), **(compiler_options or {})}
     lowered = jax.jit(fn).lower(arrays)
+    _strip_locations(lowered)
     persistent = jax.config.jax_enable_compilation_cache
     jax.config.update("jax_enable_compilation_cache", False)
     try:

@@ -165,6 +165,18 @@ def test_program_loads_in_a_fresh_process(tmp_path):
 
     entry = pickle.loads((tmp_path / "cache" / "programs" / "k.pkl").read_bytes())
     assert any(t.startswith("lapack_") for t in entry["custom_calls"])
+    # stored without the source locations (op names such as "jit(fn)/reduce_sum" in each
+    # HLO instruction's metadata), which a plain compile of the same function carries
+    import jax.numpy as jnp
+    from jax.experimental.serialize_executable import serialize
+
+    def fn(arr):
+        (a,) = arr
+        return {"inv": jnp.linalg.inv(a), "sum": jnp.sum(a)}
+
+    plain, _, _ = serialize(jax.jit(fn).lower([jnp.asarray(m, jnp.float32)]).compile())
+    assert b"jit(fn)/" in plain
+    assert b"jit(fn)/" not in entry["payload"] and len(entry["payload"]) < len(plain)
 
 
 def test_programs_with_unknown_kernels_are_not_loaded():
