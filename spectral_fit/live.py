@@ -23,15 +23,20 @@ composite uses the renderer's coverage mask (see :mod:`spectral_fit.compositing`
 
 Compilation: the step is compiled once per session (poses, visibility and the background frame
 are traced inputs). Buffers (raster windows, covered pixels) are planned for the objects at
-``plan_distance`` in front of the camera; when a frame overflows them (objects closer than
-planned) the session re-plans with twice the headroom, recompiles once and re-renders the frame
-(counted in ``recompiles``), so nothing is ever silently dropped.
+``plan_distance`` in front of the camera, then on the first frame's poses. When a frame fills a
+buffer past ``grow_ahead`` (objects coming closer), the session compiles larger buffers in a
+background thread while the frames go on with the current ones, and switches to them once they
+are compiled (``replans_ahead``): no frame waits for that compile. A frame that overflows its
+buffers all the same (objects closer than planned, faster than the background compile) is
+re-planned with more headroom, recompiled in place and rendered again (``recompiles``): nothing
+is ever silently dropped.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import threading
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -47,6 +52,12 @@ from .scene import Scene
 
 __all__ = ["LiveSession", "FrameTimings", "RunStats", "scene_intrinsics", "white_reference",
            "scene_camera_model", "camera_output_matrix", "pipeline_pays", "STEP_TRACES"]
+
+# windows of every raster size in a live plan at least: a size that the first poses do not
+# use (triangles larger than 4 pixels) is planned at the ladder's floor, 16, and an object
+# coming closer goes from none to some dozens of them in one frame (the sample video: 0 -> 19),
+# too fast for growing ahead. 64 of them cost nothing measurable (sample video: 26.6 vs 26.2 ms)
+_MIN_WINDOWS = 64
 
 #: number of times the live step has been traced (compiled), for tests and reports
 STEP_TRACES = {"step": 0}
@@ -190,6 +201,8 @@ def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
     stats = {"covered_pixels": px.stats["covered_pixels"],
              "overflow": px.stats["pixel_overflow"] | px.stats["raster_overflow"],
              "interreflection_overflow": px.stats["interreflection_overflow"],
+             "object_counts": px.stats["object_counts"],
+             "raster_needed": px.stats["raster_needed"],
              "object_id": px.object_id}
     return out, stats
 
@@ -214,7 +227,8 @@ class LiveSession:
 
     After :meth:`process`: ``last_poses`` (:class:`~spectral_fit.markers.Poses`),
     ``last_object_id`` ((H, W) int32 object per pixel, −1 = video), ``timings``
-    (:class:`FrameTimings`), ``frames``, ``recompiles``.
+    (:class:`FrameTimings`), ``frames``, ``recompiles`` (compiles a frame waited for),
+    ``replans_ahead`` (buffers grown in the background).
 
     Args:
         scene: the scene (objects with ``marker`` ids; ``[markers]``; camera intrinsics).
@@ -228,6 +242,12 @@ class LiveSession:
         mode, spectral_mode, k: renderer options (interreflection mode, bands/basis).
         plan_distance: distance (m) in front of the camera at which buffers are planned.
         headroom: capacity headroom over the planned poses.
+        grow_ahead: a frame whose use of a buffer (an object's covered-pixel list, the
+            raster's windows of one size or its blocks) passes this fraction of it starts a
+            background compile of the step with that buffer ``headroom`` × its use; the
+            session switches to it at the first frame after it is compiled (counted in
+            ``replans_ahead``). None: buffers grow only when a frame overflows (a compile that
+            the frame waits for).
         detect_downscale: marker detection on the frame shrunk by this factor, corners
             refined at full resolution (:class:`~spectral_fit.markers.MarkerDetector`; None:
             2 for frames of 400 px and more).
@@ -253,7 +273,8 @@ class LiveSession:
                  mode: str | None = None, spectral_mode: str | None = None,
                  k: int | None = None, plan_distance: float = 0.35,
                  headroom: float = 1.6, detect_downscale: int | None = None,
-                 ir_reuse_mm: float | None = 0.5, devices: Any = None) -> None:
+                 ir_reuse_mm: float | None = 0.5, devices: Any = None,
+                 grow_ahead: float | None = 0.8) -> None:
         self.devices = _frame_devices(devices)
         self._device_turn = 0
         self._copies: dict[Any, tuple[Any, Any, Any]] = {}
@@ -268,6 +289,14 @@ class LiveSession:
         self.headroom = float(headroom)
         self.recompiles = 0
         self.frames = 0
+        if grow_ahead is not None and not (0.0 < grow_ahead <= 1.0):
+            raise InputError(f"must be in (0, 1] or None, got {grow_ahead!r}",
+                             field="grow_ahead")
+        self.grow_ahead = None if grow_ahead is None else float(grow_ahead)
+        self.replans_ahead = 0
+        self._grow_thread: threading.Thread | None = None
+        # (the prepared scene it grew from, the grown one, its copies per device), once compiled
+        self._grown: tuple[Any, Any, dict[Any, Any]] | None = None
         self._planned = False
         self.timings = FrameTimings()
         self.prep = self._prepare(self.headroom)
@@ -368,7 +397,7 @@ class LiveSession:
         cfg, _ = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom,
                                  cull=p.cull)
         old = p.raster_config
-        cfg = RasterConfig(old.tile_sizes, tuple(max(a, b) for a, b in zip(
+        cfg = RasterConfig(old.tile_sizes, tuple(max(a, b, _MIN_WINDOWS) for a, b in zip(
             cfg.capacities, old.capacities, strict=True)),
             max(cfg.block_capacity, old.block_capacity))
         h, w = p.shape
@@ -377,7 +406,7 @@ class LiveSession:
         for (ta, tb), c in zip(p.triangle_slices, p.pixel_capacity, strict=True):
             _, bound = plan_capacities(clip, tris[ta:tb], p.shape, headroom=headroom,
                                        cull=p.cull)
-            caps.append(max(c, min(h * w, 1024 * -(-int(headroom * bound + 64) // 1024))))
+            caps.append(max(c, _pixel_slots(headroom * bound, h * w)))
         cap = tuple(caps)
         if cfg == old and cap == p.pixel_capacity:
             return ir_cfg is not None
@@ -391,6 +420,98 @@ class LiveSession:
         prep = prepare(self._planning_scene(), size=(w, h), headroom=headroom,
                        **self._options)
         return with_output(prep, camera_output_matrix(prep, self.camera))
+
+    # ------------------------------------------------------------------ growing ahead
+
+    def _grown_plan(self, stats: dict[str, Any]) -> Any:
+        """``self.prep`` with every buffer that this frame filled past ``grow_ahead`` grown
+        to ``headroom`` × its use, and at least to where that use is below ``grow_ahead``
+        (on the capacity ladders); None when none is that full."""
+        from .raster import RasterConfig, _ladder
+
+        p, f = self.prep, self.grow_ahead
+        hr = max(self.headroom, 1.0 / f)
+        counts = np.asarray(stats["object_counts"]).tolist()
+        needed = np.asarray(stats["raster_needed"]).tolist()
+        cfg = p.raster_config
+        caps = [*cfg.capacities, cfg.block_capacity]
+        new_caps = [max(c, _ladder(hr * n)) if n > f * c else c
+                    for c, n in zip(caps, needed, strict=True)]
+        h, w = p.shape
+        new_pix = [max(c, _pixel_slots(hr * n, h * w)) if n > f * c else c
+                   for c, n in zip(p.pixel_capacity, counts, strict=True)]
+        if new_caps == caps and tuple(new_pix) == tuple(p.pixel_capacity):
+            return None
+        return dataclasses.replace(
+            p, raster_config=RasterConfig(cfg.tile_sizes, tuple(new_caps[:-1]), new_caps[-1]),
+            pixel_capacity=tuple(new_pix))
+
+    def _maybe_grow(self, stats: dict[str, Any], poses: Any, background: Any) -> None:
+        """Start the background compile of grown buffers when this frame (rendered with the
+        current plan) filled one past ``grow_ahead``; nothing while one is under way."""
+        if (self.grow_ahead is None or self._grown is not None
+                or (self._grow_thread is not None and self._grow_thread.is_alive())):
+            return
+        grown = self._grown_plan(stats)
+        if grown is None:
+            return
+        base = self.prep
+        host = (np.asarray(poses.model), np.asarray(poses.view), np.asarray(poses.visible))
+
+        def work() -> None:
+            # the grown step (and the senders' half, whose program also takes the prepared
+            # scene) compiled and run once on every device, on this frame's inputs
+            from .renderer import render_senders
+
+            copies: dict[Any, Any] = {}
+            try:
+                for dev in self.devices:
+                    if len(self.devices) == 1:
+                        placed, cam, put = grown, self.camera, jnp.asarray
+                    else:
+                        placed, cam = _put(grown, dev), _put(self.camera, dev)
+                        copies[dev] = (grown, placed, cam)
+                        put = functools.partial(jax.device_put, device=dev)
+                    model, view, visible = (put(x) for x in host)
+                    senders = None
+                    if self._reuses_senders(grown):
+                        senders = render_senders(placed, placed.materials, model=model,
+                                                 visible=visible, mirror=self._mirror)
+                    out, _ = _step(placed, placed.materials, model, view, visible,
+                                   put(background), cam, self._mirror, senders)
+                    jax.block_until_ready(out)
+            except Exception:  # e.g. out of memory: the blocking path stays in charge
+                return
+            self._grown = (base, grown, copies)
+
+        # not a daemon: an interpreter that exits during the compile waits for it (a daemon
+        # thread stopped inside XLA's compiler aborts the process)
+        self._grow_thread = threading.Thread(target=work, name="spectral_fit-grow-ahead")
+        self._grow_thread.start()
+
+    def _adopt_grown(self) -> bool:
+        """Switch to the grown buffers compiled in the background (if they grew from the
+        current plan; a plan re-made since then drops them). True when switched."""
+        grown, self._grown = self._grown, None
+        if grown is None or grown[0] is not self.prep:
+            return False
+        self.prep = grown[1]
+        self._copies.update(grown[2])
+        self.replans_ahead += 1
+        return True
+
+    def join_background(self) -> None:
+        """Wait for a background compile of grown buffers, if one is under way (the session
+        switches to them at its next frame). An interpreter that exits waits for it too."""
+        t = self._grow_thread
+        if t is not None:
+            t.join()
+
+    def _wait_grown(self) -> bool:
+        """After an overflow: wait for a background compile under way and switch to it;
+        True when the session now has other buffers to render the frame with."""
+        self.join_background()
+        return self._adopt_grown()
 
     # ------------------------------------------------------------------ per frame
 
@@ -430,14 +551,18 @@ class LiveSession:
             self._copies[dev] = c
         return c[1], c[2]
 
+    def _reuses_senders(self, p: Any) -> bool:
+        """Whether frames take the senders' half from :func:`render_senders` (else the step
+        computes it, or there is none)."""
+        return not (self.ir_reuse_mm is None or p.ir_mode != "gather" or p.num_objects < 2
+                    or p.ir_bounces < 1)
+
     def _senders_for(self, poses: Any, inputs: Any, dev: Any = None) -> Any:
         """The gather interreflection's senders' half for these poses, on device ``dev``:
         reused when no vertex moved more than ``ir_reuse_mm`` (and visibility and the
         prepared scene are the same; copied to another device once), else computed
         (dispatched) again; None when the step computes it itself."""
-        p = self.prep
-        if self.ir_reuse_mm is None or p.ir_mode != "gather" or p.num_objects < 2 or \
-                p.ir_bounces < 1:
+        if not self._reuses_senders(self.prep):
             return None
         from .renderer import render_senders
 
@@ -492,6 +617,8 @@ class LiveSession:
         if plan and not self._planned and poses.visible.any():
             self._replan(poses, self.headroom)  # size the buffers on the first real poses
             self._planned = True
+        if self._grown is not None:
+            self._adopt_grown()
         dev = _device_of(bg, self.devices)
         prep, camera = self._placed(dev)
         return _step(prep, prep.materials, *inputs, bg, camera, self._mirror,
@@ -523,7 +650,8 @@ class LiveSession:
                 planned is not self.prep or _ir_fallback(self.prep) is not None)
             if not (bool(stats["overflow"]) or ir):
                 break
-            if planned is None or planned is self.prep:
+            if (planned is None or planned is self.prep) and not (
+                    bool(stats["overflow"]) and not ir and self._wait_grown()):
                 if bool(stats["overflow"]):
                     self.headroom *= 1.5
                 self._replan(poses, self.headroom, interreflection=ir)
@@ -535,6 +663,8 @@ class LiveSession:
             out = jax.block_until_ready(out)
         if bool(stats["overflow"]):
             raise RuntimeError("live: render buffers still overflow after re-planning")
+        if planned is None or planned is self.prep:
+            self._maybe_grow(stats, poses, bg)
         t3 = time.perf_counter()
         self.timings = FrameTimings(detect=t1 - t0, undistort=t2 - t1, render=t3 - t2,
                                     total=t3 - t0)
@@ -774,6 +904,12 @@ def _device_of(x: Any, devices: tuple[Any, ...]) -> Any:
             if d in devices:
                 return d
     return devices[0]
+
+
+def _pixel_slots(pixels: float, frame_pixels: int) -> int:
+    """An object's covered-pixel capacity for ``pixels`` (headroom included): + 64, rounded
+    up to a multiple of 1024, at most the frame's pixels."""
+    return min(frame_pixels, 1024 * -(-int(pixels + 64) // 1024))
 
 
 def _put(tree: Any, device: Any) -> Any:

@@ -981,7 +981,11 @@ class PixelFrame(eqx.Module):
         mask: (H, W) bool, pixels covered by an object.
         object_id: (H, W) int32 object per pixel (−1 = none).
         stats: ``covered_pixels``, ``pixel_overflow``, ``raster_overflow``,
-            ``interreflection_overflow`` (see :class:`Frame`).
+            ``interreflection_overflow`` (see :class:`Frame`); and the buffers' use against
+            ``prep``'s plan: ``object_counts`` (O,) int32 covered pixels per object (against
+            ``pixel_capacity``), ``raster_needed`` (len(tile_sizes) + 1,) int32 raster windows
+            needed per ladder size, then blocks (against ``raster_config``; see
+            :class:`~spectral_fit.raster.Raster`).
     """
 
     values: jax.Array
@@ -1309,6 +1313,8 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         "pixel_overflow": pix.overflow,
         "raster_overflow": ras.overflow,
         "interreflection_overflow": ir_overflow,
+        "object_counts": jnp.stack([jnp.asarray(c, jnp.int32) for c in counts]),
+        "raster_needed": ras.needed,
     }
     return PixelFrame(values=radiance, index=pix.index, valid=pix.valid,
                       mask=ras.tri_id >= 0, object_id=obj_img, stats=stats)
@@ -1319,6 +1325,10 @@ def _scatter(values: jax.Array, px: PixelFrame, image: jax.Array) -> jax.Array:
     h, w, k = image.shape
     idx = jnp.where(px.valid, px.index, h * w)  # out of range: dropped
     return image.reshape(h * w, k).at[idx].set(values, mode="drop").reshape(h, w, k)
+
+
+# PixelFrame.stats that are arrays (the buffers' use), not in a Frame's scalar stats
+_PLAN_STATS = ("object_counts", "raster_needed")
 
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
@@ -1358,7 +1368,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         "below_zero_fraction": d.below_zero_fraction,
         "overexposed_fraction": d.overexposed_fraction,
         "coverage": count.astype(jnp.float32) / (h * w),
-        **px.stats,
+        **{k: v for k, v in px.stats.items() if k not in _PLAN_STATS},
     }
     return Frame(xyz=xyz, rgb=d.rgb, linear_rgb=d.linear, mask=px.mask,
                  object_id=px.object_id, spectral=spec, stats=stats)

@@ -116,6 +116,51 @@ def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, table
     assert (STEP_TRACES["step"], TRACE_COUNT["render_frame"], session.recompiles) == traces
 
 
+def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(session, tables):
+    """A frame that fills its buffers past ``grow_ahead`` starts a background compile of larger
+    ones; the next frame after it finished renders with them. No frame waits for a compile
+    (``recompiles`` stays 0), the buffers only grow, and the pictures do not change."""
+    from spectral_fit.live import STEP_TRACES, LiveSession
+
+    both, _ = tables
+    img = _frame(both, (0.0, 0.3, 0.25), seed=20)[0]
+    s = LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.3)
+    first = s.process(img)  # the plan on these poses: 30-60 % of the buffers in use
+    caps = (s.prep.pixel_capacity, s.prep.raster_config)
+    traces = STEP_TRACES["step"]
+    s.join_background()
+    assert STEP_TRACES["step"] == traces + 1  # the grown step, traced once, off the frames
+    second = s.process(img)
+    assert s.replans_ahead == 1 and s.recompiles == 0
+    new = (s.prep.pixel_capacity, s.prep.raster_config)
+    assert all(b >= a for a, b in zip(caps[0], new[0], strict=True))
+    assert all(b >= a for a, b in zip([*caps[1].capacities, caps[1].block_capacity],
+                                      [*new[1].capacities, new[1].block_capacity],
+                                      strict=True))
+    assert new != caps
+    np.testing.assert_array_equal(second, first)
+    np.testing.assert_array_equal(first, session.process(img))  # a session at the default
+    s.process(img)  # under 30 % of the grown buffers: nothing more to grow
+    s.join_background()
+    assert s.replans_ahead == 1 and s.recompiles == 0 and STEP_TRACES["step"] == traces + 1
+    # a frame that overflows while grown buffers compile (another fraction: another plan, a
+    # compile under way) waits for them instead of re-planning on its own, and is rendered
+    # again with them: the picture of a session planned for it
+    t = LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.25)
+    t.process(img)
+    close = _frame(both, (0.0, 0.2, 0.17), seed=21)[0]  # ~2.4x the pixels of ``img``
+    pending = t.submit(close)
+    growing = t._grow_thread.is_alive() and pending.prep is not None
+    overflowed = bool(pending.stats["overflow"])  # its 4-pixel raster windows
+    got = t.finish(pending)
+    assert t.replans_ahead == 1 and t.recompiles == 0
+    assert overflowed or not growing
+    want = LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=None).process(close)
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(Exception, match="grow_ahead"):
+        LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=1.5)
+
+
 def test_threaded_run_gives_the_sequential_frames(session, tables):
     """run(): reader/render/writer threads give the frames of process(), in order, with
     per-stage timings; an error on the reader thread reaches the caller."""

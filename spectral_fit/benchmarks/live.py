@@ -25,7 +25,8 @@ Figures:
   undistort) ‖ render ‖ writer (encode); ``stages_pipelined_ms``: per stage there (stages
   running side by side share the CPU, so each may take longer than alone);
 * ``non_render_ms``: sequential end-to-end minus render (what the overlap can hide);
-* ``render_fps``, ``covered_pixels``, ``pixel_capacity``, ``recompiles`` (must stay 0);
+* ``render_fps``, ``covered_pixels``, ``pixel_capacity``, ``recompiles`` (must stay 0),
+  ``replans_ahead`` (buffers grown in the background; 0 on the bundled videos);
 * ``benchmark_scene``: RENDER-ONLY on BENCHMARK.md's paper scene itself (its camera, poses and
   capacities, ``benchmark_scene()`` of :mod:`.frame`), the same compiled live step (render
   with interreflection → the sample camera's RGB → composite over the first video frame):
@@ -178,6 +179,7 @@ def _end_to_end(session: Any, stream: Any, n: int) -> dict[str, Any]:
         "end_to_end_pipelined_fps": 1e3 / e2e_p if e2e_p else None,
         "stages_pipelined_ms": piped,
         "recompiles": int(session.recompiles),
+        "replans_ahead": int(session.replans_ahead),
         "interreflection_senders": {"computed": int(session.ir_updates),
                                     "reused": int(session.ir_reuses),
                                     "reuse_mm": session.ir_reuse_mm},
@@ -471,6 +473,7 @@ def _in_flight_e2e(session: Any, video: Path, size: tuple[int, int], quick: bool
                                                  "decode", "detect", "undistort",
                                                  "encode")}}
     e2e["recompiles"] = int(session.recompiles)
+    e2e["replans_ahead"] = int(session.replans_ahead)
     e2e["interreflection_senders"] = {"computed": int(session.ir_updates),
                                       "reused": int(session.ir_reuses)}
     e2e["covered_pixels"] = _covered_pixels(session)

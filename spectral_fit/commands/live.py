@@ -151,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
         "end_to_end_fps": 1e3 / med["interval"] if med["interval"] else None,
         "stage_median_ms": {k: v for k, v in med.items() if k != "interval"},
         "recompiles": session.recompiles,
+        "replans_ahead": session.replans_ahead,
         "interreflection_senders": {"computed": session.ir_updates,
                                     "reused": session.ir_reuses,
                                     "reuse_mm": session.ir_reuse_mm},
@@ -176,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
                   f"({in_flight} frames in flight)")
         print(f"live: {n} frames; first frame (compile) {f(first_s, '.1f')} s; {render}; "
               f"end-to-end {f(summary['end_to_end_median_ms'], '.1f')} ms "
-              f"({f(summary['end_to_end_fps'], '.1f')} fps); recompiles {session.recompiles}")
+              f"({f(summary['end_to_end_fps'], '.1f')} fps); recompiles {session.recompiles}, "
+              f"buffers grown ahead {session.replans_ahead}")
         if args.output:
             print(f"wrote {args.output} ({written} frames)")
     if args.output and written != n:
