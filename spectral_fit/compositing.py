@@ -46,12 +46,14 @@ Everything after the model is built runs under ``jax.jit`` (float32).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .backend import materialise
 from .errors import InputError
 
 __all__ = [
@@ -87,6 +89,10 @@ class CameraModel(eqx.Module):
         tone: "srgb", "gamma" or "linear" (static).
         gamma: exponent of the "gamma" curve (static).
         has_spectral: whether ``spectral_weights`` is meaningful (static).
+        blur_px: the camera's blur, a Gaussian of this σ in pixels, given to the composited
+            CG in linear light (static; 0: sharp CG).
+        noise: the camera's noise, σ in 8-bit levels of the encoded frame, added to the
+            composited CG in proportion to its coverage (static; 0: none).
     """
 
     spectral_weights: jax.Array
@@ -95,6 +101,8 @@ class CameraModel(eqx.Module):
     tone: str = eqx.field(static=True, default="srgb")
     gamma: float = eqx.field(static=True, default=2.2)
     has_spectral: bool = eqx.field(static=True, default=True)
+    blur_px: float = eqx.field(static=True, default=0.0)
+    noise: float = eqx.field(static=True, default=0.0)
 
     def linear_from_spectra(self, radiance: jax.Array) -> jax.Array:
         """(…, L) spectral radiance → (…, 3) linear frame RGB."""
@@ -327,9 +335,64 @@ def composite_pixels(frame, cg_linear, index, valid, model: CameraModel) -> jax.
     fr = jnp.asarray(frame, jnp.uint8)
     h, w, _ = fr.shape
     cg = jnp.clip(jnp.asarray(cg_linear), 0.0, 1.0)
-    enc = jnp.round(encode_frame(cg, model) * 255.0).astype(jnp.uint8)
     idx = jnp.where(jnp.asarray(valid), jnp.asarray(index), h * w)  # out of range: dropped
+    if model.blur_px > 0 or model.noise > 0:
+        return _composite_as_seen(fr, cg, idx, model)
+    enc = jnp.round(encode_frame(cg, model) * 255.0).astype(jnp.uint8)
     return fr.reshape(h * w, 3).at[idx].set(enc, mode="drop").reshape(h, w, 3)
+
+
+def _composite_as_seen(frame: jax.Array, cg: jax.Array, index: jax.Array,
+                       model: CameraModel) -> jax.Array:
+    """:func:`composite_pixels` with the camera's blur and noise given to the CG: the CG
+    (premultiplied by its coverage, linear light) and its coverage are blurred with a Gaussian
+    of σ = ``model.blur_px`` (zero outside the frame), composited over the decoded video frame
+    (``frame·(1 − a) + cg``), encoded, and given noise of σ = ``model.noise`` levels times the
+    blurred coverage a on the covered pixels (the blurred rim outside them keeps the video's
+    own noise, in proportion 1 − a). Pixels the CG does not reach (a < 1/512) keep their
+    bytes."""
+    h, w, _ = frame.shape
+    rgba = jnp.concatenate([cg, jnp.ones((cg.shape[0], 1), cg.dtype)], axis=1)
+    layer = jnp.zeros((h * w, 4), jnp.float32).at[index].set(rgba, mode="drop")
+    layer = layer.reshape(h, w, 4)
+    if model.blur_px > 0:
+        # computed once (XLA otherwise fuses the blur into each of its consumers)
+        layer = materialise(gaussian_blur(layer, model.blur_px), cut=True)
+    cover = layer[..., 3:]
+    codes = jnp.arange(256, dtype=jnp.float32)[:, None] / 255.0
+    table = decode_frame(jnp.broadcast_to(codes, (256, 3)), model)  # (256, 3) linear
+    background = table[frame.astype(jnp.int32), jnp.arange(3)]
+    linear = background * (1.0 - cover) + layer[..., :3]
+    enc = encode_frame(jnp.clip(linear, 0.0, 1.0), model) * 255.0
+    if model.noise > 0:  # drawn for the slots only (a frame's worth of draws cost ~17 ms)
+        draws = _frame_noise(frame, (index.shape[0], 3))
+        noise = jnp.zeros((h * w, 3), jnp.float32).at[index].set(draws, mode="drop")
+        enc = enc + (model.noise * cover) * noise.reshape(h, w, 3)
+    out = jnp.clip(jnp.round(enc), 0.0, 255.0).astype(jnp.uint8)
+    return jnp.where(cover > 1.0 / 512.0, out, frame)
+
+
+def gaussian_blur(image: jax.Array, sigma: float) -> jax.Array:
+    """(H, W, C) image blurred by a Gaussian of σ = ``sigma`` pixels (static), separably,
+    over ±⌈3σ⌉ taps with normalised weights, zero outside the image."""
+    r = max(1, math.ceil(3.0 * sigma))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k = (k / k.sum()).astype(np.float32)
+    h, w = image.shape[:2]
+    out = jnp.pad(image, ((r, r), (0, 0), (0, 0)))
+    out = sum(float(k[i]) * out[i:i + h] for i in range(2 * r + 1))
+    out = jnp.pad(out, ((0, 0), (r, r), (0, 0)))
+    return sum(float(k[i]) * out[:, i:i + w] for i in range(2 * r + 1))
+
+
+def _frame_noise(frame: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Standard normal draws of ``shape`` for a frame, seeded by the frame's content (another
+    frame, other noise; the same frame, the same noise: renders stay reproducible)."""
+    sample = frame[::7, ::5].reshape(-1).astype(jnp.uint32)
+    weights = jnp.arange(sample.size, dtype=jnp.uint32) * jnp.uint32(2654435761) + 1
+    seed = jnp.sum(sample * weights)  # wraps around: a hash of the sampled bytes
+    key = jax.random.key(seed)
+    return jax.random.normal(key, shape, jnp.float32)
 
 
 # --------------------------------------------------------------------------------------------

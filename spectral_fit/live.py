@@ -90,16 +90,20 @@ def scene_camera_model(scene: Scene, *, sensitivities: str | None = None,
     from a ColorChecker shot, ``spectral-fit calibrate-colour``) unless ``sensitivities`` is
     given; otherwise measured spectral sensitivities (default "Nikon 5100 (NPL)") white-
     balanced on the environment's white reference (:func:`white_reference`) shown at linear
-    level ``white_level``."""
+    level ``white_level``. The config's ``[camera] blur_px`` and ``noise`` go with it (the
+    blur and noise given to the composited CG)."""
     from .compositing import camera_model_from_spec
     from .renderer import load_environment
 
     if sensitivities is None and scene.camera_colour is not None:
-        return camera_model_from_spec(scene.camera_colour, scene.wavelengths)
-    env = load_environment(scene, scene.wavelengths)
-    return camera_model_from_sensitivities(
-        sensitivities or "Nikon 5100 (NPL)", scene.wavelengths, white_reference(env),
-        white_level=white_level)
+        model = camera_model_from_spec(scene.camera_colour, scene.wavelengths)
+    else:
+        env = load_environment(scene, scene.wavelengths)
+        model = camera_model_from_sensitivities(
+            sensitivities or "Nikon 5100 (NPL)", scene.wavelengths, white_reference(env),
+            white_level=white_level)
+    return dataclasses.replace(model, blur_px=float(scene.camera.blur_px),
+                               noise=float(scene.camera.noise))
 
 
 def white_reference(environment: np.ndarray) -> np.ndarray:

@@ -15,6 +15,8 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
                        position [[0,0,0]], look_at [[0,0,-1]], up [[0,1,0]]
                        intrinsics = {fx, fy, cx, cy}  (optional; replaces fov_y_deg, pixels)
                        distortion = [k1, k2, p1, p2, k3]  (optional, OpenCV model)
+                       blur_px [0], noise [0]  (live compositing: the video camera's blur,
+                       Gaussian σ in pixels, and noise, σ in 8-bit levels, given to the CG)
     [environment]      file (spectral or RGB OpenEXR; required), scale [1.0],
                        rotation_y_deg [0]  (180 for maps with −Z at the image centre),
                        upsampling ["mallett2019"]  (RGB maps only)
@@ -88,6 +90,8 @@ class CameraSpec:
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     intrinsics: dict[str, float] | None = None  # fx, fy, cx, cy in pixels
     distortion: tuple[float, ...] | None = None  # k1, k2, p1, p2, k3
+    blur_px: float = 0.0  # the video's blur (Gaussian σ, pixels), given to composited CG
+    noise: float = 0.0  # the video's noise (σ, 8-bit levels), given to composited CG
 
 
 @dataclasses.dataclass(frozen=True)
@@ -475,6 +479,8 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
         up=cr.vector("up", 3, [0.0, 1.0, 0.0]),  # type: ignore[arg-type]
         intrinsics=intrinsics,
         distortion=distortion,
+        blur_px=cr.number("blur_px", 0.0, lo=0.0, hi=20.0),
+        noise=cr.number("noise", 0.0, lo=0.0, hi=64.0),
     )
     if camera.far <= camera.near:
         raise cr.err("far", f"must be greater than near ({camera.near:g})")

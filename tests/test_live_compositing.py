@@ -186,3 +186,79 @@ def test_white_reference_closed_forms():
     np.testing.assert_allclose(white_reference(lower), [0.0], atol=1e-12)
     cosine = np.clip(np.cos(theta), 0, None)[:, None, None] * np.ones((hm, wm, 1))
     np.testing.assert_allclose(white_reference(cosine), [2 / 3], rtol=1e-3)
+
+
+def _disc_slots(h, w, cy, cx, r):
+    jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+    mask = (ii + 0.5 - cy) ** 2 + (jj + 0.5 - cx) ** 2 < r * r
+    idx = np.flatnonzero(mask).astype(np.int32)
+    return mask, idx
+
+
+def test_composite_pixels_gives_the_cg_the_camera_blur():
+    """With ``blur_px`` the CG and its coverage are blurred in linear light before the
+    composite: against SciPy's Gaussian filter (same ±3σ support, zeros outside) and
+    colour-science's sRGB curves; pixels the blurred CG does not reach keep their bytes."""
+    import dataclasses
+
+    from scipy.ndimage import gaussian_filter
+
+    white = illuminant("D65", WL) / 100.0
+    sharp = camera_model_from_sensitivities("Nikon 5100 (NPL)", WL, white)
+    sigma = 1.3
+    m = dataclasses.replace(sharp, blur_px=sigma)
+    rng = np.random.default_rng(5)
+    h, w = 48, 64
+    frame = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    mask, idx = _disc_slots(h, w, 20.0, 30.0, 9.0)
+    cg = np.clip(rng.normal(0.5, 0.2, (idx.size, 3)), 0, 1).astype(np.float32)
+    valid = np.ones(idx.size, bool)
+    out = np.asarray(composite_pixels(jnp.asarray(frame), jnp.asarray(cg), jnp.asarray(idx),
+                                      jnp.asarray(valid), m)).astype(int)
+    layer = np.zeros((h * w, 4))
+    layer[idx, :3] = cg
+    layer[idx, 3] = 1.0
+    r = int(np.ceil(3 * sigma))
+    blurred = np.stack([gaussian_filter(layer.reshape(h, w, 4)[..., c], sigma, mode="constant",
+                                        truncate=r / sigma) for c in range(4)], -1)
+    a = blurred[..., 3:]
+    bg = colour.cctf_decoding(frame / 255.0, function="sRGB")
+    want = colour.cctf_encoding(np.clip(bg * (1 - a) + blurred[..., :3], 0, 1),
+                                function="sRGB") * 255
+    reached = a[..., 0] > 1 / 512
+    assert np.abs(out[reached] - want[reached]).max() <= 1
+    np.testing.assert_array_equal(out[~reached], frame[~reached])
+    # the blur reaches past the silhouette, and softens it: the rim is a mix of CG and video
+    assert reached.sum() > 1.5 * mask.sum()
+    rim = reached & ~mask
+    assert np.abs(out[rim] - frame[rim]).max() > 20
+
+
+def test_composite_pixels_gives_the_cg_the_camera_noise():
+    """With ``noise`` the CG gets Gaussian noise of that σ (8-bit levels) where it covers the
+    pixel; the same frame gets the same noise, another frame other noise."""
+    import dataclasses
+
+    white = illuminant("D65", WL) / 100.0
+    sharp = camera_model_from_sensitivities("Nikon 5100 (NPL)", WL, white)
+    noisy = dataclasses.replace(sharp, noise=3.0)
+    rng = np.random.default_rng(6)
+    h, w = 64, 80
+    frame = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    mask, idx = _disc_slots(h, w, 32.0, 40.0, 20.0)
+    cg = np.full((idx.size, 3), 0.4, np.float32)
+    args = (jnp.asarray(cg), jnp.asarray(idx), jnp.asarray(np.ones(idx.size, bool)))
+    base = np.asarray(composite_pixels(jnp.asarray(frame), *args, sharp)).astype(float)
+    out = np.asarray(composite_pixels(jnp.asarray(frame), *args, noisy)).astype(float)
+    level = colour.cctf_encoding(0.4, function="sRGB") * 255  # the CG's unrounded level
+    assert np.all(np.abs(base[mask] - level) <= 0.5)
+    d = out[mask] - level
+    assert d.size > 3000
+    assert abs(d.mean()) < 0.15 and 2.8 < d.std() < 3.2  # rounding adds 1/12 of a level²
+    np.testing.assert_array_equal(out[~mask], frame[~mask])
+    again = np.asarray(composite_pixels(jnp.asarray(frame), *args, noisy))
+    np.testing.assert_array_equal(again, out)
+    other = frame.copy()
+    other[0, 0] ^= 1
+    moved = np.asarray(composite_pixels(jnp.asarray(other), *args, noisy)).astype(float)
+    assert np.mean(moved[mask] != out[mask]) > 0.5

@@ -220,10 +220,11 @@ def test_live_command_writes_complete_video(tmp_path, tables, capsys):
     cfg.write_text("\n".join(lines))
     out = tmp_path / "out.mp4"
     rc = main(["live", str(cfg), "--video", str(src), "-o", str(out), "--json", "--quiet",
-               "--pipeline"])
+               "--pipeline", "--blur-px", "0.8", "--noise", "1.0"])
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == 3 and summary["output_frames"] == 3
+    assert summary["cg_blur_px"] == 0.8 and summary["cg_noise"] == 1.0
     assert count_frames(out) == 3
     assert summary["recompiles"] == 0 and summary["frames_masked"] == {"yellow": 0, "red": 0}
     assert summary["render_median_ms"] > 0 and summary["end_to_end_median_ms"] > 0
@@ -231,6 +232,8 @@ def test_live_command_writes_complete_video(tmp_path, tables, capsys):
     rc = main(["live", str(cfg), "--video", str(tmp_path / "nope.mp4")])
     assert rc == 2
     assert "nope.mp4: --video: video file not found" in capsys.readouterr().err
+    rc = main(["live", str(cfg), "--video", str(src), "--blur-px", "-1"])
+    assert rc == 2 and "--blur-px: must be in [0, 20]" in capsys.readouterr().err
 
 
 def test_video_size_must_match_calibration(tmp_path):

@@ -86,6 +86,8 @@ MALFORMED = [
     (("camera", "far"), 0.001, "camera.far: must be greater than near"),
     (("camera", "up"), [0.0, 0.0, -1.0], "camera.up: must not be parallel"),
     (("camera", "position"), [0.0, 0.0], "camera.position: must be a list of 3 numbers"),
+    (("camera", "blur_px"), -0.5, "camera.blur_px: must be"),
+    (("camera", "noise"), "grainy", "camera.noise: must be a number"),
     (("environment", "file"), "missing.exr", "environment.file: file not found"),
     (("environment",), _DELETE, "environment: required key is missing"),
     (("environment", "scale"), math.nan, "environment.scale: must be finite"),

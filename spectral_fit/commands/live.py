@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -29,6 +30,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "'spectral-fit calibrate-colour', else 'Nikon 5100 (NPL)')")
     p.add_argument("--white-level", type=float, default=0.85,
                    help="linear frame level of a white sheet on the table (exposure)")
+    p.add_argument("--blur-px", type=float, default=None, metavar="SIGMA",
+                   help="the video's blur given to the CG: a Gaussian of SIGMA pixels "
+                   "(default: the config's [camera] blur_px, 0 = sharp CG)")
+    p.add_argument("--noise", type=float, default=None, metavar="LEVELS",
+                   help="the video's noise given to the CG: σ in 8-bit levels (default: the "
+                   "config's [camera] noise, 0 = none)")
     p.add_argument("--fps", type=float, default=None,
                    help="output frame rate (default: the input's, or 25)")
     p.add_argument("--pipeline", action=argparse.BooleanOptionalAction, default=None,
@@ -100,7 +107,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("must be >= 1", field="--max-frames")
     if not 0 < args.white_level <= 1:
         raise InputError("must be in (0, 1]", field="--white-level")
+    for name, v, hi in (("--blur-px", args.blur_px, 20.0), ("--noise", args.noise, 64.0)):
+        if v is not None and not 0 <= v <= hi:
+            raise InputError(f"must be in [0, {hi:g}], got {v:g}", field=name)
     scene = load_scene(args.config)
+    if args.blur_px is not None or args.noise is not None:
+        cam = scene.camera
+        scene = scene.replace(camera=dataclasses.replace(
+            cam, blur_px=cam.blur_px if args.blur_px is None else args.blur_px,
+            noise=cam.noise if args.noise is None else args.noise))
     pipeline = pipeline_pays() if args.pipeline is None else bool(args.pipeline)
     t_start = time.perf_counter()
     source = VideoSource(args.camera if args.camera is not None else args.video,
@@ -161,6 +176,8 @@ def run(args: argparse.Namespace) -> int:
         "pixel_capacity": session.prep.pixel_capacity,
         "pipeline": pipeline,
         "devices": [str(d) for d in session.devices],
+        "cg_blur_px": session.camera.blur_px,
+        "cg_noise": session.camera.noise,
         "colour": ("sensitivities " + (args.sensitivities or "Nikon 5100 (NPL)")
                    if args.sensitivities or scene.camera_colour is None
                    else "[camera_colour]"),
