@@ -504,6 +504,11 @@ class LiveSession:
         self.replans_ahead += 1
         return True
 
+    @property
+    def growing(self) -> bool:
+        """Whether a background compile of grown buffers is under way."""
+        return self._grow_thread is not None and self._grow_thread.is_alive()
+
     def join_background(self) -> None:
         """Wait for a background compile of grown buffers, if one is under way (the session
         switches to them at its next frame). An interpreter that exits waits for it too."""

@@ -150,7 +150,7 @@ def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(sessi
     t.process(img)
     close = _frame(both, (0.0, 0.2, 0.17), seed=21)[0]  # ~2.4x the pixels of ``img``
     pending = t.submit(close)
-    growing = t._grow_thread.is_alive() and pending.prep is not None
+    growing = t.growing and pending.prep is not None
     overflowed = bool(pending.stats["overflow"])  # its 4-pixel raster windows
     got = t.finish(pending)
     assert t.replans_ahead == 1 and t.recompiles == 0

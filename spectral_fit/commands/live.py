@@ -198,6 +198,11 @@ def run(args: argparse.Namespace) -> int:
               f"buffers grown ahead {session.replans_ahead}")
         if args.output:
             print(f"wrote {args.output} ({written} frames)")
+    if session.growing:  # the interpreter would wait for it anyway: say so
+        if not args.quiet:
+            print("live: finishing a background compile of larger buffers before exiting",
+                  file=sys.stderr)
+        session.join_background()
     if args.output and written != n:
         raise InputError(f"wrote {n} frames but {written} read back", path=args.output,
                          field="--output")
