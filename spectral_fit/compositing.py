@@ -302,10 +302,16 @@ def composite(frame, cg_linear, coverage, model: CameraModel) -> jax.Array:
     renderer's coverage, no partial pixels) needs no decoding of the frame: covered pixels are
     ``encode(cg)``; partial coverage decodes the frame through a 256-entry table of the inverse
     tone curve (exact for uint8 input) and mixes ``cov · cg + (1 − cov) · frame`` linearly.
+    With the model's ``blur_px`` or ``noise`` the CG gets the camera's blur and noise as in
+    :func:`composite_pixels` (pixels the blurred CG does not reach keep their bytes).
     """
     fr = jnp.asarray(frame, jnp.uint8)
     cov = jnp.asarray(coverage)
     cg = jnp.clip(cg_linear, 0.0, 1.0)
+    if model.blur_px > 0 or model.noise > 0:
+        a = jnp.clip(cov.astype(jnp.float32), 0.0, 1.0)[..., None]
+        noise = _frame_noise(fr, fr.shape) * (a > 0) if model.noise > 0 else None
+        return _as_seen(fr, jnp.concatenate([cg * a, a], axis=-1), model, noise)
     if cov.dtype == jnp.bool_:
         enc = jnp.round(encode_frame(cg, model) * 255.0).astype(jnp.uint8)
         return jnp.where(cov[..., None], enc, fr)
@@ -344,30 +350,38 @@ def composite_pixels(frame, cg_linear, index, valid, model: CameraModel) -> jax.
 
 def _composite_as_seen(frame: jax.Array, cg: jax.Array, index: jax.Array,
                        model: CameraModel) -> jax.Array:
-    """:func:`composite_pixels` with the camera's blur and noise given to the CG: the CG
-    (premultiplied by its coverage, linear light) and its coverage are blurred with a Gaussian
-    of σ = ``model.blur_px`` (zero outside the frame), composited over the decoded video frame
-    (``frame·(1 − a) + cg``), encoded, and given noise of σ = ``model.noise`` levels times the
-    blurred coverage a on the covered pixels (the blurred rim outside them keeps the video's
-    own noise, in proportion 1 − a). Pixels the CG does not reach (a < 1/512) keep their
-    bytes."""
+    """:func:`composite_pixels` with the camera's blur and noise given to the CG (see
+    :func:`_as_seen`); the noise is drawn for the slots only (a frame's worth of draws costs
+    ~17 ms on 2 cores at 720×480)."""
     h, w, _ = frame.shape
     rgba = jnp.concatenate([cg, jnp.ones((cg.shape[0], 1), cg.dtype)], axis=1)
     layer = jnp.zeros((h * w, 4), jnp.float32).at[index].set(rgba, mode="drop")
-    layer = layer.reshape(h, w, 4)
+    noise = None
+    if model.noise > 0:
+        draws = _frame_noise(frame, (index.shape[0], 3))
+        noise = jnp.zeros((h * w, 3), jnp.float32).at[index].set(draws, mode="drop")
+        noise = noise.reshape(h, w, 3)
+    return _as_seen(frame, layer.reshape(h, w, 4), model, noise)
+
+
+def _as_seen(frame: jax.Array, layer: jax.Array, model: CameraModel,
+             noise: jax.Array | None) -> jax.Array:
+    """The CG layer (H, W, 4: linear CG premultiplied by its coverage, then the coverage)
+    given the camera's blur and noise and composited over the frame: the layer blurred with a
+    Gaussian of σ = ``model.blur_px`` (zero outside the frame), composited over the decoded
+    video frame (``frame·(1 − a) + cg``), encoded, and given ``model.noise`` levels times the
+    blurred coverage a of the standard normal ``noise`` (H, W, 3) (drawn for the covered
+    pixels: the blurred rim outside them keeps the video's own noise, in proportion 1 − a).
+    Pixels the CG does not reach (a < 1/512) keep their bytes."""
     if model.blur_px > 0:
         # computed once (XLA otherwise fuses the blur into each of its consumers)
         layer = materialise(gaussian_blur(layer, model.blur_px), cut=True)
     cover = layer[..., 3:]
-    codes = jnp.arange(256, dtype=jnp.float32)[:, None] / 255.0
-    table = decode_frame(jnp.broadcast_to(codes, (256, 3)), model)  # (256, 3) linear
-    background = table[frame.astype(jnp.int32), jnp.arange(3)]
-    linear = background * (1.0 - cover) + layer[..., :3]
+    table = decode_frame(jnp.arange(256, dtype=jnp.float32) / 255.0, model)  # (256,) linear
+    linear = table[frame.astype(jnp.int32)] * (1.0 - cover) + layer[..., :3]
     enc = encode_frame(jnp.clip(linear, 0.0, 1.0), model) * 255.0
-    if model.noise > 0:  # drawn for the slots only (a frame's worth of draws cost ~17 ms)
-        draws = _frame_noise(frame, (index.shape[0], 3))
-        noise = jnp.zeros((h * w, 3), jnp.float32).at[index].set(draws, mode="drop")
-        enc = enc + (model.noise * cover) * noise.reshape(h, w, 3)
+    if noise is not None and model.noise > 0:
+        enc = enc + (model.noise * cover) * noise
     out = jnp.clip(jnp.round(enc), 0.0, 255.0).astype(jnp.uint8)
     return jnp.where(cover > 1.0 / 512.0, out, frame)
 

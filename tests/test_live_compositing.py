@@ -232,6 +232,12 @@ def test_composite_pixels_gives_the_cg_the_camera_blur():
     assert reached.sum() > 1.5 * mask.sum()
     rim = reached & ~mask
     assert np.abs(out[rim] - frame[rim]).max() > 20
+    # the full-image composite gives the same bytes for the same CG and mask
+    image = np.zeros((h * w, 3), np.float32)
+    image[idx] = cg
+    full = composite(jnp.asarray(frame), jnp.asarray(image.reshape(h, w, 3)),
+                     jnp.asarray(mask), m)
+    np.testing.assert_array_equal(np.asarray(full), out)
 
 
 def test_composite_pixels_gives_the_cg_the_camera_noise():
