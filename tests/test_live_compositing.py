@@ -195,7 +195,12 @@ def _disc_slots(h, w, cy, cx, r):
     return mask, idx
 
 
-def test_composite_pixels_gives_the_cg_the_camera_blur():
+@pytest.mark.parametrize("h, w, cy, cx, radius, sigma", [
+    (48, 64, 20.0, 30.0, 9.0, 1.3),
+    (100, 150, 12.0, 140.0, 8.0, 0.6),  # the disc cut by two frame edges
+    (160, 240, 100.0, 90.0, 34.0, 2.0),
+])
+def test_composite_pixels_gives_the_cg_the_camera_blur(h, w, cy, cx, radius, sigma):
     """With ``blur_px`` the CG and its coverage are blurred in linear light before the
     composite: against SciPy's Gaussian filter (same ±3σ support, zeros outside) and
     colour-science's sRGB curves; pixels the blurred CG does not reach keep their bytes."""
@@ -205,12 +210,10 @@ def test_composite_pixels_gives_the_cg_the_camera_blur():
 
     white = illuminant("D65", WL) / 100.0
     sharp = camera_model_from_sensitivities("Nikon 5100 (NPL)", WL, white)
-    sigma = 1.3
     m = dataclasses.replace(sharp, blur_px=sigma)
     rng = np.random.default_rng(5)
-    h, w = 48, 64
     frame = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-    mask, idx = _disc_slots(h, w, 20.0, 30.0, 9.0)
+    mask, idx = _disc_slots(h, w, cy, cx, radius)
     cg = np.clip(rng.normal(0.5, 0.2, (idx.size, 3)), 0, 1).astype(np.float32)
     valid = np.ones(idx.size, bool)
     out = np.asarray(composite_pixels(jnp.asarray(frame), jnp.asarray(cg), jnp.asarray(idx),
@@ -229,7 +232,7 @@ def test_composite_pixels_gives_the_cg_the_camera_blur():
     assert np.abs(out[reached] - want[reached]).max() <= 1
     np.testing.assert_array_equal(out[~reached], frame[~reached])
     # the blur reaches past the silhouette, and softens it: the rim is a mix of CG and video
-    assert reached.sum() > 1.5 * mask.sum()
+    assert np.all(reached[mask]) and reached.sum() > mask.sum() + 2 * np.pi * radius
     rim = reached & ~mask
     assert np.abs(out[rim] - frame[rim]).max() > 20
     # the full-image composite gives the same bytes for the same CG and mask
@@ -240,7 +243,11 @@ def test_composite_pixels_gives_the_cg_the_camera_blur():
     np.testing.assert_array_equal(np.asarray(full), out)
 
 
-def test_composite_pixels_gives_the_cg_the_camera_noise():
+@pytest.mark.parametrize("h, w, cy, cx, radius", [
+    (64, 80, 32.0, 40.0, 20.0),
+    (128, 160, 40.0, 50.0, 22.0),
+])
+def test_composite_pixels_gives_the_cg_the_camera_noise(h, w, cy, cx, radius):
     """With ``noise`` the CG gets Gaussian noise of that σ (8-bit levels) where it covers the
     pixel; the same frame gets the same noise, another frame other noise."""
     import dataclasses
@@ -249,9 +256,8 @@ def test_composite_pixels_gives_the_cg_the_camera_noise():
     sharp = camera_model_from_sensitivities("Nikon 5100 (NPL)", WL, white)
     noisy = dataclasses.replace(sharp, noise=3.0)
     rng = np.random.default_rng(6)
-    h, w = 64, 80
     frame = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-    mask, idx = _disc_slots(h, w, 32.0, 40.0, 20.0)
+    mask, idx = _disc_slots(h, w, cy, cx, radius)
     cg = np.full((idx.size, 3), 0.4, np.float32)
     args = (jnp.asarray(cg), jnp.asarray(idx), jnp.asarray(np.ones(idx.size, bool)))
     base = np.asarray(composite_pixels(jnp.asarray(frame), *args, sharp)).astype(float)
