@@ -384,7 +384,7 @@ def _as_seen(frame: jax.Array, layer: jax.Array, model: CameraModel,
     table = decode_frame(codes, model)
     linear = table[frame.astype(jnp.int32), jnp.arange(3)] * (1.0 - cover) + layer[..., :3]
     enc = encode_frame(jnp.clip(linear, 0.0, 1.0), model) * 255.0
-    if noise is not None and model.noise > 0:
+    if noise is not None:
         enc = enc + (model.noise * cover) * noise
     out = jnp.clip(jnp.round(enc), 0.0, 255.0).astype(jnp.uint8)
     return jnp.where(cover > 1.0 / 512.0, out, frame)

@@ -431,24 +431,16 @@ class LiveSession:
         """``self.prep`` with every buffer that this frame filled past ``grow_ahead`` grown
         to ``headroom`` × its use, and at least to where that use is below ``grow_ahead``
         (on the capacity ladders); None when none is that full."""
-        from .raster import RasterConfig, _ladder
-
         p, f = self.prep, self.grow_ahead
         hr = max(self.headroom, 1.0 / f)
         counts = np.asarray(stats["object_counts"]).tolist()
-        needed = np.asarray(stats["raster_needed"]).tolist()
-        cfg = p.raster_config
-        caps = [*cfg.capacities, cfg.block_capacity]
-        new_caps = [max(c, _ladder(hr * n)) if n > f * c else c
-                    for c, n in zip(caps, needed, strict=True)]
+        cfg = p.raster_config.grown(np.asarray(stats["raster_needed"]), hr, full=f)
         h, w = p.shape
-        new_pix = [max(c, _pixel_slots(hr * n, h * w)) if n > f * c else c
-                   for c, n in zip(p.pixel_capacity, counts, strict=True)]
-        if new_caps == caps and tuple(new_pix) == tuple(p.pixel_capacity):
+        new_pix = tuple(max(c, _pixel_slots(hr * n, h * w)) if n > f * c else c
+                        for c, n in zip(p.pixel_capacity, counts, strict=True))
+        if cfg == p.raster_config and new_pix == tuple(p.pixel_capacity):
             return None
-        return dataclasses.replace(
-            p, raster_config=RasterConfig(cfg.tile_sizes, tuple(new_caps[:-1]), new_caps[-1]),
-            pixel_capacity=tuple(new_pix))
+        return dataclasses.replace(p, raster_config=cfg, pixel_capacity=new_pix)
 
     def _maybe_grow(self, stats: dict[str, Any], poses: Any, background: Any) -> None:
         """Start the background compile of grown buffers when this frame (rendered with the

@@ -132,14 +132,15 @@ class RasterConfig(NamedTuple):
         caps = tuple(_ladder(headroom * n + 16) for n in counts.windows)
         return cls(sizes, caps, _ladder(headroom * counts.blocks + 16))
 
-    def grown(self, needed, headroom: float = 1.25) -> RasterConfig:
+    def grown(self, needed, headroom: float = 1.25, *, full: float = 1.0) -> RasterConfig:
         """Capacities raised to the ladder value ≥ ``headroom`` × ``needed`` where
-        ``needed`` (windows per ladder size, then blocks) exceeds them."""
+        ``needed`` (windows per ladder size, then blocks) exceeds ``full`` × them (1: where
+        they overflowed; below 1, ahead of an overflow, with ``headroom`` ≥ 1 / ``full``)."""
         needed = [int(n) for n in np.asarray(needed).tolist()]
-        caps = [c if n <= c else _ladder(headroom * n)
+        caps = [c if n <= full * c else _ladder(headroom * n)
                 for c, n in zip(self.capacities, needed[:-1], strict=True)]
         blocks = self.block_capacity
-        if needed[-1] > blocks:
+        if needed[-1] > full * blocks:
             blocks = _ladder(headroom * needed[-1])
         return RasterConfig(self.tile_sizes, tuple(caps), blocks)
 

@@ -78,6 +78,11 @@ __all__ = [
 _MISSING = object()
 
 
+# bounds of [camera] blur_px (σ, pixels) and noise (σ, 8-bit levels)
+MAX_BLUR_PX = 20.0
+MAX_NOISE = 64.0
+
+
 @dataclasses.dataclass(frozen=True)
 class CameraSpec:
     """Pinhole camera (OpenGL convention: looks down −Z of its frame, +Y up)."""
@@ -479,8 +484,8 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
         up=cr.vector("up", 3, [0.0, 1.0, 0.0]),  # type: ignore[arg-type]
         intrinsics=intrinsics,
         distortion=distortion,
-        blur_px=cr.number("blur_px", 0.0, lo=0.0, hi=20.0),
-        noise=cr.number("noise", 0.0, lo=0.0, hi=64.0),
+        blur_px=cr.number("blur_px", 0.0, lo=0.0, hi=MAX_BLUR_PX),
+        noise=cr.number("noise", 0.0, lo=0.0, hi=MAX_NOISE),
     )
     if camera.far <= camera.near:
         raise cr.err("far", f"must be greater than near ({camera.near:g})")

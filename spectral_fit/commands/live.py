@@ -100,14 +100,15 @@ def run(args: argparse.Namespace) -> int:
     enable_compilation_cache(min_compile_time_s=1.0)  # a second run loads the programs
 
     from ..live import LiveSession, pipeline_pays
-    from ..scene import load_scene
+    from ..scene import MAX_BLUR_PX, MAX_NOISE, load_scene
     from ..video import VideoSink, VideoSource, count_frames
 
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError("must be >= 1", field="--max-frames")
     if not 0 < args.white_level <= 1:
         raise InputError("must be in (0, 1]", field="--white-level")
-    for name, v, hi in (("--blur-px", args.blur_px, 20.0), ("--noise", args.noise, 64.0)):
+    for name, v, hi in (("--blur-px", args.blur_px, MAX_BLUR_PX),
+                        ("--noise", args.noise, MAX_NOISE)):
         if v is not None and not 0 <= v <= hi:
             raise InputError(f"must be in [0, {hi:g}], got {v:g}", field=name)
     scene = load_scene(args.config)
