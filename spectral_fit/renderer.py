@@ -106,6 +106,13 @@ class Prepared(eqx.Module):
         ir_vertices, ir_normals, ir_triangles, ir_vertex_object: the same for the meshes the
             interreflection's pass 1 rasterises (:func:`_ir_mesh`: in gather mode spheres
             tessellated for its raster; otherwise the arrays above).
+        lens: (9,) the camera's lens distortion (:func:`~spectral_fit.lens.lens_parameters`:
+            OpenCV's k1, k2, p1, p2, k3, k4, k5, k6 and the square of the model's fold
+            radius), or None for an ideal pinhole (no ``camera.distortion``, or all zero).
+            Vertices are distorted before rasterisation (:func:`~spectral_fit.lens.distort_eye`).
+        pixel_rays: (H·W, 3) unit eye-space (OpenGL) ray of every pixel centre through the
+            lens (:func:`~spectral_fit.lens.pixel_rays`; the background's rays), or None
+            with ``lens`` None.
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
     ir_bounces, ir_texture_size, raster_config, pixel_capacity (covered-pixel list size per
     object), object_slices ((start, stop) vertex ranges), triangle_slices, ir_object_slices,
@@ -157,6 +164,8 @@ class Prepared(eqx.Module):
     quality: str = eqx.field(static=True, default="fast")
     split_settings: Any = eqx.field(static=True, default=None)
     cull: str = eqx.field(static=True, default="none")
+    lens: jax.Array | None = None
+    pixel_rays: jax.Array | None = None
 
     @property
     def num_objects(self) -> int:
@@ -291,14 +300,76 @@ def _projection(scene: Any, shape: tuple[int, int]) -> np.ndarray:
     h, w = shape
     if cam.intrinsics is None:
         return np.asarray(perspective(cam.fov_y_deg, w / h, cam.near, cam.far))
-    if cam.distortion is not None and any(abs(x) > 0 for x in cam.distortion):
-        warnings.warn("camera.distortion is not applied by the renderer (pinhole only)",
-                      RuntimeWarning, stacklevel=3)
     i = cam.intrinsics
     sx, sy = w / scene.width, h / scene.height  # intrinsics are given for the config's size
     k = intrinsics_matrix(i["fx"] * sx, i["fy"] * sy, (i["cx"] + 0.5) * sx - 0.5,
                           (i["cy"] + 0.5) * sy - 0.5)
     return np.asarray(intrinsics_to_projection(k, w, h, cam.near, cam.far))
+
+
+def _lens(scene: Any, proj: np.ndarray, shape: tuple[int, int]
+          ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The camera's lens vector (9,) and pixel rays (H·W, 3) (:mod:`spectral_fit.lens`) for
+    the projection ``proj`` at ``shape``, or (None, None) for a pinhole. The distortion
+    coefficients act on normalised coordinates, so they hold at any frame size."""
+    from .camera import projection_to_intrinsics
+    from .lens import is_identity, lens_parameters, pixel_rays
+
+    dist = scene.camera.distortion
+    if is_identity(dist):
+        return None, None
+    path = getattr(scene, "path", None)
+    lens = lens_parameters(dist, path=path)
+    k = np.asarray(projection_to_intrinsics(proj, shape[1], shape[0]), np.float64)
+    return lens, pixel_rays(k, lens, shape, path=path)
+
+
+#: largest midpoint error (pixels) of a triangle edge under the lens before prepare warns
+LENS_EDGE_TOLERANCE_PX = 0.25
+
+
+def _check_lens_tessellation(scene: Any, proj: np.ndarray, shape: tuple[int, int],
+                             lens: np.ndarray, world: np.ndarray, view: np.ndarray,
+                             triangles: np.ndarray, tsl: Sequence[tuple[int, int]]) -> None:
+    """Warn when an object's triangles are too large for the vertex-distortion raster: an edge
+    (of the configured pose, its midpoint in the frame) whose straight raster misses the
+    lens's image of its midpoint by more than ``LENS_EDGE_TOLERANCE_PX``
+    (:func:`~spectral_fit.lens.edge_error_px`)."""
+    from .camera import projection_to_intrinsics
+    from .lens import edge_error_px
+
+    h, w = shape
+    k = np.asarray(projection_to_intrinsics(proj, w, h), np.float64)
+    eye = world @ view[:3, :3].T.astype(np.float64) + view[:3, 3]
+    for (ta, tb), obj in zip(tsl, scene.objects, strict=True):
+        t = triangles[ta:tb]
+        edges = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+        err = edge_error_px(eye, edges, lens, k)
+        mid = 0.5 * (eye[edges[:, 0]] + eye[edges[:, 1]])
+        z = np.where(mid[:, 2] < -1e-9, -mid[:, 2], np.inf)
+        u = k[0, 0] * mid[:, 0] / z + k[0, 2]
+        v = -k[1, 1] * mid[:, 1] / z + k[1, 2]
+        seen = (u > -0.1 * w) & (u < 1.1 * w) & (v > -0.1 * h) & (v < 1.1 * h)
+        worst = float(err[seen].max()) if seen.any() else 0.0
+        if worst > LENS_EDGE_TOLERANCE_PX:
+            warnings.warn(
+                f"{obj.name}: its triangles are large for this lens: a straight edge misses "
+                f"the distorted image of its midpoint by up to {worst:.2f} px; tessellate it "
+                "more finely (stacks/slices, or a denser mesh)", RuntimeWarning, stacklevel=3)
+
+
+def _camera_clip(projection: Any, view: Any, lens: Any, world: Any, xp: Any = jnp) -> Any:
+    """Clip coordinates (V, 4) of world points (V, 3) seen by the camera: ``projection @
+    view``, with the vertices distorted in eye space first when there is a ``lens``
+    (:func:`~spectral_fit.lens.distort_eye`). ``xp``: ``jax.numpy`` (traced) or ``numpy``
+    (capacity planning)."""
+    if lens is None:
+        vp = projection @ view
+        return world @ vp[:, :3].T + vp[:, 3]
+    from .lens import distort_eye
+
+    eye = distort_eye(world @ view[:3, :3].T + view[:3, 3], lens, xp)
+    return eye @ projection[:, :3].T + projection[:, 3]
 
 
 def _ladder(n: float) -> int:
@@ -597,8 +668,10 @@ def prepare(
     # capacities from the configured poses (NumPy: no compilation)
     world = np.einsum("vij,vj->vi", model[vobj_a][:, :3, :3].astype(np.float64),
                       vertices) + model[vobj_a][:, :3, 3]
-    vp = proj.astype(np.float64) @ view.astype(np.float64)
-    clip = world @ vp[:, :3].T + vp[:, 3]
+    lens, rays = _lens(scene, proj, shape)
+    clip = _camera_clip(proj.astype(np.float64), view.astype(np.float64), lens, world, np)
+    if lens is not None:
+        _check_lens_tessellation(scene, proj, shape, lens, world, view, triangles, tsl)
     cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom, cull=cull)
     if pixel_capacity is None:
         caps = []
@@ -652,6 +725,8 @@ def prepare(
         ir_vertices=jnp.asarray(ir_v, jnp.float32), ir_normals=jnp.asarray(ir_n, jnp.float32),
         ir_triangles=jnp.asarray(ir_t, jnp.int32), ir_vertex_object=jnp.asarray(ir_o, jnp.int32),
         ir_object_slices=tuple(ir_vsl), ir_triangle_slices=tuple(ir_tsl), cull=cull,
+        lens=None if lens is None else jnp.asarray(lens, jnp.float32),
+        pixel_rays=None if rays is None else jnp.asarray(rays),
     )
 
 
@@ -912,31 +987,29 @@ def _ir_pass1(prep: Prepared, geoms: list[ObjectGeometry]) -> Any:
                                        raster_config=prep.ir_raster_config)
 
 
-def _pixel_directions(prep: Prepared, view: jax.Array) -> jax.Array:
-    """(H·W, 3) world unit directions of the camera rays through the pixel centres."""
-    h, w = prep.shape
-    py, px = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32) + 0.5,
-                          jnp.arange(w, dtype=jnp.float32) + 0.5, indexing="ij")
-    ndc = jnp.stack([2 * px / w - 1, 1 - 2 * py / h, jnp.ones_like(px), jnp.ones_like(px)], -1)
-    inv = inverse_4x4(prep.projection @ view)
-    far = ndc.reshape(-1, 4) @ inv.T
-    far = far[:, :3] / far[:, 3:4]
-    eye = eye_position(view)
-    d = far - eye
-    return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-
-
 def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     """The environment seen through each pixel centre: bilinear lookups (H·W, C') of a table
     laid out as the map's texels + 2 pole rows (e.g. ``prep.env_xyz``). Per pixel the map-frame
     ray direction is an affine function of the pixel coordinates (one 3 × 3 matrix for the
     frame: inverse projection, camera rotation and map rotation), evaluated by components, then
-    normalised; (u, v) by :func:`~spectral_fit.environment.fast_direction_to_uv`."""
+    normalised; (u, v) by :func:`~spectral_fit.environment.fast_direction_to_uv`. Through a
+    lens (``prep.pixel_rays``) each pixel's ray is looked up instead (rotated into the map
+    frame)."""
     from .environment import _bilinear_taps, _materialise, _taps_sum, fast_direction_to_uv
 
     h, w = prep.shape
     env = prep.env
     hm, wm = env.texels.shape[:2]
+    if prep.pixel_rays is not None:  # through the lens: the pixel centres' own rays
+        # eye → world is view[:3, :3]ᵀ (a rotation), then the map's rotation
+        m = view[:3, :3] @ env.rotation
+        r = [prep.pixel_rays[:, i] for i in range(3)]
+        dmap = jnp.stack([r[0] * m[0, j] + r[1] * m[1, j] + r[2] * m[2, j] for j in range(3)],
+                         axis=-1)
+        uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
+        idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm),
+                                 jnp.int32(wm))
+        return _taps_sum(flat, idx, wt)
     inv = inverse_4x4(prep.projection @ view)
     eye = eye_position(view)
     # a far-plane point of NDC (x, y, 1, 1) minus the eye, as a function of pixel (col, row):
@@ -1243,8 +1316,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     vis_v = visible[prep.vertex_object]
     world = jnp.where(vis_v[:, None], world_full, centres[prep.vertex_object])
     wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
-    vp = prep.projection @ view
-    clip = world @ vp[:, :3].T + vp[:, 3]
+    clip = _camera_clip(prep.projection, view, prep.lens, world)
 
     # 2. rasterise, compact covered pixels, G-buffer
     with jax.named_scope("raster"):
@@ -1533,8 +1605,8 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
             from .raster import rasterize
 
             world = _to_world(prep.vertices, prep.vertex_object, prep.model)
-            vp = prep.projection @ prep.view
-            r = rasterize(world @ vp[:, :3].T + vp[:, 3], prep.triangles, prep.shape,
+            r = rasterize(_camera_clip(prep.projection, prep.view, prep.lens, world),
+                          prep.triangles, prep.shape,
                           cull=prep.cull, config=prep.raster_config, check=False)
             changes["raster_config"] = prep.raster_config.grown(np.asarray(r.needed), 1.5)
         warnings.warn(f"render: buffers grown ({sorted(changes)}); recompiling",

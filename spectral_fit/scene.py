@@ -14,7 +14,8 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
     [camera]           fov_y_deg [90], near [0.01], far [1000],
                        position [[0,0,0]], look_at [[0,0,-1]], up [[0,1,0]]
                        intrinsics = {fx, fy, cx, cy}  (optional; replaces fov_y_deg, pixels)
-                       distortion = [k1, k2, p1, p2, k3]  (optional, OpenCV model)
+                       distortion = [k1, k2, p1, p2, k3]  (optional, OpenCV model; 4, 5
+                         or 8 numbers; the renderer draws through it: spectral_fit.lens)
                        blur_px [0], noise [0]  (live compositing: the video camera's blur,
                        Gaussian σ in pixels, and noise, σ in 8-bit levels, given to the CG)
     [environment]      file (spectral or RGB OpenEXR; required), scale [1.0],
