@@ -11,6 +11,8 @@ Per frame (``LiveSession.process``)::
 Geometry: the renderer draws with the pinhole intrinsics K (``[camera] intrinsics``, or the
 config's field of view when absent); each video frame is undistorted onto that same K
 (:func:`spectral_fit.camera_calibration.undistort_maps`), so the output video is undistorted.
+With ``LiveSession(lens="distort")`` (``spectral-fit live --lens distort``) the frames are
+kept as they are instead and the CG is rendered through the lens (:mod:`spectral_fit.lens`).
 Marker poses come from the raw frame with the distortion model.
 
 Colour: the renderer's radiance channels go straight to the camera's linear RGB: the
@@ -269,6 +271,11 @@ class LiveSession:
             device when the default backend is the CPU (one, unless the process split it:
             :func:`~spectral_fit.startup.split_cpu_devices`), else the first accelerator.
             Frames are the same on every device (same program, same inputs).
+        lens: with a distorting lens (``[camera] distortion``), "undistort" (default): each
+            video frame is resampled onto the pinhole K and the CG is rendered with that K, so
+            the output is undistorted; "distort": the video frames are kept as they are (no
+            resampling) and the CG is rendered through the lens itself
+            (:mod:`spectral_fit.lens`), so the output keeps the camera's geometry.
     """
 
     def __init__(self, scene: Scene, *, size: tuple[int, int] | None = None,
@@ -278,7 +285,10 @@ class LiveSession:
                  k: int | None = None, plan_distance: float = 0.35,
                  headroom: float = 1.6, detect_downscale: int | None = None,
                  ir_reuse_mm: float | None = 0.5, devices: Any = None,
-                 grow_ahead: float | None = 0.8) -> None:
+                 grow_ahead: float | None = 0.8, lens: str = "undistort") -> None:
+        if lens not in ("undistort", "distort"):
+            raise InputError(f"must be 'undistort' or 'distort', got {lens!r}", field="lens")
+        self.lens = lens
         self.devices = _frame_devices(devices)
         self._device_turn = 0
         self._copies: dict[Any, tuple[Any, Any, Any]] = {}
@@ -355,7 +365,7 @@ class LiveSession:
         self._ring = [np.empty((h, w, 3), np.uint8) for _ in range(_RING)]
         self._ring_next = 0
         self._last_detect = 0.0
-        if self.dist is not None and np.any(self.dist != 0):
+        if self.dist is not None and np.any(self.dist != 0) and self.lens == "undistort":
             from .camera_calibration import undistort_maps
 
             self._maps = undistort_maps(self.k, self.dist, (h, w))
@@ -378,8 +388,11 @@ class LiveSession:
             pos = np.asarray(cam.position) + self.plan_distance * fwd + (x + r) * right
             x += 2.2 * r
             objs.append(dataclasses.replace(o, position=tuple(float(v) for v in pos)))
-        # the render is an ideal pinhole by design: frames are undistorted instead
-        camera = dataclasses.replace(cam, distortion=None)
+        # "undistort": the render is an ideal pinhole, the frames are undistorted instead;
+        # "distort": the render goes through the lens the markers were detected with
+        dist = (None if self.lens == "undistort" or self.dist is None
+                else tuple(float(c) for c in self.dist))
+        camera = dataclasses.replace(cam, distortion=dist)
         return self.scene.replace(objects=tuple(objs), camera=camera)
 
     def _replan(self, poses: Any, headroom: float, *, interreflection: bool = False) -> bool:
@@ -387,7 +400,7 @@ class LiveSession:
         pass-1 rasters to their generic capacities after they overflowed; True when they
         changed (the next render recompiles)."""
         from .raster import RasterConfig
-        from .renderer import _ir_fallback, plan_capacities
+        from .renderer import _camera_clip, _ir_fallback, plan_capacities
 
         p = self.prep
         ir_cfg = _ir_fallback(p) if interreflection else None
@@ -396,8 +409,10 @@ class LiveSession:
         v = np.asarray(p.vertices, np.float64)
         m = np.asarray(poses.model, np.float64)[np.asarray(p.vertex_object)]
         world = np.einsum("vij,vj->vi", m[:, :3, :3], v) + m[:, :3, 3]
-        vp = np.asarray(p.projection, np.float64) @ np.asarray(poses.view, np.float64)
-        clip = world @ vp[:, :3].T + vp[:, 3]
+        clip = _camera_clip(np.asarray(p.projection, np.float64),
+                            np.asarray(poses.view, np.float64),
+                            None if p.lens is None else np.asarray(p.lens, np.float64), world,
+                            np)
         cfg, _ = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom,
                                  cull=p.cull)
         old = p.raster_config
@@ -517,8 +532,8 @@ class LiveSession:
     # ------------------------------------------------------------------ per frame
 
     def undistort(self, frame: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """The frame resampled onto the pinhole intrinsics (identity without distortion),
-        into ``out`` when given ((H, W, 3) uint8)."""
+        """The frame resampled onto the pinhole intrinsics (identity without distortion or
+        with ``lens="distort"``), into ``out`` when given ((H, W, 3) uint8)."""
         if self._maps is None:
             if out is None:
                 return frame

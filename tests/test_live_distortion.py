@@ -14,6 +14,7 @@ pytest.importorskip("spectral_fit.renderer")
 
 from _live_util import K, scene_dict, table
 
+from spectral_fit.errors import InputError
 from spectral_fit.scene import parse_scene
 from spectral_fit.synthetic_video import (
     camera_pose_looking_at,
@@ -133,3 +134,25 @@ def test_without_the_distortion_model_the_composite_misses(shot):
     got = oid == 1
     assert (got & raw).sum() / (got | raw).sum() < 0.85
     assert np.linalg.norm(_centroid(got) - _centroid(raw)) > 2.0
+
+
+def test_rendering_through_the_lens_keeps_the_raw_frame(shot):
+    """lens="distort": the video frame is not resampled, and the CG lands on the sphere's
+    silhouette in the raw frame (through the lens), not on its pinhole one."""
+    from spectral_fit.live import LiveSession
+
+    img, r, t = shot
+    (pin, _), (raw, raw_d) = _sphere_masks(r, t, 7)
+    sess = LiveSession(_scene(DIST), size=SIZE, lens="distort")
+    assert sess.prep.lens is not None
+    out = sess.process(img)
+    assert sess.last_poses.visible.tolist() == [True, True]
+    oid = np.asarray(sess.last_object_id)
+    np.testing.assert_array_equal(out[oid < 0], img[oid < 0])  # the raw frame itself
+    got = oid == 1
+    assert (got & raw).sum() / (got | raw).sum() > 0.95
+    assert np.all(raw_d[got != raw] < 1.0)  # disagreements only at the rim
+    assert np.linalg.norm(_centroid(got) - _centroid(raw)) < 0.5
+    assert np.linalg.norm(_centroid(got) - _centroid(pin)) > 2.5
+    with pytest.raises(InputError, match="lens"):
+        LiveSession(_scene(DIST), size=SIZE, lens="fisheye")

@@ -36,6 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--noise", type=float, default=None, metavar="LEVELS",
                    help="the video's noise given to the CG: σ in 8-bit levels (default: the "
                    "config's [camera] noise, 0 = none)")
+    p.add_argument("--lens", choices=("undistort", "distort"), default="undistort",
+                   help="with [camera] distortion: undistort the video frames onto the "
+                        "pinhole (default), or keep them and render the CG through the lens")
     p.add_argument("--fps", type=float, default=None,
                    help="output frame rate (default: the input's, or 25)")
     p.add_argument("--pipeline", action=argparse.BooleanOptionalAction, default=None,
@@ -125,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         session = LiveSession(scene, size=(source.height, source.width), mode=args.mode,
                               spectral_mode=args.spectral_mode, k=args.k,
                               sensitivities=args.sensitivities, white_level=args.white_level,
-                              ir_reuse_mm=args.ir_reuse_mm)
+                              ir_reuse_mm=args.ir_reuse_mm, lens=args.lens)
         in_flight = 1 if pipeline else len(session.devices)  # LiveSession.run's choice
         fps_out = args.fps or (source.fps if source.fps and source.fps > 0 else 25.0)
         total = source.frame_count
