@@ -341,7 +341,7 @@ class _Reader:
         v = self.raw(k, default)
         if v is None:
             return None
-        if not isinstance(v, str) or not v:
+        if not isinstance(v, str) or not v or "\x00" in v:
             raise self.err(k, f"must be a file path, got {v!r}")
         base = self.path.parent if self.path is not None else Path.cwd()
         p = (base / v).resolve() if not os.path.isabs(v) else Path(v)

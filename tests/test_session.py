@@ -173,6 +173,15 @@ def test_missing_config(base, tmp_path):
     assert e.field == "session.scene" and "not found" in str(e) and e.line == 5
 
 
+def test_nul_character_in_a_path(base, tmp_path):
+    """A TOML string may hold a NUL (\\u0000), which no file name can: a clear error (the
+    scene config's paths are resolved, where pathlib raises ValueError for one)."""
+    d = _copy(base, tmp_path)
+    _replace_in(d / "session.toml", 'scene = "../scene.toml"', 'scene = "../scene\\u0000.toml"')
+    e = _error(d)
+    assert e.field == "session.scene" and "not found" in str(e)
+
+
 def test_missing_spectrum_file(base, tmp_path):
     d = _copy(base, tmp_path)
     (d / "readings" / "red_0_2.csv").unlink()
