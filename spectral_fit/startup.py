@@ -12,7 +12,9 @@ lowers the whole program. This module keeps all three between processes:
 * :func:`prepare_cached`: :func:`~spectral_fit.renderer.prepare` of a config file, stored on disk
   (``$SPECTRAL_FIT_CACHE/prepared``, default ``~/.cache/spectral_fit/prepared``);
 * :func:`render_frame_cached`: :func:`~spectral_fit.renderer.render_frame` through a compiled
-  executable stored on disk (``.../programs``): a hit loads the executable without tracing.
+  executable stored on disk (``.../programs``): a hit loads the executable without tracing. A
+  gather-mode frame is kept as two executables (the interreflection's senders' half, then the
+  rest) that load, or compile, side by side on two threads.
 
 Every entry is keyed by a SHA-256 of everything it depends on: the text of the package's source
 files, the versions of jax, jaxlib, equinox, numpy and colour-science, the backend and device
@@ -38,6 +40,7 @@ import os
 import pickle
 import re
 import sys
+import threading
 import tomllib
 from collections.abc import Iterable
 from pathlib import Path
@@ -62,6 +65,8 @@ CACHE_STATS: dict[str, int] = {"prepared_hit": 0, "prepared_miss": 0, "program_h
 
 # entries kept per cache folder (oldest removed first)
 _MAX_ENTRIES = 8
+# CACHE_STATS' program counts are updated from the threads of _load_parts
+_STATS_LOCK = threading.Lock()
 
 
 def cache_root() -> Path | None:
@@ -485,33 +490,106 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     if prog is not None:
         CACHE_STATS["program_memory_hit"] += 1
     else:
-        from .renderer import render_frame
+        from .renderer import render_frame, render_senders
 
         statics = tuple(x for x, a in zip(leaves, is_arr, strict=True) if not a)
 
-        def program(arr: list[Any]) -> dict[str, Any]:
+        def unflatten(arr: list[Any]) -> Any:
             it_a, it_s = iter(arr), iter(statics)
             full = [next(it_a) if a else next(it_s) for a in is_arr]
-            p, mats, mod, v, vis = jax.tree_util.tree_unflatten(treedef, full)
-            frame = render_frame(p, mats, model=mod, view=v, visible=vis, spectral=spectral,
-                                 background=background, mirror=mirror)
+            return jax.tree_util.tree_unflatten(treedef, full)
+
+        def fields(frame: Any) -> dict[str, Any]:
             return {f.name: getattr(frame, f.name) for f in dataclasses.fields(frame)}
 
+        if not _split_program(prep):
+            def program(arr: list[Any]) -> dict[str, Any]:
+                p, mats, mod, v, vis = unflatten(arr)
+                return fields(render_frame(p, mats, model=mod, view=v, visible=vis,
+                                           spectral=spectral, background=background,
+                                           mirror=mirror))
+
+            parts = [(key, program, arrays)]
+        else:
+            n = len(arrays)
+
+            def senders_tree(arr: list[Any]) -> Any:
+                p, mats, mod, _, vis = unflatten(arr)
+                return render_senders(p, mats, model=mod, visible=vis, mirror=mirror)
+
+            def senders(arr: list[Any]) -> list[Any]:
+                return jax.tree_util.tree_leaves(senders_tree(arr))
+
+            @functools.cache
+            def senders_shape() -> tuple[list[Any], Any]:  # traced only to compile
+                return jax.tree_util.tree_flatten(jax.eval_shape(senders_tree, arrays))
+
+            def pixels(arr: list[Any]) -> dict[str, Any]:
+                p, mats, mod, v, vis = unflatten(arr[:n])
+                snd = jax.tree_util.tree_unflatten(senders_shape()[1], arr[n:])
+                return fields(render_frame(p, mats, model=mod, view=v, visible=vis,
+                                           spectral=spectral, background=background,
+                                           mirror=mirror, senders=snd))
+
+            parts = [(_part_key(key, "senders"), senders, arrays),
+                     (_part_key(key, "pixels"), pixels, lambda: arrays + senders_shape()[0])]
         hits = CACHE_STATS["program_hit"]
-        prog = _load_or_compile(key, program, arrays, compiler_options, cache_dir)
+        compiled = _load_parts(parts, compiler_options, cache_dir)
+        prog = _chain(compiled)
         if CACHE_STATS["program_hit"] > hits:
             # a program loaded from disk is run once under a guard: if it cannot run here
             # (a kernel missing from the stored executable), compile it again and replace it
             try:
                 out = jax.block_until_ready(prog(arrays))
             except Exception:
-                CACHE_STATS["program_hit"] -= 1
-                prog = _load_or_compile(key, program, arrays, compiler_options, cache_dir,
-                                        reload=False)
+                CACHE_STATS["program_hit"] = hits
+                prog = _chain(_load_parts(parts, compiler_options, cache_dir, reload=False))
         _PROGRAMS[key] = prog
     if out is None:
         out = prog(arrays)
     return Frame(**out)
+
+
+def _split_program(prep: Any) -> bool:
+    """Whether :func:`render_frame_cached` keeps ``prep``'s frame as two programs (the gather
+    interreflection's senders' half, then the rest), loaded side by side on two threads: a
+    stored executable loads in time proportional to its size and the two halves of the
+    benchmark frame are about equal. ``SPECTRAL_FIT_SPLIT_PROGRAMS=0`` keeps one program."""
+    if os.environ.get("SPECTRAL_FIT_SPLIT_PROGRAMS", "1") in ("0", ""):
+        return False
+    return prep.ir_mode == "gather" and prep.num_objects >= 2 and prep.ir_bounces >= 1
+
+
+def _part_key(key: str, part: str) -> str:
+    return hashlib.sha256(f"{key}/{part}".encode()).hexdigest()[:40]
+
+
+def _load_parts(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any] | None,
+                cache_dir: str | os.PathLike[str] | None, *, reload: bool = True) -> list[Any]:
+    """:func:`_load_or_compile` of each (key, fn, arrays) part; several parts on as many
+    threads (XLA loads and compiles without the GIL; tracing takes it in turn)."""
+    if len(parts) == 1:
+        key, fn, arrays = parts[0]
+        return [_load_or_compile(key, fn, arrays, compiler_options, cache_dir, reload=reload)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(len(parts)) as pool:
+        futures = [pool.submit(_load_or_compile, key, fn, arrays, compiler_options, cache_dir,
+                               reload=reload) for key, fn, arrays in parts]
+        return [f.result() for f in futures]
+
+
+def _chain(compiled: list[Any]) -> Any:
+    """One callable (arrays -> dict of Frame fields) of the compiled parts: the whole frame,
+    or the senders' half then the rest (which takes the arrays and the senders' leaves)."""
+    if len(compiled) == 1:
+        return compiled[0]
+    senders, pixels = compiled
+
+    def run(arrays: list[Any]) -> dict[str, Any]:
+        return pixels(arrays + list(senders(arrays)))
+
+    return run
 
 
 def _custom_call_targets(compiled: Any) -> list[str] | None:
@@ -565,10 +643,35 @@ def _strip_locations(lowered: Any) -> bool:
     return True
 
 
-def _load_or_compile(key: str, fn: Any, arrays: list[Any],
+_BYPASS = {"depth": 0, "saved": False}
+_BYPASS_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _without_persistent_cache() -> Any:
+    """JAX's persistent compilation cache off while any thread is inside (the setting is
+    process-global: compiles on several threads restore it once, when the last one ends)."""
+    import jax
+
+    with _BYPASS_LOCK:
+        if _BYPASS["depth"] == 0:
+            _BYPASS["saved"] = jax.config.jax_enable_compilation_cache
+            jax.config.update("jax_enable_compilation_cache", False)
+        _BYPASS["depth"] += 1
+    try:
+        yield
+    finally:
+        with _BYPASS_LOCK:
+            _BYPASS["depth"] -= 1
+            if _BYPASS["depth"] == 0:
+                jax.config.update("jax_enable_compilation_cache", _BYPASS["saved"])
+
+
+def _load_or_compile(key: str, fn: Any, arrays: Any,
                      compiler_options: dict[str, Any] | None,
                      cache_dir: str | os.PathLike[str] | None, *, reload: bool = True) -> Any:
-    """The compiled ``jax.jit(fn)`` for ``arrays`` (a list of arrays), loaded from
+    """The compiled ``jax.jit(fn)`` for ``arrays`` (a list of arrays or shape structs, or a
+    function returning one, called only to compile), loaded from
     ``<root>/programs/<key>.pkl`` when there (and ``reload``), else compiled and stored.
     ``key`` must determine the program (see :func:`_program_key`). A compile uses
     :func:`~spectral_fit.dispatch.cpu_compiler_options` with ``compiler_options`` on top.
@@ -590,23 +693,21 @@ def _load_or_compile(key: str, fn: Any, arrays: list[Any],
             try:
                 compiled = deserialize_and_load(entry["payload"], entry["in_tree"],
                                                 entry["out_tree"])
-                CACHE_STATS["program_hit"] += 1
+                with _STATS_LOCK:
+                    CACHE_STATS["program_hit"] += 1
                 return compiled
             except Exception:  # e.g. written by another jaxlib build: recompile
                 pass
-    CACHE_STATS["program_miss"] += 1
+    with _STATS_LOCK:
+        CACHE_STATS["program_miss"] += 1
     from .dispatch import cpu_compiler_options
 
     compiler_options = {**cpu_compiler_options(), **(compiler_options or {})}
-    lowered = jax.jit(fn).lower(arrays)
+    lowered = jax.jit(fn).lower(arrays() if callable(arrays) else arrays)
     _strip_locations(lowered)
-    persistent = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
-    try:
+    with _without_persistent_cache():
         compiled = (lowered.compile(compiler_options=compiler_options) if compiler_options
                     else lowered.compile())
-    finally:
-        jax.config.update("jax_enable_compilation_cache", persistent)
     if folder is not None:
         try:
             targets = _custom_call_targets(compiled)

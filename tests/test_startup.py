@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
@@ -197,6 +198,21 @@ print(startup.CACHE_STATS)
 """
 
 
+def _two_fresh_runs(source: str, config: Path, tmp_path: Path) -> list[Any]:
+    """Run ``source`` (argv: config, output .npy) in two fresh processes one after the other,
+    sharing the caches in ``tmp_path/fresh``; both must succeed. Outputs: ``xyz{i}.npy``."""
+    script = tmp_path / "frame.py"
+    script.write_text(textwrap.dedent(source))
+    runs = [subprocess.run([sys.executable, str(script), str(config),
+                            str(tmp_path / f"xyz{i}.npy")],
+                           capture_output=True, text=True, env=_env(tmp_path / "fresh"),
+                           timeout=900)
+            for i in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    return runs
+
+
 def test_render_frame_cached_matches_render_frame(config, tmp_path):
     import jax.numpy as jnp
 
@@ -230,20 +246,46 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     # as `spectral-fit render` does: an executable compiled in a process that has compiled
     # many other programs before, like this test session, can reference kernels of those
     # programs and then fails to load elsewhere; render_frame_cached recompiles it then.)
-    script = tmp_path / "frame.py"
-    script.write_text(textwrap.dedent(_FRAME))
-    fresh = tmp_path / "fresh"
-    runs = [subprocess.run([sys.executable, str(script), str(config),
-                            str(tmp_path / f"xyz{i}.npy")],
-                           capture_output=True, text=True, env=_env(fresh), timeout=600)
-            for i in range(2)]
-    for r in runs:
-        assert r.returncode == 0, r.stderr[-2000:]
+    runs = _two_fresh_runs(_FRAME, config, tmp_path)
     assert "'prepared_miss': 1" in runs[0].stdout and "'program_miss': 1" in runs[0].stdout
     assert "'prepared_hit': 1" in runs[1].stdout and "'program_hit': 1" in runs[1].stdout
     assert "'program_miss': 0" in runs[1].stdout
     for i in range(2):
         assert np.array_equal(np.load(tmp_path / f"xyz{i}.npy"), np.asarray(ref.xyz))
+
+
+_GATHER = """
+import sys
+import numpy as np
+from spectral_fit import startup
+prep = startup.prepare_cached(sys.argv[1], mode="gather")
+f = startup.render_frame_cached(prep)
+np.save(sys.argv[2], np.asarray(f.xyz))
+print(startup.CACHE_STATS, prep.ir_mode)
+"""
+
+
+def test_gather_frame_is_kept_as_two_programs(config, tmp_path):
+    """A gather frame is stored as the senders' half and the rest (two entries, loaded side
+    by side in a new process); the frame is the one-program frame to float rounding, and
+    the loaded programs give the compiling process's frame bit for bit."""
+    from spectral_fit.renderer import prepare, render_frame
+
+    runs = _two_fresh_runs(_GATHER, config, tmp_path)
+    fresh = tmp_path / "fresh"
+    assert "gather" in runs[0].stdout
+    assert "'program_miss': 2" in runs[0].stdout and "'program_hit': 0" in runs[0].stdout
+    assert "'program_hit': 2" in runs[1].stdout and "'program_miss': 0" in runs[1].stdout
+    assert len(list((fresh / "programs").glob("*.pkl"))) == 2
+    a, b = np.load(tmp_path / "xyz0.npy"), np.load(tmp_path / "xyz1.npy")
+    assert np.array_equal(a, b)
+    prep = prepare(config, mode="gather")
+    ref = np.asarray(render_frame(prep).xyz)
+    assert np.abs(a - ref).max() <= 1e-5 * np.abs(ref).max()
+    # the interreflection (the senders' half) matters in this frame: the test can tell
+    none = prepare(config, mode="none")
+    assert np.abs(np.asarray(render_frame(none).xyz) - ref).max() > 1e-3 * np.abs(ref).max()
+    assert startup._split_program(prep) and not startup._split_program(none)
 
 
 def test_single_threaded_blas_sets_and_restores_openblas_threads():
