@@ -47,6 +47,17 @@ _R_SCAN = 19.0
 _NEWTON_STEPS = 30
 
 
+def _radial(r2: Any, k1: Any, k2: Any, k3: Any, k4: Any, k5: Any, k6: Any
+            ) -> tuple[Any, Any]:
+    """The radial factor f(r²) of the model (module docstring) and its derivative df/d(r²),
+    elementwise (any array type; an unused derivative costs nothing under ``jit``)."""
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+    return num / den, (dnum * den - num * dden) / (den * den)
+
+
 def is_identity(coefficients: Any) -> bool:
     """Whether ``coefficients`` (None or a sequence) describe no distortion at all."""
     return coefficients is None or not any(float(c) != 0.0 for c in coefficients)
@@ -79,13 +90,10 @@ def lens_parameters(coefficients: Any, *, field: str = "camera.distortion",
     k1, k2, _, _, k3, k4, k5, k6 = full
     r = np.linspace(0.0, _R_SCAN, 190_001)
     r2 = r * r
-    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        f = num / den
-        slope = f + 2.0 * r2 * (dnum * den - num * dden) / (den * den)  # d(r f)/dr
+        f, df = _radial(r2, k1, k2, k3, k4, k5, k6)
+        slope = f + 2.0 * r2 * df  # d(r f)/dr
     bad = ~((slope > 0.0) & (f > 0.0) & (den > 0.0))
     r_max = _R_SCAN if not bad.any() else float(r[max(int(np.argmax(bad)) - 1, 0)])
     if r_max < 0.1:
@@ -114,8 +122,7 @@ def distort_normalized(x: Any, y: Any, lens: Any, xp: Any = None) -> tuple[Any, 
     s = xp.where(far, xp.sqrt(rmax2 / xp.where(far, r2, 1.0)), 1.0)  # back onto r_max
     xc, yc = x * s, y * s
     r2c = xp.where(far, rmax2, r2)
-    f = ((1.0 + r2c * (k1 + r2c * (k2 + r2c * k3)))
-         / (1.0 + r2c * (k4 + r2c * (k5 + r2c * k6))))
+    f, _ = _radial(r2c, k1, k2, k3, k4, k5, k6)
     xd = xc * f + 2.0 * p1 * xc * yc + p2 * (r2c + 2.0 * xc * xc)
     yd = yc * f + p1 * (r2c + 2.0 * yc * yc) + 2.0 * p2 * xc * yc
     return xd / s, yd / s
@@ -160,11 +167,7 @@ def undistort_normalized(xd: np.ndarray, yd: np.ndarray, lens: np.ndarray,
     x, y = xd.copy(), yd.copy()
     for _ in range(steps):
         r2 = np.minimum(x * x + y * y, rmax2)
-        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        f = num / den
-        df = ((k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)) * den
-              - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) / (den * den)  # df/d(r²)
+        f, df = _radial(r2, k1, k2, k3, k4, k5, k6)
         ex = x * f + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
         ey = y * f + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
         a = f + 2.0 * x * x * df + 2.0 * p1 * y + 6.0 * p2 * x
@@ -211,7 +214,7 @@ def pixel_rays(k: Any, lens: np.ndarray, shape: tuple[int, int], *,
 
 
 def edge_error_px(points: np.ndarray, edges: np.ndarray, lens: np.ndarray,
-                  k: np.ndarray) -> np.ndarray:
+                  k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How far (pixels) the straight-edged raster of distorted vertices puts the midpoint of
     each edge from where the lens images it: per edge (a, b) of ``points`` (V, 3, OpenGL eye
     coordinates), the distance between the projection of the midpoint of the distorted
@@ -224,18 +227,19 @@ def edge_error_px(points: np.ndarray, edges: np.ndarray, lens: np.ndarray,
         points: (V, 3) eye coordinates; edges: (E, 2) vertex indices; lens: (9,); k: (3, 3)
             intrinsics.
     Returns:
-        (E,) float64 pixels.
+        (E,) float64 pixels, and (E, 2) the pixel coordinates (OpenCV convention) where the
+        lens images each true midpoint.
     """
     p = np.asarray(points, np.float64)
     e = np.asarray(edges)
-    a, b = p[e[:, 0]], p[e[:, 1]]
-    front = (a[:, 2] < -1e-6) & (b[:, 2] < -1e-6)
+    front = (p[e[:, 0], 2] < -1e-6) & (p[e[:, 1], 2] < -1e-6)
 
     def pix(q: np.ndarray) -> np.ndarray:
         z = np.where(q[:, 2] < -1e-9, -q[:, 2], 1.0)
         x, y = q[:, 0] / z, -q[:, 1] / z
         return np.stack([k[0, 0] * x + k[0, 1] * y + k[0, 2], k[1, 1] * y + k[1, 2]], -1)
 
-    lin = pix(0.5 * (distort_eye(a, lens, np) + distort_eye(b, lens, np)))
-    true = pix(distort_eye(0.5 * (a + b), lens, np))
-    return np.where(front, np.linalg.norm(lin - true, axis=-1), 0.0)
+    moved = distort_eye(p, lens, np)  # each vertex once
+    lin = pix(0.5 * (moved[e[:, 0]] + moved[e[:, 1]]))
+    true = pix(distort_eye(0.5 * (p[e[:, 0]] + p[e[:, 1]]), lens, np))
+    return np.where(front, np.linalg.norm(lin - true, axis=-1), 0.0), true

@@ -308,48 +308,45 @@ def _projection(scene: Any, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _lens(scene: Any, proj: np.ndarray, shape: tuple[int, int]
-          ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The camera's lens vector (9,) and pixel rays (H·W, 3) (:mod:`spectral_fit.lens`) for
-    the projection ``proj`` at ``shape``, or (None, None) for a pinhole. The distortion
-    coefficients act on normalised coordinates, so they hold at any frame size."""
+          ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """The camera's lens vector (9,), pixel rays (H·W, 3) (:mod:`spectral_fit.lens`) and
+    OpenCV intrinsics (3, 3) for the projection ``proj`` at ``shape``, or three None for a
+    pinhole. The distortion coefficients act on normalised coordinates, so they hold at any
+    frame size."""
     from .camera import projection_to_intrinsics
     from .lens import is_identity, lens_parameters, pixel_rays
 
     dist = scene.camera.distortion
     if is_identity(dist):
-        return None, None
+        return None, None, None
     path = getattr(scene, "path", None)
     lens = lens_parameters(dist, path=path)
     k = np.asarray(projection_to_intrinsics(proj, shape[1], shape[0]), np.float64)
-    return lens, pixel_rays(k, lens, shape, path=path)
+    return lens, pixel_rays(k, lens, shape, path=path), k
 
 
 #: largest midpoint error (pixels) of a triangle edge under the lens before prepare warns
 LENS_EDGE_TOLERANCE_PX = 0.25
 
 
-def _check_lens_tessellation(scene: Any, proj: np.ndarray, shape: tuple[int, int],
+def _check_lens_tessellation(scene: Any, k: np.ndarray, shape: tuple[int, int],
                              lens: np.ndarray, world: np.ndarray, view: np.ndarray,
                              triangles: np.ndarray, tsl: Sequence[tuple[int, int]]) -> None:
     """Warn when an object's triangles are too large for the vertex-distortion raster: an edge
     (of the configured pose, its midpoint in the frame) whose straight raster misses the
     lens's image of its midpoint by more than ``LENS_EDGE_TOLERANCE_PX``
-    (:func:`~spectral_fit.lens.edge_error_px`)."""
-    from .camera import projection_to_intrinsics
+    (:func:`~spectral_fit.lens.edge_error_px`; ``k``: the intrinsics at ``shape``)."""
     from .lens import edge_error_px
 
     h, w = shape
-    k = np.asarray(projection_to_intrinsics(proj, w, h), np.float64)
     eye = world @ view[:3, :3].T.astype(np.float64) + view[:3, 3]
     for (ta, tb), obj in zip(tsl, scene.objects, strict=True):
         t = triangles[ta:tb]
         edges = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-        err = edge_error_px(eye, edges, lens, k)
-        mid = 0.5 * (eye[edges[:, 0]] + eye[edges[:, 1]])
-        z = np.where(mid[:, 2] < -1e-9, -mid[:, 2], np.inf)
-        u = k[0, 0] * mid[:, 0] / z + k[0, 2]
-        v = -k[1, 1] * mid[:, 1] / z + k[1, 2]
-        seen = (u > -0.1 * w) & (u < 1.1 * w) & (v > -0.1 * h) & (v < 1.1 * h)
+        err, mid_px = edge_error_px(eye, edges, lens, k)
+        u, v = mid_px[:, 0], mid_px[:, 1]
+        front = 0.5 * (eye[edges[:, 0], 2] + eye[edges[:, 1], 2]) < -1e-9
+        seen = front & (u > -0.1 * w) & (u < 1.1 * w) & (v > -0.1 * h) & (v < 1.1 * h)
         worst = float(err[seen].max()) if seen.any() else 0.0
         if worst > LENS_EDGE_TOLERANCE_PX:
             warnings.warn(
@@ -668,10 +665,10 @@ def prepare(
     # capacities from the configured poses (NumPy: no compilation)
     world = np.einsum("vij,vj->vi", model[vobj_a][:, :3, :3].astype(np.float64),
                       vertices) + model[vobj_a][:, :3, 3]
-    lens, rays = _lens(scene, proj, shape)
+    lens, rays, k_lens = _lens(scene, proj, shape)
     clip = _camera_clip(proj.astype(np.float64), view.astype(np.float64), lens, world, np)
     if lens is not None:
-        _check_lens_tessellation(scene, proj, shape, lens, world, view, triangles, tsl)
+        _check_lens_tessellation(scene, k_lens, shape, lens, world, view, triangles, tsl)
     cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom, cull=cull)
     if pixel_capacity is None:
         caps = []
@@ -997,7 +994,6 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     frame)."""
     from .environment import _bilinear_taps, _materialise, _taps_sum, fast_direction_to_uv
 
-    h, w = prep.shape
     env = prep.env
     hm, wm = env.texels.shape[:2]
     if prep.pixel_rays is not None:  # through the lens: the pixel centres' own rays
@@ -1006,10 +1002,17 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
         r = [prep.pixel_rays[:, i] for i in range(3)]
         dmap = jnp.stack([r[0] * m[0, j] + r[1] * m[1, j] + r[2] * m[2, j] for j in range(3)],
                          axis=-1)
-        uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
-        idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm),
-                                 jnp.int32(wm))
-        return _taps_sum(flat, idx, wt)
+    else:
+        dmap = _pinhole_rays(prep, view, env.rotation)
+    uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
+    idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm), jnp.int32(wm))
+    return _taps_sum(flat, idx, wt)
+
+
+def _pinhole_rays(prep: Prepared, view: jax.Array, rot: jax.Array) -> jax.Array:
+    """(H·W, 3) map-frame unit rays of the pixel centres of ``prep``'s pinhole camera (see
+    :func:`_background`); ``rot``: the map's rotation."""
+    h, w = prep.shape
     inv = inverse_4x4(prep.projection @ view)
     eye = eye_position(view)
     # a far-plane point of NDC (x, y, 1, 1) minus the eye, as a function of pixel (col, row):
@@ -1023,14 +1026,10 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     ys = 1.0 - 2.0 * (jnp.arange(h, dtype=jnp.float32) + 0.5) / h
     x, y = xs[None, :], ys[:, None]
     den = x * wx + y * wy + w1  # (H, W)
-    rot = env.rotation
     d = [(x * cols[0][i] + y * cols[1][i] + cols[2][i]) / den - eye[i] for i in range(3)]
     dm = [d[0] * rot[0, j] + d[1] * rot[1, j] + d[2] * rot[2, j] for j in range(3)]
     inv_len = jax.lax.rsqrt(dm[0] * dm[0] + dm[1] * dm[1] + dm[2] * dm[2])
-    dmap = jnp.stack([c * inv_len for c in dm], axis=-1).reshape(-1, 3)
-    uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
-    idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm), jnp.int32(wm))
-    return _taps_sum(flat, idx, wt)
+    return jnp.stack([c * inv_len for c in dm], axis=-1).reshape(-1, 3)
 
 
 def _env_lookup(env: Any, flat: jax.Array, dirs: jax.Array) -> jax.Array:

@@ -267,8 +267,10 @@ def test_edge_error_closed_form_and_coarse_mesh_warning():
     pts = np.array([[a, 0.0, -1.0], [b, 0.0, -1.0]])
     d = lambda x: x * (1.0 + k1 * x * x)  # noqa: E731
     want = 100.0 * abs(0.5 * (d(a) + d(b)) - d(0.5 * (a + b)))
-    assert edge_error_px(pts, np.array([[0, 1]]), lens, kk)[0] == pytest.approx(want,
-                                                                                 rel=1e-9)
+    err, mid = edge_error_px(pts, np.array([[0, 1]]), lens, kk)
+    assert err[0] == pytest.approx(want, rel=1e-9)
+    # and the lens's image of the true midpoint, in pixels
+    np.testing.assert_allclose(mid[0], [50.0 + 100.0 * d(0.5 * (a + b)), 50.0], rtol=1e-12)
     import warnings
 
     with pytest.warns(RuntimeWarning, match="triangles are large for this lens"):
