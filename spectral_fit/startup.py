@@ -14,7 +14,9 @@ lowers the whole program. This module keeps all three between processes:
 * :func:`render_frame_cached`: :func:`~spectral_fit.renderer.render_frame` through a compiled
   executable stored on disk (``.../programs``): a hit loads the executable without tracing. A
   gather-mode frame is kept as two executables (the interreflection's senders' half, then the
-  rest) that load, or compile, side by side on two threads.
+  rest) that load, or compile, side by side on two threads. A missing program is compiled and
+  stored by a fresh child process (JAX's persistent cache off there), so that what is stored
+  does not depend on what the calling process compiled or loaded before (see ``_program``).
 
 Every entry is keyed by a SHA-256 of everything it depends on: the text of the package's source
 files, the versions of jax, jaxlib, equinox, numpy and colour-science, the backend and device
@@ -533,21 +535,66 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
 
             parts = [(_part_key(key, "senders"), senders, arrays),
                      (_part_key(key, "pixels"), pixels, lambda: arrays + senders_shape()[0])]
-        hits = CACHE_STATS["program_hit"]
-        compiled = _load_parts(parts, compiler_options, cache_dir)
-        prog = _chain(compiled)
-        if CACHE_STATS["program_hit"] > hits:
-            # a program loaded from disk is run once under a guard: if it cannot run here
-            # (a kernel missing from the stored executable), compile it again and replace it
-            try:
-                out = jax.block_until_ready(prog(arrays))
-            except Exception:
-                CACHE_STATS["program_hit"] = hits
-                prog = _chain(_load_parts(parts, compiler_options, cache_dir, reload=False))
+        prog, out = _program(parts, compiler_options, cache_dir, arrays, {
+            "args": args, "spectral": spectral, "background": background, "mirror": mirror,
+            "compiler_options": compiler_options})
         _PROGRAMS[key] = prog
+        if _IN_CHILD:  # compiled and stored: nothing to run
+            return None
     if out is None:
         out = prog(arrays)
     return Frame(**out)
+
+
+def _program(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any] | None,
+             cache_dir: str | os.PathLike[str] | None, arrays: list[Any], job: dict[str, Any]
+             ) -> tuple[Any, Any]:
+    """The frame program of ``parts`` and, when it was run here, its first output.
+
+    Parts stored on disk are loaded. Missing parts are compiled and stored by a fresh child
+    process (:func:`_compile_in_child`), then loaded: what is stored must not depend on what
+    the compiling process compiled or loaded before. XLA:CPU lets a program compiled after
+    others (compiled in the same process, or loaded from JAX's persistent cache) use kernels
+    of those, and the stored executable then lacks them ("Function bitcast_copy_fusion.6 not
+    found" when another process runs it; it ran in the compiling process, and loaded back
+    there, too). A program loaded from disk is run once under a guard; one that cannot run
+    is removed from disk. Whatever is still missing then (no cache folder, a child that
+    failed, a removed entry) is compiled here and kept in memory only."""
+    import jax
+
+    folder = _programs_folder(cache_dir)
+    if _IN_CHILD:  # the child loads nothing: what it compiles must not follow other programs
+        return _chain(_compile_parts(parts, compiler_options, folder)), None
+    compiled = _load_parts(parts, folder)
+    n_hit = sum(c is not None for c in compiled)
+    with _STATS_LOCK:
+        CACHE_STATS["program_miss"] += len(parts) - n_hit
+        CACHE_STATS["program_hit"] += n_hit
+    if n_hit < len(parts) and folder is not None and _compile_in_child(job, folder):
+        compiled = [c if c is not None else _load_entry(folder, key)
+                    for c, (key, _, _) in zip(compiled, parts, strict=True)]
+    from_disk = [c is not None for c in compiled]
+    here = _compile_parts([p for p, d in zip(parts, from_disk, strict=True) if not d],
+                          compiler_options, None)
+    compiled = [c if d else here.pop(0) for c, d in zip(compiled, from_disk, strict=True)]
+    if not any(from_disk):
+        return _chain(compiled), None
+    # a program loaded from disk may still fail to run here (a kernel missing from the stored
+    # executable): then its entries are removed and it is compiled here
+    try:
+        return _chain(compiled), jax.block_until_ready(_chain(compiled)(arrays))
+    except Exception:
+        for (key, _, _), d in zip(parts, from_disk, strict=True):
+            if d:
+                with contextlib.suppress(OSError):
+                    (folder / f"{key}.pkl").unlink()  # type: ignore[operator]
+        with _STATS_LOCK:  # counted as hits above, compiled after all
+            CACHE_STATS["program_hit"] -= n_hit
+            CACHE_STATS["program_miss"] += n_hit
+        again = _compile_parts([p for p, d in zip(parts, from_disk, strict=True) if d],
+                               compiler_options, None)
+        compiled = [again.pop(0) if d else c for c, d in zip(compiled, from_disk, strict=True)]
+        return _chain(compiled), None
 
 
 def _split_program(prep: Any) -> bool:
@@ -564,19 +611,33 @@ def _part_key(key: str, part: str) -> str:
     return hashlib.sha256(f"{key}/{part}".encode()).hexdigest()[:40]
 
 
-def _load_parts(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any] | None,
-                cache_dir: str | os.PathLike[str] | None, *, reload: bool = True) -> list[Any]:
-    """:func:`_load_or_compile` of each (key, fn, arrays) part; several parts on as many
-    threads (XLA loads and compiles without the GIL; tracing takes it in turn)."""
-    if len(parts) == 1:
-        key, fn, arrays = parts[0]
-        return [_load_or_compile(key, fn, arrays, compiler_options, cache_dir, reload=reload)]
+def _programs_folder(cache_dir: str | os.PathLike[str] | None) -> Path | None:
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
+    return None if root is None else root / "programs"
+
+
+def _on_threads(fn: Any, items: list[Any]) -> list[Any]:
+    """``[fn(x) for x in items]``, several items on as many threads (XLA loads and compiles
+    without holding the GIL; tracing takes it in turn)."""
+    if len(items) <= 1:
+        return [fn(x) for x in items]
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(len(parts)) as pool:
-        futures = [pool.submit(_load_or_compile, key, fn, arrays, compiler_options, cache_dir,
-                               reload=reload) for key, fn, arrays in parts]
-        return [f.result() for f in futures]
+    with ThreadPoolExecutor(len(items)) as pool:
+        return list(pool.map(fn, items))
+
+
+def _load_parts(parts: list[tuple[str, Any, Any]], folder: Path | None) -> list[Any]:
+    """The stored executable of each (key, fn, arrays) part, None where there is none."""
+    if folder is None:
+        return [None] * len(parts)
+    return _on_threads(lambda part: _load_entry(folder, part[0]), parts)
+
+
+def _compile_parts(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any] | None,
+                   folder: Path | None) -> list[Any]:
+    """:func:`_compile` of each part, side by side (stored in ``folder`` unless None)."""
+    return _on_threads(lambda part: _compile(*part, compiler_options, folder), parts)
 
 
 def _chain(compiled: list[Any]) -> Any:
@@ -667,39 +728,30 @@ def _without_persistent_cache() -> Any:
                 jax.config.update("jax_enable_compilation_cache", _BYPASS["saved"])
 
 
-def _load_or_compile(key: str, fn: Any, arrays: Any,
-                     compiler_options: dict[str, Any] | None,
-                     cache_dir: str | os.PathLike[str] | None, *, reload: bool = True) -> Any:
+def _load_entry(folder: Path, key: str) -> Any:
+    """The executable stored under ``key`` in ``folder``, loaded; None if there is none, or if
+    it cannot be loaded here (another jaxlib build, a kernel this module cannot prepare)."""
+    from jax.experimental.serialize_executable import deserialize_and_load
+
+    entry = _read_entry(folder, key)
+    if entry is None or not _prepare_custom_calls(entry.get("custom_calls")):
+        return None
+    try:
+        return deserialize_and_load(entry["payload"], entry["in_tree"], entry["out_tree"])
+    except Exception:  # e.g. written by another jaxlib build: compiled again
+        return None
+
+
+def _compile(key: str, fn: Any, arrays: Any, compiler_options: dict[str, Any] | None,
+             folder: Path | None) -> Any:
     """The compiled ``jax.jit(fn)`` for ``arrays`` (a list of arrays or shape structs, or a
-    function returning one, called only to compile), loaded from
-    ``<root>/programs/<key>.pkl`` when there (and ``reload``), else compiled and stored.
-    ``key`` must determine the program (see :func:`_program_key`). A compile uses
-    :func:`~spectral_fit.dispatch.cpu_compiler_options` with ``compiler_options`` on top.
-
-    The compilation bypasses JAX's persistent compilation cache, so what is stored is a fresh
-    compile. A stored program can still fail in another process ("Function ... not found"):
-    seen when it was compiled in a process that had compiled many other programs before (a
-    test session); :func:`render_frame_cached` runs a loaded program once under a guard and
-    compiles it again then."""
+    function returning one, called only to compile), stored in ``folder`` under ``key`` (which
+    must determine the program, see :func:`_program_key`) unless ``folder`` is None. Compiled
+    with :func:`~spectral_fit.dispatch.cpu_compiler_options` and ``compiler_options`` on top,
+    bypassing JAX's persistent compilation cache (what is stored is a fresh compile)."""
     import jax
-    from jax.experimental.serialize_executable import deserialize_and_load, serialize
+    from jax.experimental.serialize_executable import serialize
 
-    root = Path(cache_dir) if cache_dir is not None else cache_root()
-    folder = None if root is None else root / "programs"
-    if folder is not None:
-        entry = _read_entry(folder, key)
-        if (reload and entry is not None
-                and _prepare_custom_calls(entry.get("custom_calls"))):
-            try:
-                compiled = deserialize_and_load(entry["payload"], entry["in_tree"],
-                                                entry["out_tree"])
-                with _STATS_LOCK:
-                    CACHE_STATS["program_hit"] += 1
-                return compiled
-            except Exception:  # e.g. written by another jaxlib build: recompile
-                pass
-    with _STATS_LOCK:
-        CACHE_STATS["program_miss"] += 1
     from .dispatch import cpu_compiler_options
 
     compiler_options = {**cpu_compiler_options(), **(compiler_options or {})}
@@ -718,3 +770,71 @@ def _load_or_compile(key: str, fn: Any, arrays: Any,
         except Exception:  # a backend without executable serialisation: memory only
             pass
     return compiled
+
+
+# --------------------------------------------------------------------------------------------
+# compiling in a fresh process
+
+# True in the child process of _compile_in_child (it compiles and stores, and runs nothing)
+_IN_CHILD = False
+
+
+def _compile_in_child(job: dict[str, Any], folder: Path) -> bool:
+    """Compile and store the frame program of ``job`` (render_frame_cached's checked
+    arguments) in a fresh Python process with JAX's persistent cache off, so that the stored
+    executables reference only their own kernels; True when it succeeded. The child imports
+    this same package (its source digest, hence the keys, are this process's)."""
+    import subprocess
+    import tempfile
+    import warnings
+
+    from .fileio import atomic_write_bytes
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix=".job-", suffix=".pkl", dir=folder)
+        os.close(fd)
+    except OSError:
+        return False
+    job_path = Path(name)
+    try:
+        atomic_write_bytes(job_path, pickle.dumps({**job, "folder": str(folder)},
+                                                  protocol=pickle.HIGHEST_PROTOCOL))
+        env = dict(os.environ)
+        env["SPECTRAL_FIT_JAX_CACHE"] = ""
+        env["JAX_ENABLE_COMPILATION_CACHE"] = "false"
+        env["PYTHONPATH"] = os.pathsep.join(
+            [str(PACKAGE_DIR.parent)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+        r = subprocess.run([sys.executable, "-c", "from spectral_fit.startup import _child_main;"
+                            " _child_main()", str(job_path)],
+                           env=env, capture_output=True, text=True)
+    except Exception as exc:  # pickling the arguments, starting Python, ...
+        warnings.warn(f"render_frame_cached: the program is compiled in this process ({exc})",
+                      RuntimeWarning, stacklevel=4)
+        return False
+    finally:
+        with contextlib.suppress(OSError):
+            job_path.unlink()
+    if r.returncode != 0:
+        tail = (r.stderr or "").strip().splitlines()[-1:] or ["no message"]
+        warnings.warn("render_frame_cached: compiling in a fresh process failed "
+                      f"(exit {r.returncode}: {tail[0][:300]}); compiled in this process",
+                      RuntimeWarning, stacklevel=4)
+        return False
+    return True
+
+
+def _child_main() -> None:
+    """Entry point of :func:`_compile_in_child`'s process: argv[1] is the job file."""
+    global _IN_CHILD
+    import jax
+
+    _IN_CHILD = True
+    jax.config.update("jax_enable_compilation_cache", False)
+    with open(sys.argv[1], "rb") as fh:
+        job = pickle.load(fh)
+    prep, mats, model, view, visible = job["args"]
+    render_frame_cached(prep, mats, model=model, view=view, visible=visible,
+                        spectral=job["spectral"], background=job["background"],
+                        mirror=job["mirror"], cache_dir=Path(job["folder"]).parent,
+                        compiler_options=job["compiler_options"])

@@ -139,9 +139,13 @@ def fn(arr):
     return {"inv": jnp.linalg.inv(m), "sum": jnp.sum(m)}
 
 m = jnp.asarray(np.array([[4.0, 1.0, 0.5], [0.0, 3.0, 1.0], [1.0, 0.0, 2.0]], np.float32))
-c = startup._load_or_compile("k", fn, [m], None, sys.argv[1])
+folder = startup._programs_folder(sys.argv[1])
+c = startup._load_entry(folder, "k")
+stats = {"program_hit": int(c is not None), "program_miss": int(c is None)}
+if c is None:
+    c = startup._compile("k", fn, [m], None, folder)
 out = c([m])
-print(json.dumps({"inv": np.asarray(out["inv"]).tolist(), "stats": startup.CACHE_STATS}))
+print(json.dumps({"inv": np.asarray(out["inv"]).tolist(), "stats": stats}))
 """
 
 
@@ -403,3 +407,77 @@ def test_retain_freed_memory_reuses_large_blocks():
     assert out["on"]["applied"] is True
     assert out["off"]["faults"] > 10_000  # 96 MB of fresh 4 kB pages per round (24,576)
     assert out["on"]["faults"] < 100, out
+
+
+_LOAD = """
+import sys
+import numpy as np
+from spectral_fit import startup
+startup.enable_compilation_cache()
+prep = startup.prepare_cached(sys.argv[1], mode=sys.argv[3])
+f = startup.render_frame_cached(prep)
+np.save(sys.argv[2], np.asarray(f.xyz))
+print(startup.CACHE_STATS)
+"""
+
+
+@pytest.mark.parametrize("mode", ["none", "gather"])
+def test_programs_stored_by_a_busy_process_load_elsewhere(config, tmp_path, mode):
+    """The programs a process stores run in a new process even when the storing process had
+    compiled and loaded many programs before (this test session; or a process whose JAX
+    persistent cache is warm): XLA:CPU then lets a new program use kernels of those, and the
+    stored executable lacked them ("Function ... not found"). They are compiled by a fresh
+    child process instead."""
+    from spectral_fit.renderer import render_frame
+
+    cache = tmp_path / "cache"
+    # a warm JAX persistent cache: small programs of an earlier process, loaded here
+    script = tmp_path / "load.py"
+    script.write_text(textwrap.dedent(_LOAD))
+    env = _env(cache)
+    env["SPECTRAL_FIT_JAX_CACHE"] = str(cache / "jax")
+    prep = startup.prepare_cached(config, cache_dir=cache, mode=mode)
+    ref = np.asarray(render_frame(prep).xyz)
+    misses = startup.CACHE_STATS["program_miss"]
+    got = startup.render_frame_cached(prep, cache_dir=cache)  # compiled by a child, stored
+    parts = 2 if mode == "gather" else 1
+    assert startup.CACHE_STATS["program_miss"] == misses + parts
+    assert len(list((cache / "programs").glob("*.pkl"))) == parts
+    assert not list((cache / "programs").glob(".job-*"))  # the child's input is removed
+    for i in range(2):
+        r = subprocess.run([sys.executable, str(script), str(config),
+                            str(tmp_path / f"xyz{i}.npy"), mode], capture_output=True,
+                           text=True, env=env, timeout=900)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert f"'program_hit': {parts}" in r.stdout and "'program_miss': 0" in r.stdout, (
+            r.stdout)
+        assert np.array_equal(np.load(tmp_path / f"xyz{i}.npy"), np.asarray(got.xyz))
+    tol = 0.0 if mode == "none" else 1e-5 * np.abs(ref).max()
+    assert np.abs(np.asarray(got.xyz) - ref).max() <= tol
+
+
+@pytest.mark.slow
+def test_cli_programs_stored_after_a_warm_jax_cache_are_reused(tmp_path):
+    """The reproducer of the stored-program failure (before the programs were compiled by a
+    child process): `spectral-fit render` of the benchmark scene, then of the same scene at
+    360 x 240 twice, sharing all caches. The 360 x 240 programs used to be compiled in a
+    process that had loaded programs from JAX's persistent cache; the next process could not
+    run them ("Function ... not found"), compiled them again and stored them again, on every
+    run. Now the third run loads them and leaves them as they are."""
+    env = _env(tmp_path / "cache")
+    env["SPECTRAL_FIT_JAX_CACHE"] = str(tmp_path / "cache" / "jax")
+    cfg = str(ROOT / "configs" / "benchmark.toml")
+
+    def render(*extra: str) -> None:
+        r = subprocess.run([sys.executable, "-m", "spectral_fit", "render", cfg, "-o",
+                            str(tmp_path / "f.png"), *extra], capture_output=True, text=True,
+                           env=env, timeout=1800)
+        assert r.returncode == 0, r.stderr[-2000:]
+
+    render()
+    render("--size", "360x240")
+    programs = tmp_path / "cache" / "programs"
+    before = {p.name: p.stat().st_mtime_ns for p in programs.glob("*.pkl")}
+    assert len(before) == 4  # two programs per size
+    render("--size", "360x240")
+    assert {p.name: p.stat().st_mtime_ns for p in programs.glob("*.pkl")} == before
