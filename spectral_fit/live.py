@@ -69,20 +69,21 @@ def scene_intrinsics(scene: Scene, size: tuple[int, int] | None = None
                      ) -> tuple[np.ndarray, np.ndarray | None]:
     """OpenCV K (3×3) and distortion of the scene camera for a frame of ``size`` = (H, W)
     (default the config's): ``[camera] intrinsics`` scaled to the size, or the pinhole of
-    ``fov_y_deg`` (square pixels, centred)."""
+    ``fov_y_deg`` (square pixels, centred); the distortion is ``[camera] distortion`` with
+    either (the renderer applies it to a ``fov_y_deg`` camera too), None without one."""
     from .camera import perspective, projection_to_intrinsics
 
     h, w = size or (scene.height, scene.width)
     cam = scene.camera
+    dist = None if cam.distortion is None else np.asarray(cam.distortion, np.float64)
     if cam.intrinsics is None:
         k = np.asarray(projection_to_intrinsics(perspective(cam.fov_y_deg, w / h), w, h),
                        np.float64)
-        return k, None
+        return k, dist
     i = cam.intrinsics
     sx, sy = w / scene.width, h / scene.height
     k = np.array([[i["fx"] * sx, 0.0, (i["cx"] + 0.5) * sx - 0.5],
                   [0.0, i["fy"] * sy, (i["cy"] + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
-    dist = None if cam.distortion is None else np.asarray(cam.distortion, np.float64)
     return k, dist
 
 

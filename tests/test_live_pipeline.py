@@ -255,6 +255,25 @@ def test_resized_video_scales_the_intrinsics():
     np.testing.assert_allclose(dist, DIST)
 
 
+
+def test_fov_camera_keeps_its_distortion():
+    """A ``fov_y_deg`` camera with ``[camera] distortion``: the live session undistorts (or
+    renders through) the lens the renderer applies, not a pinhole (it was dropped)."""
+    from spectral_fit.camera import perspective, projection_to_intrinsics
+    from spectral_fit.live import scene_intrinsics
+
+    d = scene_dict(intrinsics=False)
+    d["camera"].update(fov_y_deg=60.0, distortion=[float(x) for x in DIST])
+    k, dist = scene_intrinsics(parse_scene(d), (240, 360))
+    np.testing.assert_allclose(dist, DIST)
+    # the pinhole of the fov at this size: fy = (H / 2) / tan(30°), centred
+    np.testing.assert_allclose(k[1, 1], 120.0 / np.tan(np.radians(30.0)), rtol=1e-6)
+    np.testing.assert_allclose(k[:2, 2], [179.5, 119.5], atol=1e-6)
+    np.testing.assert_allclose(k, projection_to_intrinsics(perspective(60.0, 1.5), 360, 240),
+                               rtol=1e-6, atol=1e-6)
+    del d["camera"]["distortion"]
+    assert scene_intrinsics(parse_scene(d), (240, 360))[1] is None
+
 def test_lost_marker_object_leaves_no_interreflection():
     """A hidden object (its marker lost) neither lights nor shadows the others: the visible
     sphere renders as with interreflection off in "gather" mode (whose form factors turned the
