@@ -574,9 +574,7 @@ def _program(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any]
         compiled = [c if c is not None else _load_entry(folder, key)
                     for c, (key, _, _) in zip(compiled, parts, strict=True)]
     from_disk = [c is not None for c in compiled]
-    here = _compile_parts([p for p, d in zip(parts, from_disk, strict=True) if not d],
-                          compiler_options, None)
-    compiled = [c if d else here.pop(0) for c, d in zip(compiled, from_disk, strict=True)]
+    compiled = _compile_where(parts, compiled, [not d for d in from_disk], compiler_options)
     if not any(from_disk):
         return _chain(compiled), None
     # a program loaded from disk may still fail to run here (a kernel missing from the stored
@@ -591,10 +589,16 @@ def _program(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any]
         with _STATS_LOCK:  # counted as hits above, compiled after all
             CACHE_STATS["program_hit"] -= n_hit
             CACHE_STATS["program_miss"] += n_hit
-        again = _compile_parts([p for p, d in zip(parts, from_disk, strict=True) if d],
-                               compiler_options, None)
-        compiled = [again.pop(0) if d else c for c, d in zip(compiled, from_disk, strict=True)]
-        return _chain(compiled), None
+        return _chain(_compile_where(parts, compiled, from_disk, compiler_options)), None
+
+
+def _compile_where(parts: list[tuple[str, Any, Any]], compiled: list[Any], redo: list[bool],
+                   compiler_options: dict[str, Any] | None) -> list[Any]:
+    """``compiled`` with the parts marked in ``redo`` compiled here (side by side, in memory
+    only)."""
+    new = iter(_compile_parts([p for p, r in zip(parts, redo, strict=True) if r],
+                              compiler_options, None))
+    return [next(new) if r else c for c, r in zip(compiled, redo, strict=True)]
 
 
 def _split_program(prep: Any) -> bool:
@@ -792,7 +796,8 @@ def _compile_in_child(job: dict[str, Any], folder: Path) -> bool:
 
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=".job-", suffix=".pkl", dir=folder)
+        # not "*.pkl": the job file must not count among the entries that _write_entry keeps
+        fd, name = tempfile.mkstemp(prefix=".job-", suffix=".job", dir=folder)
         os.close(fd)
     except OSError:
         return False
