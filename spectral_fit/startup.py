@@ -297,6 +297,7 @@ def single_threaded_blas() -> Any:
 
 
 # glibc's mallopt parameters (malloc.h)
+_M_MXFAST = 1
 _M_TRIM_THRESHOLD = -1
 _M_TOP_PAD = -2
 _M_MMAP_MAX = -4
@@ -318,22 +319,91 @@ def retain_freed_memory() -> bool:
 
     Applications opt in (the ``spectral-fit`` command does, for every subcommand); the library
     never changes it by itself."""
-    import ctypes
-    import platform
-
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    mallopt = _mallopt()
+    if mallopt is None:
         return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    mallopt.restype = ctypes.c_int
     ok = [mallopt(_M_MMAP_MAX, 0), mallopt(_M_TRIM_THRESHOLD, 2**31 - 1),
           # a thread arena's extra heap is unmapped whenever it empties unless the top pad
           # covers a whole heap (64 MB): XLA's threads free a frame's temporaries there
           mallopt(_M_TOP_PAD, 64 << 20)]
     return all(ok)
+
+
+def _mallopt() -> Any:
+    """glibc's ``mallopt`` (int, int) -> int, or None (not Linux with glibc)."""
+    import ctypes
+    import platform
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        fn = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = (ctypes.c_int, ctypes.c_int)
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def _default_mxfast() -> int:
+    """glibc's fastbin limit in bytes as this process started: ``glibc.malloc.mxfast`` of
+    ``GLIBC_TUNABLES`` where set, else glibc's default (64 · sizeof(size_t) / 4)."""
+    import ctypes
+
+    m = re.search(r"glibc\.malloc\.mxfast=(\d+)", os.environ.get("GLIBC_TUNABLES", ""))
+    return int(m.group(1)) if m else 16 * ctypes.sizeof(ctypes.c_size_t)
+
+
+class _WhileInside:
+    """A process-global setting changed while any thread is inside ``with`` it, and restored
+    once, when the last one leaves: ``enter()`` returns what ``leave(saved)`` restores."""
+
+    def __init__(self, enter: Any, leave: Any) -> None:
+        self._enter, self._leave = enter, leave
+        self._lock = threading.Lock()
+        self._depth = 0
+        self._saved: Any = None
+
+    def __enter__(self) -> None:
+        with self._lock:
+            if self._depth == 0:
+                self._saved = self._enter()
+            self._depth += 1
+
+    def __exit__(self, *exc: Any) -> None:
+        with self._lock:
+            self._depth -= 1
+            if self._depth == 0:
+                self._leave(self._saved)
+
+
+def _fastbins_off() -> None:
+    mallopt = _mallopt()
+    if mallopt is not None:
+        mallopt(_M_MXFAST, 0)
+
+
+def _fastbins_back(_: Any) -> None:
+    mallopt = _mallopt()
+    if mallopt is not None:
+        mallopt(_M_MXFAST, _default_mxfast())
+
+
+_FASTBINS = _WhileInside(_fastbins_off, _fastbins_back)
+
+
+def _without_fastbins() -> _WhileInside:
+    """glibc's malloc fastbins off while any thread is inside (process-global; restored when
+    the last one leaves; glibc only, elsewhere nothing changes).
+
+    Loading a stored executable is XLA rebuilding the program's HLO module, buffer assignment
+    and kernel thunks from their protos: millions of small blocks allocated and freed, a
+    quarter of the load's CPU under malloc. Without fastbins (``M_MXFAST`` = 0) small frees
+    are merged at once, and the benchmark frame's two programs loaded and ran 0.05–0.07 s
+    sooner (first frame after import 0.64 → 0.58 s in fresh processes, docs/rendering.md
+    "Cold start"). Frames themselves allocate
+    many small blocks, so the default comes back afterwards."""
+    return _FASTBINS
 
 
 def split_cpu_devices(n: int) -> int:
@@ -560,11 +630,20 @@ def _program(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any]
     there, too). A program loaded from disk is run once under a guard; one that cannot run
     is removed from disk. Whatever is still missing then (no cache folder, a child that
     failed, a removed entry) is compiled here and kept in memory only."""
-    import jax
 
     folder = _programs_folder(cache_dir)
     if _IN_CHILD:  # the child loads nothing: what it compiles must not follow other programs
         return _chain(_compile_parts(parts, compiler_options, folder)), None
+    with _without_fastbins():  # loading and the first run: small blocks by the million
+        return _load_or_compile(parts, compiler_options, folder, arrays, job)
+
+
+def _load_or_compile(parts: list[tuple[str, Any, Any]],
+                     compiler_options: dict[str, Any] | None, folder: Path | None,
+                     arrays: list[Any], job: dict[str, Any]) -> tuple[Any, Any]:
+    """:func:`_program` outside the child process."""
+    import jax
+
     compiled = _load_parts(parts, folder)
     n_hit = sum(c is not None for c in compiled)
     with _STATS_LOCK:
@@ -708,28 +787,27 @@ def _strip_locations(lowered: Any) -> bool:
     return True
 
 
-_BYPASS = {"depth": 0, "saved": False}
-_BYPASS_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def _without_persistent_cache() -> Any:
-    """JAX's persistent compilation cache off while any thread is inside (the setting is
-    process-global: compiles on several threads restore it once, when the last one ends)."""
+def _cache_off() -> bool:
     import jax
 
-    with _BYPASS_LOCK:
-        if _BYPASS["depth"] == 0:
-            _BYPASS["saved"] = jax.config.jax_enable_compilation_cache
-            jax.config.update("jax_enable_compilation_cache", False)
-        _BYPASS["depth"] += 1
-    try:
-        yield
-    finally:
-        with _BYPASS_LOCK:
-            _BYPASS["depth"] -= 1
-            if _BYPASS["depth"] == 0:
-                jax.config.update("jax_enable_compilation_cache", _BYPASS["saved"])
+    saved = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    return saved
+
+
+def _cache_back(saved: bool) -> None:
+    import jax
+
+    jax.config.update("jax_enable_compilation_cache", saved)
+
+
+_BYPASS = _WhileInside(_cache_off, _cache_back)
+
+
+def _without_persistent_cache() -> _WhileInside:
+    """JAX's persistent compilation cache off while any thread is inside (the setting is
+    process-global: compiles on several threads restore it once, when the last one ends)."""
+    return _BYPASS
 
 
 def _load_entry(folder: Path, key: str) -> Any:

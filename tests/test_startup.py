@@ -481,3 +481,69 @@ def test_cli_programs_stored_after_a_warm_jax_cache_are_reused(tmp_path):
     assert len(before) == 4  # two programs per size
     render("--size", "360x240")
     assert {p.name: p.stat().st_mtime_ns for p in programs.glob("*.pkl")} == before
+
+
+_FASTBINS = r"""
+import ctypes, json
+from spectral_fit import startup
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(k, ctypes.c_size_t) for k in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
+                                               "usmblks", "fsmblks", "uordblks", "fordblks",
+                                               "keepcost")]
+
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = MallInfo2
+libc.malloc.restype = ctypes.c_void_p
+libc.malloc.argtypes = (ctypes.c_size_t,)
+libc.free.argtypes = (ctypes.c_void_p,)
+
+def freed_small_blocks():
+    # 2,000 blocks of 48 bytes, every other one freed (the kept ones stop them merging):
+    # glibc keeps the freed ones in its fastbins unless they are off (tcache takes 7)
+    ptrs = [libc.malloc(48) for _ in range(2000)]
+    for p in ptrs[::2]:
+        libc.free(p)
+    n = libc.mallinfo2().smblks
+    for p in ptrs[1::2]:
+        libc.free(p)
+    return n
+
+before = freed_small_blocks()
+with startup._without_fastbins():
+    with startup._without_fastbins():  # nested (two loading threads): one restore, at the end
+        inside = freed_small_blocks()
+    still = freed_small_blocks()
+after = freed_small_blocks()
+print(json.dumps({"before": before, "inside": inside, "still": still, "after": after}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
+def test_fastbins_are_off_while_programs_load_and_back_after():
+    """``_without_fastbins`` (around loading stored programs and their first run) turns
+    glibc's fastbins off and back on when the outermost user leaves: the fastbin blocks that
+    glibc's own statistics (``mallinfo2().smblks``) count after freeing many small blocks, in
+    a fresh process."""
+    import platform
+
+    if platform.libc_ver()[0] != "glibc" or tuple(
+            int(x) for x in platform.libc_ver()[1].split(".")[:2]) < (2, 33):
+        pytest.skip("needs glibc 2.33 (mallinfo2)")
+    r = subprocess.run([sys.executable, "-c", _FASTBINS], capture_output=True, text=True,
+                       check=True, timeout=120)
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["before"] > 500, out  # ~993 (1,000 freed, 7 in tcache)
+    assert out["inside"] == 0 and out["still"] == 0, out
+    assert out["after"] > 500, out
+
+
+def test_default_fastbin_limit(monkeypatch):
+    """The limit restored after loading: glibc's default, 64 · sizeof(size_t) / 4 bytes
+    (malloc.c, DEFAULT_MXFAST), or the process's ``glibc.malloc.mxfast`` tunable."""
+    import ctypes
+
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
+    assert startup._default_mxfast() == 64 * ctypes.sizeof(ctypes.c_size_t) // 4
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2:glibc.malloc.mxfast=64")
+    assert startup._default_mxfast() == 64
