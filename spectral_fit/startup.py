@@ -439,7 +439,7 @@ def split_cpu_devices(n: int) -> int:
 
 
 def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = None,
-                   **options: Any) -> Any:
+                   progress: Any = None, **options: Any) -> Any:
     """:func:`~spectral_fit.renderer.prepare` with a disk cache of its result.
 
     Args:
@@ -447,6 +447,8 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
             an option that is not a plain value (e.g. an ``environment`` array), is prepared
             without the cache.
         cache_dir: cache root (default :func:`cache_root`); entries go to ``<root>/prepared``.
+        progress: called with one line of text when the scene is prepared rather than
+            loaded (seconds of work), e.g. ``print``.
         **options: passed to ``prepare`` (size, mode, spectral_mode, k, ...).
 
     Returns:
@@ -461,7 +463,9 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
     texts = {k: _plain_repr(v) for k, v in options.items()}
     digest = (_config_digest(Path(scene)) if root is not None
               and isinstance(scene, str | os.PathLike) else None)
+    say = progress or (lambda _m: None)
     if digest is None or any(t is None for t in texts.values()):
+        say(_PREPARING)
         return prepare(scene, **options)
     text = "\n".join([_environment_digest(), digest,
                       *(f"{k}={texts[k]}" for k in sorted(texts))])
@@ -472,9 +476,14 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
         CACHE_STATS["prepared_hit"] += 1
         return hit
     CACHE_STATS["prepared_miss"] += 1
+    say(_PREPARING + "; stored for later runs")
     prep = prepare(scene, **options)
     _write_entry(folder, key, prep)
     return prep
+
+
+_PREPARING = ("preparing the scene (environment levels, split-sum tables, irradiance map, "
+              "capacity plans)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -512,7 +521,8 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
                         view: Any = None, visible: Any = None, spectral: bool = False,
                         background: bool = True, mirror: bool | None = None,
                         cache_dir: str | os.PathLike[str] | None = None,
-                        compiler_options: dict[str, Any] | None = None) -> Any:
+                        compiler_options: dict[str, Any] | None = None,
+                        progress: Any = None) -> Any:
     """:func:`~spectral_fit.renderer.render_frame` through a compiled program kept on disk.
 
     The first call for a given argument structure (the :class:`Prepared` scene's static
@@ -532,6 +542,9 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
         compiler_options: XLA options of the compilation (``jax.stages.Lowered.compile``),
             e.g. ``{"xla_cpu_use_fusion_emitters": False}``, on top of
             :func:`~spectral_fit.dispatch.cpu_compiler_options`; part of the key.
+        progress: called with one line of text before the program is compiled (the first
+            call for this argument structure on this machine: tens of seconds), e.g.
+            ``print``.
 
     Returns:
         :class:`~spectral_fit.renderer.Frame` (not differentiable: use ``render_frame`` for
@@ -607,7 +620,7 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
                      (_part_key(key, "pixels"), pixels, lambda: arrays + senders_shape()[0])]
         prog, out = _program(parts, compiler_options, cache_dir, arrays, {
             "args": args, "spectral": spectral, "background": background, "mirror": mirror,
-            "compiler_options": compiler_options})
+            "compiler_options": compiler_options}, progress)
         _PROGRAMS[key] = prog
         if _IN_CHILD:  # compiled and stored: nothing to run
             return None
@@ -617,8 +630,8 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
 
 
 def _program(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any] | None,
-             cache_dir: str | os.PathLike[str] | None, arrays: list[Any], job: dict[str, Any]
-             ) -> tuple[Any, Any]:
+             cache_dir: str | os.PathLike[str] | None, arrays: list[Any], job: dict[str, Any],
+             progress: Any = None) -> tuple[Any, Any]:
     """The frame program of ``parts`` and, when it was run here, its first output.
 
     Parts stored on disk are loaded. Missing parts are compiled and stored by a fresh child
@@ -635,12 +648,13 @@ def _program(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any]
     if _IN_CHILD:  # the child loads nothing: what it compiles must not follow other programs
         return _chain(_compile_parts(parts, compiler_options, folder)), None
     with _without_fastbins():  # loading and the first run: small blocks by the million
-        return _load_or_compile(parts, compiler_options, folder, arrays, job)
+        return _load_or_compile(parts, compiler_options, folder, arrays, job, progress)
 
 
 def _load_or_compile(parts: list[tuple[str, Any, Any]],
                      compiler_options: dict[str, Any] | None, folder: Path | None,
-                     arrays: list[Any], job: dict[str, Any]) -> tuple[Any, Any]:
+                     arrays: list[Any], job: dict[str, Any], progress: Any = None
+                     ) -> tuple[Any, Any]:
     """:func:`_program` outside the child process."""
     import jax
 
@@ -649,6 +663,12 @@ def _load_or_compile(parts: list[tuple[str, Any, Any]],
     with _STATS_LOCK:
         CACHE_STATS["program_miss"] += len(parts) - n_hit
         CACHE_STATS["program_hit"] += n_hit
+    if n_hit < len(parts) and progress is not None:
+        what = "the frame program" if len(parts) == 1 else (
+            f"{len(parts) - n_hit} of the frame's {len(parts)} programs")
+        progress(f"compiling {what}: the first run for this scene, size and options on this "
+                 "machine takes tens of seconds" + ("; stored for later runs"
+                                                   if folder is not None else ""))
     if n_hit < len(parts) and folder is not None and _compile_in_child(job, folder):
         compiled = [c if c is not None else _load_entry(folder, key)
                     for c, (key, _, _) in zip(compiled, parts, strict=True)]

@@ -64,8 +64,11 @@ def test_prepare_cached_hits_and_matches_prepare(config, tmp_path):
     from spectral_fit.renderer import prepare
 
     before = dict(startup.CACHE_STATS)
-    a = startup.prepare_cached(config, cache_dir=tmp_path, mode="none")
-    b = startup.prepare_cached(config, cache_dir=tmp_path, mode="none")
+    said: list[str] = []
+    a = startup.prepare_cached(config, cache_dir=tmp_path, mode="none", progress=said.append)
+    assert len(said) == 1 and "preparing the scene" in said[0]  # a miss says so
+    b = startup.prepare_cached(config, cache_dir=tmp_path, mode="none", progress=said.append)
+    assert len(said) == 1  # a hit is quick and quiet
     assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 1
     assert startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
     ref = prepare(config, mode="none")
@@ -226,8 +229,10 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     prep = startup.prepare_cached(config, cache_dir=cache, mode="none")
     ref = render_frame(prep)
     misses = startup.CACHE_STATS["program_miss"]
-    got = startup.render_frame_cached(prep, cache_dir=cache)
+    said: list[str] = []
+    got = startup.render_frame_cached(prep, cache_dir=cache, progress=said.append)
     assert startup.CACHE_STATS["program_miss"] == misses + 1
+    assert len(said) == 1 and said[0].startswith("compiling the frame program"), said
     assert int(ref.stats["covered_pixels"]) > 20
     for name in ("xyz", "rgb", "linear_rgb", "mask", "object_id"):
         assert np.array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(ref, name)))
@@ -237,9 +242,9 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     model = np.asarray(prep.model).copy()
     model[0, 0, 3] += 0.01
     mem = startup.CACHE_STATS["program_memory_hit"]
-    got2 = startup.render_frame_cached(prep, model=model, cache_dir=cache)
+    got2 = startup.render_frame_cached(prep, model=model, cache_dir=cache, progress=said.append)
     ref2 = render_frame(prep, model=jnp.asarray(model))
-    assert startup.CACHE_STATS["program_memory_hit"] == mem + 1
+    assert startup.CACHE_STATS["program_memory_hit"] == mem + 1 and len(said) == 1
     assert np.array_equal(np.asarray(got2.xyz), np.asarray(ref2.xyz))
     assert not np.array_equal(np.asarray(got2.xyz), np.asarray(got.xyz))
     with pytest.raises(InputError) as e:

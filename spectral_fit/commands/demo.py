@@ -70,8 +70,8 @@ def render_step(out: Path) -> dict:
     t0 = time.perf_counter()
     # as `spectral-fit render`: the prepared scene and the compiled frame program are kept on
     # disk, so a second demo loads them (docs/rendering.md "Cold start")
-    prep = prepare_cached(CONFIG)
-    frame = jax.block_until_ready(render_frame_cached(prep, spectral=True))
+    prep = prepare_cached(CONFIG, progress=_say)
+    frame = jax.block_until_ready(render_frame_cached(prep, spectral=True, progress=_say))
     frame = _regrow(prep, frame, None, True)
     first = time.perf_counter() - t0
     t1 = time.perf_counter()

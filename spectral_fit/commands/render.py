@@ -45,6 +45,11 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     return w, h
 
 
+def _say(msg: str) -> None:
+    """Progress of the long first-run steps, on stderr (stdout keeps the summary)."""
+    print(f"render: {msg}", file=sys.stderr, flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
 
@@ -63,10 +68,11 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.config)
     t1 = time.perf_counter()
     prep = prepare_cached(args.config, size=size, mode=args.mode,
-                          spectral_mode=args.spectral_mode, k=args.k)
+                          spectral_mode=args.spectral_mode, k=args.k, progress=_say)
     t_prep = time.perf_counter() - t1
     t2 = time.perf_counter()
-    frame = jax.block_until_ready(render_frame_cached(prep, spectral=bool(args.exr)))
+    frame = jax.block_until_ready(render_frame_cached(prep, spectral=bool(args.exr),
+                                                      progress=_say))
     t_first = time.perf_counter() - t2
     t3 = time.perf_counter()
     jax.block_until_ready(render_frame_cached(prep, spectral=bool(args.exr)))
