@@ -280,3 +280,28 @@ def test_edge_error_closed_form_and_coarse_mesh_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         prepare(_scene(DIST5), mode="none")
+
+
+def test_lens_benchmark_scene_rays_are_opencvs():
+    """``spectral-fit bench``'s ``frame_paper_lens`` scene: the benchmark camera (720 × 480,
+    90° vertical field of view) with the bundled webcam's distortion, which must not fold
+    inside the frame: every pixel centre's ray projects back onto that centre through
+    OpenCV's model (checked on a sparse grid)."""
+    from spectral_fit.benchmarks.frame import LENS, benchmark_scene
+    from spectral_fit.camera import projection_to_intrinsics
+    from spectral_fit.renderer import _projection
+
+    scene = benchmark_scene(distortion=LENS, quick=True)
+    assert scene.camera.distortion == LENS and scene.camera.intrinsics is None
+    h, w = scene.height, scene.width
+    k = np.asarray(projection_to_intrinsics(_projection(scene, (h, w)), w, h), np.float64)
+    rays = pixel_rays(k, lens_parameters(np.asarray(LENS)), (h, w)).reshape(h, w, 3)
+    v, u = np.mgrid[0:h:37, 0:w:53]
+    back, _ = cv2.projectPoints((rays[v.ravel(), u.ravel()] * GL).astype(np.float64),
+                                np.zeros(3), np.zeros(3), k, np.asarray(LENS))
+    centres = np.stack([u.ravel(), v.ravel()], -1).astype(np.float64)
+    assert np.abs(back[:, 0] - centres).max() < 1e-3
+    # the lens matters at this size: the frame's corner moves by more than 10 px
+    corner = np.array([[[0.0, 0.0]]])
+    und = cv2.undistortPoints(corner, k, np.asarray(LENS), P=k).reshape(2)
+    assert np.linalg.norm(und - corner.reshape(2)) > 10.0

@@ -8,6 +8,9 @@ call, ``median_ms`` the steady state.
 * ``frame_paper``: 720×480, 31 bands (400–700 nm, the anchor's), gather interreflection;
   ``frame_paper_none`` / ``frame_paper_paper``: without interreflection / eq. (6) literally;
 * ``frame_paper_81``: 81 bands (400–700 nm at 3.75 nm); ``frame_paper_k8``: K = 8 basis;
+* ``frame_paper_lens``: the same frame through a distorting lens (``LENS``: the vertices
+  distorted, each pixel's background ray from the lens's inverse; docs/rendering.md "Lens
+  distortion");
 * ``frame_closeup``: the spheres at z = −0.100 m (~19 % coverage), gather;
   ``frame_closeup_none``: the same without interreflection;
 * ``cold_start_s``: fresh Python processes (import + prepare + compile + first frame of the
@@ -40,8 +43,15 @@ CONFIG = ROOT / "configs" / "benchmark.toml"
 __all__ = ["CASES", "benchmark_scene"]
 
 
-def benchmark_scene(*, z: float = -0.275, quick: bool = False, step_nm: float | None = None):
-    """The benchmark Scene with sphere centres at depth ``z`` (m); quick: 20×20 spheres."""
+#: ``frame_paper_lens``' camera distortion (OpenCV k1, k2, p1, p2, k3): the bundled
+#: ``configs/live_sample.toml`` camera's, a typical webcam's barrel distortion
+LENS = (-0.11, 0.045, 0.0008, -0.0004, 0.0)
+
+
+def benchmark_scene(*, z: float = -0.275, quick: bool = False, step_nm: float | None = None,
+                    distortion: tuple[float, ...] | None = None):
+    """The benchmark Scene with sphere centres at depth ``z`` (m); quick: 20×20 spheres;
+    ``distortion``: the camera's lens (OpenCV coefficients) instead of a pinhole."""
     from ..scene import load_scene
 
     scene = load_scene(CONFIG)
@@ -52,6 +62,8 @@ def benchmark_scene(*, z: float = -0.275, quick: bool = False, step_nm: float | 
             kw.update(stacks=20, slices=20)
         objs.append(dataclasses.replace(o, **kw))
     changes: dict[str, Any] = {"objects": tuple(objs)}
+    if distortion is not None:
+        changes["camera"] = dataclasses.replace(scene.camera, distortion=tuple(distortion))
     if step_nm is not None:
         from ..spectra import resample
 
@@ -66,7 +78,8 @@ def benchmark_scene(*, z: float = -0.275, quick: bool = False, step_nm: float | 
 
 def _case(opts: BenchOptions, *, mode: str = "gather", z: float = -0.275,
           step_nm: float | None = None, spectral_mode: str | None = None,
-          k: int | None = None) -> dict[str, Any]:
+          k: int | None = None, distortion: tuple[float, ...] | None = None
+          ) -> dict[str, Any]:
     import time
 
     import jax
@@ -75,7 +88,8 @@ def _case(opts: BenchOptions, *, mode: str = "gather", z: float = -0.275,
 
     if opts.quick:  # harness smoke test: one small configuration shared by the variants
         mode, z, step_nm, spectral_mode, k = "none", -0.275, None, None, None
-    scene = benchmark_scene(z=z, quick=opts.quick, step_nm=step_nm)
+        distortion = None
+    scene = benchmark_scene(z=z, quick=opts.quick, step_nm=step_nm, distortion=distortion)
     size = (180, 120) if opts.quick else None
     if not opts.quick:
         jax.clear_caches()
@@ -185,6 +199,10 @@ def frame_paper_k8(opts: BenchOptions) -> dict[str, Any]:
     return _case(opts, mode="gather", spectral_mode="basis", k=8)
 
 
+def frame_paper_lens(opts: BenchOptions) -> dict[str, Any]:
+    return _case(opts, mode="gather", distortion=LENS)
+
+
 def frame_closeup(opts: BenchOptions) -> dict[str, Any]:
     return _case(opts, mode="gather", z=-0.100)
 
@@ -199,6 +217,7 @@ CASES = {
     "frame_paper_paper": frame_paper_paper,
     "frame_paper_81": frame_paper_81,
     "frame_paper_k8": frame_paper_k8,
+    "frame_paper_lens": frame_paper_lens,
     "frame_closeup": frame_closeup,
     "frame_closeup_none": frame_closeup_none,
     "cold_start_s": cold_start_s,
