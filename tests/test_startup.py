@@ -35,6 +35,14 @@ def _small_env(path: Path, scale: float = 1.0) -> Path:
     return path
 
 
+@pytest.fixture(autouse=True)
+def _fresh_programs(monkeypatch):
+    """Each test starts without this process's in-memory programs: with several tests of one
+    config on one worker, a later test's first ``render_frame_cached`` was otherwise a memory
+    hit of an earlier test's program (its cache folder never consulted, its miss counts off)."""
+    monkeypatch.setattr(startup, "_PROGRAMS", {})
+
+
 @pytest.fixture(scope="module")
 def config(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("startup")
