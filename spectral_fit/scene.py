@@ -80,6 +80,10 @@ _MISSING = object()
 
 
 # bounds of [camera] blur_px (σ, pixels) and noise (σ, 8-bit levels)
+#: largest coordinate (m) of a camera or object position, look-at point, up vector or marker
+#: offset: far beyond any scene of this renderer, and products of two such stay finite in
+#: float32
+MAX_COORD_M = 1e6
 MAX_BLUR_PX = 20.0
 MAX_NOISE = 64.0
 
@@ -328,13 +332,18 @@ class _Reader:
             raise self.err(k, f"must be a non-empty string, got {v!r}")
         return v
 
-    def vector(self, k: str, n: int, default: Any = _MISSING) -> tuple[float, ...]:
+    def vector(self, k: str, n: int, default: Any = _MISSING, *,
+               bound: float | None = None) -> tuple[float, ...]:
+        """``n`` finite numbers; ``bound``: each within ±bound."""
         v = self.raw(k, default)
         if (not isinstance(v, list | tuple) or len(v) != n
                 or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v)):
             raise self.err(k, f"must be a list of {n} numbers, got {v!r}")
         if not all(math.isfinite(float(x)) for x in v):
             raise self.err(k, f"must be finite, got {v!r}")
+        if bound is not None and any(abs(float(x)) > bound for x in v):
+            raise self.err(k, f"each component must be within ±{bound:g} (metres: the "
+                              f"renderer computes in float32), got {v!r}")
         return tuple(float(x) for x in v)
 
     def file(self, k: str, default: Any = _MISSING, *, must_exist: bool = True) -> Path | None:
@@ -441,11 +450,13 @@ def _object(r: _Reader, wl: np.ndarray) -> ObjectSpec:
         name=name,
         shape=shape,
         material=_material(r.sub("material"), wl),
-        position=r.vector("position", 3, [0.0, 0.0, 0.0]),  # type: ignore[arg-type]
+        position=r.vector("position", 3, [0.0, 0.0, 0.0],  # type: ignore[arg-type]
+                          bound=MAX_COORD_M),
         rotation_deg=r.vector("rotation_deg", 3, [0.0, 0.0, 0.0]),  # type: ignore[arg-type]
         scale=r.number("scale", 1.0, lo=0.0, lo_open=True),
         marker=marker,
-        marker_offset=r.vector("marker_offset", 3, [0.0, 0.0, 0.0]),  # type: ignore[arg-type]
+        marker_offset=r.vector("marker_offset", 3, [0.0, 0.0, 0.0],  # type: ignore[arg-type]
+                               bound=MAX_COORD_M),
         **kw,
     )
     r.finish()
@@ -480,9 +491,12 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
         fov_y_deg=cr.number("fov_y_deg", 90.0, lo=1.0, hi=179.0),
         near=cr.number("near", 0.01, lo=0.0, lo_open=True),
         far=cr.number("far", 1000.0, lo=0.0, lo_open=True),
-        position=cr.vector("position", 3, [0.0, 0.0, 0.0]),  # type: ignore[arg-type]
-        look_at=cr.vector("look_at", 3, [0.0, 0.0, -1.0]),  # type: ignore[arg-type]
-        up=cr.vector("up", 3, [0.0, 1.0, 0.0]),  # type: ignore[arg-type]
+        position=cr.vector("position", 3, [0.0, 0.0, 0.0],  # type: ignore[arg-type]
+                           bound=MAX_COORD_M),
+        look_at=cr.vector("look_at", 3, [0.0, 0.0, -1.0],  # type: ignore[arg-type]
+                          bound=MAX_COORD_M),
+        up=cr.vector("up", 3, [0.0, 1.0, 0.0],  # type: ignore[arg-type]
+                     bound=MAX_COORD_M),
         intrinsics=intrinsics,
         distortion=distortion,
         blur_px=cr.number("blur_px", 0.0, lo=0.0, hi=MAX_BLUR_PX),

@@ -87,6 +87,10 @@ MALFORMED = [
     (("camera", "up"), [0.0, 0.0, -1.0], "camera.up: must not be parallel"),
     (("camera", "position"), [0.0, 0.0], "camera.position: must be a list of 3 numbers"),
     (("camera", "blur_px"), -0.5, "camera.blur_px: must be"),
+    # finite but beyond float32's reach once multiplied (norms overflowed with a warning)
+    (("camera", "position"), [1e200, 0.0, 0.0], r"camera.position: each component must be "
+     r"within ±1e\+06"),
+    (("objects", 0, "position"), [0.0, -3e6, 0.0], r"objects\[0\].position: each component"),
     (("camera", "noise"), "grainy", "camera.noise: must be a number"),
     (("environment", "file"), "missing.exr", "environment.file: file not found"),
     (("environment", "file"), "\x00", "environment.file: must be a file path"),
