@@ -622,12 +622,14 @@ def prepare(
         basis = pca_basis(kk, wl)
         env = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor,
                                         rotation_y_deg=scene.environment.rotation_y_deg,
+                                        compress_tol=scene.environment.compress_tol,
                                         path=str(scene.environment.file),
                                         diffuse="exact" if diffuse == "exact" else "sh")
         to_xyz = basis.components @ W
         to_spectrum = basis.components
     else:
         env = EnvironmentMap.from_array(img, rotation_y_deg=scene.environment.rotation_y_deg,
+                                        compress_tol=scene.environment.compress_tol,
                                         path=str(scene.environment.file),
                                         diffuse="exact" if diffuse == "exact" else "sh")
         to_xyz = W

@@ -20,7 +20,10 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
                        Gaussian σ in pixels, and noise, σ in 8-bit levels, given to the CG)
     [environment]      file (spectral or RGB OpenEXR; required), scale [1.0],
                        rotation_y_deg [0]  (180 for maps with −Z at the image centre),
-                       upsampling ["mallett2019"]  (RGB maps only)
+                       upsampling ["mallett2019"]  (RGB maps only),
+                       compress_tol [1e-4] (relative error per texel of the map's principal
+                       spectra, 0 = keep every band; 1e-3 makes frames under a noisy measured
+                       map faster at a small spectral cost: docs/lighting.md)
     [display]          colourspace ["sRGB"] or characterisation = "patches.csv",
                        exposure_luminance ["auto" or cd/m²], scene_white_xy (optional [x, y])
     [spectral]         start_nm [380], end_nm [780], step_nm [5],
@@ -110,6 +113,9 @@ class EnvironmentSpec:
     scale: float = 1.0
     rotation_y_deg: float = 0.0
     upsampling: str = "mallett2019"
+    #: relative error per texel allowed when the prefiltered maps are kept in the map's own
+    #: principal spectra (:meth:`~spectral_fit.environment.EnvironmentMap.from_array`)
+    compress_tol: float = 1e-4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -517,6 +523,7 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
         scale=er.number("scale", 1.0, lo=0.0, lo_open=True),
         rotation_y_deg=er.number("rotation_y_deg", 0.0, lo=-360.0, hi=360.0),
         upsampling=er.choice("upsampling", ("mallett2019", "jakob2019"), "mallett2019"),
+        compress_tol=er.number("compress_tol", 1e-4, lo=0.0, hi=0.1),
     )
     er.finish()
 

@@ -98,6 +98,8 @@ MALFORMED = [
     (("camera", "distortion"), [0.1, math.inf, 0.0, 0.0], "camera.distortion: must be finite"),
     (("environment",), _DELETE, "environment: required key is missing"),
     (("environment", "scale"), math.nan, "environment.scale: must be finite"),
+    (("environment", "compress_tol"), -1e-3, "environment.compress_tol: must be >= 0"),
+    (("environment", "compress_tol"), 0.5, "environment.compress_tol: must be <= 0.1"),
     (("spectral", "mode"), "rgb", "spectral.mode: must be one of"),
     (("spectral", "end_nm"), 300.0, "spectral.end_nm: must be >= 360"),
     (("interreflection", "mode"), "radiosity", "interreflection.mode: must be one of"),
@@ -192,3 +194,24 @@ def test_fuzz_config_loader(tmp_path_factory, data):
     except InputError:
         return
     assert scene.width > 0 and np.all(np.isfinite(scene.objects[0].material.reflectance))
+
+
+def test_environment_compression_reaches_the_prepared_map(tmp_path):
+    """``[environment] compress_tol`` of the two-sphere config (the bundled studio room, a
+    measured map of nearly full spectral rank) sets how many principal spectra the prepared
+    map keeps: 75 of 81 at the default 1e-4, 34 at 1e-3 (docs/lighting.md); the loader keeps
+    the value."""
+    from spectral_fit.renderer import prepare
+
+    text = CONFIG.read_text().replace('../measurements/', str(ROOT / "measurements") + "/")
+    ranks = {}
+    for tol in (None, 1e-3):
+        t = text if tol is None else text.replace("rotation_y_deg = 0.0",
+                                                   f"rotation_y_deg = 0.0\ncompress_tol = {tol}")
+        p = tmp_path / f"s{tol}.toml"
+        p.write_text(t)
+        scene = load_scene(p)
+        assert scene.environment.compress_tol == (1e-4 if tol is None else tol)
+        prep = prepare(scene, size=(48, 32), mode="none")
+        ranks[tol] = prep.env.spectral_basis.shape[0]
+    assert ranks == {None: 75, 1e-3: 34}
