@@ -420,14 +420,14 @@ def prepare_interreflection(
                          field="capacity_fraction")
     radii = [_bounding_radius(o) for o in objects]
     pairs = pair_list(n)
+    if mode == "gather" and len(pairs) > 1 and _same_shapes(objects):
+        return _gather_pass1_batched(objects, pairs, radii, gather_size, raster_config,
+                                     texture_size)
     cap = max(1, int(math.ceil(capacity_fraction * texture_size * texture_size)))
     cols: dict[str, list[Any]] = {k: [] for k in (
         "centre_i", "centre_j", "radius_i", "radius_j", "frame", "extent", "s_pos", "s_nrm",
         "s_view", "s_area", "s_cov", "p_view_proj", "p_index", "p_pos", "p_nrm", "p_valid",
         "overflow")}
-    if mode == "gather" and len(pairs) > 1 and _same_shapes(objects):
-        return _gather_pass1_batched(objects, pairs, radii, gather_size, raster_config,
-                                     texture_size)
     for i, j in pairs:
         oi, oj = objects[i], objects[j]
         cols["centre_i"].append(jnp.asarray(oi.centre, jnp.float32))

@@ -82,11 +82,11 @@ __all__ = [
 _MISSING = object()
 
 
-# bounds of [camera] blur_px (σ, pixels) and noise (σ, 8-bit levels)
 #: largest coordinate (m) of a camera or object position, look-at point, up vector or marker
 #: offset: far beyond any scene of this renderer, and products of two such stay finite in
 #: float32
 MAX_COORD_M = 1e6
+# bounds of [camera] blur_px (σ, pixels) and noise (σ, 8-bit levels)
 MAX_BLUR_PX = 20.0
 MAX_NOISE = 64.0
 

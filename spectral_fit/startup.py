@@ -329,8 +329,9 @@ def retain_freed_memory() -> bool:
     return all(ok)
 
 
+@functools.cache
 def _mallopt() -> Any:
-    """glibc's ``mallopt`` (int, int) -> int, or None (not Linux with glibc)."""
+    """glibc's ``mallopt`` (int, int) -> int, or None (not Linux with glibc); looked up once."""
     import ctypes
     import platform
 
@@ -643,7 +644,6 @@ def _program(parts: list[tuple[str, Any, Any]], compiler_options: dict[str, Any]
     there, too). A program loaded from disk is run once under a guard; one that cannot run
     is removed from disk. Whatever is still missing then (no cache folder, a child that
     failed, a removed entry) is compiled here and kept in memory only."""
-
     folder = _programs_folder(cache_dir)
     if _IN_CHILD:  # the child loads nothing: what it compiles must not follow other programs
         return _chain(_compile_parts(parts, compiler_options, folder)), None

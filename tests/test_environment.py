@@ -377,8 +377,8 @@ def test_bad_rotation_rejected():
 def test_compressed_measured_map_keeps_its_gloss():
     """``compress_tol=1e-3`` on the bundled studio room, whose noisy measured spectra are of
     nearly full rank (the default 1e-4 keeps 75 of 81): it keeps well under half of the 81
-    bands, and the gloss
-    integral (quality "render") at random normals, views and roughnesses equals the
+    bands, and the gloss integral (quality "render") at random normals, views and roughnesses
+    equals the
     uncompressed map's (``compress_tol=0``, every band kept). The tolerance bounds the error by
     1e-3 of the largest value; measured 2.4e-6, asserted 2e-5 (3e-2 gives 4e-5 and fails)."""
     from spectral_fit.exr import read_spectral_exr
