@@ -655,8 +655,8 @@ def _bilinear(flat: jax.Array, off: Any, hk: Any, wk: Any, d_map: Any,
     ty = v.astype(dtype) * hk.astype(dtype) - 0.5
     x0f = jnp.floor(tx)
     fx = tx - x0f
-    x0 = jnp.mod(x0f.astype(jnp.int32), wk)
-    x1 = jnp.mod(x0 + 1, wk)
+    x0 = _wrap(x0f.astype(jnp.int32), wk)
+    x1 = jnp.where(x0 + 1 >= wk, 0, x0 + 1)
     y0f = jnp.floor(ty)
     fy = ty - y0f
     y0 = y0f.astype(jnp.int32)
@@ -678,6 +678,15 @@ def _bilinear(flat: jax.Array, off: Any, hk: Any, wk: Any, d_map: Any,
     return jnp.einsum("i,ic->c", w, flat.at[idx].get(mode="promise_in_bounds"))
 
 
+def _wrap(i: jax.Array, w: jax.Array) -> jax.Array:
+    """``i mod w`` for ``i`` in [−w, 2w) (a texel column one beyond either edge), by selects:
+    ``jnp.mod`` with a per-lookup ``w`` (the level's width) is an integer division per element
+    on the CPU. Clipped to [0, w − 1] outside that range (e.g. a NaN coordinate), so a
+    gather with it stays in bounds."""
+    i = jnp.where(i < 0, i + w, i)
+    return jnp.clip(jnp.where(i >= w, i - w, i), 0, w - 1)
+
+
 def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk: jax.Array
                    ) -> tuple[jax.Array, jax.Array]:
     """Atlas rows (..., 4) and weights (..., 4) of the bilinear lookup of :func:`_bilinear`
@@ -687,7 +696,7 @@ def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk
     ty = v * hk.astype(dtype) - 0.5
     x0f = jnp.floor(tx)
     fx = tx - x0f
-    x0 = jnp.mod(x0f.astype(jnp.int32), wk)
+    x0 = _wrap(x0f.astype(jnp.int32), wk)
     x1 = jnp.where(x0 + 1 >= wk, 0, x0 + 1)
     y0f = jnp.floor(ty)
     fy = ty - y0f
@@ -894,7 +903,7 @@ def _lobe_rings(nv: jax.Array, width: jax.Array, xr: np.ndarray, wr: np.ndarray,
         raise InputError(f"unknown radial rule {radial_rule!r}", field="radial_rule")
     if distribution == "gaussian":
         th = width * s
-        cos_h, sin_h = jnp.cos(th), jnp.sin(th)
+        sin_h, cos_h = _sincos_poly(th)
         jac = jnp.where(th > 1e-4, sin_h / jnp.where(th > 1e-4, th, 1.0), 1.0 - th * th / 6.0)
     else:
         tan_h = width * s
@@ -960,7 +969,7 @@ def _lobe_grid(nv: jax.Array, width: jax.Array, mu: jax.Array, n: jax.Array, *,
     phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
     phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A)
     w = (ws * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
-    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * jnp.cos(phi)
+    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * _sincos_poly(phi)[1]
     nl = 2.0 * vh * cos_h[:, None] - nv
     ch = jnp.broadcast_to(cos_h[:, None], vh.shape)
     g = w * _microfacet_factor(nv, nl, vh, ch, mu, n, geometry=geometry, fresnel=fresnel)
@@ -1024,7 +1033,7 @@ def _narrowed_nodes(
     r_safe = jnp.where(r > 1e-12, r, 1.0)
     if distribution == "gaussian":
         theta = r
-        cos_h, sin_h = jnp.cos(theta), jnp.sin(theta)
+        sin_h, cos_h = _sincos_poly(theta)
         jac = jnp.where(r > 1e-4, sin_h / r_safe, 1.0 - r * r / 6.0)
     else:
         cos_h = 1.0 / jnp.sqrt(1.0 + r * r)
@@ -1071,10 +1080,10 @@ def _visible_nodes(
     phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
     phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A), xa in [-1, 1]
     wgt = (wring * jac * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
-    sp = jnp.sin(phi)
+    sp, cp = _sincos_poly(phi)
     wgt = wgt * jnp.exp(-(s * s)[:, None] * sp * sp * (wt2 / wb2 - 1.0))
     T, B = _view_frame(N, V)
-    tang = jnp.cos(phi)[..., None] * T + sp[..., None] * B  # (R, A, 3)
+    tang = cp[..., None] * T + sp[..., None] * B  # (R, A, 3)
     H = cos_h[:, None, None] * N + sin_h[:, None, None] * tang
     ch = jnp.broadcast_to(cos_h[:, None], phi.shape)
     return H.reshape(-1, 3), wgt.reshape(-1), ch.reshape(-1)
@@ -1284,13 +1293,14 @@ def _grid_nodes(
     # exp(−X² − Y²): the narrowed column's density (μ/w_b) e^{−y²/w_b²} times dy = w_b dY.
     theta_x = x if distribution == "gaussian" else jnp.arctan(x)
     sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 1e-12))  # gradient-safe at V = N
-    c = nv * jnp.cos(theta_x) + sin_r * jnp.sin(theta_x)  # cos(θr − θx)
+    sx, cx_ = _sincos_poly(theta_x)
+    c = nv * cx_ + sin_r * sx  # cos(θr − θx)
     wb = jnp.sqrt(jnp.maximum(mu * mu - 0.5 * var / jnp.maximum(c * c, 1e-4), floor))
     y = wb * jnp.asarray(Y, dtype)
     r = jnp.sqrt(x * x + y * y)
     r_safe = jnp.where(r > 1e-12, r, 1.0)
     if distribution == "gaussian":
-        cos_h, sin_h = jnp.cos(r), jnp.sin(r)
+        sin_h, cos_h = _sincos_poly(r)
         jac = jnp.where(r > 1e-4, sin_h / r_safe, 1.0 - r * r / 6.0)
     elif distribution == "beckmann":
         cos_h = 1.0 / jnp.sqrt(1.0 + r * r)
@@ -1470,7 +1480,7 @@ def _lobe_moments(
         nv, mu, mu, n, distribution=distribution, geometry=geometry, fresnel=fresnel,
         radial=radial, azimuthal=azimuthal)
     nv = jnp.clip(nv, 0.0, 1.0)
-    cphi, sphi = jnp.cos(phi), jnp.sin(phi)
+    sphi, cphi = _sincos_poly(phi)
     # reflected direction L = 2 (V·H) H − V in the frame (T, B, N), V = (sinθr, 0, cosθr)
     lt = 2.0 * vh * sin_h[:, None] * cphi - sin_r
     lb = 2.0 * vh * sin_h[:, None] * sphi
@@ -1482,7 +1492,7 @@ def _lobe_moments(
     delta = theta_m - jnp.arccos(nv)
     # coordinates of L in the tangent plane at m (azimuthal equidistant: angle γ from m),
     # e1 = (cosθm, 0, sinθm) in the plane of incidence, e2 = B across it
-    cm, sm = jnp.cos(theta_m), jnp.sin(theta_m)
+    sm, cm = _sincos_poly(theta_m)
     l1 = lt * cm + nl * sm
     lm = jnp.clip(nl * cm - lt * sm, -1.0, 1.0)  # cos γ
     sin_g = jnp.sqrt(jnp.maximum(l1 * l1 + lb * lb, 1e-30))
@@ -1529,6 +1539,24 @@ def _interp_moments(table: jax.Array, nv: jax.Array) -> jax.Array:
     p3 = table[jnp.minimum(i + 2, size - 1)]
     return p1 + 0.5 * t * (p2 - p0 + t * (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3
                                           + t * (3.0 * (p1 - p2) + p3 - p0)))
+
+
+def _sincos_poly(x: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(sin x, cos x) by elementwise arithmetic: Cody–Waite reduction by π/2 (three-part π/2)
+    and the Cephes sinf/cosf polynomials on [−π/4, π/4] (|error| < 1e-7 for |x| < 100).
+    XLA:CPU calls libm's scalar sinf/cosf per element (~3× slower here, 65,536 pairs); the
+    gloss quadratures evaluate them per point and per node."""
+    k = jnp.round(x * (2.0 / math.pi))
+    r = ((x - k * 1.5703125) - k * 4.837512969970703125e-4) - k * 7.54978995489188216e-8
+    r2 = r * r
+    s = r + r * r2 * (-1.6666654611e-1 + r2 * (8.3321608736e-3 + r2 * -1.9515295891e-4))
+    c = 1.0 - 0.5 * r2 + r2 * r2 * (4.166664568298827e-2 + r2 * (
+        -1.388731625493765e-3 + r2 * 2.443315711809948e-5))
+    q = k.astype(jnp.int32) & 3
+    odd = (q & 1) == 1
+    sn = jnp.where(odd, c, s)
+    cs = jnp.where(odd, s, c)
+    return jnp.where(q >= 2, -sn, sn), jnp.where((q == 1) | (q == 2), -cs, cs)
 
 
 def _atan2_poly(y: jax.Array, x: jax.Array) -> jax.Array:
@@ -1774,7 +1802,7 @@ def gloss_split_sum(
     inv_p = jax.lax.rsqrt(jnp.where(ok, p2, 1.0))
     T = [jnp.where(ok, p[i] * inv_p, t0[i]) for i in range(3)]
     sr = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
-    cd, sd = jnp.cos(delta), jnp.sin(delta)
+    sd, cd = _sincos_poly(delta)
     # each materialised block below is computed once per point (or per lookup); without the
     # barriers XLA fuses it into, and recomputes it in, each of its consumers (measured on
     # 65,536 points: 30 ms CPU without them, 19 ms with)
@@ -1804,7 +1832,7 @@ def gloss_split_sum(
     n3 = [packed[..., 6 + i] for i in range(3)]
     spread, sigma0 = packed[..., 9], packed[..., 10]
     ang = jnp.asarray(offs, dtype) * spread[..., None]  # (..., k)
-    cs = _materialise(jnp.stack([jnp.cos(ang), jnp.sin(ang)], axis=-1))
+    cs = _materialise(jnp.stack(_sincos_poly(ang)[::-1], axis=-1))
     ca, sa = cs[..., 0], cs[..., 1]
     dk = [ca * d[i][..., None] + sa * e1[i][..., None] for i in range(3)]  # (..., k) each
     elev = jnp.maximum(dk[0] * n3[0][..., None] + dk[1] * n3[1][..., None]

@@ -89,6 +89,7 @@ from .environment import (
     _lobe_factor,
     _materialise,
     _select,
+    _sincos_poly,
     _smootherstep,
     _taps_sum,
     _to_map_fast,
@@ -1261,7 +1262,7 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                                       jnp.sqrt(jnp.maximum(d2 - geom.radius_j[pair] ** 2,
                                                            1e-30)))
                           + _LOBE_REACH * mats["mu"][o_all] + 0.05, math.pi)
-        reach = reach | (_dot3(oc, refl_all) > jnp.cos(lim) * jnp.sqrt(d2))
+        reach = reach | (_dot3(oc, refl_all) > _sincos_poly(lim)[1] * jnp.sqrt(d2))
     active = (obj >= 0) & (nv_all > 0.0) & reach
     if grid is not None:
         own, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl_all, gap,

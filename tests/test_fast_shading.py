@@ -17,6 +17,8 @@ from spectral_fit.environment import (
     SplitSum,
     SplitSumMap,
     _atan2_poly,
+    _sincos_poly,
+    _wrap,
     direction_to_uv,
     fast_direction_to_uv,
     fast_lookup,
@@ -58,6 +60,31 @@ def test_atan2_and_uv_match_the_library_functions():
     assert np.minimum(du, 1 - du).max() < 1e-6 and np.abs(np.asarray(v1 - v0)).max() < 1e-6
     assert np.all((np.asarray(u1) >= 0) & (np.asarray(u1) < 1))
 
+
+
+def test_sincos_matches_the_library_and_its_gradient_is_cos_minus_sin():
+    x = np.concatenate([np.random.default_rng(2).uniform(-60.0, 60.0, 20000),
+                        np.arange(-8, 9) * (math.pi / 4), [0.0, 1e-30, -1e-30]])
+    xs = jnp.asarray(x, jnp.float32)
+    s, c = _sincos_poly(xs)
+    x32 = np.float32(x).astype(np.float64)  # the float32 argument, exactly
+    assert np.abs(np.asarray(s) - np.sin(x32)).max() < 1.5e-7
+    assert np.abs(np.asarray(c) - np.cos(x32)).max() < 1.5e-7
+    near = jnp.asarray(x[np.abs(x) < 2 * math.pi], jnp.float32)
+    ds = jax.vmap(jax.grad(lambda t: _sincos_poly(t)[0]))(near)
+    dc = jax.vmap(jax.grad(lambda t: _sincos_poly(t)[1]))(near)
+    n64 = np.asarray(near, np.float64)
+    assert np.abs(np.asarray(ds) - np.cos(n64)).max() < 1e-6
+    assert np.abs(np.asarray(dc) + np.sin(n64)).max() < 1e-6
+
+
+def test_wrap_is_the_modulo_one_texel_beyond_either_edge_and_stays_in_bounds():
+    w = jnp.asarray([1, 2, 7, 64, 1000], jnp.int32)[:, None]
+    i = jnp.arange(-1000, 2000, dtype=jnp.int32)[None, :]
+    got = np.asarray(_wrap(i, w))
+    inside = (np.asarray(i) >= -np.asarray(w)) & (np.asarray(i) < 2 * np.asarray(w))
+    np.testing.assert_array_equal(got[inside], np.mod(np.asarray(i), np.asarray(w))[inside])
+    assert np.all((got >= 0) & (got < np.asarray(w)))  # a gather with it stays in bounds
 
 def test_fast_lookup_is_the_bilinear_lookup(anchor):
     img, env, _, _ = anchor
