@@ -493,7 +493,7 @@ _PREPARING = ("preparing the scene (environment levels, split-sum tables, irradi
 
 # compiled frame programs of this process, by key (jax.stages.Compiled: a flat list of arrays
 # -> a dict of Frame fields)
-_PROGRAMS: dict[str, Any] = {}
+_PROGRAMS: dict[tuple[str, str], Any] = {}
 
 
 def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
@@ -571,7 +571,9 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
     key = _program_key(treedef, leaves, spectral,
                        {**requested_cpu_options(), **(compiler_options or {})}, background,
                        mirror)
-    prog = _PROGRAMS.get(key)
+    # in memory per folder: a program kept for one cache folder is still stored in another
+    mem_key = (key, str(_programs_folder(cache_dir)))
+    prog = _PROGRAMS.get(mem_key)
     out = None
     if prog is not None:
         CACHE_STATS["program_memory_hit"] += 1
@@ -622,7 +624,7 @@ def render_frame_cached(prep: Any, materials: Any = None, *, model: Any = None,
         prog, out = _program(parts, compiler_options, cache_dir, arrays, {
             "args": args, "spectral": spectral, "background": background, "mirror": mirror,
             "compiler_options": compiler_options}, progress)
-        _PROGRAMS[key] = prog
+        _PROGRAMS[mem_key] = prog
         if _IN_CHILD:  # compiled and stored: nothing to run
             return None
     if out is None:

@@ -258,6 +258,13 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     with pytest.raises(InputError) as e:
         startup.render_frame_cached(prep, model=model[:1], cache_dir=cache)
     assert e.value.field == "model"
+    # another cache folder is consulted (and filled), not served from this one's program
+    other = tmp_path / "other"
+    misses = startup.CACHE_STATS["program_miss"]
+    got3 = startup.render_frame_cached(prep, model=model, cache_dir=other)
+    assert startup.CACHE_STATS["program_miss"] == misses + 1
+    assert list((other / "programs").glob("*.pkl"))
+    assert np.array_equal(np.asarray(got3.xyz), np.asarray(ref2.xyz))
     # a fresh process stores both entries, and the next fresh process finds them on disk and
     # renders the same frame without compiling. (The entries are written by a fresh process,
     # as `spectral-fit render` does: an executable compiled in a process that has compiled
