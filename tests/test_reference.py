@@ -4,6 +4,7 @@ moments), the environment placement, the camera, and a smoke run of the generato
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -300,14 +301,19 @@ def test_envmap_rows_reproduce_our_lookup():
 def test_camera_and_silhouettes_match_our_conventions():
     """Black spheres left and right of the axis against a unit background: covered pixels are
     where our camera rays (DESIGN §3: row 0 on top, +x to the right) hit the spheres."""
-    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
-
     objs = [sphere_obj("left", (-0.045, 0.02, -0.1), alpha=0.0),
             sphere_obj("right", (0.045, 0.0, -0.1), alpha=0.0, radius=0.03)]
-    scene = small_scene(objects=objs, width=48, height=32, fov=90.0)
-    r = render_spectral(scene, spp=16, passes=1, depths=(2,), environment=1.0)
+    _check_silhouettes(small_scene(objects=objs, width=48, height=32, fov=90.0), spp=16)
+
+
+def _check_silhouettes(scene, spp: int) -> None:
+    """Mitsuba's render of black spheres against a unit background is 0 on the pixels whose
+    four corners see a sphere through our camera rays and 1 where none does."""
+    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+
+    r = render_spectral(scene, spp=spp, passes=1, depths=(2,), environment=1.0)
     img = r.mean(2)[..., 0]
-    ys, xs = np.mgrid[0:32, 0:48]
+    ys, xs = np.mgrid[0:scene.height, 0:scene.width]
     inside = np.zeros(xs.shape, bool)
     outside = np.ones(xs.shape, bool)
     for ob in scene.objects:
@@ -317,6 +323,61 @@ def test_camera_and_silhouettes_match_our_conventions():
             outside &= ~np.isfinite(sphere_hits(o, d, ob.position, ob.radius * 1.005))
     assert inside.sum() > 40 and np.all(img[inside] < 0.02)  # meshes (uv spheres) used
     assert np.allclose(img[outside], 1.0, atol=1e-3)
+
+
+def _intrinsics_scene(**kw):
+    """48 × 32 frame through an OpenCV camera with its principal point off the centre."""
+    scene = small_scene(width=48, height=32, **kw)
+    cam = dataclasses.replace(scene.camera, intrinsics={"fx": 30.0, "fy": 30.0, "cx": 20.3,
+                                                        "cy": 17.6})
+    return scene.replace(camera=cam)
+
+
+def _as_vec(v) -> np.ndarray:
+    return np.asarray([float(np.ravel(np.asarray(v[i]))[0]) for i in range(3)])
+
+
+def test_intrinsics_camera_rays_match_mitsuba_and_our_projection():
+    """An intrinsics camera's sensor (fov from fy, principal point offsets): Mitsuba's rays
+    through film points equal our camera rays, and our renderer's projection of points on those
+    rays lands on the same pixel coordinates."""
+    from spectral_fit import camera
+    from spectral_fit.reference.export import scene_dict
+    from spectral_fit.reference.render import camera_rays
+    from spectral_fit.renderer import _projection
+
+    scene = _intrinsics_scene(objects=[sphere_obj("a", (0.0, 0.0, -0.3))],
+                              position=(0.01, 0.02, 0.03), look_at=(0.2, -0.1, -1.0))
+    d = scene_dict(scene, env_rgb=1.0, reflectances={"a": np.ones(3)}, spp=1)
+    assert d["sensor"]["principal_point_offset_x"] == pytest.approx(0.5 - 20.8 / 48)
+    sensor = mi.load_dict(d["sensor"])
+    rng = np.random.default_rng(3)
+    xs, ys = rng.uniform(0, 48, 40), rng.uniform(0, 32, 40)
+    xs[:2], ys[:2] = (20.8, 0.0), (17.1, 0.0)  # the principal point; a corner
+    origin, ours = camera_rays(scene, xs, ys)
+    for x, y, want in zip(xs, ys, ours, strict=True):
+        ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(x / 48, y / 32), mi.Point2f(0.5, 0.5))
+        got = _as_vec(ray.d)
+        assert np.abs(got / np.linalg.norm(got) - want).max() < 2e-5
+        assert np.abs(np.cross(_as_vec(ray.o) - origin, want)).max() < 1e-6  # starts on it
+    cam = scene.camera
+    view = np.asarray(camera.look_at(np.asarray(cam.position, np.float32),
+                                     np.asarray(cam.look_at, np.float32),
+                                     np.asarray(cam.up, np.float32)), np.float64)
+    proj = _projection(scene, (32, 48)).astype(np.float64)
+    pts = origin + 0.5 * ours
+    clip = np.concatenate([pts, np.ones((len(pts), 1))], 1) @ (proj @ view).T
+    ndc = clip[:, :2] / clip[:, 3:]
+    np.testing.assert_allclose((ndc[:, 0] + 1) * 24, xs, atol=1e-3)
+    np.testing.assert_allclose((1 - ndc[:, 1]) * 16, ys, atol=1e-3)
+
+
+def test_intrinsics_silhouettes_match_our_camera_rays():
+    """Black spheres through the off-centre intrinsics camera: covered pixels are where our
+    camera rays hit them (the sensor of the exported scene, rendered)."""
+    objs = [sphere_obj("left", (-0.05, 0.02, -0.15), alpha=0.0),
+            sphere_obj("right", (0.06, -0.01, -0.15), alpha=0.0, radius=0.03)]
+    _check_silhouettes(_intrinsics_scene(objects=objs), spp=8)
 
 
 def test_generator_smoke_run(tmp_path):
@@ -415,9 +476,13 @@ def test_bad_input_is_a_clear_error(tmp_path):
     with pytest.raises(InputError, match="SPECTRAL_FIT_MI_VARIANT"):
         init_mitsuba(other)
     scene = small_scene(objects=[sphere_obj("a", (0, 0, -0.3))])
-    cam = scene.camera.__class__(intrinsics={"fx": 10.0, "fy": 10.0, "cx": 16.0, "cy": 16.0})
-    with pytest.raises(InputError, match="camera"):
-        scene_dict(scene.replace(camera=cam), env_rgb=1.0, reflectances={"a": np.ones(3)},
-                   spp=1)
+    for bad, field in (({"intrinsics": {"fx": 10.0, "fy": 12.0, "cx": 16.0, "cy": 16.0}},
+                        "camera.intrinsics"),
+                       ({"distortion": (0.1, 0.0, 0.0, 0.0, 0.0)}, "camera.distortion")):
+        cam = dataclasses.replace(scene.camera, **bad)
+        with pytest.raises(InputError) as e:
+            scene_dict(scene.replace(camera=cam), env_rgb=1.0, reflectances={"a": np.ones(3)},
+                       spp=1)
+        assert e.value.field == field and e.value.path == str(scene.path)
     with pytest.raises(InputError, match="environment"):
         render_spectral(scene, spp=1, environment=np.ones((4, 8, 5)))

@@ -15,7 +15,13 @@ knots is exact. (H + 1 rows at θ = πk/H, as DESIGN §6 suggests, misses the ro
 only close: ~1e-3 relative on smooth maps, more at sharp edges.) The map's rotation goes into
 the emitter's ``to_world`` (world-from-map, as ours).
 
-Unsupported here (raise :class:`InputError`): camera ``intrinsics`` / ``distortion``.
+Camera. ``fov_y_deg`` goes to Mitsuba's ``perspective`` sensor as its vertical field of view.
+``intrinsics`` (OpenCV fx, fy, cx, cy in pixels, pixel centres at integers) go to the same
+sensor: field of view 2·atan(H / 2fy) and the principal point as Mitsuba's
+``principal_point_offset_x/y`` (fractions of the film width/height, measured from the film's
+centre towards its left/top edge: 0.5 − (cx + ½)/W and 0.5 − (cy + ½)/H; checked against our
+rays in the tests). Unsupported (raise :class:`InputError`): non-square pixels (fx ≠ fy: the
+perspective sensor has one focal length) and lens ``distortion`` other than all zeros.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ __all__ = [
     "band_groups",
     "Crop",
     "scene_dict",
+    "sensor_optics",
 ]
 
 
@@ -113,11 +120,29 @@ class Crop:
     height: int
 
 
-def _check_camera(scene: Scene) -> None:
+def sensor_optics(scene: Scene) -> dict[str, float]:
+    """The projection of the scene's camera as Mitsuba ``perspective`` sensor properties
+    (``fov``, ``fov_axis`` and, for intrinsics, ``principal_point_offset_x/y``).
+
+    Raises:
+        InputError: non-square pixels (|fx − fy| > 1e-6·fy) or lens distortion (field
+            ``camera.intrinsics`` / ``camera.distortion``).
+    """
     cam = scene.camera
-    if cam.intrinsics is not None or cam.distortion is not None:
-        raise InputError("the reference renderer supports fov_y_deg cameras only (no "
-                         "intrinsics / distortion)", path=scene.path, field="camera")
+    if cam.distortion is not None and any(float(c) != 0.0 for c in cam.distortion):
+        raise InputError("the reference renderer has no lens distortion (pinhole cameras "
+                         "only)", path=scene.path, field="camera.distortion")
+    if cam.intrinsics is None:
+        return {"fov": float(cam.fov_y_deg), "fov_axis": "y"}
+    i = {k: float(v) for k, v in cam.intrinsics.items()}
+    if abs(i["fx"] - i["fy"]) > 1e-6 * i["fy"]:
+        raise InputError(f"the reference renderer needs square pixels (fx == fy), got fx = "
+                         f"{i['fx']:g}, fy = {i['fy']:g}", path=scene.path,
+                         field="camera.intrinsics")
+    w, h = scene.width, scene.height
+    return {"fov": math.degrees(2.0 * math.atan(0.5 * h / i["fy"])), "fov_axis": "y",
+            "principal_point_offset_x": 0.5 - (i["cx"] + 0.5) / w,
+            "principal_point_offset_y": 0.5 - (i["cy"] + 0.5) / h}
 
 
 def _mi_mesh(mi: Any, dr: Any, name: str, mesh: Any, bsdf: Any) -> Any:
@@ -169,7 +194,7 @@ def scene_dict(
     from .bsdf import PLUGIN
 
     mi, dr = init_mitsuba()
-    _check_camera(scene)
+    optics = sensor_optics(scene)
     cam = scene.camera
     film: dict[str, Any] = {"type": "hdrfilm", "width": scene.width, "height": scene.height,
                             "rfilter": {"type": "box"}, "pixel_format": "rgb",
@@ -182,8 +207,7 @@ def scene_dict(
         "integrator": {"type": "path", "max_depth": int(max_depth)},
         "sensor": {
             "type": "perspective",
-            "fov": float(cam.fov_y_deg),
-            "fov_axis": "y",
+            **optics,
             "near_clip": float(cam.near),
             "far_clip": float(cam.far),
             "to_world": mi.ScalarTransform4f().look_at(

@@ -163,14 +163,21 @@ def _view_matrix(position: tuple, look: tuple, up: tuple) -> np.ndarray:
 
 def camera_rays(scene: Scene, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World origin (3,) and unit directions (..., 3) through frame pixel coordinates (x, y)
-    (pixel centres at integer + 0.5, row 0 on top; DESIGN §3), from :func:`camera.look_at`."""
+    (pixel centres at integer + 0.5, row 0 on top; DESIGN §3), from :func:`camera.look_at`;
+    the vertical field of view, or the OpenCV intrinsics (principal point (cx + ½, cy + ½) in
+    these coordinates), of a pinhole (distortion is not applied)."""
     cam = scene.camera
     view = _view_matrix(tuple(cam.position), tuple(cam.look_at), tuple(cam.up))
-    t = math.tan(math.radians(cam.fov_y_deg) / 2.0)
-    aspect = scene.width / scene.height
-    xn = 2.0 * np.asarray(x, np.float64) / scene.width - 1.0
-    yn = 1.0 - 2.0 * np.asarray(y, np.float64) / scene.height
-    eye = np.stack(np.broadcast_arrays(xn * t * aspect, yn * t, -np.ones_like(xn)), -1)
+    x = np.asarray(x, np.float64)
+    y = np.asarray(y, np.float64)
+    if cam.intrinsics is None:
+        t = math.tan(math.radians(cam.fov_y_deg) / 2.0)
+        fx = fy = 0.5 * scene.height / t
+        px, py = 0.5 * scene.width, 0.5 * scene.height
+    else:
+        i = cam.intrinsics
+        fx, fy, px, py = i["fx"], i["fy"], i["cx"] + 0.5, i["cy"] + 0.5
+    eye = np.stack(np.broadcast_arrays((x - px) / fx, (py - y) / fy, -np.ones_like(x)), -1)
     d = eye @ view[:3, :3]  # rotᵀ · eye direction
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return np.asarray(cam.position, np.float64), d
