@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-__all__ = ["LAYOUT_VARIABLE", "on_accelerator", "materialise"]
+__all__ = ["LAYOUT_VARIABLE", "on_accelerator", "materialise", "materialise_each"]
 
 #: environment variable that overrides the layout: "auto" (default), "cpu", "accelerator"
 LAYOUT_VARIABLE = "SPECTRAL_FIT_LAYOUT"
@@ -76,3 +76,16 @@ def materialise(x: Any, *, cut: bool = False) -> Any:
         v = v.astype(jnp.float32)
     bits = jax.lax.bitcast_convert_type(v, jnp.int32)
     return jax.lax.cond((bits | 1) != 0, lambda a: a, jnp.zeros_like, x)
+
+
+def materialise_each(*xs: Any, cut: bool = False) -> list[Any]:
+    """:func:`materialise` of several arrays of one shape (...) at once: stacked on a new
+    leading axis (n, ...) and returned as its planes ``[p[0], ..., p[n − 1]]``. A stack on the
+    last axis instead (..., n) is a concatenate that XLA:CPU writes element by element,
+    switching between the n expressions at every element (not vectorised): five per-lookup
+    quantities of 16,384 lookups 190 → 105 µs with their consumer (in one process,
+    interleaved)."""
+    import jax.numpy as jnp
+
+    p = materialise(jnp.stack(xs, axis=0), cut=cut)
+    return [p[i] for i in range(len(xs))]

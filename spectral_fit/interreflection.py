@@ -77,7 +77,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .backend import materialise, on_accelerator
+from .backend import materialise, materialise_each, on_accelerator
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
@@ -634,8 +634,7 @@ def _env_blur(env: EnvironmentMap, dirs: jax.Array, sigma: jax.Array) -> jax.Arr
     lead = dirs.shape[:-1]
     d = _to_map_fast(env, dirs.reshape(-1, 3))
     u, v = fast_direction_to_uv(d)
-    uv = _materialise(jnp.stack([u, v], -1))
-    u, v = uv[:, 0], uv[:, 1]
+    u, v = materialise_each(u, v)
     lo, hi, w_hi, _ = _levels_for(env, jnp.broadcast_to(sigma, lead).reshape(-1))
     shapes = env.level_shapes
     idx, wts = [], []
@@ -643,10 +642,10 @@ def _env_blur(env: EnvironmentMap, dirs: jax.Array, sigma: jax.Array) -> jax.Arr
         hk = _select([np.int32(h) for h, _ in shapes], lev)
         wk = _select([np.int32(w) for _, w in shapes], lev)
         off = _select([np.int32(o) for o in env.level_offsets], lev)
-        i, w = _bilinear_taps(u, v, off, hk, wk)
+        i, w = _bilinear_taps(u, v, off, hk, wk, lead=True)
         idx.append(i)
-        wts.append(w * wl[:, None])
-    out = _taps_sum(env.atlas, jnp.concatenate(idx, -1), jnp.concatenate(wts, -1))
+        wts.append(w * wl)
+    out = _taps_sum(env.atlas, jnp.concatenate(idx, 0), jnp.concatenate(wts, 0), lead=True)
     return out.reshape(*lead, -1)
 
 
@@ -1107,9 +1106,9 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     texel = 2.0 * ext / g
     level = 0.5 * jnp.log2(1.0 + (half / texel) ** 2)  # ≈ log2 of the footprint, smooth
     # computed once (XLA would otherwise recompute them inside every consumer)
-    m = _materialise(jnp.stack([tx, ty, level, hit, rel[..., 0], rel[..., 1], rel[..., 2]],
-                               -1))
-    tx, ty, level, hit, rel = m[..., 0], m[..., 1], m[..., 2], m[..., 3], m[..., 4:]
+    tx, ty, level, hit, *rel = materialise_each(tx, ty, level, hit, rel[..., 0], rel[..., 1],
+                                                rel[..., 2])
+    rel = jnp.stack(rel, -1)
     idx, w = _mip_taps(jnp.broadcast_to(pair[:, None], tx.shape), tx, ty, level, g)
     # two atlases, each tap sum consumed whole by one contraction: XLA:CPU then fuses the
     # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all

@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .backend import materialise, on_accelerator
+from .backend import materialise, materialise_each, on_accelerator
 from .camera import eye_position, inverse_3x3, inverse_4x4
 from .dispatch import array_jit
 from .errors import InputError
@@ -994,7 +994,7 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     normalised; (u, v) by :func:`~spectral_fit.environment.fast_direction_to_uv`. Through a
     lens (``prep.pixel_rays``) each pixel's ray is looked up instead (rotated into the map
     frame)."""
-    from .environment import _bilinear_taps, _materialise, _taps_sum, fast_direction_to_uv
+    from .environment import _bilinear_taps, _taps_sum, fast_direction_to_uv
 
     env = prep.env
     hm, wm = env.texels.shape[:2]
@@ -1006,9 +1006,9 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
                          axis=-1)
     else:
         dmap = _pinhole_rays(prep, view, env.rotation)
-    uv = _materialise(jnp.stack(fast_direction_to_uv(dmap), axis=-1))
-    idx, wt = _bilinear_taps(uv[:, 0], uv[:, 1], jnp.int32(0), jnp.int32(hm), jnp.int32(wm))
-    return _taps_sum(flat, idx, wt)
+    u, v = materialise_each(*fast_direction_to_uv(dmap))
+    idx, wt = _bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm), lead=True)
+    return _taps_sum(flat, idx, wt, lead=True)
 
 
 def _pinhole_rays(prep: Prepared, view: jax.Array, rot: jax.Array) -> jax.Array:
