@@ -969,9 +969,12 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
                           "without interreflection", RuntimeWarning, stacklevel=4)
         return None, no
     geom = _ir_pass1(prep, geoms)
+    # paper mode's pass-1 textures shaded as the frame is: by the split sum in quality "fast"
+    split = ((prep.split_map, prep.split_settings)
+             if prep.ir_mode == "paper" and prep.split_map is not None else None)
     extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
                                  bounces=prep.ir_bounces, image_shape=prep.shape,
-                                 output=to_out)
+                                 output=to_out, split_sum=split)
     return extra, jnp.asarray(geom.overflow, bool)
 
 

@@ -280,6 +280,35 @@ def test_only_receivers_that_see_the_neighbour_change(mode, gather_geom, paper_g
     assert np.all(out[len(seen):] == 0.0)
 
 
+def test_paper_textures_by_the_split_sum_match_the_quadrature(paper_geom):
+    """Paper mode's pass-1 textures with ``split_sum`` (the frame's quality "fast") carry the
+    sender's gloss as the "render" quadrature does, within the split sum's error on a smooth
+    sky; the diffuse and mirror texels are the same code (equal with β = 0)."""
+    from spectral_fit.environment import SplitSum, SplitSumMap
+
+    texels = linear_env_texels([1.0, 0.8, 0.6], [0.5, 0.2, -0.1])
+    env = make_env(texels)
+    split = (SplitSumMap.from_environment(env, texels), SplitSum())
+    x, n = facing_points(C0, C1, [0.0, 8.0, 16.0], azimuths_deg=(30.0, 200.0))
+    rec = gbuffer(x, n, n.copy(), [0] * len(x), CAP)
+    mi = material(alpha=0.0, beta=0.0, gamma=1.0)
+
+    def both(mj):
+        return tuple(np.asarray(jax.jit(lambda s=s: interreflection_from(
+            paper_geom, [mi, mj], env, rec, split_sum=s))()) for s in (None, split))
+
+    quad, fast = both(material(alpha=0.3, beta=0.6, chi=0.2, mu=0.15,
+                               reflectance=(0.2, 0.6, 0.9)))
+    seen = np.abs(quad).max(axis=1) > 0
+    assert seen.sum() >= 4
+    assert np.abs(fast - quad).max() <= 0.03 * np.abs(quad).max()
+    # the gloss is most of it here (so the comparison above is of the gloss)
+    no_gloss, _ = both(material(alpha=0.3, beta=0.0, chi=0.2, reflectance=(0.2, 0.6, 0.9)))
+    assert np.abs(quad - no_gloss).max() > 0.3 * np.abs(quad).max()
+    a, b = both(material(alpha=0.3, beta=0.0, chi=0.2, reflectance=(0.2, 0.6, 0.9)))
+    np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-7)
+
+
 def test_paper_mode_matches_hand_built_eq6(paper_geom, linear_env):
     """Eq. (6) by hand at a few fragments: gluPerspective/lookAt in numpy, ray-cast the 4 texels
     around the projection onto the analytic sphere, T_d = α_j S_j E/π and T_s = χ_j F L(R) of
