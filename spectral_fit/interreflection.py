@@ -640,11 +640,17 @@ def _env_blur(env: EnvironmentMap, dirs: jax.Array, sigma: jax.Array) -> jax.Arr
     u, v = materialise_each(u, v)
     lo, hi, w_hi, _ = _levels_for(env, jnp.broadcast_to(sigma, lead).reshape(-1))
     shapes = env.level_shapes
+    levels = []
+    for lev in (lo, hi):
+        levels += [_select([np.int32(h) for h, _ in shapes], lev),
+                   _select([np.int32(w) for _, w in shapes], lev),
+                   _select([np.int32(o) for o in env.level_offsets], lev)]
+    # computed once per lookup: fused into the taps, the select chains ran once per tap and
+    # per index/weight array (benchmark frame −5 %, close-up −3.5 %, in-process interleaved)
+    levels = materialise_each(*levels)
     idx, wts = [], []
-    for lev, wl in ((lo, 1.0 - w_hi), (hi, w_hi)):
-        hk = _select([np.int32(h) for h, _ in shapes], lev)
-        wk = _select([np.int32(w) for _, w in shapes], lev)
-        off = _select([np.int32(o) for o in env.level_offsets], lev)
+    for k, wl in ((0, 1.0 - w_hi), (1, w_hi)):
+        hk, wk, off = levels[3 * k:3 * k + 3]
         i, w = _bilinear_taps(u, v, off, hk, wk, lead=True)
         idx.append(i)
         wts.append(w * wl)
