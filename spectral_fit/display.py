@@ -31,7 +31,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Display", "DisplayImage", "to_display", "encode", "decode", "fit_display_csv"]
+__all__ = ["Display", "DisplayImage", "to_display", "display_linear", "gamut_fractions", "encode",
+           "decode", "fit_display_csv"]
 
 TONE_CURVES = ("srgb", "gamma", "linear")
 
@@ -186,6 +187,44 @@ def _adaptation_matrix(scene_white_xy: Any, display: Display) -> np.ndarray:
         src, dst, transform="CAT02"))
 
 
+def display_linear(
+    xyz: Any,
+    *,
+    exposure_luminance: float | Any,
+    display: Display | None = None,
+    scene_white_xy: Any | None = None,
+) -> Any:
+    """XYZ (..., 3) → the display's linear RGB (..., 3) after the black-level correction,
+    before clipping: the first half of :func:`to_display` (same arguments)."""
+    display = display or Display.srgb()
+    xp = _xp(xyz)
+    M = display.xyz_to_rgb
+    if scene_white_xy is not None:
+        M = M @ _adaptation_matrix(scene_white_xy, display)
+    rel = xyz / exposure_luminance
+    Mt = xp.asarray(M.T, dtype=getattr(xyz, "dtype", np.float64))
+    # rel @ Mt by components (a (..., 3) @ (3, 3) product is a slow loop on XLA:CPU)
+    target = rel[..., 0:1] * Mt[0] + rel[..., 1:2] * Mt[1] + rel[..., 2:3] * Mt[2]
+    b = display.black_level
+    return (target - b) / (1.0 - b)
+
+
+def gamut_fractions(linear: Any, mask: Any | None = None, *, tol: float = 1e-4
+                    ) -> tuple[Any, Any, Any]:
+    """Fractions of (masked) pixels of linear RGB (..., 3) outside [0, 1]: (any channel
+    outside, a channel < −tol, a channel > 1 + tol); ``mask`` (...,) bool (default all).
+    The last three fields of :class:`DisplayImage`."""
+    xp = _xp(linear)
+    below = xp.any(linear < -tol, axis=-1)
+    above = xp.any(linear > 1.0 + tol, axis=-1)
+    oog = below | above
+    if mask is None:
+        return tuple(xp.mean(v.astype(xp.float32)) for v in (oog, below, above))
+    m = xp.asarray(mask).astype(xp.float32)
+    n = xp.maximum(m.sum(), 1.0)
+    return tuple((v.astype(xp.float32) * m).sum() / n for v in (oog, below, above))
+
+
 def to_display(
     xyz: Any,
     *,
@@ -206,29 +245,13 @@ def to_display(
         mask: optional (...,) boolean; the gamut fractions count masked pixels only.
         tol: tolerance for counting a channel as outside [0, 1].
 
-    Works under ``jax.jit`` when ``xyz`` is a JAX array.
+    Works under ``jax.jit`` when ``xyz`` is a JAX array. :func:`display_linear`,
+    :func:`gamut_fractions` and :func:`encode` are its three steps.
     """
     display = display or Display.srgb()
-    xp = _xp(xyz)
-    M = display.xyz_to_rgb
-    if scene_white_xy is not None:
-        M = M @ _adaptation_matrix(scene_white_xy, display)
-    rel = xyz / exposure_luminance
-    Mt = xp.asarray(M.T, dtype=getattr(xyz, "dtype", np.float64))
-    # rel @ Mt by components (a (..., 3) @ (3, 3) product is a slow loop on XLA:CPU)
-    target = rel[..., 0:1] * Mt[0] + rel[..., 1:2] * Mt[1] + rel[..., 2:3] * Mt[2]
-    b = display.black_level
-    linear = (target - b) / (1.0 - b)
-    below = xp.any(linear < -tol, axis=-1)
-    above = xp.any(linear > 1.0 + tol, axis=-1)
-    oog = below | above
-    if mask is None:
-        frac = [xp.mean(v.astype(xp.float32)) for v in (oog, below, above)]
-    else:
-        m = xp.asarray(mask).astype(xp.float32)
-        n = xp.maximum(m.sum(), 1.0)
-        frac = [(v.astype(xp.float32) * m).sum() / n for v in (oog, below, above)]
-    return DisplayImage(encode(linear, display), linear, *frac)
+    linear = display_linear(xyz, exposure_luminance=exposure_luminance, display=display,
+                            scene_white_xy=scene_white_xy)
+    return DisplayImage(encode(linear, display), linear, *gamut_fractions(linear, mask, tol=tol))
 
 
 def fit_display_csv(path: str | os.PathLike[str], *, name: str | None = None) -> Display:

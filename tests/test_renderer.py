@@ -61,6 +61,29 @@ def test_frame_fields(prep, frame):
     assert np.all(y[np.asarray(frame.mask)] > 0)
 
 
+@pytest.mark.parametrize("scale", [1.0, 0.25])
+def test_display_stats_over_the_covered_slots_equal_to_display_on_the_image(prep, frame, scale):
+    """The frame's gamut fractions come from the covered pixels' slots, its rgb / linear_rgb
+    from the image: both equal display.to_display on the frame's XYZ with its mask (a second
+    route through the image), also with a quarter of the exposure (pixels overexposed)."""
+    import dataclasses
+
+    from spectral_fit.display import to_display
+    from spectral_fit.renderer import render_frame
+
+    p = dataclasses.replace(prep, exposure=prep.exposure * scale)
+    f = frame if scale == 1.0 else render_frame(p)
+    ref = to_display(np.asarray(f.xyz, np.float64), exposure_luminance=float(p.exposure),
+                     display=p.display, scene_white_xy=p.scene_white_xy,
+                     mask=np.asarray(f.mask))
+    for k in ("out_of_gamut_fraction", "below_zero_fraction", "overexposed_fraction"):
+        assert float(f.stats[k]) == pytest.approx(float(getattr(ref, k)), abs=1.5 / f.mask.sum())
+    if scale != 1.0:
+        assert float(f.stats["overexposed_fraction"]) > 0.2
+    np.testing.assert_allclose(np.asarray(f.linear_rgb), ref.linear, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(f.rgb), ref.rgb, atol=2e-6)
+
+
 def test_background_is_the_environment_seen_by_the_camera(prep, frame):
     from spectral_fit.environment import lookup
 
