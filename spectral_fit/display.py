@@ -201,12 +201,14 @@ def display_linear(
     M = display.xyz_to_rgb
     if scene_white_xy is not None:
         M = M @ _adaptation_matrix(scene_white_xy, display)
-    rel = xyz / exposure_luminance
-    Mt = xp.asarray(M.T, dtype=getattr(xyz, "dtype", np.float64))
-    # rel @ Mt by components (a (..., 3) @ (3, 3) product is a slow loop on XLA:CPU)
-    target = rel[..., 0:1] * Mt[0] + rel[..., 1:2] * Mt[1] + rel[..., 2:3] * Mt[2]
     b = display.black_level
-    return (target - b) / (1.0 - b)
+    # ((xyz / exposure) @ M.T − b) / (1 − b) with the scale folded into the 3 × 3 matrix (one
+    # pass over the image instead of a division pass before the product), by components (a
+    # (..., 3) @ (3, 3) product is a slow loop on XLA:CPU)
+    dtype = getattr(xyz, "dtype", np.float64)
+    Mt = xp.asarray(M.T, dtype=dtype) * (1.0 / (exposure_luminance * (1.0 - b)))
+    target = xyz[..., 0:1] * Mt[0] + xyz[..., 1:2] * Mt[1] + xyz[..., 2:3] * Mt[2]
+    return target - b / (1.0 - b) if b else target
 
 
 def gamut_fractions(linear: Any, mask: Any | None = None, *, tol: float = 1e-4
