@@ -24,6 +24,7 @@ Everything in :func:`to_display` works on NumPy arrays and, unchanged, on JAX ar
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from typing import Any, NamedTuple
 
@@ -149,7 +150,8 @@ class DisplayImage(NamedTuple):
 def encode(linear: Any, display: Display | None = None) -> Any:
     """Apply the display's inverse tone curve: linear [0, 1] → drive values [0, 1].
 
-    sRGB: IEC 61966-2-1 (v = 12.92 L for L ≤ 0.0031308, else 1.055 L^(1/2.4) − 0.055).
+    sRGB: IEC 61966-2-1 (v = 12.92 L for L ≤ 0.0031308, else 1.055 L^(1/2.4) − 0.055);
+    on JAX arrays L^(1/2.4) is :func:`_pow_5_12` (within 1.5e-7 of the exact curve).
     Inputs are clipped to [0, 1] first; the gradient is finite everywhere.
     """
     display = display or Display.srgb()
@@ -161,8 +163,61 @@ def encode(linear: Any, display: Display | None = None) -> Any:
         safe = xp.maximum(x, 1e-12)
         return xp.where(x > 0, safe ** (1.0 / display.gamma), 0.0)
     safe = xp.maximum(x, 0.0031308)
-    # L^(1/2.4) as exp(log L / 2.4): XLA:CPU vectorises exp and log, not pow (~8× faster)
-    return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * xp.exp(xp.log(safe) / 2.4) - 0.055)
+    power = _pow_5_12(safe) if xp is not np else safe ** (1.0 / 2.4)
+    return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * power - 0.055)
+
+
+@functools.cache
+def _pow_5_12_table() -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The coefficients (monomials in t = 2m − 3) of the degree-7 Chebyshev least-squares fit
+    of m^(5/12) on m ∈ [1, 2] (relative error 8e-8), and 2^(5e/12) for e = −9 … 0."""
+    t = np.cos(np.pi * (np.arange(4000) + 0.5) / 4000)
+    fit = np.polynomial.chebyshev.chebfit(t, ((t + 3.0) / 2.0) ** (5.0 / 12.0), 7)
+    coef = tuple(float(v) for v in np.polynomial.chebyshev.cheb2poly(fit))
+    return coef, tuple(2.0 ** (5.0 * e / 12.0) for e in range(-9, 1))
+
+
+def _pow_5_12(x: Any) -> Any:
+    """x^(5/12) = x^(1/2.4) of float32 JAX x ∈ [2^-9, 1] (the sRGB encoding's range,
+    x ≥ 0.0031308): x = m·2^e from the float's bits, m^(5/12) by a degree-7 polynomial
+    (:func:`_pow_5_12_table`), 2^(5e/12) from a table of the 10 exponents (a chain of
+    selects); within 1.5e-7 of the exact sRGB encoding, as exp(log x / 2.4) is. On XLA:CPU
+    exp and log cost ~2.5× as much (the benchmark frame's 1,036,800 values 0.77 → 0.44 ms).
+    Differentiable: d/dx = (5/12)·x^(5/12)/x."""
+    return _pow_5_12_fn()(x)
+
+
+@functools.cache
+def _pow_5_12_fn() -> Any:
+    import jax
+
+    f = jax.custom_jvp(_pow_5_12_impl)
+
+    @f.defjvp
+    def _jvp(primals: Any, tangents: Any) -> Any:
+        (x,), (dx,) = primals, tangents
+        y = _pow_5_12_impl(x)
+        return y, dx * (5.0 / 12.0) * y / x
+
+    return f
+
+
+def _pow_5_12_impl(x: Any) -> Any:
+    import jax
+    import jax.numpy as jnp
+
+    coef, powers = _pow_5_12_table()
+    bits = jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.int32)
+    e = (bits >> 23) - 127
+    m = jax.lax.bitcast_convert_type((bits & 0x7FFFFF) | 0x3F800000, jnp.float32)
+    t = 2.0 * m - 3.0
+    poly = jnp.float32(coef[-1])
+    for a in coef[-2::-1]:
+        poly = poly * t + jnp.float32(a)
+    scale = jnp.full(x.shape, jnp.float32(powers[0]))
+    for k in range(1, len(powers)):
+        scale = jnp.where(e == k - 9, jnp.float32(powers[k]), scale)
+    return (scale * poly).astype(x.dtype)
 
 
 def decode(drive: Any, display: Display | None = None) -> Any:

@@ -18,6 +18,24 @@ def test_srgb_curve_matches_iec_61966_2_1_in_colour():
     np.testing.assert_allclose(decode(encode(x, g), g), x, atol=1e-12)
 
 
+def test_srgb_encoding_of_jax_arrays_matches_iec_61966_2_1_and_its_derivative():
+    """The JAX path's x^(1/2.4) (float bits + a degree-7 polynomial, not exp/log) against
+    colour's IEC 61966-2-1 encoding on a dense grid, every power of two of its range and the
+    segment join; its gradient against the closed form d/dx 1.055 x^(1/2.4)."""
+    pow2 = np.float32(2.0) ** -np.arange(10.0, dtype=np.float32)
+    below = np.nextafter(pow2, np.float32(0.0))  # the largest mantissa of the binade below
+    x = np.concatenate([np.linspace(0.0, 1.0, 200_001), np.geomspace(1e-5, 1.0, 20_001),
+                        pow2, below, [0.0031308, 0.0031309]]).astype(np.float32)
+    want = colour.models.eotf_inverse_sRGB(x.astype(np.float64))
+    got = np.asarray(jax.jit(encode)(jnp.asarray(x)), np.float64)
+    assert np.abs(got - want).max() < 2e-7
+    xs = np.array([0.001, 0.0031309, 0.01, 0.2, 0.5, 0.9], np.float32)
+    g = np.asarray(jax.grad(lambda a: encode(a).sum())(jnp.asarray(xs)))
+    d = xs.astype(np.float64)
+    want_g = np.where(d <= 0.0031308, 12.92, 1.055 / 2.4 * d ** (1.0 / 2.4 - 1.0))
+    np.testing.assert_allclose(g, want_g, rtol=2e-6)
+
+
 def test_white_and_primaries_map_to_display_corners():
     d = Display.srgb()
     white = colour.xy_to_XYZ(d.white_xy) * 250.0  # a 250 cd/m² white shown at exposure 250
