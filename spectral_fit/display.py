@@ -151,7 +151,7 @@ def encode(linear: Any, display: Display | None = None) -> Any:
     """Apply the display's inverse tone curve: linear [0, 1] → drive values [0, 1].
 
     sRGB: IEC 61966-2-1 (v = 12.92 L for L ≤ 0.0031308, else 1.055 L^(1/2.4) − 0.055);
-    on JAX arrays L^(1/2.4) is :func:`_pow_5_12` (within 1.5e-7 of the exact curve).
+    on float32 JAX arrays L^(1/2.4) is :func:`_pow_5_12` (within 1.5e-7 of the exact curve).
     Inputs are clipped to [0, 1] first; the gradient is finite everywhere.
     """
     display = display or Display.srgb()
@@ -163,7 +163,12 @@ def encode(linear: Any, display: Display | None = None) -> Any:
         safe = xp.maximum(x, 1e-12)
         return xp.where(x > 0, safe ** (1.0 / display.gamma), 0.0)
     safe = xp.maximum(x, 0.0031308)
-    power = _pow_5_12(safe) if xp is not np else safe ** (1.0 / 2.4)
+    if xp is np:
+        power = safe ** (1.0 / 2.4)
+    elif safe.dtype == xp.float32:
+        power = _pow_5_12(safe)
+    else:  # float64 (JAX's x64 mode): exp(log L / 2.4), which XLA:CPU vectorises (not pow)
+        power = xp.exp(xp.log(safe) / 2.4)
     return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * power - 0.055)
 
 

@@ -21,7 +21,8 @@ def test_srgb_curve_matches_iec_61966_2_1_in_colour():
 def test_srgb_encoding_of_jax_arrays_matches_iec_61966_2_1_and_its_derivative():
     """The JAX path's x^(1/2.4) (float bits + a degree-7 polynomial, not exp/log) against
     colour's IEC 61966-2-1 encoding on a dense grid, every power of two of its range and the
-    segment join; its gradient against the closed form d/dx 1.055 x^(1/2.4)."""
+    segment join; its gradient against the closed form d/dx 1.055 x^(1/2.4); float64 arrays
+    (x64 mode) exact."""
     pow2 = np.float32(2.0) ** -np.arange(10.0, dtype=np.float32)
     below = np.nextafter(pow2, np.float32(0.0))  # the largest mantissa of the binade below
     x = np.concatenate([np.linspace(0.0, 1.0, 200_001), np.geomspace(1e-5, 1.0, 20_001),
@@ -34,6 +35,11 @@ def test_srgb_encoding_of_jax_arrays_matches_iec_61966_2_1_and_its_derivative():
     d = xs.astype(np.float64)
     want_g = np.where(d <= 0.0031308, 12.92, 1.055 / 2.4 * d ** (1.0 / 2.4 - 1.0))
     np.testing.assert_allclose(g, want_g, rtol=2e-6)
+    with jax.enable_x64(True):  # float64 arrays keep the exact power
+        x64 = np.linspace(0.0, 1.0, 10_001)
+        got64 = np.asarray(jax.jit(encode)(jnp.asarray(x64, jnp.float64)))
+        assert got64.dtype == np.float64
+        np.testing.assert_allclose(got64, colour.models.eotf_inverse_sRGB(x64), atol=1e-12)
 
 
 def test_white_and_primaries_map_to_display_corners():
