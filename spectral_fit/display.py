@@ -165,8 +165,9 @@ def encode(linear: Any, display: Display | None = None) -> Any:
     safe = xp.maximum(x, 0.0031308)
     if xp is np:
         power = safe ** (1.0 / 2.4)
-    elif safe.dtype == xp.float32:
-        power = _pow_5_12(safe)
+    elif safe.dtype == xp.float32:  # ≤ 1 also where the polynomial rounds up next to L = 1
+        return xp.where(x <= 0.0031308, 12.92 * x,
+                        xp.minimum(1.055 * _pow_5_12(safe) - 0.055, 1.0))
     else:  # float64 (JAX's x64 mode): exp(log L / 2.4), which XLA:CPU vectorises (not pow)
         power = xp.exp(xp.log(safe) / 2.4)
     return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * power - 0.055)

@@ -30,6 +30,8 @@ def test_srgb_encoding_of_jax_arrays_matches_iec_61966_2_1_and_its_derivative():
     want = colour.models.eotf_inverse_sRGB(x.astype(np.float64))
     got = np.asarray(jax.jit(encode)(jnp.asarray(x)), np.float64)
     assert np.abs(got - want).max() < 2e-7
+    assert got.min() >= 0.0 and got.max() <= 1.0  # drive values stay in range
+    assert float(jax.jit(encode)(jnp.float32(1.5))) <= 1.0
     xs = np.array([0.001, 0.0031309, 0.01, 0.2, 0.5, 0.9], np.float32)
     g = np.asarray(jax.grad(lambda a: encode(a).sum())(jnp.asarray(xs)))
     d = xs.astype(np.float64)
