@@ -165,9 +165,8 @@ def encode(linear: Any, display: Display | None = None) -> Any:
     safe = xp.maximum(x, 0.0031308)
     if xp is np:
         power = safe ** (1.0 / 2.4)
-    elif safe.dtype == xp.float32:  # ≤ 1 also where the polynomial rounds up next to L = 1
-        return xp.where(x <= 0.0031308, 12.92 * x,
-                        xp.minimum(1.055 * _pow_5_12(safe) - 0.055, 1.0))
+    elif safe.dtype == xp.float32:
+        power = _pow_5_12(safe)
     else:  # float64 (JAX's x64 mode): exp(log L / 2.4), which XLA:CPU vectorises (not pow)
         power = xp.exp(xp.log(safe) / 2.4)
     return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * power - 0.055)
@@ -187,8 +186,9 @@ def _pow_5_12(x: Any) -> Any:
     """x^(5/12) = x^(1/2.4) of float32 JAX x ∈ [2^-9, 1] (the sRGB encoding's range,
     x ≥ 0.0031308): x = m·2^e from the float's bits, m^(5/12) by a degree-7 polynomial
     (:func:`_pow_5_12_table`), 2^(5e/12) from a table of the 10 exponents (a chain of
-    selects); within 1.5e-7 of the exact sRGB encoding, as exp(log x / 2.4) is. On XLA:CPU
-    exp and log cost ~2.5× as much (the benchmark frame's 1,036,800 values 0.77 → 0.44 ms).
+    selects); within 1.5e-7 of the exact sRGB encoding, as exp(log x / 2.4) is, and ≤ 1 as
+    x^(5/12) is (the polynomial rounds up to 1 + 1e-7 next to x = 1). On XLA:CPU exp and log
+    cost ~2.5× as much (the benchmark frame's 1,036,800 values 0.77 → 0.44 ms).
     Differentiable: d/dx = (5/12)·x^(5/12)/x."""
     return _pow_5_12_fn()(x)
 
@@ -213,7 +213,7 @@ def _pow_5_12_impl(x: Any) -> Any:
     import jax.numpy as jnp
 
     coef, powers = _pow_5_12_table()
-    bits = jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.int32)
+    bits = jax.lax.bitcast_convert_type(x, jnp.int32)
     e = (bits >> 23) - 127
     m = jax.lax.bitcast_convert_type((bits & 0x7FFFFF) | 0x3F800000, jnp.float32)
     t = 2.0 * m - 3.0
@@ -223,7 +223,7 @@ def _pow_5_12_impl(x: Any) -> Any:
     scale = jnp.full(x.shape, jnp.float32(powers[0]))
     for k in range(1, len(powers)):
         scale = jnp.where(e == k - 9, jnp.float32(powers[k]), scale)
-    return (scale * poly).astype(x.dtype)
+    return jnp.minimum(scale * poly, 1.0)
 
 
 def decode(drive: Any, display: Display | None = None) -> Any:
