@@ -1042,9 +1042,8 @@ def _pinhole_ray_components(prep: Prepared, view: jax.Array, rot: jax.Array
     a = [(cols[0][i] - eye[i] * wx) for i in range(3)]
     b = [(cols[1][i] - eye[i] * wy) for i in range(3)]
     c = [(cols[2][i] - eye[i] * w1) for i in range(3)]
-    am = [a[0] * rot[0, j] + a[1] * rot[1, j] + a[2] * rot[2, j] for j in range(3)]
-    bm = [b[0] * rot[0, j] + b[1] * rot[1, j] + b[2] * rot[2, j] for j in range(3)]
-    cm = [c[0] * rot[0, j] + c[1] * rot[1, j] + c[2] * rot[2, j] for j in range(3)]
+    am, bm, cm = ([v[0] * rot[0, j] + v[1] * rot[1, j] + v[2] * rot[2, j] for j in range(3)]
+                  for v in (a, b, c))
     # scaled to ~unit length at the centre ray (the uv's pole guard assumes unit-ish rays)
     s = jax.lax.rsqrt(cm[0] * cm[0] + cm[1] * cm[1] + cm[2] * cm[2]) * jnp.sign(w1)
     xs = 2.0 * (jnp.arange(w, dtype=jnp.float32) + 0.5) / w - 1.0
