@@ -21,7 +21,8 @@ from __future__ import annotations
 import os
 from typing import Any
 
-__all__ = ["LAYOUT_VARIABLE", "on_accelerator", "materialise", "materialise_each"]
+__all__ = ["LAYOUT_VARIABLE", "on_accelerator", "materialise", "materialise_each",
+           "prefix_chunks"]
 
 #: environment variable that overrides the layout: "auto" (default), "cpu", "accelerator"
 LAYOUT_VARIABLE = "SPECTRAL_FIT_LAYOUT"
@@ -89,3 +90,49 @@ def materialise_each(*xs: Any, cut: bool = False) -> list[Any]:
 
     p = materialise(jnp.stack(xs, axis=0), cut=cut)
     return [p[i] for i in range(len(xs))]
+
+
+def prefix_chunks(fn: Any, count: Any, arrays: Any, *, size: int) -> Any:
+    """``fn`` over consecutive chunks of ``size`` items of ``arrays`` (a sequence of arrays
+    with a common leading axis N), skipping the chunks that start at or after ``count`` (a
+    traced int: the items that matter come first). Their results are zeros (False, 0) of
+    ``fn``'s output structure.
+
+    CPU layout: a ``lax.map`` over the chunks with a ``lax.cond`` per chunk, so the cost
+    follows ``count`` rather than N (to within one chunk), and a chunk's intermediates stay
+    in cache. Accelerator layout (:func:`on_accelerator`): ``fn`` on all N items at once.
+
+    Args:
+        fn: items (size, ...) of each array → a pytree of arrays (size, ...).
+        count: () int32, the number of leading items that matter.
+        arrays: the items, each (N, ...).
+        size: items per chunk (static).
+
+    Returns:
+        ``fn``'s pytree with leading axis N.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    arrays = list(arrays)
+    n = arrays[0].shape[0]
+    if on_accelerator() or n <= size:
+        return fn(*arrays)
+    nc = -(-n // size)
+    pad = nc * size - n
+    if pad:
+        arrays = [jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))])
+                  for a in arrays]
+    chunks = [a.reshape(nc, size, *a.shape[1:]) for a in arrays]
+    shapes = jax.eval_shape(fn, *[jax.ShapeDtypeStruct(c.shape[1:], c.dtype) for c in chunks])
+    count = jnp.asarray(count, jnp.int32)
+
+    def zeros(*_: Any) -> Any:
+        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+    def body(x: tuple[Any, ...]) -> Any:
+        start, *chunk = x
+        return jax.lax.cond(start < count, fn, zeros, *chunk)
+
+    out = jax.lax.map(body, (jnp.arange(nc, dtype=jnp.int32) * size, *chunks))
+    return jax.tree.map(lambda o: o.reshape(nc * size, *o.shape[2:])[:n], out)

@@ -77,7 +77,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .backend import materialise, materialise_each, on_accelerator
+from .backend import materialise, materialise_each, on_accelerator, prefix_chunks
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
@@ -1002,9 +1002,33 @@ def _sphere_form_factor(pos: jax.Array, nrm: jax.Array, centre: jax.Array, radiu
     return sin2 * jnp.where(cos_t >= sin_a, cos_t, jnp.where(cos_t > -sin_a, part, 0.0))
 
 
-def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.Array,
-                     obj: jax.Array) -> jax.Array:
-    """The samples' diffuse net light (P, M, C) at receivers on the samples' objects (N, C).
+def _net_tables(geom: IRGeometry, net: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The two tables :func:`_interpolate_net` interpolates, from the samples' diffuse net
+    light ``net`` (P, M, C): net × coverage (P·(g + 2)², C) and coverage × the form factor of
+    the neighbour's bounding sphere (P·(g + 2)², 1), each pair's g × g grid with a border of
+    zeros (made once per frame, not per chunk of receivers)."""
+    g = geom.gather_size
+    p_count = net.shape[0]
+    # pair q = (j, i) holds samples on i; the sphere they look at is j's (centre_i[q])
+    ff_s = _sphere_form_factor(geom.s_pos, geom.s_nrm, geom.centre_i[:, None],
+                               geom.radius_i[:, None])
+    cov = geom.s_cov * (geom.s_area > 0)
+
+    # Σ w cov F_s (net_s/F_s) / Σ w cov F_s
+    def table(x: jax.Array) -> jax.Array:
+        x = x.reshape(p_count, g, g, x.shape[-1])
+        return jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, x.shape[-1])
+
+    # two tables, each tap sum consumed whole (slicing one (N, C + 1) tap sum made XLA gather
+    # every tap of every channel into memory first)
+    return table(net * cov[..., None]), table((cov * ff_s)[..., None])
+
+
+def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nrm: jax.Array,
+                     obj: jax.Array, tables: tuple[jax.Array, jax.Array] | None = None
+                     ) -> jax.Array:
+    """The samples' diffuse net light (P, M, C) at receivers on the samples' objects (N, C)
+    (``tables``: :func:`_net_tables` of ``net``, when made already).
 
     For each neighbour j of the receiver's object i, the receiver is projected orthographically
     along j → i onto the g × g samples of i that face j (pair (j, i)); there the ratio of the
@@ -1016,23 +1040,12 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array, pos: jax.Array, nrm: jax.
     neighbours)."""
     g = geom.gather_size
     k_per = geom.n_objects - 1
-    p_count, m_count, c = net.shape
-    # pair q = (j, i) holds samples on i; the sphere they look at is j's (centre_i[q])
-    ff_s = _sphere_form_factor(geom.s_pos, geom.s_nrm, geom.centre_i[:, None],
-                               geom.radius_i[:, None])
-    cov = geom.s_cov * (geom.s_area > 0)
-    # Σ w cov F_s (net_s/F_s) / Σ w cov F_s
-    def table(x: jax.Array) -> jax.Array:
-        x = x.reshape(p_count, g, g, x.shape[-1])
-        return jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, x.shape[-1])
-
-    # two tables, each tap sum consumed whole (slicing one (N, C + 1) tap sum made XLA gather
-    # every tap of every channel into memory first)
-    tex, tex_w = table(net * cov[..., None]), table((cov * ff_s)[..., None])
+    tex, tex_w = _net_tables(geom, net) if tables is None else tables
+    c = tex.shape[-1]
     rev = jnp.asarray(_reverse_pairs(geom.n_objects))
     o = jnp.maximum(obj, 0)
-    acc = jnp.zeros((pos.shape[0], c), net.dtype)
-    wsum = jnp.zeros((pos.shape[0],), net.dtype)
+    acc = jnp.zeros((pos.shape[0], c), tex.dtype)
+    wsum = jnp.zeros((pos.shape[0],), tex.dtype)
     for k in range(k_per):
         q = rev[o * k_per + k]  # pair (j, i): samples on i facing j
         fr = geom.frame[q]
@@ -1177,8 +1190,20 @@ _GLOSS_ACCEL_CHUNK = 65536
 _LOBE_REACH = 5.0
 
 
+def _pixel_slots(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int]) -> jax.Array:
+    """(H·W,) int32: the receiver index of each pixel of the image ``shape`` (H, W), −1 where
+    no receiver (``pixel`` (N,) flat index row·W + column, −1 = not a pixel; ``obj`` (N,),
+    −1 = empty)."""
+    h, w = shape
+    n = pixel.shape[0]
+    ok = (pixel >= 0) & (obj >= 0)
+    return jnp.full((h * w,), -1, jnp.int32).at[jnp.where(ok, pixel, h * w)].set(
+        jnp.arange(n, dtype=jnp.int32), mode="drop")
+
+
 def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], step: int,
-                   pos: jax.Array, refl: jax.Array, gap: jax.Array, width: jax.Array
+                   pos: jax.Array, refl: jax.Array, gap: jax.Array, width: jax.Array,
+                   at: tuple[jax.Array, ...] | None = None
                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Screen-space subsampling of receivers that are pixels of one image (``pixel`` (N,) flat
     index row·W + column, −1 = not a pixel; ``shape`` (H, W)): the anchors are the pixels
@@ -1192,12 +1217,16 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
     (N,) (distance to the nearest neighbour's bounding sphere) above ``_GLOSS_SMOOTH`` ×
     ``width`` (N,) (the lobe's angular width), e.g. near a sphere's silhouette where the normal
     turns fast from pixel to pixel. Returns ``own`` and, for the others, the anchors' receiver
-    indices (N, 4) and bilinear weights (N, 4)."""
+    indices (N, 4) and bilinear weights (N, 4).
+
+    ``at`` = (slots, pos, refl, obj) of all receivers (:func:`_pixel_slots` and their (M, 3),
+    (M, 3), (M,) arrays) when the N receivers here are a part of them (a chunk): the anchors
+    are looked up there and their indices are into those M; default: these N themselves."""
     h, w = shape
-    n = pixel.shape[0]
     ok = (pixel >= 0) & (obj >= 0)
-    slot = jnp.full((h * w,), -1, jnp.int32).at[jnp.where(ok, pixel, h * w)].set(
-        jnp.arange(n, dtype=jnp.int32), mode="drop")
+    if at is None:
+        at = (_pixel_slots(pixel, obj, shape), pos, refl, obj)
+    slot, pos_all, refl_all, obj_all = at
     row, col = jnp.divmod(jnp.maximum(pixel, 0), w)
     r0, c0 = row - row % step, col - col % step
     fy = (row % step).astype(jnp.float32) / step
@@ -1209,9 +1238,9 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
         inside = (r < h) & (cc < w)
         a = jnp.where(inside, slot[jnp.where(inside, r * w + cc, 0)], -1)
         am = jnp.maximum(a, 0)
-        change = (jnp.sqrt(_dot3(refl[am] - refl, refl[am] - refl))
-                  + jnp.sqrt(_dot3(pos[am] - pos, pos[am] - pos)) / gap)
-        goods.append((a >= 0) & (obj[am] == obj) & (change <= _GLOSS_SMOOTH * width))
+        d_refl, d_pos = refl_all[am] - refl, pos_all[am] - pos
+        change = jnp.sqrt(_dot3(d_refl, d_refl)) + jnp.sqrt(_dot3(d_pos, d_pos)) / gap
+        goods.append((a >= 0) & (obj_all[am] == obj) & (change <= _GLOSS_SMOOTH * width))
         idx.append(am)
         wks.append(wk)
     # the four tests computed once into memory (N, 4): fused into the consumers, XLA:CPU
@@ -1251,10 +1280,23 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     the quadrature runs at every ``step``-th row and column only (:func:`_image_anchors`) and
     the pixels between are interpolated bilinearly (the gloss interreflection is a blurred
     image of the neighbour: smooth at the pixel scale)."""
+    active, gap, refl = _lobe_reach(geom, sh, pos, nrm, view, obj)
+    if grid is None:
+        return _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active)
+    own, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl, gap,
+                                     math.sqrt(2.0) * sh.mats["mu"][jnp.maximum(obj, 0)])
+    res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active & own)
+    return jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
+
+
+def _lobe_reach(geom: IRGeometry, sh: _Shading, pos: jax.Array, nrm: jax.Array,
+                view: jax.Array, obj: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Which receivers' gloss lobes can reach a neighbour (their mirror direction within the
+    neighbour's angular radius plus ``_LOBE_REACH`` lobe widths; N·V > 0): ``active`` (N,)
+    bool, the distance ``gap`` (N,) to the nearest neighbour's bounding sphere, and the mirror
+    directions ``refl`` (N, 3)."""
     k_per = geom.n_objects - 1
-    c = sh.channels
     mats = sh.mats
-    materials = sh.materials
     o_all = jnp.maximum(obj, 0)
     nv_all = _dot3(nrm, view)
     refl_all = 2.0 * nv_all[:, None] * nrm - view
@@ -1271,11 +1313,20 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
                                                            1e-30)))
                           + _LOBE_REACH * mats["mu"][o_all] + 0.05, math.pi)
         reach = reach | (_dot3(oc, refl_all) > _sincos_poly(lim)[1] * jnp.sqrt(d2))
-    active = (obj >= 0) & (nv_all > 0.0) & reach
-    if grid is not None:
-        own, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl_all, gap,
-                                         math.sqrt(2.0) * mats["mu"][o_all])
-        active = active & own
+    return (obj >= 0) & (nv_all > 0.0) & reach, gap, refl_all
+
+
+def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+                     pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
+                     active: jax.Array) -> jax.Array:
+    """The gloss and mirror interreflection (N, C) of :func:`_lobe_gather` at the ``active``
+    (N,) receivers (zero at the others), by the lobe quadrature in chunks, the active
+    receivers first and the chunks past them skipped (one chunk of all with the accelerator
+    layout)."""
+    k_per = geom.n_objects - 1
+    c = sh.channels
+    mats = sh.mats
+    materials = sh.materials
     n = pos.shape[0]
     if on_accelerator():
         size = max(1, min(n, _GLOSS_ACCEL_CHUNK))
@@ -1356,8 +1407,6 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
         _, ys = jax.lax.scan(step, None, (jnp.arange(nc, dtype=jnp.int32), slots))
         # back to the receivers' order: receiver i's result is row rank[i] (a gather)
         res = materialise(ys.reshape(nc * size, c)[rank], cut=True)
-    if grid is not None:
-        res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
     return res
 
 
@@ -1581,20 +1630,88 @@ def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
     # interpolated, the senders' atlas mapped before it is gathered from (all linear)
     sh = dataclasses.replace(sh, output=None if output is None else jnp.asarray(output,
                                                                               jnp.float32))
-    with jax.named_scope("ir_receiver_diffuse"):
-        if diffuse_at == "samples":
-            refl = sh.diffuse_matrices()[jnp.asarray(senders, jnp.int32)]  # (P, C, D)
-            diffuse = _interpolate_net(geom, jnp.einsum("pmc,pcd->pmd", net, refl), pos, nrm,
-                                       obj)
-        else:
-            diffuse = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, pos, nrm, obj),
-                                       obj)
     if output is not None:
         atlas = (atlas[0] @ sh.output, atlas[1])
     grid = None if image_shape is None or gloss_step < 2 else (receivers.pixel, image_shape,
                                                                 gloss_step)
+    tables = None
+    with jax.named_scope("ir_receiver_diffuse"):
+        if diffuse_at == "samples":
+            refl = sh.diffuse_matrices()[jnp.asarray(senders, jnp.int32)]  # (P, C, D)
+            tables = _net_tables(geom, jnp.einsum("pmc,pcd->pmd", net, refl))
+            diffuse = None
+        else:
+            diffuse = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, pos, nrm, obj),
+                                       obj)
+    if not on_accelerator() and pos.shape[0] > _RECEIVER_CHUNK:
+        return _receive_valid_first(geom, sh, atlas, tables, diffuse, pos, nrm,
+                                    receivers.view, obj, grid)
+    if diffuse is None:
+        with jax.named_scope("ir_receiver_diffuse"):
+            diffuse = _interpolate_net(geom, net, pos, nrm, obj, tables=tables)
     with jax.named_scope("ir_receiver_gloss"):
         return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid)
+
+
+#: CPU layout: receivers per chunk of the per-receiver terms of :func:`_receive_valid_first`
+_RECEIVER_CHUNK = 4096
+
+
+def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
+                         tables: tuple[jax.Array, jax.Array] | None,
+                         diffuse: jax.Array | None, pos: jax.Array, nrm: jax.Array,
+                         view: jax.Array, obj: jax.Array,
+                         grid: tuple[jax.Array, tuple[int, int], int] | None) -> jax.Array:
+    """:func:`_receive` (N, D) for many receivers on the CPU layout, at a cost that follows
+    the number of valid receivers (obj >= 0) rather than N: a renderer's receivers are
+    fixed-capacity slot lists, of which the covered pixels fill ~55–60 % (the capacities'
+    headroom). The valid receivers are put first (a stable partition), their per-receiver
+    terms (the interpolated diffuse net light, ``tables`` from :func:`_net_tables`, or the
+    given ``diffuse`` (N, D); the hidden sources; the lobe's reach; the image anchors) run in
+    chunks of ``_RECEIVER_CHUNK`` with the chunks past them skipped, the lobe quadrature runs
+    on the active ones as in :func:`_lobe_gather`, and the result goes back to the slots'
+    order. Equal to :func:`_receive` (the same arithmetic per receiver)."""
+    valid = obj >= 0
+    rank, order = _partition(valid)
+    count = jnp.sum(valid.astype(jnp.int32))
+    pos, nrm, view, obj = pos[order], nrm[order], view[order], obj[order]
+    if diffuse is not None:
+        diffuse = diffuse[order]
+    step = 0
+    at = None
+    pixel = jnp.full(obj.shape, -1, jnp.int32)
+    if grid is not None:
+        pixel, shape, step = grid[0][order], grid[1], grid[2]
+        refl_all = 2.0 * _dot3(nrm, view)[:, None] * nrm - view
+        at = (_pixel_slots(pixel, obj, shape), pos, refl_all, obj)
+    mu = sh.mats["mu"]
+
+    def terms(x: jax.Array, nn: jax.Array, vv: jax.Array, ob: jax.Array, px: jax.Array,
+              *dif: jax.Array) -> tuple[jax.Array, ...]:
+        with jax.named_scope("ir_receiver_diffuse"):
+            base = dif[0] if dif else _interpolate_net(geom, None, x, nn, ob, tables=tables)
+        with jax.named_scope("ir_receiver_gloss"):
+            hsrc = _hidden_source_gloss(sh, geom, ob, x, nn, vv)
+            if hsrc is not None:
+                base = base - hsrc
+            ok = _sees(geom, x, nn, ob) & (_dot3(nn, vv) > 0.0)
+            active, gap, refl = _lobe_reach(geom, sh, x, nn, vv, ob)
+            if at is None:
+                return base, ok, active
+            own, a_idx, a_w = _image_anchors(px, ob, shape, step, x, refl, gap,
+                                             math.sqrt(2.0) * mu[jnp.maximum(ob, 0)], at=at)
+            return base, ok, active & own, own, a_idx, a_w
+
+    extra = [] if diffuse is None else [diffuse]
+    out = prefix_chunks(terms, count, [pos, nrm, view, obj, pixel, *extra],
+                        size=_RECEIVER_CHUNK)
+    base, ok, active = out[:3]
+    with jax.named_scope("ir_receiver_gloss"):
+        res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active)
+        if at is not None:
+            own, a_idx, a_w = out[3:]
+            res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
+        return jnp.where(ok[:, None], base + res, 0.0)[rank]
 
 
 def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,

@@ -50,6 +50,8 @@ def _with_layout(monkeypatch, accelerator: bool, fn):
 
     # small chunks: the CPU layout runs the gloss quadrature of these few receivers in a loop
     monkeypatch.setattr(interreflection, "_GLOSS_MIN_CHUNK", 128)
+    # and its per-receiver terms in chunks of valid receivers (_receive_valid_first)
+    monkeypatch.setattr(interreflection, "_RECEIVER_CHUNK", 256)
     monkeypatch.setattr(renderer, "on_accelerator", layout)
     monkeypatch.setattr(raster, "on_accelerator", layout)
     monkeypatch.setattr(interreflection, "on_accelerator", layout)
@@ -60,10 +62,25 @@ def _with_layout(monkeypatch, accelerator: bool, fn):
 
 
 def test_accelerator_layout_renders_the_cpu_layout_frame(prep, monkeypatch):
+    """Also the gather's receivers two ways: the CPU layout puts the valid ones first and runs
+    their per-receiver terms in chunks, skipping the empty slots' chunks
+    (``_receive_valid_first``); the accelerator layout runs all slots at once (``_receive``)."""
+    valid_first, calls = interreflection._receive_valid_first, []
+
+    def counted(*a, **k):
+        calls.append(1)
+        return valid_first(*a, **k)
+
+    monkeypatch.setattr(interreflection, "_receive_valid_first", counted)
     cpu, n_cpu = _with_layout(monkeypatch, False, lambda: renderer.render_frame(prep))
+    assert len(calls) == 1
     acc, n_acc = _with_layout(monkeypatch, True, lambda: renderer.render_frame(prep))
+    assert len(calls) == 1
     assert n_cpu > 0 and n_acc > 0  # both traced, each with its layout
     assert sum(prep.pixel_capacity) >= 2 * 128  # the CPU layout's gloss ran in chunks
+    # valid receivers in several chunks, and at least one chunk of empty slots skipped
+    count = int(cpu.stats["covered_pixels"])
+    assert count > 256 and sum(prep.pixel_capacity) >= count + 256
     a, b = np.asarray(cpu.xyz), np.asarray(acc.xyz)
     mask = np.asarray(cpu.mask)
     assert mask.sum() > 200 and np.array_equal(mask, np.asarray(acc.mask))
@@ -140,3 +157,31 @@ def test_materialise_each_returns_its_inputs_with_their_gradients(cut):
     grad = jax.grad(lambda a: sum(jnp.sum(p * (i + 1.0)) for i, p in enumerate(parts(a))))(x)
     ref = jnp.cos(x) + 2.0 * (2.0 * x) - 3.0 * jnp.exp(-x)
     np.testing.assert_allclose(np.asarray(grad), np.asarray(ref), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("n, count, size", [(1000, 1000, 256), (1000, 300, 256),
+                                            (1024, 0, 256), (1024, 1024, 256), (100, 40, 256)])
+def test_prefix_chunks_runs_fn_on_the_leading_items_and_zeros_after(n, count, size):
+    """``prefix_chunks`` equals ``fn`` on every chunk that starts before ``count`` (padded
+    last chunk included) and gives zeros / False for the chunks after it; with N <= size or
+    the accelerator layout it is ``fn`` on everything."""
+    rng = np.random.default_rng(n + count)
+    x = jnp.asarray(rng.normal(size=(n, 3)), jnp.float32)
+    k = jnp.asarray(rng.integers(0, 9, n), jnp.int32)
+    calls = []
+
+    def fn(a, b):
+        calls.append(a.shape[0])
+        return {"s": jnp.sin(a) * b[:, None], "pos": jnp.sum(a, -1) > 0, "k": b * 2}
+
+    got = jax.jit(lambda a, b, c: backend.prefix_chunks(fn, c, [a, b], size=size))(
+        x, k, jnp.int32(count))
+    ref = fn(x, k)
+    assert calls[0] == min(n, size)  # traced on one chunk (or all of it)
+    covered = n if n <= size else min(n, -(-count // size) * size)
+    for key in ref:
+        g, r = np.asarray(got[key]), np.asarray(ref[key])
+        assert g.shape == r.shape and g.dtype == r.dtype
+        np.testing.assert_allclose(g[:covered], r[:covered], rtol=1e-6)
+        assert not np.any(g[covered:])
+
