@@ -789,3 +789,42 @@ def test_batched_gather_pass1_equals_one_raster_per_pair(monkeypatch):
     assert np.asarray(slow.s_cov).sum() > 0 and not bool(fast.overflow)
     # the samples differ between pairs (the comparison above is not of equal rows)
     assert np.abs(np.diff(np.asarray(slow.s_area), axis=0)).max() > 1e-6
+
+
+@pytest.mark.parametrize("diffuse_at", ["samples", "receivers"])
+def test_valid_first_receivers_match_the_one_pass_receivers(gather_geom, monkeypatch,
+                                                            diffuse_at):
+    """Many receivers on the CPU layout (``_receive_valid_first``: valid receivers first, their
+    per-receiver terms in chunks, the chunks past them skipped, the result back in slot order)
+    give the one-pass receivers' result (``_receive``) slot for slot, empty slots spread
+    between the valid ones, with a lamp (hidden sources), gloss and a mirror term, 2 bounces."""
+    import importlib
+
+    module = importlib.import_module("spectral_fit.interreflection")
+    x0, n0 = facing_points(C0, C1, [0.0, 20.0, 40.0, 60.0])
+    x1, n1 = facing_points(C1, C0, [10.0, 35.0])
+    x, n = np.concatenate([x0, x1]), np.concatenate([n0, n1])
+    rec = gbuffer(x, n, n, [0] * len(x0) + [1] * len(x1), 48)
+    perm = np.random.default_rng(3).permutation(48)
+    rec = jax.tree.map(lambda a: a[perm], rec)
+    env = _lamp_env()
+    mats = [material(alpha=0.9, beta=1.0, chi=0.2, mu=0.1, reflectance=(0.8, 0.6, 0.1)),
+            material(alpha=0.8, beta=0.7, mu=0.15, reflectance=(0.3, 0.5, 0.9))]
+    calls = []
+    valid_first = module._receive_valid_first
+
+    def counted(*a, **k):
+        calls.append(1)
+        return valid_first(*a, **k)
+
+    monkeypatch.setattr(module, "_receive_valid_first", counted)
+    out = []
+    for chunk in (8, 10**9):  # 18 valid receivers: 3 of 6 chunks run; then one pass
+        monkeypatch.setattr(module, "_RECEIVER_CHUNK", chunk)
+        out.append(np.asarray(jax.jit(lambda g, m, e, r: interreflection_from(
+            g, m, e, r, bounces=2, diffuse_at=diffuse_at))(gather_geom, mats, env, rec)))
+    assert len(calls) == 1
+    got, ref = out
+    valid = np.asarray(rec.object) >= 0
+    assert np.abs(ref[valid]).max() > 1e-3 and not np.any(got[~valid])
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
