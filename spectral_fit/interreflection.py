@@ -1437,15 +1437,13 @@ def _reflect_diffuse(sh: _Shading, net: jax.Array, obj: jax.Array) -> jax.Array:
 
 def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
              diffuse: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
-             obj: jax.Array, *, gloss: bool = True,
+             obj: jax.Array, *,
              grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
     """Interreflection (N, D) at receivers (pos, nrm, view (N, 3), obj (N,)) in ``sh``'s output
     channels, given their diffuse term ``diffuse`` (N, D) (α S ⊙ the net light they receive,
     :func:`_reflect_diffuse`) and the senders' mip ``atlas`` (in the output channels)."""
-    out = diffuse
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
-    if gloss:
-        out = out + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid)
+    out = diffuse + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid)
     hsrc = _hidden_source_gloss(sh, geom, obj, pos, nrm, view)
     if hsrc is not None:
         out = out - hsrc
@@ -1600,7 +1598,7 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         with jax.named_scope("ir_sample_bounce"):
             extra = _receive(geom, sh, atlas,
                              _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj),
-                             s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj, gloss=True)
+                             s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj)
         lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
         snd, atlas = senders_with(lum)
     return GatherSenders(geometry=geom, senders=snd, atlas=atlas,
