@@ -63,6 +63,24 @@ def _stats(de: np.ndarray) -> dict[str, float]:
             "mean": float(de.mean())}
 
 
+#: picture formats of the ΔE00 figure (by the file's extension)
+FIGURE_FORMATS = (".png", ".pdf", ".svg")
+
+
+def _check_figure_path(figure: str | os.PathLike[str] | None) -> None:
+    """Refuse a figure path whose extension is not one of :data:`FIGURE_FORMATS`, before
+    any frame is rendered (the picture is written last)."""
+    if figure is None:
+        return
+    suffix = Path(figure).suffix.lower()
+    if suffix not in FIGURE_FORMATS:
+        from .errors import InputError
+
+        raise InputError(f"the ΔE00 figure is a picture: the file name must end in one of "
+                         f"{', '.join(FIGURE_FORMATS)}, got {suffix or 'no extension'!r}",
+                         path=figure, field="figure")
+
+
 def validate(
     reference: str | os.PathLike[str] = "benchmark",
     *,
@@ -75,7 +93,8 @@ def validate(
     Returns a JSON-able dict: ``{"reference", "config", "white_xyz", "patches",
     "modes": {mode: {"interreflection": stats, "direct": stats, "all": stats, "available"}},
     "none_vs_single_bounce": {...}, "basis_k8_vs_bands": {...}, "targets", "checks"}``;
-    ``figure`` writes a false-colour ΔE00 PNG (one panel per mode).
+    ``figure`` writes a false-colour ΔE00 picture (one panel per mode; PNG, PDF or SVG by
+    its extension, checked before anything is rendered).
     """
     import warnings
 
@@ -86,6 +105,7 @@ def validate(
     from .renderer import prepare, render_frame
     from .scene import load_scene
 
+    _check_figure_path(figure)
     ref = load_reference(reference)
     cfg = ROOT / ref.config if not os.path.isabs(ref.config) else Path(ref.config)
     scene = load_scene(cfg)

@@ -580,3 +580,18 @@ def test_camera_culls_back_faces_of_closed_meshes_without_changing_a_pixel(prep,
     np.testing.assert_array_equal(np.asarray(r_back.tri_id), ids)
     obj = np.where(ids >= 0, np.asarray(prep.tri_object)[np.maximum(ids, 0)], -1)
     np.testing.assert_array_equal(np.asarray(frame.object_id), obj)
+
+
+@pytest.mark.parametrize("name", ["result.json", "figure"])
+def test_cli_validate_refuses_a_figure_that_is_not_a_picture(tmp_path, capsys, name):
+    """`spectral-fit validate -o result.json` (the JSON goes to stdout with --json) exits 2
+    naming the file and the field, before any frame is rendered, and writes nothing."""
+    from spectral_fit.cli import main
+
+    target = tmp_path / name
+    rc = main(["validate", "--json", "-o", str(target)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert str(target) in err and "figure" in err and ".png" in err
+    assert "Traceback" not in err
+    assert not target.exists() and list(tmp_path.iterdir()) == []

@@ -18,7 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--k", type=int, default=8,
                    help="also compare a K-coefficient basis render with bands (0: skip)")
     p.add_argument("-o", "--figure", default="validation_delta_e.png",
-                   help="false-colour ΔE00 PNG (default validation_delta_e.png)")
+                   help="false-colour ΔE00 picture, .png, .pdf or .svg (default "
+                   "validation_delta_e.png; the JSON goes to stdout with --json)")
     p.add_argument("--json", action="store_true", help="print the result JSON on stdout")
 
 
