@@ -595,3 +595,22 @@ def test_cli_validate_refuses_a_figure_that_is_not_a_picture(tmp_path, capsys, n
     assert str(target) in err and "figure" in err and ".png" in err
     assert "Traceback" not in err
     assert not target.exists() and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option,name", [("-o", "frame.jpg"), ("--exr", "frame.png"),
+                                         ("--mask", "mask"), ("--xyz-exr", "xyz.tif")])
+def test_cli_render_refuses_output_names_of_another_format(tmp_path, capsys, option, name):
+    """`spectral-fit render` refuses an output whose extension is not its format's (it wrote
+    PNG bytes into frame.jpg) before anything is rendered, naming the option and the file."""
+    from spectral_fit.cli import main
+    from spectral_fit.validation import ROOT
+
+    target = tmp_path / name
+    args = ["render", str(ROOT / "configs" / "two_spheres.toml"), option, str(target)]
+    if option != "-o":
+        args += ["-o", str(tmp_path / "frame.png")]
+    rc = main(args)
+    err = capsys.readouterr().err
+    long_option = {"-o": "--output"}.get(option, option)
+    assert rc == 2 and str(target) in err and long_option in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []

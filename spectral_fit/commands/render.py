@@ -45,6 +45,25 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     return w, h
 
 
+#: the output options and the extension their file format needs
+_OUTPUT_SUFFIX = {"--output": ".png", "--mask": ".png", "--composite": ".png", "--exr": ".exr",
+                  "--xyz-exr": ".exr", "--rgb-exr": ".exr"}
+
+
+def _check_output_names(args: argparse.Namespace) -> None:
+    """Refuse an output file whose extension is not its format's (a PNG written into
+    ``frame.jpg``, an EXR into ``frame.png``) before anything is rendered."""
+    from pathlib import Path
+
+    from ..errors import InputError
+
+    for option, suffix in _OUTPUT_SUFFIX.items():
+        name = getattr(args, option[2:].replace("-", "_"))
+        if name is not None and Path(name).suffix.lower() != suffix:
+            raise InputError(f"{option} writes {suffix[1:].upper()}: the file name must end "
+                             f"in {suffix}", path=name, field=option)
+
+
 def _say(msg: str) -> None:
     """Progress of the long first-run steps, on stderr (stdout keeps the summary)."""
     print(f"render: {msg}", file=sys.stderr, flush=True)
@@ -54,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
 
     size = parse_size(args.size)
+    _check_output_names(args)
     if args.composite and not args.background:
         raise InputError("--composite needs --background", field="--composite")
     t0 = time.perf_counter()
