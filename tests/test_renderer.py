@@ -614,3 +614,17 @@ def test_cli_render_refuses_output_names_of_another_format(tmp_path, capsys, opt
     long_option = {"-o": "--output"}.get(option, option)
     assert rc == 2 and str(target) in err and long_option in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args,name", [(["make-env", "-o"], "env.png"),
+                                       (["view", "in.exr", "-o"], "view.jpg")])
+def test_cli_image_tools_refuse_output_names_of_another_format(tmp_path, capsys, args, name):
+    """`spectral-fit make-env` (EXR) and `spectral-fit view` (PNG) refuse an output name of
+    another format before reading or computing anything, naming the file and --output."""
+    from spectral_fit.cli import main
+
+    target = tmp_path / name
+    rc = main([*args, str(target)])
+    err = capsys.readouterr().err
+    assert rc == 2 and str(target) in err and "--output" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []

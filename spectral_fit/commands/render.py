@@ -53,15 +53,10 @@ _OUTPUT_SUFFIX = {"--output": ".png", "--mask": ".png", "--composite": ".png", "
 def _check_output_names(args: argparse.Namespace) -> None:
     """Refuse an output file whose extension is not its format's (a PNG written into
     ``frame.jpg``, an EXR into ``frame.png``) before anything is rendered."""
-    from pathlib import Path
-
-    from ..errors import InputError
+    from . import check_suffix
 
     for option, suffix in _OUTPUT_SUFFIX.items():
-        name = getattr(args, option[2:].replace("-", "_"))
-        if name is not None and Path(name).suffix.lower() != suffix:
-            raise InputError(f"{option} writes {suffix[1:].upper()}: the file name must end "
-                             f"in {suffix}", path=name, field=option)
+        check_suffix(getattr(args, option[2:].replace("-", "_")), suffix, option)
 
 
 def _say(msg: str) -> None:

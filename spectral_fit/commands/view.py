@@ -38,6 +38,10 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from PIL import Image
 
+    from . import check_suffix
+
+    check_suffix(args.output, ".png", "--output")
+
     from ..colorimetry import illuminant, radiance_to_xyz, reflectance_to_xyz
     from ..display import to_display
     from ..errors import InputError
