@@ -13,7 +13,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "check_suffix"]
 
 
 @contextlib.contextmanager
@@ -76,3 +76,19 @@ def read_text(path: str | os.PathLike[str], *, encoding: str = "utf-8",
         return raw.decode(encoding)
     except UnicodeDecodeError:
         raise InputError("not UTF-8 text", path=p) from None
+
+
+def check_suffix(path: str | os.PathLike[str] | None, suffixes: tuple[str, ...], field: str,
+                 what: str) -> None:
+    """Refuse an output ``path`` whose extension (any case) is not one of ``suffixes``
+    (".png", ...): the writers do not all dispatch on the name, so a PNG would land in
+    ``frame.jpg``. Checked before any work; ``what`` names the output ("--output writes
+    PNG"). InputError naming the file and ``field``; None passes."""
+    if path is None:
+        return
+    suffix = Path(path).suffix.lower()
+    if suffix not in suffixes:
+        from .errors import InputError
+
+        raise InputError(f"{what}: the file name must end in {' or '.join(suffixes)}, got "
+                         f"{suffix or 'no extension'!r}", path=path, field=field)

@@ -67,20 +67,6 @@ def _stats(de: np.ndarray) -> dict[str, float]:
 FIGURE_FORMATS = (".png", ".pdf", ".svg")
 
 
-def _check_figure_path(figure: str | os.PathLike[str] | None) -> None:
-    """Refuse a figure path whose extension is not one of :data:`FIGURE_FORMATS`, before
-    any frame is rendered (the picture is written last)."""
-    if figure is None:
-        return
-    suffix = Path(figure).suffix.lower()
-    if suffix not in FIGURE_FORMATS:
-        from .errors import InputError
-
-        raise InputError(f"the ΔE00 figure is a picture: the file name must end in one of "
-                         f"{', '.join(FIGURE_FORMATS)}, got {suffix or 'no extension'!r}",
-                         path=figure, field="figure")
-
-
 def validate(
     reference: str | os.PathLike[str] = "benchmark",
     *,
@@ -101,11 +87,13 @@ def validate(
     import jax
 
     from .colorimetry import radiance_to_xyz, xyz_weights
+    from .fileio import check_suffix
     from .reference import load_reference
     from .renderer import prepare, render_frame
     from .scene import load_scene
 
-    _check_figure_path(figure)
+    # the picture is written last: its name is checked before any frame is rendered
+    check_suffix(figure, FIGURE_FORMATS, "figure", "the ΔE00 figure is a picture")
     ref = load_reference(reference)
     cfg = ROOT / ref.config if not os.path.isabs(ref.config) else Path(ref.config)
     scene = load_scene(cfg)

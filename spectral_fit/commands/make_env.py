@@ -24,10 +24,10 @@ def run(args: argparse.Namespace) -> int:
 
     from ..colorimetry import radiance_to_xyz
     from ..exr import write_spectral_exr
+    from ..fileio import check_suffix
     from ..synthetic_environment import make_environment
-    from . import check_suffix
 
-    check_suffix(args.output, ".exr", "--output")
+    check_suffix(args.output, (".exr",), "--output", "--output writes EXR")
     wl, image = make_environment(args.width, args.height, supersampling=args.supersampling)
     write_spectral_exr(args.output, wl, image, pixel_type=args.pixel_type,
                        comment="synthetic environment map made by spectral-fit make-env "

@@ -53,10 +53,11 @@ _OUTPUT_SUFFIX = {"--output": ".png", "--mask": ".png", "--composite": ".png", "
 def _check_output_names(args: argparse.Namespace) -> None:
     """Refuse an output file whose extension is not its format's (a PNG written into
     ``frame.jpg``, an EXR into ``frame.png``) before anything is rendered."""
-    from . import check_suffix
+    from ..fileio import check_suffix
 
     for option, suffix in _OUTPUT_SUFFIX.items():
-        check_suffix(getattr(args, option[2:].replace("-", "_")), suffix, option)
+        check_suffix(getattr(args, option[2:].replace("-", "_")), (suffix,), option,
+                     f"{option} writes {suffix[1:].upper()}")
 
 
 def _say(msg: str) -> None:

@@ -38,16 +38,13 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from PIL import Image
 
-    from . import check_suffix
-
-    check_suffix(args.output, ".png", "--output")
-
     from ..colorimetry import illuminant, radiance_to_xyz, reflectance_to_xyz
     from ..display import to_display
     from ..errors import InputError
     from ..exr import read_rgb_exr, read_spectral_exr_ex
-    from ..fileio import atomic_path
+    from ..fileio import atomic_path, check_suffix
 
+    check_suffix(args.output, (".png",), "--output", "--output writes PNG")
     info: dict = {"file": str(args.file)}
     try:
         img = read_spectral_exr_ex(args.file, kind=args.kind)
