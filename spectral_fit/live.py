@@ -210,6 +210,7 @@ def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
              "interreflection_overflow": px.stats["interreflection_overflow"],
              "object_counts": px.stats["object_counts"],
              "raster_needed": px.stats["raster_needed"],
+             "clusters_needed": px.stats["clusters_needed"],
              "object_id": px.object_id}
     return out, stats
 
@@ -428,9 +429,11 @@ class LiveSession:
                                        cull=p.cull)
             caps.append(max(c, _pixel_slots(headroom * bound, h * w)))
         cap = tuple(caps)
-        if cfg == old and cap == p.pixel_capacity:
+        clusters = _planned_clusters(p, poses, headroom)
+        if cfg == old and cap == p.pixel_capacity and clusters is p.clusters:
             return ir_cfg is not None
-        self.prep = dataclasses.replace(p, raster_config=cfg, pixel_capacity=cap)
+        self.prep = dataclasses.replace(p, raster_config=cfg, pixel_capacity=cap,
+                                        clusters=clusters)
         return True
 
     def _prepare(self, headroom: float) -> Any:
@@ -447,6 +450,8 @@ class LiveSession:
         """``self.prep`` with every buffer that this frame filled past ``grow_ahead`` grown
         to ``headroom`` × its use, and at least to where that use is below ``grow_ahead``
         (on the capacity ladders); None when none is that full."""
+        from .culling import grown_clusters
+
         p, f = self.prep, self.grow_ahead
         hr = max(self.headroom, 1.0 / f)
         counts = np.asarray(stats["object_counts"]).tolist()
@@ -454,9 +459,12 @@ class LiveSession:
         h, w = p.shape
         new_pix = tuple(max(c, _pixel_slots(hr * n, h * w)) if n > f * c else c
                         for c, n in zip(p.pixel_capacity, counts, strict=True))
-        if cfg == p.raster_config and new_pix == tuple(p.pixel_capacity):
+        clusters = grown_clusters(p.clusters, int(stats["clusters_needed"]), hr, full=f)
+        if (cfg == p.raster_config and new_pix == tuple(p.pixel_capacity)
+                and clusters is p.clusters):
             return None
-        return dataclasses.replace(p, raster_config=cfg, pixel_capacity=new_pix)
+        return dataclasses.replace(p, raster_config=cfg, pixel_capacity=new_pix,
+                                   clusters=clusters)
 
     def _maybe_grow(self, stats: dict[str, Any], poses: Any, background: Any) -> None:
         """Start the background compile of grown buffers when this frame (rendered with the
@@ -921,6 +929,19 @@ def _device_of(x: Any, devices: tuple[Any, ...]) -> Any:
             if d in devices:
                 return d
     return devices[0]
+
+
+def _planned_clusters(prep: Any, poses: Any, headroom: float) -> Any:
+    """``prep.clusters`` with its kept list grown to ``headroom`` × the clusters kept at
+    ``poses`` (never shrunk; the same object when unchanged, None without clusters)."""
+    from .culling import count_clusters, sized
+
+    cl = prep.clusters
+    if cl is None:
+        return None
+    n = count_clusters(cl, np.asarray(poses.model), np.asarray(poses.view),
+                       np.asarray(prep.projection), cull=prep.cull)
+    return sized(cl, headroom * n + 4, at_least=cl.capacity)
 
 
 def _pixel_slots(pixels: float, frame_pixels: int) -> int:

@@ -17,7 +17,8 @@ Per frame (eq. 5 + eq. 6 of Mochizuki & Tanaka in DESIGN §2's reading):
 1. vertices → world (per-object model matrix) → clip; hidden objects collapse to a point, so
    their triangles are degenerate and draw nothing;
 2. rasterise all objects at once (:func:`~spectral_fit.raster.rasterize` with planned
-   capacities), compact the covered pixels (:func:`~spectral_fit.raster.covered_pixels`),
+   capacities; only the triangles of the clusters that may face the eye,
+   :mod:`spectral_fit.culling`, bit-identical to a raster of all), compact the covered pixels (:func:`~spectral_fit.raster.covered_pixels`),
    interpolate world positions and normals there (a :class:`~spectral_fit.gbuffer.GBuffer`);
 3. shade each covered pixel with its object's material under the environment
    (:func:`~spectral_fit.environment.shade`), radiance in W·sr⁻¹·m⁻²·nm⁻¹ per band or basis
@@ -50,6 +51,7 @@ import numpy as np
 
 from .backend import materialise, materialise_each, on_accelerator
 from .camera import eye_position, inverse_3x3, inverse_4x4
+from .culling import build_clusters, spatial_order
 from .dispatch import array_jit
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
@@ -113,6 +115,10 @@ class Prepared(eqx.Module):
         pixel_rays: (H·W, 3) unit eye-space (OpenGL) ray of every pixel centre through the
             lens (:func:`~spectral_fit.lens.pixel_rays`; the background's rays), or None
             with ``lens`` None.
+        clusters: the camera raster's :class:`~spectral_fit.culling.TriangleClusters`
+            (each object's triangles are in :func:`~spectral_fit.culling.spatial_order`),
+            culled per frame; None without face culling or through a lens (every triangle
+            is rasterised).
     Static attributes: shape (H, W), wavelengths (tuple, nm), spectral_mode, k, ir_mode,
     ir_bounces, ir_texture_size, raster_config, pixel_capacity (covered-pixel list size per
     object), object_slices ((start, stop) vertex ranges), triangle_slices, ir_object_slices,
@@ -166,6 +172,7 @@ class Prepared(eqx.Module):
     cull: str = eqx.field(static=True, default="none")
     lens: jax.Array | None = None
     pixel_rays: jax.Array | None = None
+    clusters: Any = None
 
     @property
     def num_objects(self) -> int:
@@ -595,6 +602,9 @@ def prepare(
     # meshes in object frames, concatenated (and those the interreflection's pass 1 uses)
     meshes = [_mesh(obj) for obj in scene.objects]
     vertices, normals, triangles, vobj_a, tobj_a, vsl, tsl = _concat_meshes(meshes)
+    # each object's triangles in a spatial order: runs of them are the clusters the frame
+    # culls before its raster (spectral_fit.culling)
+    triangles = triangles[spatial_order(vertices, triangles, tsl)]
     model = np.stack([obj.model_matrix() for obj in scene.objects]).astype(np.float32)
     ir_meshes = [_ir_mesh(obj, m, ir_mode) for obj, m in zip(scene.objects, meshes,
                                                               strict=True)]
@@ -673,6 +683,8 @@ def prepare(
     if lens is not None:
         _check_lens_tessellation(scene, k_lens, shape, lens, world, view, triangles, tsl)
     cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom, cull=cull)
+    clusters = (_plan_clusters(build_clusters(vertices, triangles, tsl), model, view, proj,
+                               cull) if cull != "none" and lens is None else None)
     if pixel_capacity is None:
         caps = []
         for ta, tb in tsl:
@@ -726,8 +738,20 @@ def prepare(
         ir_triangles=jnp.asarray(ir_t, jnp.int32), ir_vertex_object=jnp.asarray(ir_o, jnp.int32),
         ir_object_slices=tuple(ir_vsl), ir_triangle_slices=tuple(ir_tsl), cull=cull,
         lens=None if lens is None else jnp.asarray(lens, jnp.float32),
-        pixel_rays=None if rays is None else jnp.asarray(rays),
+        pixel_rays=None if rays is None else jnp.asarray(rays), clusters=clusters,
     )
+
+
+def _plan_clusters(clusters: Any, model: np.ndarray, view: np.ndarray, proj: np.ndarray,
+                   cull: str, current: int = 0) -> Any:
+    """``clusters`` with its kept-list capacity: the clusters kept at the pose, or seen
+    from any direction (:func:`~spectral_fit.culling.worst_direction_count`: objects that
+    turn), whichever is more, + 5 %, on the capacity ladder; at least ``current``."""
+    from .culling import count_clusters, sized, worst_direction_count
+
+    need = max(count_clusters(clusters, model, view, proj, cull=cull),
+               worst_direction_count(clusters))
+    return sized(clusters, 1.05 * need + 4, at_least=current)
 
 
 def _concat_meshes(meshes: Sequence[Any]) -> tuple[Any, ...]:
@@ -1337,17 +1361,20 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
     clip = _camera_clip(prep.projection, view, prep.lens, world)
 
-    # 2. rasterise, compact covered pixels, G-buffer
+    # 2. rasterise (the triangles of the clusters that may face the eye), compact covered
+    # pixels, G-buffer; triangle ids below are rows of that list
     with jax.named_scope("raster"):
-        ras = rasterize(clip, prep.triangles, (h, w), cull=prep.cull,
+        tris, tri_object, clusters_needed, clusters_over = _frame_triangles(
+            prep, model, view, visible)
+        ras = rasterize(clip, tris, (h, w), cull=prep.cull,
                         config=prep.raster_config, check=False)
     # covered pixels, one fixed-capacity list per object (each object is shaded with its own
     # material, whose per-material precomputations then run once per object)
     with jax.named_scope("pixel_lists"):
-        obj_img = jnp.where(ras.tri_id >= 0, prep.tri_object[jnp.maximum(ras.tri_id, 0)], -1)
+        obj_img = jnp.where(ras.tri_id >= 0, tri_object[jnp.maximum(ras.tri_id, 0)], -1)
         pix, counts = _object_pixel_lists(ras.tri_id, obj_img, prep.pixel_capacity)
     attrs = jnp.concatenate([world, wnorm], axis=1)
-    vals = interpolate_pixels(attrs, pix, prep.triangles, clip)
+    vals = interpolate_pixels(attrs, pix, tris, clip)
     pos = vals[:, :3]
     nrm = vals[:, 3:]
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
@@ -1363,7 +1390,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     zdir = jnp.array([0.0, 0.0, 1.0], jnp.float32)
     nrm = jnp.where(pix.valid[:, None], nrm, zdir)
     vdir = jnp.where(pix.valid[:, None], vdir, zdir)
-    obj = jnp.where(pix.valid, prep.tri_object[jnp.maximum(pix.tri_id, 0)], -1)
+    obj = jnp.where(pix.valid, tri_object[jnp.maximum(pix.tri_id, 0)], -1)
     gb = GBuffer(position=pos, normal=nrm, view=vdir, object=obj,
                  pixel=jnp.where(pix.valid, pix.index, -1))
 
@@ -1402,13 +1429,31 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     stats = {
         "covered_pixels": pix.count,
         "pixel_overflow": pix.overflow,
-        "raster_overflow": ras.overflow,
+        "raster_overflow": ras.overflow | clusters_over,
         "interreflection_overflow": ir_overflow,
         "object_counts": jnp.stack([jnp.asarray(c, jnp.int32) for c in counts]),
         "raster_needed": ras.needed,
+        "clusters_needed": clusters_needed,
     }
     return PixelFrame(values=radiance, index=pix.index, valid=pix.valid,
                       mask=ras.tri_id >= 0, object_id=obj_img, stats=stats)
+
+
+def _frame_triangles(prep: Prepared, model: jax.Array, view: jax.Array, visible: jax.Array
+                     ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """The camera raster's triangle list: (T', 3) vertex indices, (T',) object of each row,
+    the clusters kept (int32) and whether their list overflowed (bool). With
+    ``prep.clusters`` the rows of the clusters that may face the eye
+    (:func:`~spectral_fit.culling.visible_clusters`; the raster is bit-identical to one of all
+    triangles), else ``prep.triangles`` (the count is then 0)."""
+    from .culling import cluster_rows, visible_clusters
+
+    cl = prep.clusters
+    if cl is None:
+        return prep.triangles, prep.tri_object, jnp.int32(0), jnp.asarray(False)
+    index, count = visible_clusters(cl, model, view, prep.projection, visible, cull=prep.cull)
+    tris, obj = cluster_rows(cl, index)
+    return tris, obj, count, count > cl.capacity
 
 
 def _scatter(values: jax.Array, px: PixelFrame, image: jax.Array) -> jax.Array:
@@ -1419,7 +1464,7 @@ def _scatter(values: jax.Array, px: PixelFrame, image: jax.Array) -> jax.Array:
 
 
 # PixelFrame.stats that are arrays (the buffers' use), not in a Frame's scalar stats
-_PLAN_STATS = ("object_counts", "raster_needed")
+_PLAN_STATS = ("object_counts", "raster_needed", "clusters_needed")
 
 
 def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
@@ -1627,6 +1672,13 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
             changes["pixel_capacity"] = tuple(
                 max(c, min(h * w, _ladder(1.5 * int(n) + 64)))
                 for c, n in zip(prep.pixel_capacity, counts, strict=True))
+        if ras_over and prep.clusters is not None:
+            from .culling import count_clusters, grown_clusters
+
+            grown = grown_clusters(prep.clusters, count_clusters(
+                prep.clusters, prep.model, prep.view, prep.projection, cull=prep.cull), 1.5)
+            if grown is not prep.clusters:
+                changes["clusters"] = grown
         if ras_over:
             from .raster import rasterize
 
