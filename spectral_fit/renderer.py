@@ -18,8 +18,9 @@ Per frame (eq. 5 + eq. 6 of Mochizuki & Tanaka in DESIGN §2's reading):
    their triangles are degenerate and draw nothing;
 2. rasterise all objects at once (:func:`~spectral_fit.raster.rasterize` with planned
    capacities; only the triangles of the clusters that may face the eye,
-   :mod:`spectral_fit.culling`, bit-identical to a raster of all), compact the covered pixels (:func:`~spectral_fit.raster.covered_pixels`),
-   interpolate world positions and normals there (a :class:`~spectral_fit.gbuffer.GBuffer`);
+   :mod:`spectral_fit.culling`, bit-identical to a raster of all), compact the covered
+   pixels (:func:`~spectral_fit.raster.covered_pixels`), interpolate world positions and
+   normals there (a :class:`~spectral_fit.gbuffer.GBuffer`);
 3. shade each covered pixel with its object's material under the environment
    (:func:`~spectral_fit.environment.shade`), radiance in W·sr⁻¹·m⁻²·nm⁻¹ per band or basis
    coefficient, and add the interreflection between objects
