@@ -527,6 +527,51 @@ def test_gather_against_brute_force_single_bounce_fine():
         np.testing.assert_allclose(got, ref, atol=0.08 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("step", [2, 3])
+def test_image_anchor_lookup_of_the_anchor_map(step):
+    """The screen-space anchors of each receiver (``_image_anchors``): the receiver indices of
+    the up to four anchor pixels around it, as a NumPy lookup in a map of every pixel finds
+    them (receivers in random order, some pixels empty, some slots not pixels, two objects,
+    an image size that no step divides); anchors and non-receivers evaluate themselves."""
+    import importlib
+
+    ir = importlib.import_module("spectral_fit.interreflection")
+    h, w = 37, 53
+    rng = np.random.default_rng(step)
+    pix = rng.permutation(h * w)[: (h * w * 3) // 4].astype(np.int32)
+    pix[::17] = -1
+    n = pix.shape[0]
+    obj = np.where(pix % w < w // 2, 0, 1).astype(np.int32)  # left and right halves
+    obj[::23] = -1
+    pos = rng.normal(size=(n, 3)).astype(np.float32) * 0.01
+    refl = np.tile(np.float32([0.0, 0.6, 0.8]), (n, 1))  # one mirror direction: smooth
+    gap = np.full(n, 0.5, np.float32)
+    width = np.full(n, 1.0, np.float32)
+    args = [jnp.asarray(a) for a in (pix, obj)]
+    own, idx, wts = ir._image_anchors(*args, (h, w), step, *map(jnp.asarray, (pos, refl, gap,
+                                                                              width)))
+    # reference: a map of every pixel, looked up at the anchors' flat indices
+    full = np.full(h * w, -1, np.int64)
+    ok = (pix >= 0) & (obj >= 0)
+    full[pix[ok]] = np.flatnonzero(ok)
+    row, col = np.divmod(np.maximum(pix, 0), w)
+    r0, c0 = row - row % step, col - col % step
+    idx = np.asarray(idx)
+    wts = np.asarray(wts)
+    checked = 0
+    for k, (dr, dc) in enumerate(((0, 0), (0, step), (step, 0), (step, step))):
+        r, c = r0 + dr, c0 + dc
+        inside = (r < h) & (c < w)
+        a = np.where(inside, full[np.where(inside, r * w + c, 0)], -1)
+        live = wts[:, k] > 0
+        np.testing.assert_array_equal(idx[live, k], a[live])
+        assert np.all(a[live] >= 0)
+        checked += int(live.sum())
+    assert checked > n  # most receivers blend several anchors
+    anchor = (row % step == 0) & (col % step == 0)
+    assert np.all(np.asarray(own)[~ok | anchor])
+
+
 def test_gloss_subsampled_on_image_pixels():
     """Receivers that are the pixels of an image (``image_shape``): the gloss quadrature at
     every 2nd row and column, interpolated between, vs the quadrature at every pixel (the
