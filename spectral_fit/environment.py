@@ -665,6 +665,28 @@ def _wrap(i: jax.Array, w: jax.Array) -> jax.Array:
     return jnp.clip(jnp.where(i >= w, i - w, i), 0, w - 1)
 
 
+def _tap_coords(u: jax.Array, v: jax.Array, hk: jax.Array, wk: jax.Array
+                ) -> tuple[jax.Array, ...]:
+    """The texel coordinates of a bilinear lookup at map coordinates (u, v) in a level of
+    (hk, wk) texels (int32, scalars or per lookup): the column x0 (wrapped into [0, wk)), its
+    weight fx towards x0 + 1, the row y0 (−1 above the first row centre, hk − 1 below the
+    last), the flags north (y0 < 0) and south (y0 ≥ hk − 1), and the weight wy1 of row
+    y0 + 1, blended linearly towards the pole mean past the first and last row centres."""
+    dtype = u.dtype
+    tx = u * wk.astype(dtype) - 0.5
+    ty = v * hk.astype(dtype) - 0.5
+    x0f = jnp.floor(tx)
+    fx = tx - x0f
+    x0 = _wrap(x0f.astype(jnp.int32), wk)
+    y0f = jnp.floor(ty)
+    fy = ty - y0f
+    y0 = y0f.astype(jnp.int32)
+    north = y0 < 0
+    south = y0 >= hk - 1
+    wy1 = jnp.clip(jnp.where(north, 2.0 * fy - 1.0, jnp.where(south, 2.0 * fy, fy)), 0.0, 1.0)
+    return x0, fx, y0, north, south, wy1
+
+
 def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk: jax.Array,
                    *, lead: bool = False) -> tuple[jax.Array, jax.Array]:
     """Atlas rows (..., 4) and weights (..., 4) of the bilinear lookup of :func:`_bilinear`
@@ -673,19 +695,8 @@ def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk
     ``lead``: as (4, ...) instead, for :func:`_taps_sum` with ``lead`` (a stack on the last
     axis is a concatenate XLA:CPU writes element by element; benchmark frame −0.6 %, close-up
     −1.6 %, in-process interleaved)."""
-    dtype = u.dtype
-    tx = u * wk.astype(dtype) - 0.5
-    ty = v * hk.astype(dtype) - 0.5
-    x0f = jnp.floor(tx)
-    fx = tx - x0f
-    x0 = _wrap(x0f.astype(jnp.int32), wk)
+    x0, fx, y0, north, south, wy1 = _tap_coords(u, v, hk, wk)
     x1 = jnp.where(x0 + 1 >= wk, 0, x0 + 1)
-    y0f = jnp.floor(ty)
-    fy = ty - y0f
-    y0 = y0f.astype(jnp.int32)
-    north = y0 < 0
-    south = y0 >= hk - 1
-    wy1 = jnp.clip(jnp.where(north, 2.0 * fy - 1.0, jnp.where(south, 2.0 * fy, fy)), 0.0, 1.0)
     r0 = off + jnp.clip(y0, 0, hk - 1) * wk
     r1 = off + jnp.clip(y0 + 1, 0, hk - 1) * wk
     pole_n = off + hk * wk
@@ -695,6 +706,37 @@ def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk
                      jnp.where(south, pole_n + 1, r1 + x1)], axis=ax)
     w = jnp.stack([(1 - wy1) * (1 - fx), (1 - wy1) * fx, wy1 * (1 - fx), wy1 * fx], axis=ax)
     return idx, w
+
+
+def padded_table(flat: jax.Array, hm: int, wm: int) -> jax.Array:
+    """A map's table laid out for :func:`padded_bilinear`: ``flat`` ((Hm·Wm + 2, C), the
+    texels then the north and south pole means, as :func:`_bilinear_taps` reads it) as
+    (Hm + 2) rows of (Wm + 1) texels: a row of the north pole mean, the map's rows, a row of
+    the south pole mean, each row followed by a copy of its first texel (the wrap in u).
+    Returns ((Hm + 2)·(Wm + 1), C)."""
+    c = flat.shape[-1]
+    tex = flat[:hm * wm].reshape(hm, wm, c)
+    rows = jnp.concatenate([jnp.broadcast_to(flat[hm * wm], (1, wm, c)), tex,
+                            jnp.broadcast_to(flat[hm * wm + 1], (1, wm, c))])
+    return jnp.concatenate([rows, rows[:, :1]], axis=1).reshape(-1, c)
+
+
+def padded_bilinear(table: jax.Array, u: jax.Array, v: jax.Array, hm: int, wm: int
+                    ) -> jax.Array:
+    """The bilinear lookup of :func:`_bilinear_taps` + :func:`_taps_sum` (one level of size
+    (Hm, Wm); wrapped in u, blended towards the pole means past the first and last row
+    centres) at map coordinates u, v (N,), from :func:`padded_table`'s layout: the four taps
+    are the texels at b, b + 1, b + Wm + 1 and b + Wm + 2 of one base index b, so the index
+    arithmetic (done again for every channel of the result) is a third of the general one's.
+    The same texels, weights and summation order: bit-identical to the general lookup (the
+    frame's background 1.60 → 1.41 ms). Returns (N, C)."""
+    wp = wm + 1
+    x0, fx, y0, _, _, wy1 = _tap_coords(u, v, jnp.int32(hm), jnp.int32(wm))
+    base = (jnp.clip(y0, -1, hm - 1) + 1) * wp + x0
+    out = table.at[base].get(mode="promise_in_bounds") * ((1 - wy1) * (1 - fx))[..., None]
+    out = out + table.at[base + 1].get(mode="promise_in_bounds") * ((1 - wy1) * fx)[..., None]
+    out = out + table.at[base + wp].get(mode="promise_in_bounds") * (wy1 * (1 - fx))[..., None]
+    return out + table.at[base + wp + 1].get(mode="promise_in_bounds") * (wy1 * fx)[..., None]
 
 
 def _select(table: Any, index: jax.Array) -> jax.Array:

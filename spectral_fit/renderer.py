@@ -1021,10 +1021,12 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     ray direction is an affine function of the pixel coordinates (one 3 × 3 matrix for the
     frame: inverse projection, camera rotation and map rotation), evaluated by components
     (:func:`_pinhole_ray_components`, not normalised); (u, v) as
-    :func:`~spectral_fit.environment.fast_direction_to_uv`'s. Through a
-    lens (``prep.pixel_rays``) each pixel's ray is looked up instead (rotated into the map
-    frame)."""
-    from .environment import _bilinear_taps, _taps_sum, _uv_of, fast_direction_to_uv
+    :func:`~spectral_fit.environment.fast_direction_to_uv`'s; the lookup from the table laid
+    out with a pole row above and below and a wrapped column
+    (:func:`~spectral_fit.environment.padded_bilinear`, bit-identical to the general one).
+    Through a lens (``prep.pixel_rays``) each pixel's ray is looked up instead (rotated into
+    the map frame)."""
+    from .environment import _uv_of, fast_direction_to_uv, padded_bilinear, padded_table
 
     env = prep.env
     hm, wm = env.texels.shape[:2]
@@ -1038,8 +1040,7 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     else:  # (u, v) straight from the rays' components, written once as two planes
         u, v = materialise_each(*(c.reshape(-1) for c in _uv_of(
             *_pinhole_ray_components(prep, view, env.rotation))))
-    idx, wt = _bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm), lead=True)
-    return _taps_sum(flat, idx, wt, lead=True)
+    return padded_bilinear(padded_table(flat, hm, wm), u, v, hm, wm)
 
 
 def _pinhole_ray_components(prep: Prepared, view: jax.Array, rot: jax.Array

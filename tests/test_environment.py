@@ -408,3 +408,43 @@ def test_compressed_measured_map_keeps_its_gloss():
     a, b = gloss(small), gloss(full)
     assert np.abs(b).max() > 0
     assert np.abs(a - b).max() <= 2e-5 * np.abs(b).max()
+
+
+@pytest.mark.parametrize("shape", [(16, 32), (7, 13)])
+def test_padded_bilinear_is_the_general_lookup_bit_for_bit(shape):
+    """The background's lookup from the pole-row, wrapped-column layout
+    (``padded_bilinear``) returns exactly what the general taps (``_bilinear_taps`` +
+    ``_taps_sum``) return: random coordinates, both seams, the pole caps past the first and
+    last row centres, the very poles, and u, v exactly 0 and 1."""
+    from spectral_fit.environment import (
+        _bilinear_taps,
+        _taps_sum,
+        padded_bilinear,
+        padded_table,
+    )
+
+    hm, wm = shape
+    rng = np.random.default_rng(hm)
+    flat = jnp.asarray(rng.uniform(0.0, 5.0, (hm * wm + 2, 3)), jnp.float32)
+    u = rng.uniform(0.0, 1.0, 4000)
+    v = rng.uniform(0.0, 1.0, 4000)
+    edge_u = np.array([0.0, 1.0, 0.5 / wm, 1.0 - 0.5 / wm, 1e-7, 1.0 - 1e-7, 0.25, 0.999])
+    edge_v = np.array([0.0, 1.0, 0.5 / hm, 1.0 - 0.5 / hm, 0.2 / hm, 1.0 - 0.2 / hm, 1e-7,
+                       1.0 - 1e-7])
+    uu, vv = np.meshgrid(edge_u, edge_v)
+    u = jnp.asarray(np.concatenate([u, uu.ravel()]), jnp.float32)
+    v = jnp.asarray(np.concatenate([v, vv.ravel()]), jnp.float32)
+
+    @jax.jit
+    def both(flat, u, v):
+        idx, w = _bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm), lead=True)
+        return (_taps_sum(flat, idx, w, lead=True),
+                padded_bilinear(padded_table(flat, hm, wm), u, v, hm, wm))
+
+    general, padded = (np.asarray(x) for x in both(flat, u, v))
+    np.testing.assert_array_equal(padded, general)
+    # and the lookup is the bilinear interpolation: at texel centres, the texel itself
+    r, c = 3, 5
+    at = padded_bilinear(padded_table(flat, hm, wm), jnp.float32([(c + 0.5) / wm]),
+                         jnp.float32([(r + 0.5) / hm]), hm, wm)
+    np.testing.assert_allclose(np.asarray(at)[0], np.asarray(flat)[r * wm + c], rtol=1e-6)
