@@ -744,15 +744,15 @@ def prepare(
 
 
 def _plan_clusters(clusters: Any, model: np.ndarray, view: np.ndarray, proj: np.ndarray,
-                   cull: str, current: int = 0) -> Any:
+                   cull: str) -> Any:
     """``clusters`` with its kept-list capacity: the clusters kept at the pose, or seen
     from any direction (:func:`~spectral_fit.culling.worst_direction_count`: objects that
-    turn), whichever is more, + 5 %, on the capacity ladder; at least ``current``."""
+    turn), whichever is more, + 5 %, on the capacity ladder."""
     from .culling import count_clusters, sized, worst_direction_count
 
     need = max(count_clusters(clusters, model, view, proj, cull=cull),
                worst_direction_count(clusters))
-    return sized(clusters, 1.05 * need + 4, at_least=current)
+    return sized(clusters, 1.05 * need + 4)
 
 
 def _concat_meshes(meshes: Sequence[Any]) -> tuple[Any, ...]:
