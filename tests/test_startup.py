@@ -504,7 +504,7 @@ def test_cli_programs_stored_after_a_warm_jax_cache_are_reused(tmp_path):
 
 
 _FASTBINS = r"""
-import ctypes, json
+import ctypes, gc, json
 from spectral_fit import startup
 
 class MallInfo2(ctypes.Structure):
@@ -520,12 +520,19 @@ libc.free.argtypes = (ctypes.c_void_p,)
 
 def freed_small_blocks():
     # 2,000 blocks of 48 bytes, every other one freed (the kept ones stop them merging):
-    # glibc keeps the freed ones in its fastbins unless they are off (tcache takes 7)
+    # glibc keeps the freed ones in its fastbins unless they are off (tcache takes 7).
+    # Nothing larger may be freed between the first free and the count: a free that leaves
+    # 64 KiB or more of free space in one piece (the temporary list of a slice, next to the
+    # heap's top) consolidates the fastbins (malloc.c, FASTBIN_CONSOLIDATION_THRESHOLD), so
+    # both halves are listed, and the collector is off, before anything is freed.
     ptrs = [libc.malloc(48) for _ in range(2000)]
-    for p in ptrs[::2]:
+    freed, kept = ptrs[::2], ptrs[1::2]
+    gc.disable()
+    for p in freed:
         libc.free(p)
     n = libc.mallinfo2().smblks
-    for p in ptrs[1::2]:
+    gc.enable()
+    for p in kept:
         libc.free(p)
     return n
 
