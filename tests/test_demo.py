@@ -38,6 +38,7 @@ def test_demo_writes_pictures_and_summary(tmp_path, capsys):
     disc = _projected_sphere_pixels(0.0375, 0.045, 0.275, 720, 480)
     assert abs(mask.sum() - 2 * disc) < 0.01 * 2 * disc
     assert abs(render["coverage"] - mask.mean()) < 1e-3
+    assert render["frame_ms_repeats"] >= 3 and render["frame_ms"] > 0  # a median, not one call
     wl_f, spec = read_spectral_exr(out / "frame.exr")
     assert spec.shape == (480, 720, wl_f.size) and np.isfinite(spec).all()
     # the fit recovers the parameters stated by the session (rendered by the Mitsuba reference)
