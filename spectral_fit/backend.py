@@ -92,6 +92,22 @@ def materialise_each(*xs: Any, cut: bool = False) -> list[Any]:
     return [p[i] for i in range(len(xs))]
 
 
+def as_chunks(arrays: Any, size: int) -> list[Any]:
+    """Each array (N, ...) of ``arrays`` as (ceil(N / size), size, ...) chunks, padded at the
+    end with copies of its first item (a valid input for whatever runs on the chunks; callers
+    skip or drop the padding's results)."""
+    import jax.numpy as jnp
+
+    out = []
+    for a in arrays:
+        nc = -(-a.shape[0] // size)
+        pad = nc * size - a.shape[0]
+        if pad:
+            a = jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))])
+        out.append(a.reshape(nc, size, *a.shape[1:]))
+    return out
+
+
 def prefix_chunks(fn: Any, count: Any, arrays: Any, *, size: int) -> Any:
     """``fn`` over consecutive chunks of ``size`` items of ``arrays`` (a sequence of arrays
     with a common leading axis N), skipping the chunks that start at or after ``count`` (a
@@ -118,12 +134,8 @@ def prefix_chunks(fn: Any, count: Any, arrays: Any, *, size: int) -> Any:
     n = arrays[0].shape[0]
     if on_accelerator() or n <= size:
         return fn(*arrays)
-    nc = -(-n // size)
-    pad = nc * size - n
-    if pad:
-        arrays = [jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))])
-                  for a in arrays]
-    chunks = [a.reshape(nc, size, *a.shape[1:]) for a in arrays]
+    chunks = as_chunks(arrays, size)
+    nc = chunks[0].shape[0]
     shapes = jax.eval_shape(fn, *[jax.ShapeDtypeStruct(c.shape[1:], c.dtype) for c in chunks])
     count = jnp.asarray(count, jnp.int32)
 

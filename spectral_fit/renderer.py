@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .backend import materialise, materialise_each, on_accelerator
+from .backend import as_chunks, materialise, materialise_each, on_accelerator
 from .camera import eye_position, inverse_3x3, inverse_4x4
 from .culling import build_clusters, spatial_order
 from .dispatch import array_jit
@@ -1163,13 +1163,7 @@ def _chunked(fn: Any, counts: Sequence[jax.Array], out_channels: int,
     nchunks = [-(-c // b) for c in caps]
     if sum(nchunks) == 1:
         return [fn(jnp.int32(0), *arrays[0])]
-    padded = []
-    for seg, nc in zip(arrays, nchunks, strict=True):
-        pad = nc * b - seg[0].shape[0]
-        if pad:
-            seg = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))])
-                        for a in seg)
-        padded.append([a.reshape(nc, b, *a.shape[1:]) for a in seg])
+    padded = [as_chunks(seg, b) for seg in arrays]
     chunks = [jnp.concatenate(parts) for parts in zip(*padded, strict=True)]
     seg_of = jnp.asarray(np.repeat(np.arange(len(caps)), nchunks), jnp.int32)
     first = jnp.asarray(np.concatenate([np.arange(nc) * b for nc in nchunks]), jnp.int32)
