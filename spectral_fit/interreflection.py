@@ -1444,11 +1444,20 @@ def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
     :func:`_reflect_diffuse`) and the senders' mip ``atlas`` (in the output channels)."""
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
     out = diffuse + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid)
+    out, ok = _less_hidden_sources(geom, sh, out, pos, nrm, view, obj)
+    return jnp.where(ok[:, None], out, 0.0)
+
+
+def _less_hidden_sources(geom: IRGeometry, sh: _Shading, out: jax.Array, pos: jax.Array,
+                         nrm: jax.Array, view: jax.Array, obj: jax.Array
+                         ) -> tuple[jax.Array, jax.Array]:
+    """``out`` (N, D) less the environment's gloss that the neighbours hide
+    (:func:`_hidden_source_gloss`), and (N,) whether each receiver gets interreflection at
+    all (it sees a neighbour and faces its view)."""
     hsrc = _hidden_source_gloss(sh, geom, obj, pos, nrm, view)
     if hsrc is not None:
         out = out - hsrc
-    ok = _sees(geom, pos, nrm, obj) & (_dot3(nrm, view) > 0.0)
-    return jnp.where(ok[:, None], out, 0.0)
+    return out, _sees(geom, pos, nrm, obj) & (_dot3(nrm, view) > 0.0)
 
 
 def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: jax.Array,
@@ -1696,10 +1705,7 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
         with jax.named_scope("ir_receiver_diffuse"):
             base = dif[0] if dif else _interpolate_net(geom, None, x, nn, ob, tables=tables)
         with jax.named_scope("ir_receiver_gloss"):
-            hsrc = _hidden_source_gloss(sh, geom, ob, x, nn, vv)
-            if hsrc is not None:
-                base = base - hsrc
-            ok = _sees(geom, x, nn, ob) & (_dot3(nn, vv) > 0.0)
+            base, ok = _less_hidden_sources(geom, sh, base, x, nn, vv, ob)
             active, gap, refl = _lobe_reach(geom, sh, x, nn, vv, ob)
             if at is None:
                 return base, ok, active
