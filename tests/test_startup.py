@@ -476,6 +476,52 @@ def test_programs_stored_by_a_busy_process_load_elsewhere(config, tmp_path, mode
     assert np.abs(np.asarray(got.xyz) - ref).max() <= tol
 
 
+_RENDER_MODULES = r"""
+import json, sys
+from spectral_fit.cli import main
+rc = main(["render", *sys.argv[1:]])
+print(json.dumps({"rc": rc, "colour": "colour" in sys.modules}))
+"""
+
+
+def test_warm_cli_render_reads_no_config_and_imports_no_colour(config, tmp_path, capsys,
+                                                               monkeypatch):
+    """`spectral-fit render` with the config's prepared scene stored takes it from the store
+    and does not parse the config, so colour-science (whose package import also loads its
+    plotting and matplotlib, ~0.7 s) is not imported; the RGB EXR's colourspace still comes
+    from the config; an edited config is read and checked again (its errors name the field)."""
+    import OpenEXR
+
+    from spectral_fit.cli import main
+
+    cache = tmp_path / "cache"
+    env = _env(cache)
+    env["SPECTRAL_FIT_JAX_CACHE"] = ""
+    cfg = tmp_path / "scene.toml"
+    assert "[display]" not in config.read_text()
+    cfg.write_text(config.read_text() + '\n[display]\ncolourspace = "Adobe RGB (1998)"\n')
+
+    def render(*extra: str) -> dict:
+        r = subprocess.run([sys.executable, "-c", _RENDER_MODULES, str(cfg), "-o",
+                            str(tmp_path / "f.png"), "--mode", "none", *extra],
+                           capture_output=True, text=True, env=env, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        return json.loads(r.stdout.strip().splitlines()[-1])
+
+    assert render() == {"rc": 0, "colour": True}  # the scene prepared: the config parsed
+    assert render() == {"rc": 0, "colour": False}  # stored: neither
+    rgb = tmp_path / "rgb.exr"
+    assert render("--rgb-exr", str(rgb)) == {"rc": 0, "colour": True}
+    assert OpenEXR.File(str(rgb), header_only=True).header()["colourspace"] == \
+        "Adobe RGB (1998)"
+    # an edited config is another entry: read and checked again
+    monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(cache))
+    cfg.write_text(cfg.read_text().replace("Adobe RGB (1998)", "Nonesuch RGB"))
+    rc = main(["render", str(cfg), "-o", str(tmp_path / "g.png"), "--mode", "none"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "display.colourspace" in err and "Nonesuch RGB" in err, err
+
+
 @pytest.mark.slow
 def test_cli_programs_stored_after_a_warm_jax_cache_are_reused(tmp_path):
     """The reproducer of the stored-program failure (before the programs were compiled by a

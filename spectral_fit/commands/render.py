@@ -81,7 +81,9 @@ def run(args: argparse.Namespace) -> int:
 
     t_import = time.perf_counter() - t0
     enable_compilation_cache(min_compile_time_s=1.0)  # docs/rendering.md "Cold start"
-    scene = load_scene(args.config)
+    # the config is read (and checked, errors naming its file and field) by prepare_cached,
+    # unless its prepared scene is stored: that skips the scene's parsing, and with it
+    # colour-science's import (~0.7 s; its package imports its plotting and matplotlib)
     t1 = time.perf_counter()
     prep = prepare_cached(args.config, size=size, mode=args.mode,
                           spectral_mode=args.spectral_mode, k=args.k, progress=_say)
@@ -99,7 +101,9 @@ def run(args: argparse.Namespace) -> int:
     written = write_frame(frame, png=args.output, exr=args.exr, xyz_exr=args.xyz_exr,
                           rgb_exr=args.rgb_exr, mask_png=args.mask,
                           composite_png=args.composite, background=args.background,
-                          wavelengths=prep.wavelengths, colourspace=scene.display.colourspace)
+                          wavelengths=prep.wavelengths,
+                          colourspace=(load_scene(args.config).display.colourspace
+                                       if args.rgb_exr else "sRGB"))
     stats = {k: (v.item() if hasattr(v, "item") else v) for k, v in frame.stats.items()}
     h, w = prep.shape
     summary = {
