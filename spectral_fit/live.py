@@ -437,11 +437,14 @@ class LiveSession:
         return True
 
     def _prepare(self, headroom: float) -> Any:
-        from .renderer import prepare, with_output
+        from .renderer import with_output
+        from .startup import prepare_cached
 
         h, w = self.size
-        prep = prepare(self._planning_scene(), size=(w, h), headroom=headroom,
-                       **self._options)
+        # kept on disk (startup's cache; SPECTRAL_FIT_CACHE="" turns it off): a session of
+        # the same config, camera and options starts from the stored prepared scene
+        prep = prepare_cached(self._planning_scene(), size=(w, h), headroom=headroom,
+                              **self._options)
         return with_output(prep, camera_output_matrix(prep, self.camera))
 
     # ------------------------------------------------------------------ growing ahead

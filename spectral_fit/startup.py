@@ -202,17 +202,53 @@ _PLAIN = (type(None), bool, int, float, str)
 def _plain_repr(value: Any) -> str | None:
     """A deterministic text of a plain option value (scalars, tuples/lists of them, frozen
     dataclasses of them); None for anything else (arrays, objects): then no caching."""
+    return _value_text(value, rich=False)
+
+
+def _scene_text(value: Any) -> str | None:
+    """A deterministic text of a :class:`~spectral_fit.scene.Scene` (or any part of one):
+    plain values as :func:`_plain_repr`, arrays by dtype, shape and a SHA-256 of their bytes,
+    dicts by sorted key, and every file path with the resolved path, size and modification
+    time of the file it names (as :func:`_config_digest` does for a config's files); None
+    when any part is something else (then no caching)."""
+    return _value_text(value, rich=True)
+
+
+def _value_text(value: Any, *, rich: bool) -> str | None:
+    """:func:`_plain_repr` (``rich`` False) or :func:`_scene_text` (True)."""
+    import numpy as np
+
     if isinstance(value, _PLAIN):
         return repr(value)
-    if isinstance(value, list | tuple):
-        items = [_plain_repr(v) for v in value]
-        return None if any(i is None for i in items) else "(" + ",".join(items) + ")"
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        items = [_plain_repr(getattr(value, f.name)) for f in dataclasses.fields(value)]
-        if any(i is None for i in items):
+    if rich and isinstance(value, Path):
+        try:
+            st = value.stat()
+            return f"file:{value.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+        except OSError:
+            return f"file:{value}|missing"
+    if rich and isinstance(value, np.ndarray):
+        a = np.ascontiguousarray(value)
+        if a.dtype.hasobject:
             return None
-        return type(value).__qualname__ + "(" + ",".join(items) + ")"
-    return None
+        return f"array:{a.dtype.str}:{a.shape}:{hashlib.sha256(a.tobytes()).hexdigest()}"
+    if rich and isinstance(value, dict):
+        pairs = [(_value_text(k, rich=True), _value_text(v, rich=True))
+                 for k, v in value.items()]
+        if any(k is None or v is None for k, v in pairs):
+            return None
+        return "{" + ",".join(sorted(f"{k}:{v}" for k, v in pairs)) + "}"
+    if isinstance(value, list | tuple):
+        items = [_value_text(v, rich=rich) for v in value]
+    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+        items = [_value_text(getattr(value, f.name), rich=rich)
+                 for f in dataclasses.fields(value)]
+    else:
+        return None
+    if any(i is None for i in items):
+        return None
+    text = ",".join(items)  # type: ignore[arg-type]
+    return (f"({text})" if isinstance(value, list | tuple)
+            else f"{type(value).__qualname__}({text})")
 
 
 # --------------------------------------------------------------------------------------------
@@ -444,9 +480,13 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
     """:func:`~spectral_fit.renderer.prepare` with a disk cache of its result.
 
     Args:
-        scene: path to a scene config (TOML). A :class:`~spectral_fit.scene.Scene` object, or
-            an option that is not a plain value (e.g. an ``environment`` array), is prepared
-            without the cache.
+        scene: path to a scene config (TOML), keyed by its bytes and the size and
+            modification time of every file it names; or a
+            :class:`~spectral_fit.scene.Scene` object (e.g. a config's scene changed in
+            Python, as the live session's planning scene), keyed by every field's value
+            (arrays by their bytes) and the same of every file it names. An option that is
+            not a plain value (e.g. an ``environment`` array) is prepared without the
+            cache.
         cache_dir: cache root (default :func:`cache_root`); entries go to ``<root>/prepared``.
         progress: called with one line of text when the scene is prepared rather than
             loaded (seconds of work), e.g. ``print``.
@@ -462,8 +502,12 @@ def prepare_cached(scene: Any, *, cache_dir: str | os.PathLike[str] | None = Non
 
     root = Path(cache_dir) if cache_dir is not None else cache_root()
     texts = {k: _plain_repr(v) for k, v in options.items()}
-    digest = (_config_digest(Path(scene)) if root is not None
-              and isinstance(scene, str | os.PathLike) else None)
+    digest = None
+    if root is not None and isinstance(scene, str | os.PathLike):
+        digest = _config_digest(Path(scene))
+    elif root is not None and dataclasses.is_dataclass(scene) and not isinstance(scene, type):
+        text = _scene_text(scene)
+        digest = None if text is None else hashlib.sha256(text.encode()).hexdigest()
     say = progress or (lambda _m: None)
     if digest is None or any(t is None for t in texts.values()):
         say(_PREPARING)

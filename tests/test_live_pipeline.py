@@ -75,6 +75,33 @@ def session():
     return LiveSession(_scene(hold_frames=0), size=SIZE)
 
 
+def test_a_new_session_of_the_same_scene_starts_from_the_stored_prepared_scene(
+        session, tmp_path, monkeypatch):
+    """LiveSession prepares its planning scene through ``startup.prepare_cached``: a second
+    session of the same scene, size and options loads the stored one (equal leaf by leaf)."""
+    import jax
+
+    from spectral_fit import startup
+    from spectral_fit.live import LiveSession
+
+    monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(tmp_path))
+    before = dict(startup.CACHE_STATS)
+    one = LiveSession(_scene(hold_frames=0), size=SIZE)
+    two = LiveSession(_scene(hold_frames=0), size=SIZE)
+    assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 1
+    assert startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
+    la, ta = jax.tree_util.tree_flatten(one.prep)
+    lb, tb = jax.tree_util.tree_flatten(two.prep)
+    assert repr(ta) == repr(tb)
+    assert all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(la, lb,
+                                                                            strict=True))
+    # and equal to the session prepared without the cache (the module's fixture)
+    lc, tc = jax.tree_util.tree_flatten(session.prep)
+    assert repr(ta) == repr(tc)
+    assert all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(la, lc,
+                                                                            strict=True))
+
+
 def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, tables):
     from spectral_fit.live import STEP_TRACES
     from spectral_fit.renderer import TRACE_COUNT

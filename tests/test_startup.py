@@ -107,11 +107,54 @@ def test_prepare_cached_invalidated_by_a_named_file(tmp_path):
     assert _leaves_equal(b, c)
 
 
+def test_prepare_cached_keys_a_scene_object_by_its_values(config, tmp_path):
+    """A Scene object (a config's scene changed in Python, as the live session's planning
+    scene) is cached by its values: an equal scene hits and gives ``prepare``'s result bit
+    for bit; a moved object, another array value or a touched named file is another entry."""
+    import dataclasses
+
+    from spectral_fit.renderer import prepare
+    from spectral_fit.scene import load_scene
+
+    scene = load_scene(config)
+    moved = scene.replace(objects=(dataclasses.replace(
+        scene.objects[0], position=(0.01, 0.0, -0.3)), *scene.objects[1:]))
+    before = dict(startup.CACHE_STATS)
+
+    def cached(sc: Any) -> Any:
+        return startup.prepare_cached(sc, cache_dir=tmp_path, mode="none")
+
+    def misses() -> int:
+        return startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"]
+
+    a = cached(moved)
+    b = cached(dataclasses.replace(moved))  # an equal scene, another object
+    assert misses() == 1 and startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
+    assert _leaves_equal(a, prepare(moved, mode="none")) and _leaves_equal(a, b)
+    assert not _leaves_equal(a, cached(scene))  # the object where the config has it
+    assert misses() == 2
+    o = scene.objects[1]
+    tinted = scene.replace(objects=(scene.objects[0], dataclasses.replace(
+        o, material=dataclasses.replace(o.material,
+                                        reflectance=o.material.reflectance * 0.5))))
+    cached(tinted)
+    assert misses() == 3
+    env = scene.environment.file
+    os.utime(env, ns=(env.stat().st_atime_ns, env.stat().st_mtime_ns + 10**9))
+    cached(scene)  # the same values, a newer environment file
+    assert misses() == 4
+    cached(scene)
+    assert misses() == 4
+
+
 def test_prepare_cached_bypasses_what_it_cannot_key(config, tmp_path, monkeypatch):
+    from spectral_fit.exr import read_spectral_exr
     from spectral_fit.scene import load_scene
 
     before = dict(startup.CACHE_STATS)
-    startup.prepare_cached(load_scene(config), cache_dir=tmp_path, mode="none")
+    # an option that is not a plain value: an environment given as an array
+    texels = read_spectral_exr(load_scene(config).environment.file)[1]
+    startup.prepare_cached(config, cache_dir=tmp_path, mode="none", environment=texels)
     monkeypatch.setenv("SPECTRAL_FIT_CACHE", "")
     assert startup.cache_root() is None
     startup.prepare_cached(config, mode="none")
