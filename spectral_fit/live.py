@@ -311,6 +311,7 @@ class LiveSession:
         self.grow_ahead = None if grow_ahead is None else float(grow_ahead)
         self.replans_ahead = 0
         self._grow_thread: threading.Thread | None = None
+        self._grow_stop: threading.Event | None = None  # asks that thread to end early
         # (the prepared scene it grew from, the grown one, its copies per device), once compiled
         self._grown: tuple[Any, Any, dict[Any, Any]] | None = None
         self._planned = False
@@ -480,15 +481,19 @@ class LiveSession:
             return
         base = self.prep
         host = (np.asarray(poses.model), np.asarray(poses.view), np.asarray(poses.visible))
+        stop = self._grow_stop = threading.Event()
 
         def work() -> None:
             # the grown step (and the senders' half, whose program also takes the prepared
-            # scene) compiled and run once on every device, on this frame's inputs
+            # scene) compiled and run once on every device, on this frame's inputs; between
+            # those steps it ends early when asked to (stop_background)
             from .renderer import render_senders
 
             copies: dict[Any, Any] = {}
             try:
                 for dev in self.devices:
+                    if stop.is_set():
+                        return
                     if len(self.devices) == 1:
                         placed, cam, put = grown, self.camera, jnp.asarray
                     else:
@@ -500,12 +505,17 @@ class LiveSession:
                     if self._reuses_senders(grown):
                         senders = render_senders(placed, placed.materials, model=model,
                                                  visible=visible, mirror=self._mirror)
+                        if stop.is_set():
+                            return
                     out, _ = _step(placed, placed.materials, model, view, visible,
                                    put(background), cam, self._mirror, senders)
+                    if stop.is_set():
+                        return
                     jax.block_until_ready(out)
             except Exception:  # e.g. out of memory: the blocking path stays in charge
                 return
-            self._grown = (base, grown, copies)
+            if not stop.is_set():
+                self._grown = (base, grown, copies)
 
         # not a daemon: an interpreter that exits during the compile waits for it (a daemon
         # thread stopped inside XLA's compiler aborts the process)
@@ -534,6 +544,17 @@ class LiveSession:
         t = self._grow_thread
         if t is not None:
             t.join()
+
+    def stop_background(self) -> None:
+        """Ask a background compile of grown buffers, if one is under way, to stop at its
+        next step (a trace, a compile or a run on one device: XLA's compiler cannot be
+        interrupted) and wait for it; the session keeps its current buffers. For the end of
+        a run, when no frame will use the grown ones: an interpreter that exits waits for
+        the whole compile otherwise (sample video, warm caches: 3.8 s after the last
+        frame)."""
+        if self._grow_stop is not None:
+            self._grow_stop.set()
+        self.join_background()
 
     def _wait_grown(self) -> bool:
         """After an overflow: wait for a background compile under way and switch to it;

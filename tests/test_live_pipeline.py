@@ -151,6 +151,7 @@ def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(sessi
 
     both, _ = tables
     img = _frame(both, (0.0, 0.3, 0.25), seed=20)[0]
+    ref = session.process(img)  # (its step traced before the count, when run alone)
     s = LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.3)
     first = s.process(img)  # the plan on these poses: 30-60 % of the buffers in use
     caps = (s.prep.pixel_capacity, s.prep.raster_config)
@@ -166,7 +167,7 @@ def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(sessi
                                       strict=True))
     assert new != caps
     np.testing.assert_array_equal(second, first)
-    np.testing.assert_array_equal(first, session.process(img))  # a session at the default
+    np.testing.assert_array_equal(first, ref)  # a session at the default
     s.process(img)  # under 30 % of the grown buffers: nothing more to grow
     s.join_background()
     assert s.replans_ahead == 1 and s.recompiles == 0 and STEP_TRACES["step"] == traces + 1
@@ -186,6 +187,47 @@ def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(sessi
     np.testing.assert_array_equal(got, want)
     with pytest.raises(Exception, match="grow_ahead"):
         LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=1.5)
+
+
+def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, monkeypatch):
+    """``stop_background()`` (the live command calls it when the video ends) makes a compile
+    of grown buffers under way end at its next step without switching to them: the session
+    renders on with its own buffers, the same picture, nothing re-planned or recompiled."""
+    import threading
+
+    from spectral_fit import live
+
+    both, _ = tables
+    img = _frame(both, (0.0, 0.3, 0.25), seed=20)[0]
+    # 0.35: grown buffers unlike those the other tests compile (their programs stay theirs)
+    s = live.LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.35)
+    entered, release = threading.Event(), threading.Event()
+    step = live._step
+
+    def held(*a, **k):  # the background compile's step waits until the test lets it go
+        if threading.current_thread().name == "spectral_fit-grow-ahead":
+            entered.set()
+            assert release.wait(120)
+        return step(*a, **k)
+
+    monkeypatch.setattr(live, "_step", held)
+    first = s.process(img)  # fills the buffers past 0.35: a compile of grown ones starts
+    caps = (s.prep.pixel_capacity, s.prep.raster_config)
+    assert entered.wait(120) and s.growing
+    stopper = threading.Thread(target=s.stop_background)
+    stopper.start()
+    while not s._grow_stop.is_set():
+        stopper.join(0.01)
+    release.set()
+    stopper.join(120)
+    assert not stopper.is_alive() and not s.growing
+    monkeypatch.setattr(live, "_step", step)
+    s.grow_ahead = None  # no new compile: the next frame shows what the session kept
+    again = s.process(img)
+    assert s.replans_ahead == 0 and s.recompiles == 0
+    assert (s.prep.pixel_capacity, s.prep.raster_config) == caps
+    np.testing.assert_array_equal(again, first)
+    s.stop_background()  # nothing under way: returns at once
 
 
 def test_threaded_run_gives_the_sequential_frames(session, tables):

@@ -151,6 +151,9 @@ def run(args: argparse.Namespace) -> int:
             stats = session.run(source, sink.write if sink is not None else None,
                                 threads=pipeline, max_frames=args.max_frames,
                                 on_frame=progress)
+        # no frame will come: a compile of grown buffers still under way is stopped early
+        # rather than finished (the interpreter would wait for the whole of it)
+        session.stop_background()
         if not args.quiet:
             print(file=sys.stderr)
     n = stats.frames
@@ -202,11 +205,6 @@ def run(args: argparse.Namespace) -> int:
               f"buffers grown ahead {session.replans_ahead}")
         if args.output:
             print(f"wrote {args.output} ({written} frames)")
-    if session.growing:  # the interpreter would wait for it anyway: say so
-        if not args.quiet:
-            print("live: finishing a background compile of larger buffers before exiting",
-                  file=sys.stderr)
-        session.join_background()
     if args.output and written != n:
         raise InputError(f"wrote {n} frames but {written} read back", path=args.output,
                          field="--output")
