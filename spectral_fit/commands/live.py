@@ -147,13 +147,15 @@ def run(args: argparse.Namespace) -> int:
 
         ctx = sink if sink is not None else _Null()
         t_run = time.perf_counter()
-        with ctx:
-            stats = session.run(source, sink.write if sink is not None else None,
-                                threads=pipeline, max_frames=args.max_frames,
-                                on_frame=progress)
-        # no frame will come: a compile of grown buffers still under way is stopped early
-        # rather than finished (the interpreter would wait for the whole of it)
-        session.stop_background()
+        try:
+            with ctx:
+                stats = session.run(source, sink.write if sink is not None else None,
+                                    threads=pipeline, max_frames=args.max_frames,
+                                    on_frame=progress)
+        finally:
+            # no frame will come: a compile of grown buffers still under way is stopped
+            # early rather than finished (the interpreter would wait for the whole of it)
+            session.stop_background()
         if not args.quiet:
             print(file=sys.stderr)
     n = stats.frames
