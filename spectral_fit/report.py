@@ -21,6 +21,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -152,15 +153,19 @@ def _render(scene: Any, result: FitResult, path: Path) -> str | None:
     except ImportError:
         return "frame renderer not available in this build"
     try:
-        import dataclasses
+        import jax.numpy as jnp
 
-        objs = []
-        for o in scene.objects:
-            p = result.params[o.name]
-            m = dataclasses.replace(o.material, **{k: float(p[k]) for k in PARAMETERS})
-            objs.append(dataclasses.replace(o, material=m))
-        fitted = scene.replace(objects=tuple(objs))
-        frame = renderer.render(fitted)
+        from .startup import prepare_cached, render_frame_cached
+
+        # the config's scene prepared (and kept on disk: nothing in it depends on the
+        # materials' parameters) and its frame program run with the fitted parameters as
+        # arguments, so a later report loads both instead of preparing and compiling again;
+        # the picture is renderer.render of the fitted scene (tests/test_fitting.py)
+        prep = prepare_cached(scene)
+        fitted = {k: jnp.asarray([float(result.params[o.name][k]) for o in scene.objects],
+                                 jnp.float32) for k in PARAMETERS}
+        mats = dataclasses.replace(prep.materials, **fitted)
+        frame = renderer._regrow(prep, render_frame_cached(prep, mats), mats, False)
         from .plots import save_png
 
         save_png(path, np.asarray(frame.rgb))

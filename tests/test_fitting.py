@@ -461,3 +461,44 @@ def test_bundled_session_recovery_targets():
         assert abs(got["mu"] / tp["mu"] - 1) <= 0.05
         assert abs(got["chi"] - tp["chi"]) <= 0.02
         assert abs(got["n"] - tp["n"]) <= 0.03
+
+
+def test_report_render_is_the_fitted_scene_rendered(tmp_path, monkeypatch):
+    """The report's render.png: the config's scene prepared once (kept on disk) and its
+    frame program run with the fitted parameters, the same picture as ``renderer.render``
+    of the scene with the fitted parameters written into its materials; a second report
+    of the same scene loads the prepared scene instead of preparing it."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from _rendering_util import scene_toml as two_spheres_toml
+    from _rendering_util import symmetric_environment
+    from PIL import Image
+
+    from spectral_fit import renderer, report, startup
+    from spectral_fit.plots import save_png
+    from spectral_fit.session import PARAMETERS
+
+    monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(tmp_path / "cache"))
+    env = symmetric_environment(tmp_path / "env.exr")
+    cfg = tmp_path / "scene.toml"
+    cfg.write_text(two_spheres_toml(env, stacks=12, width=64, height=40, same_colour=False,
+                                    chi=0.05))
+    scene = load_scene(cfg)
+    params = {o.name: {"alpha": 0.6 + 0.1 * i, "beta": 0.4, "chi": 0.02, "mu": 0.17,
+                       "n": 1.62, "gamma": 1.0} for i, o in enumerate(scene.objects)}
+    before = dict(startup.CACHE_STATS)
+    assert report._render(scene, SimpleNamespace(params=params), tmp_path / "a.png") is None
+    fitted = scene.replace(objects=tuple(
+        dataclasses.replace(o, material=dataclasses.replace(
+            o.material, **{k: params[o.name][k] for k in PARAMETERS}))
+        for o in scene.objects))
+    save_png(tmp_path / "b.png", np.asarray(renderer.render(fitted).rgb))
+    save_png(tmp_path / "c.png", np.asarray(renderer.render(scene).rgb))
+    a, b, c = (np.asarray(Image.open(tmp_path / f"{x}.png")).astype(int) for x in "abc")
+    assert np.abs(a - b).max() <= 1  # float rounding of two programs at most
+    assert np.abs(a - c).max() > 20  # the fitted parameters, not the config's
+    assert report._render(scene, SimpleNamespace(params=params), tmp_path / "d.png") is None
+    assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 1
+    assert startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "d.png")), a)
