@@ -188,12 +188,18 @@ def _config_digest(path: Path) -> str | None:
         for cand in ([p] if p.is_absolute() else [path.parent / p, Path.cwd() / p]):
             with contextlib.suppress(OSError):
                 if cand.is_file():
-                    st = cand.stat()
-                    key = f"{cand.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+                    key = _file_stamp(cand)
                     if key not in seen:
                         seen.add(key)
                         h.update(key.encode())
     return h.hexdigest()
+
+
+def _file_stamp(path: Path) -> str:
+    """A file's resolved path, size and modification time (ns), as the cache keys name a
+    file; OSError when it cannot be read."""
+    st = path.stat()
+    return f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}"
 
 
 _PLAIN = (type(None), bool, int, float, str)
@@ -222,8 +228,7 @@ def _value_text(value: Any, *, rich: bool) -> str | None:
         return repr(value)
     if rich and isinstance(value, Path):
         try:
-            st = value.stat()
-            return f"file:{value.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+            return "file:" + _file_stamp(value)
         except OSError:
             return f"file:{value}|missing"
     if rich and isinstance(value, np.ndarray):
