@@ -7,8 +7,9 @@ frame program to XLA (about 5 s of CPU) and compiling it (about 30 s of CPU on 2
 JAX's persistent compilation cache removes only the last of these: a cache hit still traces and
 lowers the whole program. This module keeps all three between processes:
 
-* :func:`enable_compilation_cache`: JAX's persistent compilation cache in
-  ``$SPECTRAL_FIT_JAX_CACHE`` (default ``~/.cache/spectral_fit/jax``), for every program;
+* :func:`enable_compilation_cache`: JAX's persistent compilation cache in a folder named for
+  the library versions (:func:`library_versions_tag`) under ``$SPECTRAL_FIT_JAX_CACHE``
+  (default ``~/.cache/spectral_fit/jax``), for every program;
 * :func:`prepare_cached`: :func:`~spectral_fit.renderer.prepare` of a config file, stored on disk
   (``$SPECTRAL_FIT_CACHE/prepared``, default ``~/.cache/spectral_fit/prepared``);
 * :func:`render_frame_cached`: :func:`~spectral_fit.renderer.render_frame` through a compiled
@@ -19,14 +20,17 @@ lowers the whole program. This module keeps all three between processes:
   does not depend on what the calling process compiled or loaded before (see ``_program``).
 
 Every entry is keyed by a SHA-256 of everything it depends on: the text of the package's source
-files, the versions of jax, jaxlib, equinox, numpy and colour-science, the backend and device
-kind, ``XLA_FLAGS`` and the JAX settings that change lowering; for a prepared scene also the
-config file's bytes, the size and modification time of every file the config names, and the
-options; for a program the full structure of its arguments (every static field, every array's
-shape and dtype) and the compiler options. A changed input therefore misses and recomputes; it
-never loads a stale entry. Set ``SPECTRAL_FIT_CACHE`` (or ``SPECTRAL_FIT_JAX_CACHE``) to an
-empty string to disable a cache. Applications (the CLI, the benchmarks, the notebooks) opt in;
-the library never enables a cache by itself, because JAX's setting is process-global.
+files, the Python version and the versions of jax, jaxlib, every installed JAX plugin (CUDA,
+ROCm, TPU), equinox, optimistix, lineax, numpy and colour-science (:func:`library_versions`),
+the backend and device kind, ``XLA_FLAGS`` and the JAX settings that change lowering; for a
+prepared scene also the config file's bytes, the size and modification time of every file the
+config names, and the options; for a program the full structure of its arguments (every static
+field, every array's shape and dtype) and the compiler options. A changed input therefore misses
+and recomputes; it never loads a stale entry. In particular nothing written under one
+jax/jaxlib is loaded by another, JAX's own compiled programs included (their folder is named for
+the versions). Set ``SPECTRAL_FIT_CACHE`` (or ``SPECTRAL_FIT_JAX_CACHE``) to an empty string to
+disable a cache. Applications (the CLI, the benchmarks, the notebooks) opt in; the library never
+enables a cache by itself, because JAX's setting is process-global.
 
 Measured figures: docs/rendering.md ("Cold start").
 """
@@ -51,6 +55,8 @@ from typing import Any
 __all__ = [
     "cache_root",
     "enable_compilation_cache",
+    "library_versions",
+    "library_versions_tag",
     "prepare_cached",
     "render_frame_cached",
     "single_threaded_blas",
@@ -83,14 +89,20 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None, *,
                              min_compile_time_s: float = 0.0) -> str | None:
     """Turn on JAX's persistent compilation cache (process-global) and return its folder.
 
+    Programs go to a subfolder named by :func:`library_versions_tag`, so that a program compiled
+    under one jax/jaxlib (or CUDA plugin) is never loaded by another, whatever JAX's own cache
+    key holds.
+
     Args:
-        path: the cache folder; default ``$SPECTRAL_FIT_JAX_CACHE`` or
+        path: the cache's base folder; default ``$SPECTRAL_FIT_JAX_CACHE`` or
             ``~/.cache/spectral_fit/jax`` (an empty variable disables the cache: returns None).
         min_compile_time_s: programs that compile faster than this are not stored. The default
             0 stores every program, so that a warm process compiles nothing at all (a frame's
             few small eager programs add up to ~0.4 s of compile otherwise).
 
-    A folder that cannot be created (read-only home) leaves the cache off and returns None.
+    Returns:
+        The folder in use (``<path>/<library_versions_tag()>``), or None when the cache is off.
+        A folder that cannot be created (read-only home) leaves the cache off.
     """
     import jax
 
@@ -100,7 +112,7 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None, *,
                                            "jax"))
     if not path:
         return None
-    path = os.fspath(path)
+    path = os.path.join(os.fspath(path), library_versions_tag())
     try:
         os.makedirs(path, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", path)
@@ -136,6 +148,41 @@ def _version(dist: str) -> str:
         return "-"
 
 
+# the distributions whose versions change what is prepared, lowered or compiled
+_KEY_DISTRIBUTIONS = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy",
+                      "colour-science")
+# JAX's backend plugins: their versions change the compiled programs of their device
+_PLUGIN_PREFIXES = ("jax-cuda", "jax_cuda", "jax-rocm", "jax_rocm", "libtpu")
+
+
+def library_versions() -> dict[str, str]:
+    """The versions the on-disk caches are keyed by: ``{"python": ..., "jax": ..., ...}``.
+
+    Python, jax, jaxlib, equinox, optimistix, lineax, numpy, colour-science (``"-"`` where not
+    installed) and every installed JAX backend plugin (``jax-cuda12-plugin``,
+    ``jax-cuda12-pjrt``, ROCm and TPU likewise), sorted by name. Read from the installed
+    distributions' metadata on each call.
+    """
+    out = {"python": sys.version.split()[0]}
+    out.update({d: _version(d) for d in _KEY_DISTRIBUTIONS})
+    plugins = {}
+    for dist in importlib.metadata.distributions():
+        name = (dist.metadata["Name"] or "").lower()
+        if name.startswith(_PLUGIN_PREFIXES):
+            plugins[name.replace("_", "-")] = dist.version
+    out.update(sorted(plugins.items()))
+    return out
+
+
+def library_versions_tag() -> str:
+    """A folder name for :func:`library_versions`: ``jax-<v>_jaxlib-<v>_<hash>``, the hash
+    (12 hex digits of SHA-256) over all of them, plugins and Python included."""
+    v = library_versions()
+    digest = hashlib.sha256(
+        "\n".join(f"{k}={x}" for k, x in v.items()).encode()).hexdigest()[:12]
+    return f"jax-{v['jax']}_jaxlib-{v['jaxlib']}_{digest}"
+
+
 @functools.cache
 def _environment_digest() -> str:
     """The package sources, library versions, backend and the settings that change lowering."""
@@ -146,8 +193,7 @@ def _environment_digest() -> str:
     dev = jax.devices()[0]
     parts = [
         _source_digest(),
-        *(f"{d}={_version(d)}" for d in ("jax", "jaxlib", "equinox", "numpy",
-                                         "colour-science")),
+        *(f"{d}={v}" for d, v in library_versions().items()),
         f"backend={jax.default_backend()}", f"device={dev.platform}:{dev.device_kind}",
         f"devices={jax.device_count()}",
         f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}",

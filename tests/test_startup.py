@@ -384,7 +384,7 @@ cfg = [jax.config.jax_compilation_cache_dir,
 os.environ["SPECTRAL_FIT_JAX_CACHE"] = ""
 b = startup.enable_compilation_cache()
 c = startup.enable_compilation_cache(os.path.join(sys.argv[2], "sub"))
-print(json.dumps({"a": a, "cfg": cfg, "b": b, "c": c}))
+print(json.dumps({"a": a, "cfg": cfg, "b": b, "c": c, "tag": startup.library_versions_tag()}))
 """
 
 
@@ -396,10 +396,70 @@ def test_enable_compilation_cache(tmp_path):
                        capture_output=True, text=True, env=_env(tmp_path), timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert out["a"] == str(tmp_path / "jax") and (tmp_path / "jax").is_dir()
-    assert out["cfg"] == [str(tmp_path / "jax"), 0.25]
+    # programs go to a folder of the library versions under the given one
+    folder = tmp_path / "jax" / out["tag"]
+    assert out["tag"].startswith(f"jax-{jax.__version__}_jaxlib-{jax.lib.__version__}_")
+    assert out["a"] == str(folder) and folder.is_dir()
+    assert out["cfg"] == [str(folder), 0.25]
     assert out["b"] is None  # disabled by the empty variable
     assert out["c"] is None  # a folder that cannot be created leaves the cache off
+
+
+class _Dist:
+    """A stand-in for an installed distribution's metadata (name and version)."""
+
+    def __init__(self, name: str, version: str):
+        self.metadata = {"Name": name}
+        self.version = version
+
+
+def test_caches_are_keyed_by_the_library_versions(config, tmp_path, monkeypatch):
+    """A prepared scene stored under one jaxlib, or one CUDA plugin, is never loaded under
+    another, and JAX's compiled programs go to another folder: installed versions are faked
+    through the metadata the key reads, so that a real second install is not needed."""
+    import importlib.metadata as md
+
+    cache = tmp_path / "cache"
+    real_version, real_dists = md.version, md.distributions
+    base = startup.library_versions()
+    assert base["jax"] == jax.__version__ and base["jaxlib"] == jax.lib.__version__
+    assert base["python"] == sys.version.split()[0]
+
+    def stats() -> tuple[int, int]:
+        return startup.CACHE_STATS["prepared_hit"], startup.CACHE_STATS["prepared_miss"]
+
+    def prepare_counts() -> tuple[int, int]:
+        startup._environment_digest.cache_clear()
+        h0, m0 = stats()
+        startup.prepare_cached(config, cache_dir=cache, mode="none")
+        h1, m1 = stats()
+        return h1 - h0, m1 - m0
+
+    try:
+        prepare_counts()  # stored (or already there)
+        assert prepare_counts() == (1, 0)  # same versions: a hit
+        tags = {startup.library_versions_tag()}
+
+        monkeypatch.setattr(md, "version",
+                            lambda d: "0.0.1" if d == "jaxlib" else real_version(d))
+        assert startup.library_versions()["jaxlib"] == "0.0.1"
+        assert prepare_counts() == (0, 1)  # another jaxlib: a miss, prepared again
+        assert prepare_counts() == (1, 0)
+        tags.add(startup.library_versions_tag())
+
+        monkeypatch.setattr(md, "distributions", lambda: [
+            *real_dists(), _Dist("jax-cuda12-plugin", "0.0.1"), _Dist("jax_cuda12_pjrt", "0.0.1")])
+        v = startup.library_versions()
+        assert v["jax-cuda12-plugin"] == "0.0.1" and v["jax-cuda12-pjrt"] == "0.0.1"
+        assert prepare_counts() == (0, 1)  # a plugin installed: a miss
+        tags.add(startup.library_versions_tag())
+        assert len(tags) == 3
+
+        monkeypatch.setattr(md, "version", real_version)
+        monkeypatch.setattr(md, "distributions", real_dists)
+        assert prepare_counts() == (1, 0)  # back to the real set: its entry is still there
+    finally:
+        startup._environment_digest.cache_clear()
 
 
 def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monkeypatch):
