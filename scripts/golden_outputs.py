@@ -78,7 +78,7 @@ def produce(out: Path) -> dict[str, object]:
             for spectral in SPECTRAL:
                 name = f"render_{config.stem}_{mode}_{spectral}"
                 exr, png = out / f"{name}.exr", out / f"{name}.png"
-                _run([str(config), "-o", str(png), "--xyz-exr", str(exr), "--size", SIZE,
+                _run(["render", str(config), "-o", str(png), "--xyz-exr", str(exr), "--size", SIZE,
                       "--mode", mode, "--spectral-mode", spectral], cwd=ROOT)
                 results[name + "_xyz"] = _read_exr(exr)
                 results[name + "_png"] = _read_png(png)
