@@ -34,9 +34,13 @@ MODES = ("gather", "paper", "none")
 SPECTRAL = ("bands", "basis")
 
 
-def _run(args: list[str], cwd: Path) -> str:
+def _run(args: list[str], cwd: Path, *, may_fail: bool = False) -> str | None:
+    """stdout of ``spectral-fit ARGS``; on an error exit its last line of stderr prefixed by
+    'error: ' where ``may_fail`` (an error is an output too: it must stay the same)."""
     r = subprocess.run(["spectral-fit", *args], cwd=cwd, capture_output=True, text=True)
     if r.returncode != 0:
+        if may_fail:
+            return "error: " + r.stderr.strip().splitlines()[-1]
         sys.exit(f"spectral-fit {' '.join(args)} failed:\n{r.stderr[-3000:]}")
     return r.stdout
 
@@ -78,8 +82,12 @@ def produce(out: Path) -> dict[str, object]:
             for spectral in SPECTRAL:
                 name = f"render_{config.stem}_{mode}_{spectral}"
                 exr, png = out / f"{name}.exr", out / f"{name}.png"
-                _run(["render", str(config), "-o", str(png), "--xyz-exr", str(exr), "--size", SIZE,
-                      "--mode", mode, "--spectral-mode", spectral], cwd=ROOT)
+                out_text = _run(["render", str(config), "-o", str(png), "--xyz-exr", str(exr),
+                                 "--size", SIZE, "--mode", mode, "--spectral-mode", spectral],
+                                cwd=ROOT, may_fail=True)
+                if out_text is not None and out_text.startswith("error: "):
+                    results[name + "_error"] = out_text
+                    continue
                 results[name + "_xyz"] = _read_exr(exr)
                 results[name + "_png"] = _read_png(png)
     fit_dir = out / "fit"
@@ -123,6 +131,10 @@ def _compare(results: dict[str, object], folder: Path) -> list[str]:
         if diff > 1e-5 * max(peak, 1e-30):
             problems.append(f"{k}: max |difference| {diff:.3g} (peak {peak:.3g})")
     values = json.loads((folder / "values.json").read_text())
+    for k in sorted({k for k in values if k.endswith("_error")}
+                    | {k for k in results if k.endswith("_error")}):
+        if values.get(k) != results.get(k):
+            problems.append(f"{k}: {results.get(k)!r} != golden {values.get(k)!r}")
     if values.get("bench_cases") != results["bench_cases"]:
         problems.append(f"bench_cases: {results['bench_cases']} != {values.get('bench_cases')}")
     for obj, p in values["fit_params"].items():
