@@ -32,13 +32,19 @@ from .colorimetry import xyz_weights
 from .errors import InputError
 from .spectra import default_wavelengths, validate_wavelengths
 
-__all__ = ["SpectralBasis", "training_spectra", "pca_basis", "visual_weights"]
+__all__ = [
+    "SpectralBasis",
+    "training_spectra",
+    "pca_basis",
+    "visual_weights",
+    "reflectances_5nm",
+]
 
 TRAINING_SETS = ("reflectances", "illuminants", "reflectances+illuminants")
 
 
 @functools.lru_cache(maxsize=4)
-def _reflectances_5nm() -> tuple[np.ndarray, np.ndarray]:
+def reflectances_5nm() -> tuple[np.ndarray, np.ndarray]:
     import colour
     from colour.characterisation import read_training_data_rawtoaces_v1
     from colour.quality.cfi2017 import load_TCS_CIE2017
@@ -76,7 +82,7 @@ def training_spectra(kind: str = "reflectances", wavelengths: object | None = No
                          field="training")
     parts = []
     if "reflectances" in kind:
-        parts.append(_reflectances_5nm())
+        parts.append(reflectances_5nm())
     if "illuminants" in kind:
         parts.append(_emitters_5nm())
     rows = [np.stack([np.interp(wl, w5, r) for r in data]) for w5, data in parts]

@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``spectral-fit`` console script."""
     if argv is None:  # run as a program (not called from Python): steady frame memory
-        from .startup import retain_freed_memory
+        from .process import retain_freed_memory
 
         retain_freed_memory()
     args = build_parser().parse_args(argv)

@@ -431,10 +431,10 @@ def camera_model_from_spec(spec, wavelengths=None) -> CameraModel:
 def chart_xyz(scene, *, chart: str = "BabelColor Average") -> tuple[np.ndarray, np.ndarray]:
     """(24, 3) absolute XYZ (cd/m²) of a ColorChecker lying on the table (facing world +Y)
     under the scene's environment, as the renderer would compute them (reflectance ×
-    :func:`spectral_fit.live.white_reference`, CIE 1931 2° at 683 lm/W), and the (3,) XYZ of
+    :func:`spectral_fit.environment.white_reference`, CIE 1931 2° at 683 lm/W), and the (3,) XYZ of
     that light's white."""
     from .colorimetry import xyz_weights
-    from .live import white_reference
+    from .environment import white_reference
     from .renderer import load_environment
 
     wl = scene.wavelengths

@@ -303,9 +303,9 @@ def sized(clusters: TriangleClusters, needed: float, *, at_least: int = 0) -> Tr
     """``clusters`` with a kept list of the capacity-ladder value ≥ ``needed``
     (:func:`spectral_fit.raster` ladder), at least ``at_least``, at most all C clusters; the
     same object when that is its capacity already."""
-    from .raster import _ladder
+    from .raster import capacity_ladder
 
-    cap = min(clusters.num_clusters, max(int(at_least), _ladder(needed)))
+    cap = min(clusters.num_clusters, max(int(at_least), capacity_ladder(needed)))
     return clusters if cap == clusters.capacity else dataclasses.replace(clusters, capacity=cap)
 
 

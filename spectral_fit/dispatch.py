@@ -84,7 +84,7 @@ def array_jit(fun: Callable[..., Any], **jit_options: Any) -> Callable[..., Any]
         return fun(*args, **kwargs)
 
     # made at first use: the compiler options depend on the backend, which must not be
-    # started at import (startup.split_cpu_devices has to come first). JAX takes compiler
+    # started at import (process.split_cpu_devices has to come first). JAX takes compiler
     # options only on a top-level jit: inside a caller's trace the "nested" one is called
     jitted: dict[str, Any] = {}
 

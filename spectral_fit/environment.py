@@ -47,6 +47,7 @@ from .reflectance import (
 )
 
 __all__ = [
+    "white_reference",
     "SH_C1",
     "SH_C2",
     "SH_C3",
@@ -71,13 +72,27 @@ __all__ = [
     "shade",
     "shade_points",
     "synthetic_environment",
-    # split-sum gloss (quality "fast")
     "SplitSum",
     "SplitSumMap",
     "fast_direction_to_uv",
     "fast_lookup",
     "lobe_moment_table",
     "gloss_split_sum",
+    "atan2_poly",
+    "bilinear_taps",
+    "dot3",
+    "levels_for",
+    "lobe_albedo",
+    "lobe_factor",
+    "select_static",
+    "sincos_poly",
+    "smootherstep",
+    "taps_sum",
+    "to_map_fast",
+    "visible_nodes",
+    "uv_of",
+    "padded_bilinear",
+    "padded_table",
 ]
 
 # Ramamoorthi & Hanrahan 2001, eq. 13.
@@ -181,7 +196,7 @@ class GlossQuadrature:
         nodes: the ``"exact"`` node rule: "grid" (default; :func:`_grid_nodes`, a
             ``grid_along`` × ``grid_across`` Cartesian grid on [−grid_extent, grid_extent]²
             in lobe widths, cut to the disc), "visible" (``radial`` rings × visible arcs,
-            :func:`_visible_nodes`; ``"render"`` always uses it) or "gauss" (Gauss–Laguerre
+            :func:`visible_nodes`; ``"render"`` always uses it) or "gauss" (Gauss–Laguerre
             rings × full azimuths over the whole narrowed lobe; kept for comparison).
         texel_sum_from, texel_sum_full: ``"exact"`` replaces the lobe quadrature of ⟨L⟩ by
             the direct texel sum over the unfiltered (residual) map for wide lobes: from μ =
@@ -652,7 +667,7 @@ def _bilinear(flat: jax.Array, off: Any, hk: Any, wk: Any, d_map: Any,
     wk = jnp.asarray(wk, jnp.int32)
     u, v = direction_to_uv(d_map) if uv is None else uv
     dtype = flat.dtype
-    idx, w = _bilinear_taps(u.astype(dtype), v.astype(dtype), off, hk, wk, lead=True)
+    idx, w = bilinear_taps(u.astype(dtype), v.astype(dtype), off, hk, wk, lead=True)
     return jnp.einsum("i,ic->c", w, flat.at[idx].get(mode="promise_in_bounds"))
 
 
@@ -687,12 +702,12 @@ def _tap_coords(u: jax.Array, v: jax.Array, hk: jax.Array, wk: jax.Array
     return x0, fx, y0, north, south, wy1
 
 
-def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk: jax.Array,
+def bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk: jax.Array,
                    *, lead: bool = False) -> tuple[jax.Array, jax.Array]:
     """Atlas rows (..., 4) and weights (..., 4) of the bilinear lookup of :func:`_bilinear`
     (wrapped in u; between the first (last) row centre and the pole blended linearly towards
     the pole mean stored after the level), elementwise in (u, v) and the level's (off, hk, wk).
-    ``lead``: as (4, ...) instead, for :func:`_taps_sum` with ``lead`` (a stack on the last
+    ``lead``: as (4, ...) instead, for :func:`taps_sum` with ``lead`` (a stack on the last
     axis is a concatenate XLA:CPU writes element by element; benchmark frame −0.6 %, close-up
     −1.6 %, in-process interleaved)."""
     x0, fx, y0, north, south, wy1 = _tap_coords(u, v, hk, wk)
@@ -710,7 +725,7 @@ def _bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk
 
 def padded_table(flat: jax.Array, hm: int, wm: int) -> jax.Array:
     """A map's table laid out for :func:`padded_bilinear`: ``flat`` ((Hm·Wm + 2, C), the
-    texels then the north and south pole means, as :func:`_bilinear_taps` reads it) as
+    texels then the north and south pole means, as :func:`bilinear_taps` reads it) as
     (Hm + 2) rows of (Wm + 1) texels: a row of the north pole mean, the map's rows, a row of
     the south pole mean, each row followed by a copy of its first texel (the wrap in u).
     Returns ((Hm + 2)·(Wm + 1), C)."""
@@ -723,7 +738,7 @@ def padded_table(flat: jax.Array, hm: int, wm: int) -> jax.Array:
 
 def padded_bilinear(table: jax.Array, u: jax.Array, v: jax.Array, hm: int, wm: int
                     ) -> jax.Array:
-    """The bilinear lookup of :func:`_bilinear_taps` + :func:`_taps_sum` (one level of size
+    """The bilinear lookup of :func:`bilinear_taps` + :func:`taps_sum` (one level of size
     (Hm, Wm); wrapped in u, blended towards the pole means past the first and last row
     centres) at map coordinates u, v (N,), from :func:`padded_table`'s layout: the four taps
     are the texels at b, b + 1, b + Wm + 1 and b + Wm + 2 of one base index b, so the index
@@ -739,7 +754,7 @@ def padded_bilinear(table: jax.Array, u: jax.Array, v: jax.Array, hm: int, wm: i
     return out + table.at[base + wp + 1].get(mode="promise_in_bounds") * (wy1 * fx)[..., None]
 
 
-def _select(table: Any, index: jax.Array) -> jax.Array:
+def select_static(table: Any, index: jax.Array) -> jax.Array:
     """``table[index]`` for a short static table and an index in range, as masked constants
     (elementwise, so it fuses into the surrounding arithmetic instead of becoming a
     gather)."""
@@ -755,10 +770,10 @@ def _lookup_blend(env: EnvironmentMap, u: jax.Array, v: jax.Array, lo: jax.Array
     taps of a node gathered at once from the atlas. Returns (M, r)."""
     shapes = [(int(h), int(w)) for h, w in env.level_shapes]
     lev = jnp.stack([lo, hi], axis=-1)  # (M, 2)
-    hk = _select([np.int32(h) for h, _ in shapes], lev)
-    wk = _select([np.int32(w) for _, w in shapes], lev)
-    off = _select([np.int32(o) for o in env.level_offsets], lev)
-    idx, w = _bilinear_taps(u[:, None], v[:, None], off, hk, wk)  # (M, 2, 4)
+    hk = select_static([np.int32(h) for h, _ in shapes], lev)
+    wk = select_static([np.int32(w) for _, w in shapes], lev)
+    off = select_static([np.int32(o) for o in env.level_offsets], lev)
+    idx, w = bilinear_taps(u[:, None], v[:, None], off, hk, wk)  # (M, 2, 4)
     w = w * jnp.stack([1.0 - w_hi, w_hi], axis=-1)[..., None]
     taps = env.atlas.at[idx.reshape(-1)].get(mode="promise_in_bounds")
     return jnp.einsum("mk,mkc->mc", w.reshape(-1, 8), taps.reshape(-1, 8, taps.shape[-1]))
@@ -868,12 +883,12 @@ def _view_frame(N: jax.Array, V: jax.Array) -> tuple[jax.Array, jax.Array]:
     return T, jnp.cross(N, T)
 
 
-def _smootherstep(x: jax.Array) -> jax.Array:
+def smootherstep(x: jax.Array) -> jax.Array:
     x = jnp.clip(x, 0.0, 1.0)
     return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
 
 
-def _levels_for(env: EnvironmentMap, target: jax.Array
+def levels_for(env: EnvironmentMap, target: jax.Array
                 ) -> tuple[Any, Any, jax.Array, jax.Array]:
     """Two adjacent prefilter levels (lo, hi), the weight of hi, and the effective prefilter
     variance σ² = (1 − w)σ_lo² + w σ_hi², for a target std ``target``. The weight is a C²
@@ -887,7 +902,7 @@ def _levels_for(env: EnvironmentMap, target: jax.Array
     frac_log = t - k.astype(t.dtype)
     lo = jnp.where(below, 0, k + 1)
     hi = jnp.where(below, 1, k + 2)
-    w = jnp.where(below, _smootherstep(target / s1), _smootherstep(frac_log))
+    w = jnp.where(below, smootherstep(target / s1), smootherstep(frac_log))
     var = (1.0 - w) * sig[lo] ** 2 + w * sig[hi] ** 2
     return lo, hi, w, var
 
@@ -928,7 +943,7 @@ def _lobe_rings(nv: jax.Array, width: jax.Array, xr: np.ndarray, wr: np.ndarray,
         raise InputError(f"unknown radial rule {radial_rule!r}", field="radial_rule")
     if distribution == "gaussian":
         th = width * s
-        sin_h, cos_h = _sincos_poly(th)
+        sin_h, cos_h = sincos_poly(th)
         jac = jnp.where(th > 1e-4, sin_h / jnp.where(th > 1e-4, th, 1.0), 1.0 - th * th / 6.0)
     else:
         tan_h = width * s
@@ -951,7 +966,7 @@ def _visible_arc(nv: jax.Array, cos_h: jax.Array, sin_h: jax.Array) -> jax.Array
     return jnp.where(full, math.pi, jnp.where(empty, 0.0, jnp.arccos(c)))
 
 
-def _lobe_albedo(
+def lobe_albedo(
     nv: jax.Array, width: jax.Array, n: jax.Array, mu: jax.Array, *, distribution: str,
     geometry: str, fresnel: bool, radial: int, azimuthal: int,
 ) -> jax.Array:
@@ -973,7 +988,7 @@ def _lobe_albedo(
 def _lobe_grid(nv: jax.Array, width: jax.Array, mu: jax.Array, n: jax.Array, *,
                distribution: str, geometry: str, fresnel: bool, radial: int, azimuthal: int
                ) -> tuple[jax.Array, ...]:
-    """The node set of :func:`_lobe_albedo` and :func:`_lobe_moments` (see the former): the
+    """The node set of :func:`lobe_albedo` and :func:`_lobe_moments` (see the former): the
     weights w F G (V·H)/(N·V) (R, A) of the distribution of roughness ``width`` with the
     geometry and Fresnel factor of ``mu`` and ``n``, and per node V·H, N·L (R, A), the ring's
     cosθh, sinθh (R,), sinθr and the azimuth φ' (R, A). Scalars only."""
@@ -994,7 +1009,7 @@ def _lobe_grid(nv: jax.Array, width: jax.Array, mu: jax.Array, n: jax.Array, *,
     phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
     phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A)
     w = (ws * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
-    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * _sincos_poly(phi)[1]
+    vh = cos_h[:, None] * nv + (sin_h * sin_r)[:, None] * sincos_poly(phi)[1]
     nl = 2.0 * vh * cos_h[:, None] - nv
     ch = jnp.broadcast_to(cos_h[:, None], vh.shape)
     g = w * _microfacet_factor(nv, nl, vh, ch, mu, n, geometry=geometry, fresnel=fresnel)
@@ -1018,7 +1033,7 @@ def _microfacet_factor(nv: jax.Array, nl: jax.Array, vh: jax.Array, nh: jax.Arra
     return F * G * jnp.maximum(vh, 0.0) / nv_safe
 
 
-def _lobe_factor(
+def lobe_factor(
     N: jax.Array, V: jax.Array, H: jax.Array, cos_h: jax.Array, mu: jax.Array, n: jax.Array,
     *, geometry: str, fresnel: bool,
 ) -> tuple[jax.Array, jax.Array]:
@@ -1058,7 +1073,7 @@ def _narrowed_nodes(
     r_safe = jnp.where(r > 1e-12, r, 1.0)
     if distribution == "gaussian":
         theta = r
-        sin_h, cos_h = _sincos_poly(theta)
+        sin_h, cos_h = sincos_poly(theta)
         jac = jnp.where(r > 1e-4, sin_h / r_safe, 1.0 - r * r / 6.0)
     else:
         cos_h = 1.0 / jnp.sqrt(1.0 + r * r)
@@ -1072,7 +1087,7 @@ def _narrowed_nodes(
     return H, wq * jac, cos_h
 
 
-def _visible_nodes(
+def visible_nodes(
     N: jax.Array, V: jax.Array, mu: jax.Array, var: jax.Array, nv: jax.Array, *,
     distribution: str, radial: int, azimuthal: int, radial_rule: str = "uniform",
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -1105,7 +1120,7 @@ def _visible_nodes(
     phi_max = _visible_arc(nv, cos_h, sin_h)  # (R,)
     phi = phi_max[:, None] * jnp.asarray(xa, dtype)[None, :]  # (R, A), xa in [-1, 1]
     wgt = (wring * jac * phi_max)[:, None] * jnp.asarray(wa, dtype)[None, :]
-    sp, cp = _sincos_poly(phi)
+    sp, cp = sincos_poly(phi)
     wgt = wgt * jnp.exp(-(s * s)[:, None] * sp * sp * (wt2 / wb2 - 1.0))
     T, B = _view_frame(N, V)
     tang = cp[..., None] * T + sp[..., None] * B  # (R, A, 3)
@@ -1116,12 +1131,12 @@ def _visible_nodes(
 
 def _albedo_table(mu: jax.Array, n: jax.Array, size: int, *, distribution: str, geometry: str,
                   fresnel: bool, radial: int, azimuthal: int) -> jax.Array:
-    """Exact lobe albedos (size,) at cosθr = 1 − x², x = j/(size − 1) (see :func:`_lobe_albedo`).
+    """Exact lobe albedos (size,) at cosθr = 1 − x², x = j/(size − 1) (see :func:`lobe_albedo`).
     Independent of the point, so under ``jax.vmap`` over points it is computed once."""
     x = np.linspace(0.0, 1.0, size)
     c = np.maximum(1.0 - x * x, 1e-3)
     dtype = jnp.result_type(mu, jnp.float32)
-    return jax.vmap(lambda cc: _lobe_albedo(cc, mu, n, mu, distribution=distribution,
+    return jax.vmap(lambda cc: lobe_albedo(cc, mu, n, mu, distribution=distribution,
                                             geometry=geometry, fresnel=fresnel, radial=radial,
                                             azimuthal=azimuthal))(jnp.asarray(c, dtype))
 
@@ -1165,7 +1180,7 @@ def gloss_integral(
       (``albedo_radial`` × ``albedo_azimuthal`` nodes; no map lookups). ``"render"``
       interpolates it from a per-material table in cosθr (:func:`_albedo_table`).
     - ⟨L⟩ = ∫ D' g L_σ / ∫ D' g, the g-weighted mean radiance over the lobe, by a quadrature on
-      the visible part of the lobe (:func:`_visible_nodes`) of a prefiltered copy L_σ of the
+      the visible part of the lobe (:func:`visible_nodes`) of a prefiltered copy L_σ of the
       map (exact spherical Gaussian, std σ = r·√2·μ·cosθr in reflected directions, two adjacent
       levels blended smoothly in log σ) with the lobe D' narrowed so that narrowed lobe ⊛
       prefilter has the true lobe's width; near the surface's horizon each node's σ is cut to
@@ -1186,7 +1201,7 @@ def gloss_integral(
       dense along the plane of incidence so that at grazing views, where the prefilter must
       be as narrow as the lobe is across (∝ cosθr), the map is still sampled finely; the
       across-narrowing uses each column's own V·H. (The polar rule of
-      :func:`_visible_nodes`, kept for ``"render"``, aliased there: up to 6.8 % at θr = 75°.)
+      :func:`visible_nodes`, kept for ``"render"``, aliased there: up to 6.8 % at θr = 75°.)
       The prefilter is kept small (r = 0.1): narrowing the lobe restores its variance, not
       its exact shape (the reflected lobe is not the flat Gaussian the narrowing assumes,
       and two blended levels are a mix of two Gaussians), and an edge of high contrast in
@@ -1236,7 +1251,7 @@ def gloss_integral(
         radial, azimuthal, ratio = (quad.render_radial, quad.render_azimuthal,
                                     quad.render_prefilter_ratio)
     else:
-        albedo = _lobe_albedo(nv_raw, mu, n, mu, **akw)
+        albedo = lobe_albedo(nv_raw, mu, n, mu, **akw)
         radial, azimuthal, ratio = quad.radial, quad.azimuthal, quad.prefilter_ratio
     mean_kw = dict(distribution=distribution, **kw)
     if quality == "render":
@@ -1256,7 +1271,7 @@ def gloss_integral(
             return _texel_mean(env, N, V, mu, n, **mean_kw)
 
         def blend() -> jax.Array:
-            t = _smootherstep((mu - a) / (b - a))
+            t = smootherstep((mu - a) / (b - a))
             return (1.0 - t) * lobe() + t * texels()
 
         if isinstance(mu, jax.core.Tracer):
@@ -1296,7 +1311,7 @@ def _grid_nodes(
     4·extent·w_b·cosθr/across across it, so at grazing views, where the isotropic prefilter
     must be as narrow as the lobe across (∝ cosθr), the many nodes along keep the spacing
     at 0.88/cosθr prefilter stds (r = 0.1; 5 at θr = 80°, where the lobe itself is then
-    only a few texels across; the polar rule of :func:`_visible_nodes` had ~20 there and
+    only a few texels across; the polar rule of :func:`visible_nodes` had ~20 there and
     aliased). Half vectors that reflect V below the surface
     get zero weight from G in the caller's lobe factor (the integrand goes to zero
     continuously at the horizon). Nodes move smoothly with μ, N and V."""
@@ -1318,14 +1333,14 @@ def _grid_nodes(
     # exp(−X² − Y²): the narrowed column's density (μ/w_b) e^{−y²/w_b²} times dy = w_b dY.
     theta_x = x if distribution == "gaussian" else jnp.arctan(x)
     sin_r = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 1e-12))  # gradient-safe at V = N
-    sx, cx_ = _sincos_poly(theta_x)
+    sx, cx_ = sincos_poly(theta_x)
     c = nv * cx_ + sin_r * sx  # cos(θr − θx)
     wb = jnp.sqrt(jnp.maximum(mu * mu - 0.5 * var / jnp.maximum(c * c, 1e-4), floor))
     y = wb * jnp.asarray(Y, dtype)
     r = jnp.sqrt(x * x + y * y)
     r_safe = jnp.where(r > 1e-12, r, 1.0)
     if distribution == "gaussian":
-        sin_h, cos_h = _sincos_poly(r)
+        sin_h, cos_h = sincos_poly(r)
         jac = jnp.where(r > 1e-4, sin_h / r_safe, 1.0 - r * r / 6.0)
     elif distribution == "beckmann":
         cos_h = 1.0 / jnp.sqrt(1.0 + r * r)
@@ -1346,25 +1361,25 @@ def _lobe_mean(env: EnvironmentMap, N: jax.Array, V: jax.Array, mu: jax.Array, n
                nv: jax.Array, *, radial: int, azimuthal: int, ratio: float, distribution: str,
                geometry: str, fresnel: bool, node_rule: str | None = None) -> jax.Array:
     """⟨L⟩ (r,): the g-weighted mean of the prefiltered residual map over the narrowed lobe
-    (:func:`_visible_nodes`), zero where the lobe has no weight."""
+    (:func:`visible_nodes`), zero where the lobe has no weight."""
     quad = env.quadrature
     sigma = ratio * math.sqrt(2.0) * mu * jnp.maximum(nv, 0.05)
-    _, _, _, var = _levels_for(env, sigma)
+    _, _, _, var = levels_for(env, sigma)
     rule = node_rule or quad.nodes
     if rule == "grid":
         Hb, wb, chb = _grid_nodes(N, V, mu, var, nv, distribution=distribution,
                                   along=quad.grid_along, across=quad.grid_across,
                                   extent=quad.grid_extent)
     else:
-        nodes = _visible_nodes if rule == "visible" else _narrowed_nodes
+        nodes = visible_nodes if rule == "visible" else _narrowed_nodes
         Hb, wb, chb = nodes(N, V, mu, var, nv, distribution=distribution,
                             radial=radial, azimuthal=azimuthal)
-    gb, L = _lobe_factor(N, V, Hb, chb, mu, n, geometry=geometry, fresnel=fresnel)
+    gb, L = lobe_factor(N, V, Hb, chb, mu, n, geometry=geometry, fresnel=fresnel)
     f = wb * gb
     # near the surface's horizon the prefilter would blur in light from behind the surface:
     # there each node's prefilter std is cut to a fraction of its elevation above the horizon
     elev = jnp.maximum(L @ N, 0.0)
-    lo, hi, w_hi, _ = _levels_for(env, jnp.minimum(sigma, quad.horizon_ratio * elev))
+    lo, hi, w_hi, _ = levels_for(env, jnp.minimum(sigma, quad.horizon_ratio * elev))
     u, v = direction_to_uv(_to_map(env, L))
     radiance = _lookup_blend(env, u, v, lo, hi, w_hi)  # (M, r)
     total = jnp.sum(f)
@@ -1467,7 +1482,7 @@ class SplitSum:
     Attributes:
         table: entries of the per-material moment table in x = √(1 − cosθr) (Catmull–Rom).
         radial, azimuthal: Gauss–Legendre nodes of the scalar moment quadrature (rings ×
-            half visible arc, as :func:`_lobe_albedo`); no map lookups.
+            half visible arc, as :func:`lobe_albedo`); no map lookups.
         along: lookups (1–8) along the lobe's long axis (the plane of incidence), binomial
             weights, for its spread beyond the isotropic prefilter of each lookup.
         min_ratio: each lookup's prefilter std is at least this fraction of the lobe's long
@@ -1499,13 +1514,13 @@ def _lobe_moments(
     incidence at polar angle θr + δ (δ > 0: away from the normal, the off-specular shift);
     var_t and var_b are the weighted means of the squared components of the reflected
     direction across m within the plane of incidence and perpendicular to it (the lobe's
-    angular variances, long and short axis). Same nodes as :func:`_lobe_albedo`; scalars only.
+    angular variances, long and short axis). Same nodes as :func:`lobe_albedo`; scalars only.
     """
     g, vh, nl, _, sin_h, sin_r, phi = _lobe_grid(
         nv, mu, mu, n, distribution=distribution, geometry=geometry, fresnel=fresnel,
         radial=radial, azimuthal=azimuthal)
     nv = jnp.clip(nv, 0.0, 1.0)
-    sphi, cphi = _sincos_poly(phi)
+    sphi, cphi = sincos_poly(phi)
     # reflected direction L = 2 (V·H) H − V in the frame (T, B, N), V = (sinθr, 0, cosθr)
     lt = 2.0 * vh * sin_h[:, None] * cphi - sin_r
     lb = 2.0 * vh * sin_h[:, None] * sphi
@@ -1513,17 +1528,17 @@ def _lobe_moments(
     a_safe = jnp.where(a > 0.0, a, 1.0)
     mt = jnp.sum(g * lt) / a_safe
     mn = jnp.sum(g * nl) / a_safe
-    theta_m = _atan2_poly(-mt, mn)
+    theta_m = atan2_poly(-mt, mn)
     delta = theta_m - jnp.arccos(nv)
     # coordinates of L in the tangent plane at m (azimuthal equidistant: angle γ from m),
     # e1 = (cosθm, 0, sinθm) in the plane of incidence, e2 = B across it
-    sm, cm = _sincos_poly(theta_m)
+    sm, cm = sincos_poly(theta_m)
     l1 = lt * cm + nl * sm
     lm = jnp.clip(nl * cm - lt * sm, -1.0, 1.0)  # cos γ
     sin_g = jnp.sqrt(jnp.maximum(l1 * l1 + lb * lb, 1e-30))
-    # (_atan2_poly: XLA:CPU's atan2 is a scalar call; the frame's two tables evaluate it at
+    # (atan2_poly: XLA:CPU's atan2 is a scalar call; the frame's two tables evaluate it at
     # 16,384 nodes, 0.19 of 0.73 ms; results within 1.2e-7 of it)
-    scale = _atan2_poly(sin_g, lm) / sin_g  # γ / sin γ
+    scale = atan2_poly(sin_g, lm) / sin_g  # γ / sin γ
     var_t = jnp.sum(g * (l1 * scale) ** 2) / a_safe
     var_b = jnp.sum(g * (lb * scale) ** 2) / a_safe
     return jnp.stack([a, delta, var_t, var_b])
@@ -1566,7 +1581,7 @@ def _interp_moments(table: jax.Array, nv: jax.Array) -> jax.Array:
                                           + t * (3.0 * (p1 - p2) + p3 - p0)))
 
 
-def _sincos_poly(x: jax.Array) -> tuple[jax.Array, jax.Array]:
+def sincos_poly(x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(sin x, cos x) by elementwise arithmetic: Cody–Waite reduction by π/2 (three-part π/2)
     and the Cephes sinf/cosf polynomials on [−π/4, π/4] (|error| < 1e-7 for |x| < 100).
     XLA:CPU calls libm's scalar sinf/cosf per element (~3× slower here, 65,536 pairs); the
@@ -1584,7 +1599,7 @@ def _sincos_poly(x: jax.Array) -> tuple[jax.Array, jax.Array]:
     return jnp.where(q >= 2, -sn, sn), jnp.where((q == 1) | (q == 2), -cs, cs)
 
 
-def _atan2_poly(y: jax.Array, x: jax.Array) -> jax.Array:
+def atan2_poly(y: jax.Array, x: jax.Array) -> jax.Array:
     """atan2(y, x) by elementwise arithmetic: reduction to [0, tan π/8] and the Cephes atanf
     polynomial (|error| < 3e-7 rad). XLA:CPU vectorises it; its own atan2 (and arccos) is a
     scalar library call, ~100× slower per element than exp or a division."""
@@ -1604,18 +1619,18 @@ def _atan2_poly(y: jax.Array, x: jax.Array) -> jax.Array:
 
 def fast_direction_to_uv(d: jax.Array) -> tuple[jax.Array, jax.Array]:
     """:func:`direction_to_uv` (same conventions, gradient-safe at the poles) with the
-    vectorisable :func:`_atan2_poly`; differs from it by < 1e-7 in u and v."""
-    return _uv_of(d[..., 0], d[..., 1], d[..., 2])
+    vectorisable :func:`atan2_poly`; differs from it by < 1e-7 in u and v."""
+    return uv_of(d[..., 0], d[..., 1], d[..., 2])
 
 
-def _uv_of(x: jax.Array, y: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+def uv_of(x: jax.Array, y: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
     """:func:`fast_direction_to_uv` of the direction with components (x, y, z)."""
     rho2 = x * x + z * z
     small = rho2 < 1e-20
     rho = jnp.sqrt(jnp.where(small, 1.0, rho2))
     rho = jnp.where(small, 0.0, rho)
-    theta = _atan2_poly(rho, y)
-    phi = _atan2_poly(jnp.where(small, 0.0, x), jnp.where(small, 1.0, -z))
+    theta = atan2_poly(rho, y)
+    phi = atan2_poly(jnp.where(small, 0.0, x), jnp.where(small, 1.0, -z))
     u = phi * (0.5 / math.pi)
     u = jnp.where(u < 0.0, u + 1.0, u)
     return u, theta * (1.0 / math.pi)
@@ -1626,14 +1641,14 @@ def fast_lookup(env: EnvironmentMap, direction: Any) -> jax.Array:
     world unit directions (..., 3) → (..., C)."""
     h, w, c = env.texels.shape
     flat = jnp.concatenate([env.texels.reshape(h * w, c), env.poles])
-    u, v = fast_direction_to_uv(_to_map_fast(env, jnp.asarray(direction)))
+    u, v = fast_direction_to_uv(to_map_fast(env, jnp.asarray(direction)))
     if u.ndim:  # batched: compute (u, v) once, not inside every tap's index arithmetic
         u, v = materialise_each(u, v)
-    return _taps_sum(flat, *_bilinear_taps(u, v, jnp.int32(0), jnp.int32(h), jnp.int32(w),
+    return taps_sum(flat, *bilinear_taps(u, v, jnp.int32(0), jnp.int32(h), jnp.int32(w),
                                            lead=True), lead=True)
 
 
-def _taps_sum(flat: jax.Array, idx: jax.Array, w: jax.Array, *, lead: bool = False
+def taps_sum(flat: jax.Array, idx: jax.Array, w: jax.Array, *, lead: bool = False
               ) -> jax.Array:
     """Σ_k w[..., k] flat[idx[..., k]]: (..., K) taps → (..., C), unrolled over k (XLA:CPU
     runs a reduction over a short middle axis, or a batched dot of tiny matrices, as a slow
@@ -1653,12 +1668,12 @@ def _taps_sum(flat: jax.Array, idx: jax.Array, w: jax.Array, *, lead: bool = Fal
     return out
 
 
-def _dot3(a: jax.Array, b: jax.Array) -> jax.Array:
-    """a·b over the last axis (3) by components (vectorises; see :func:`_taps_sum`)."""
+def dot3(a: jax.Array, b: jax.Array) -> jax.Array:
+    """a·b over the last axis (3) by components (vectorises; see :func:`taps_sum`)."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
-def _to_map_fast(env: EnvironmentMap, d: jax.Array) -> jax.Array:
+def to_map_fast(env: EnvironmentMap, d: jax.Array) -> jax.Array:
     """:func:`_to_map` (d @ R, d (..., 3)) by components."""
     r = env.rotation
     return jnp.stack([d[..., 0] * r[0, j] + d[..., 1] * r[1, j] + d[..., 2] * r[2, j]
@@ -1754,7 +1769,7 @@ def _split_levels(pre: SplitSumMap, sigma: jax.Array
     hi = jnp.where(below, 1, k + 2)
     slo, shi = sig[lo], sig[hi]
     frac = (sigma * sigma - slo * slo) / (shi * shi - slo * slo)
-    w = jnp.where(below, _smootherstep(sigma / s1), _smootherstep(frac))
+    w = jnp.where(below, smootherstep(sigma / s1), smootherstep(frac))
     return lo, hi, w
 
 
@@ -1764,11 +1779,11 @@ def _split_lookup(pre: SplitSumMap, u: jax.Array, v: jax.Array, lo: jax.Array,
     all eight taps gathered at once; every argument (...) → (..., r)."""
     plo = pre.level_table[lo]  # (..., 3): offset, H_k, W_k
     phi = pre.level_table[hi]
-    i0, w0 = _bilinear_taps(u, v, plo[..., 0], plo[..., 1], plo[..., 2], lead=True)
-    i1, w1 = _bilinear_taps(u, v, phi[..., 0], phi[..., 1], phi[..., 2], lead=True)
+    i0, w0 = bilinear_taps(u, v, plo[..., 0], plo[..., 1], plo[..., 2], lead=True)
+    i1, w1 = bilinear_taps(u, v, phi[..., 0], phi[..., 1], phi[..., 2], lead=True)
     idx = jnp.concatenate([i0, i1], axis=0)
     w = jnp.concatenate([w0 * (1.0 - w_hi), w1 * w_hi], axis=0)
-    return _taps_sum(pre.atlas, idx, w, lead=True)
+    return taps_sum(pre.atlas, idx, w, lead=True)
 
 
 def gloss_split_sum(
@@ -1838,7 +1853,7 @@ def gloss_split_sum(
     inv_p = jax.lax.rsqrt(jnp.where(ok, p2, 1.0))
     T = [jnp.where(ok, p[i] * inv_p, t0[i]) for i in range(3)]
     sr = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
-    sd, cd = _sincos_poly(delta)
+    sd, cd = sincos_poly(delta)
     # each materialised block below is computed once per point (or per lookup); without the
     # barriers XLA fuses it into, and recomputes it in, each of its consumers (measured on
     # 65,536 points: 30 ms CPU without them, 19 ms with)
@@ -1865,7 +1880,7 @@ def gloss_split_sum(
     d, e1, n3 = packed[0:3], packed[3:6], packed[6:9]
     spread, sigma0 = packed[9], packed[10]
     ang = jnp.asarray(offs, dtype) * spread[..., None]  # (..., k)
-    sa, ca = materialise_each(*_sincos_poly(ang))
+    sa, ca = materialise_each(*sincos_poly(ang))
     dk = [ca * d[i][..., None] + sa * e1[i][..., None] for i in range(3)]  # (..., k) each
     elev = jnp.maximum(dk[0] * n3[0][..., None] + dk[1] * n3[1][..., None]
                        + dk[2] * n3[2][..., None], 0.0)
@@ -1873,7 +1888,7 @@ def gloss_split_sum(
     *dm, sigma = materialise_each(*(dk[0] * rot[0, j] + dk[1] * rot[1, j] + dk[2] * rot[2, j]
                                     for j in range(3)), sigma)
     lo, hi, w_hi = _split_levels(pre, sigma)
-    u, v = _uv_of(*dm)
+    u, v = uv_of(*dm)
     shape = u.shape
     u, v, w_hi, lo, hi = materialise_each(u, v, w_hi, lo.astype(dtype), hi.astype(dtype))
     lo, hi = lo.astype(jnp.int32), hi.astype(jnp.int32)
@@ -1969,6 +1984,20 @@ def shade_points(material: Material, env: EnvironmentMap, normals: Any, views: A
                        jnp.stack([normals, views], axis=1), batch_size=batch_size)
 
 
+def white_reference(environment: np.ndarray) -> np.ndarray:
+    """(L,) radiance of a white Lambertian facing world +Y (the table) under an
+    equirectangular map (Hm, Wm, L) (DESIGN §3 mapping: row k at polar angle π(k + ½)/Hm):
+    E(+Y)/π = (1/π) ∑ L cosθ sinθ Δθ Δφ over the upper hemisphere. Rotations about +Y do not
+    change it."""
+    env = np.asarray(environment, np.float64)
+    hm, wm = env.shape[:2]
+    theta = (np.arange(hm) + 0.5) * np.pi / hm
+    wgt = np.cos(theta) * np.sin(theta) * (np.pi / hm) * (2 * np.pi / wm)
+    wgt = np.where(theta < np.pi / 2, wgt, 0.0)
+    e = np.einsum("h,hwl->l", wgt, env)
+    return e / np.pi
+
+
 # --------------------------------------------------------------------------------------------
 # A realistic synthetic environment (tests, benchmarks, demos)
 
@@ -2004,9 +2033,9 @@ def synthetic_environment(
     d10k = d10k / np.interp(560.0, wl, d10k) * 0.02
     lamp = illuminant("A", wl)
     lamp = lamp / np.interp(560.0, wl, lamp) * 0.02 * lamp_luminance_ratio
-    from .basis import _reflectances_5nm
+    from .basis import reflectances_5nm
 
-    w5, refl = _reflectances_5nm()
+    w5, refl = reflectances_5nm()
     floor_a = np.interp(wl, w5, refl[20])
     floor_b = np.interp(wl, w5, refl[2])
 

@@ -52,6 +52,7 @@ from .spectra import validate_wavelengths
 
 __all__ = [
     "SpectralImage",
+    "read_channels_exr",
     "EMISSIVE_UNITS",
     "parse_channel_name",
     "channel_name",
@@ -490,3 +491,12 @@ def write_spectral_exr(
             OpenEXR.File(header, channels).write(str(tmp))
         except Exception as exc:
             raise InputError(f"OpenEXR could not write the file ({exc})", path=path) from None
+
+
+def read_channels_exr(path: str | os.PathLike[str], names: str) -> np.ndarray:
+    """Read the single-letter channels ``names`` (e.g. "XYZ") of an OpenEXR as (H, W, len)."""
+    _, _, chans = _open(Path(path), header_only=False)
+    missing = [c for c in names if c not in chans]
+    if missing:
+        raise InputError(f"no channel(s) {missing}", path=path, field="channels")
+    return np.stack([np.asarray(chans[c].pixels, np.float32) for c in names], -1)

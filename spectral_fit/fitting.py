@@ -79,6 +79,11 @@ __all__ = [
     "band_matrix",
     "interreflection_term",
     "with_interreflection",
+    "physical_from_y",
+    "solve_batch",
+    "make_solver",
+    "y_start",
+    "PARAMETERS",
 ]
 
 PARAM_INDEX = {k: i for i, k in enumerate(PARAMETERS)}
@@ -90,17 +95,9 @@ _SCI_ANGLE_DEG = 8.0  # d/8° spectrophotometers: specular component reflected a
 
 def scene_geometry(scene: Any) -> list[ObjectGeometry]:
     """World-space meshes of the scene's objects (config order), as :class:`ObjectGeometry`."""
-    from . import mesh as meshmod
-
     out = []
     for o in scene.objects:
-        if o.shape == "uv_sphere":
-            m = meshmod.uv_sphere(o.radius, o.stacks, o.slices)
-        elif o.shape == "icosphere":
-            m = meshmod.icosphere(o.radius, o.subdivisions)
-        else:
-            m = meshmod.load_mesh(o.mesh)
-        mw = m.transformed(o.model_matrix())
+        mw = o.make_mesh(world=True)
         out.append(ObjectGeometry(vertices=jnp.asarray(mw.vertices, jnp.float32),
                                   normals=jnp.asarray(mw.normals, jnp.float32),
                                   triangles=jnp.asarray(mw.triangles, jnp.int32),
@@ -209,7 +206,7 @@ class FitProblem(eqx.Module):
         return out + (["scale"] if self.fit_scale else [])
 
 
-def _physical_from_y(problem: FitProblem, y: jax.Array) -> tuple[jax.Array, jax.Array]:
+def physical_from_y(problem: FitProblem, y: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(O, 6) physical parameters (fixed ones from ``problem.values``) and the global scale
     at unconstrained ``y`` (:func:`to_physical`, all free parameters in one vector op)."""
     vals = problem.values
@@ -298,7 +295,7 @@ def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Arr
 
 def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
     """Weighted residuals (B·L,) ((model − measured)/σ · √w_b) at unconstrained ``y``."""
-    vals, scale = _physical_from_y(problem, y)
+    vals, scale = physical_from_y(problem, y)
     r = (predict(problem, vals, scale) - problem.measured) / problem.sigma
     return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
 
@@ -562,7 +559,7 @@ def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = No
         InputError: a spot misses its object (< 50 % of the field on it), a stated distance
             disagrees with the geometry, or the session's objects are not the scene's.
     """
-    from .startup import single_threaded_blas
+    from .process import single_threaded_blas
 
     # NumPy's OpenBLAS on one thread: its busy-waiting second thread took 12.5 s of CPU
     # where one thread takes 3.7 s on the loaded 2-core machine (docs/fitting.md, "Timings")
@@ -758,7 +755,7 @@ class CompactLM(eqx.Module):
 SOLVERS = ("compact", "optimistix")
 
 
-def _solver(opts: FitOptions, progress: bool) -> Any:
+def make_solver(opts: FitOptions, progress: bool) -> Any:
     """The solver named by ``opts.solver``: :class:`CompactLM` ("compact", default) or
     ``optimistix.LevenbergMarquardt`` ("optimistix") whose damped steps solve the normal
     equations (JᵀJ + λI) δ = −Jᵀr by Cholesky (``lineax.Normal(lineax.Cholesky())``): with ~10
@@ -779,7 +776,7 @@ def _solver(opts: FitOptions, progress: bool) -> Any:
 
 def _residuals_aux(y: jax.Array, problem: FitProblem, reading_weights: jax.Array
                    ) -> tuple[jax.Array, jax.Array]:
-    vals, scale = _physical_from_y(problem, y)
+    vals, scale = physical_from_y(problem, y)
     pred = predict(problem, vals, scale)
     r = (pred - problem.measured) / problem.sigma
     return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1), pred
@@ -790,7 +787,7 @@ def _residuals_jacobian(y: jax.Array, problem: FitProblem, reading_weights: jax.
     """Weighted residuals (B·L,), their Jacobian (B·L, F) w.r.t. y (``jax.jacfwd``: the model
     evaluated once, its F tangents batched) and the predicted readings (B, L)."""
     def model(yy: jax.Array) -> tuple[jax.Array, jax.Array]:
-        vals, scale = _physical_from_y(problem, yy)
+        vals, scale = physical_from_y(problem, yy)
         p = predict(problem, vals, scale)
         return p, p
 
@@ -860,7 +857,7 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
 
 
 @eqx.filter_jit
-def _solve_batch(problem: FitProblem, y0: jax.Array, rw: jax.Array, solver: Any,
+def solve_batch(problem: FitProblem, y0: jax.Array, rw: jax.Array, solver: Any,
                  max_steps: int) -> dict[str, jax.Array]:
     """Solve S problems (one after the other): starts ``y0 (S, F)``, reading weights
     ``rw (S, B)``.
@@ -916,7 +913,7 @@ def _dp_dy(y: float, name: str) -> float:
     return 2.0 * y  # chi, gamma
 
 
-def _y_start(problem: FitProblem, values: np.ndarray, scale: float) -> np.ndarray:
+def y_start(problem: FitProblem, values: np.ndarray, scale: float) -> np.ndarray:
     y = [to_unconstrained(float(values[o, k]), PARAMETERS[k]) for o, k in problem.free]
     if problem.fit_scale:
         y.append(to_unconstrained(scale, "scale"))
@@ -1149,10 +1146,10 @@ def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
         scale0 = float(np.sum(pred * pr_["measured"] * m) / max(np.sum(pred * pred * m),
                                                                  1e-300))
         scale0 = scale0 if scale0 > 0 and math.isfinite(scale0) else 1.0
-    y0 = _y_start(problem, vals0, scale0)
+    y0 = y_start(problem, vals0, scale0)
     starts = _starts(problem, y0, opts.starts, opts.seed)
     dt = problem.values.dtype
-    solver = _solver(opts, progress is not None)
+    solver = make_solver(opts, progress is not None)
     say(f"solving: {F} unknowns, {int(use.sum())} readings x {L} bands, {opts.starts} starts "
         f"(Levenberg-Marquardt, {opts.solver}) ...")
     if progress is not None:
@@ -1160,7 +1157,7 @@ def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
                                           f"best cost {float(np.min(c)):.6g}"))
     t1 = time.perf_counter()
     try:
-        out = _solve_batch(problem, jnp.asarray(starts, dt),
+        out = solve_batch(problem, jnp.asarray(starts, dt),
                            jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
                            opts.max_steps)
         out = {k: np.asarray(v) for k, v in out.items()}
@@ -1179,7 +1176,7 @@ def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
     else:
         status = "max_steps"
     y = out["y"][best].astype(np.float64)
-    vals, scale = _physical_from_y(problem, jnp.asarray(y, dt))
+    vals, scale = physical_from_y(problem, jnp.asarray(y, dt))
     vals = np.asarray(vals, np.float64)
     scale = float(scale)
     warn = list(prep.warnings)
@@ -1295,11 +1292,11 @@ def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOpt
     dt = problem.values.dtype
     got = []
     for c in range(0, n, S):
-        o = _solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
+        o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
                          jnp.asarray(ws[c:c + S], dt), solver, opts.max_steps)
         for yi, ci in zip(np.asarray(o["y"]), np.asarray(o["cost"]), strict=True):
             if np.isfinite(ci):
-                got.append(np.asarray(_physical_from_y(problem, jnp.asarray(yi, dt))[0]))
+                got.append(np.asarray(physical_from_y(problem, jnp.asarray(yi, dt))[0]))
     arr = np.stack(got) if got else np.full((1,) + tuple(problem.values.shape), np.nan)
     std = arr.std(axis=0, ddof=1) if len(got) > 1 else np.full(arr.shape[1:], np.nan)
     out = {nm: {p: 0.0 for p in PARAMETERS} for nm in names}
@@ -1316,10 +1313,10 @@ def _holdout(problem: FitProblem, prep: Prepared, y: np.ndarray, use: np.ndarray
                          zip(use, s.readings, strict=True)])
     dt = problem.values.dtype
     S = max(1, opts.starts)
-    o = _solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
+    o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
                      jnp.asarray(np.tile(obj_only, (S, 1)), dt), solver, opts.max_steps)
     yh = np.asarray(o["y"])[0]
-    vals, scale = _physical_from_y(problem, jnp.asarray(yh, dt))
+    vals, scale = physical_from_y(problem, jnp.asarray(yh, dt))
     pred = np.asarray(o["predicted"][0], np.float64)
     meas = np.asarray(problem.measured, np.float64)
     table = _colour_table(s.wavelengths, meas, pred, white)
@@ -1451,7 +1448,7 @@ def simulate_readings(scene: Any, spots: Sequence[dict[str, Any]], *,
 @eqx.filter_jit
 def _solve_measured(problem: FitProblem, y0: jax.Array, rw: jax.Array, measured: jax.Array,
                     sigma: jax.Array, solver: Any, max_steps: int) -> dict[str, jax.Array]:
-    """Like :func:`_solve_batch` but each batch entry has its own readings (K, B, L) and σ."""
+    """Like :func:`solve_batch` but each batch entry has its own readings (K, B, L) and σ."""
     def one(y0_: jax.Array, w: jax.Array, meas: jax.Array, sig: jax.Array
             ) -> dict[str, jax.Array]:
         pr = eqx.tree_at(lambda q: (q.measured, q.sigma), problem, (meas, sig))
@@ -1493,7 +1490,7 @@ def fit_many(prepared: Prepared, measured: Any, *, sigma: Any = None,
     sig = np.broadcast_to(np.asarray(problem.sigma if sigma is None else sigma, np.float64),
                           meas.shape)
     use = np.array([r.kind in opts.kinds for r in prepared.session.readings], np.float64)
-    y0 = _y_start(problem, np.asarray(problem.values, np.float64), 1.0)
+    y0 = y_start(problem, np.asarray(problem.values, np.float64), 1.0)
     devs = list(devices) if devices is not None else jax.devices()
     nd = len(devs)
     Kp = int(math.ceil(K / nd)) * nd
@@ -1505,7 +1502,7 @@ def fit_many(prepared: Prepared, measured: Any, *, sigma: Any = None,
 
         mesh = Mesh(np.array(devs), ("k",))
         args = [jax.device_put(a, NamedSharding(mesh, PartitionSpec("k"))) for a in args]
-    out = _solve_measured(problem, *args, _solver(opts, False), opts.max_steps)
+    out = _solve_measured(problem, *args, make_solver(opts, False), opts.max_steps)
     used = sorted({str(d) for d in out["y"].sharding.device_set})
     out = {k: np.asarray(v)[:K] for k, v in out.items()}
     O = problem.values.shape[0]
@@ -1515,7 +1512,7 @@ def fit_many(prepared: Prepared, measured: Any, *, sigma: Any = None,
     kinds = [PARAMETERS[k] for _, k in problem.free] + (["scale"] if problem.fit_scale else [])
     for i in range(K):
         y = out["y"][i].astype(np.float64)
-        v, s = _physical_from_y(problem, jnp.asarray(y, dt))
+        v, s = physical_from_y(problem, jnp.asarray(y, dt))
         params[i] = np.asarray(v, np.float64)
         scales[i] = float(s)
         dp = np.array([_dp_dy(float(a), k) for a, k in zip(y, kinds, strict=True)])

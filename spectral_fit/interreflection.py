@@ -81,33 +81,33 @@ from .backend import materialise, materialise_each, on_accelerator, prefix_chunk
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
-    _atan2_poly,
-    _bilinear_taps,
-    _dot3,
-    _levels_for,
-    _lobe_albedo,
-    _lobe_factor,
     _materialise,
-    _select,
-    _sincos_poly,
-    _smootherstep,
-    _taps_sum,
-    _to_map_fast,
-    _visible_nodes,
+    atan2_poly,
+    bilinear_taps,
+    dot3,
     fast_direction_to_uv,
     fast_lookup,
     gloss_integral,
     gloss_split_sum,
     irradiance,
+    levels_for,
+    lobe_albedo,
+    lobe_factor,
     lobe_moment_table,
     mirror_radiance,
+    select_static,
+    sincos_poly,
+    smootherstep,
+    taps_sum,
+    to_map_fast,
+    visible_nodes,
 )
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
 from .raster import (
     TILE_SIZES,
     RasterConfig,
-    _ladder,
+    capacity_ladder,
     covered_pixels,
     default_config,
     interpolate,
@@ -308,7 +308,7 @@ def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHE
             clip = _ortho_clip(view, v, _MARGIN * r, 1.9 * r, 4.1 * r, xp=np)
             counts = plan_counts(clip, tris, (side, side), cull="back")
             windows = np.maximum(windows, counts.windows)
-    caps = tuple(_ladder(headroom * int(n) + 16) for n in windows)
+    caps = tuple(capacity_ladder(headroom * int(n) + 16) for n in windows)
     return RasterConfig(TILE_SIZES, caps, (-(-side // 8)) ** 2)
 
 
@@ -536,7 +536,7 @@ def _albedo_tables(materials: Sequence[Material]) -> jax.Array:
     nodes[0] = 1e-3
     rows = []
     for m in materials:
-        rows.append(jax.vmap(lambda c, m=m: _lobe_albedo(
+        rows.append(jax.vmap(lambda c, m=m: lobe_albedo(
             c, m.mu, m.n, m.mu, distribution=m.distribution, geometry=m.geometry,
             fresnel=True, radial=_ALBEDO_NODES[0], azimuthal=_ALBEDO_NODES[1]))(
                 jnp.asarray(nodes, jnp.result_type(m.mu, jnp.float32))))
@@ -612,16 +612,16 @@ def _mip_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, level: jax.Array, g
     level = jnp.clip(level, 0.0, nl - 1.0)
     lo = jnp.minimum(jnp.floor(level).astype(jnp.int32), nl - 1)
     hi = jnp.minimum(lo + 1, nl - 1)
-    wh = _smootherstep(level - lo.astype(level.dtype))
+    wh = smootherstep(level - lo.astype(level.dtype))
     idx, wts = [], []
     for lev, wl in ((lo, 1.0 - wh), (hi, wh)):
-        si = _select([np.int32(s) for s in sizes], lev)
-        scale = _select([np.float32(s / g) for s in sizes], lev).astype(tx.dtype)
-        base = pair * per_pair + _select([np.int32(o) for o in offs], lev)
+        si = select_static([np.int32(s) for s in sizes], lev)
+        scale = select_static([np.float32(s / g) for s in sizes], lev).astype(tx.dtype)
+        base = pair * per_pair + select_static([np.int32(o) for o in offs], lev)
         x = tx * scale + 0.5  # −0.5 (texel centres) + 1 (border)
         y = ty * scale + 0.5
         x0f, y0f = jnp.floor(x), jnp.floor(y)
-        fx, fy = _smootherstep(x - x0f), _smootherstep(y - y0f)
+        fx, fy = smootherstep(x - x0f), smootherstep(y - y0f)
         x0 = jnp.clip(x0f.astype(jnp.int32), 0, si + 1)
         y0 = jnp.clip(y0f.astype(jnp.int32), 0, si + 1)
         x1 = jnp.minimum(x0 + 1, si + 1)
@@ -639,26 +639,26 @@ def _env_blur(env: EnvironmentMap, dirs: jax.Array, sigma: jax.Array) -> jax.Arr
     the r channels of ``env.spectral_basis``: two adjacent prefiltered levels blended, eight
     bilinear taps gathered at once."""
     lead = dirs.shape[:-1]
-    d = _to_map_fast(env, dirs.reshape(-1, 3))
+    d = to_map_fast(env, dirs.reshape(-1, 3))
     u, v = fast_direction_to_uv(d)
     u, v = materialise_each(u, v)
-    lo, hi, w_hi, _ = _levels_for(env, jnp.broadcast_to(sigma, lead).reshape(-1))
+    lo, hi, w_hi, _ = levels_for(env, jnp.broadcast_to(sigma, lead).reshape(-1))
     shapes = env.level_shapes
     levels = []
     for lev in (lo, hi):
-        levels += [_select([np.int32(h) for h, _ in shapes], lev),
-                   _select([np.int32(w) for _, w in shapes], lev),
-                   _select([np.int32(o) for o in env.level_offsets], lev)]
+        levels += [select_static([np.int32(h) for h, _ in shapes], lev),
+                   select_static([np.int32(w) for _, w in shapes], lev),
+                   select_static([np.int32(o) for o in env.level_offsets], lev)]
     # computed once per lookup: fused into the taps, the select chains ran once per tap and
     # per index/weight array (benchmark frame −5 %, close-up −3.5 %, in-process interleaved)
     levels = materialise_each(*levels)
     idx, wts = [], []
     for k, wl in ((0, 1.0 - w_hi), (1, w_hi)):
         hk, wk, off = levels[3 * k:3 * k + 3]
-        i, w = _bilinear_taps(u, v, off, hk, wk, lead=True)
+        i, w = bilinear_taps(u, v, off, hk, wk, lead=True)
         idx.append(i)
         wts.append(w * wl)
-    out = _taps_sum(env.atlas, jnp.concatenate(idx, 0), jnp.concatenate(wts, 0), lead=True)
+    out = taps_sum(env.atlas, jnp.concatenate(idx, 0), jnp.concatenate(wts, 0), lead=True)
     return out.reshape(*lead, -1)
 
 
@@ -744,7 +744,7 @@ def _specular(sh: _Shading, obj: jax.Array, nrm: jax.Array, view: jax.Array
     mats = sh.mats
     o = jnp.maximum(obj, 0)
     beta, chi, mu, eta = mats["beta"][o], mats["chi"][o], mats["mu"][o], mats["n"][o]
-    nv = _dot3(nrm, view)
+    nv = dot3(nrm, view)
     nvc = jnp.clip(nv, 0.0, 1.0)
     refl = 2.0 * nv[:, None] * nrm - view
     albedo = _albedo_at(sh.albedo, obj, nv)
@@ -759,7 +759,7 @@ def _specular(sh: _Shading, obj: jax.Array, nrm: jax.Array, view: jax.Array
             gloss = gloss + jnp.where((o == k)[:, None], w @ sflux, 0.0)
     # faded out over the last few degrees above the horizon (continuous in N and V, so the
     # neighbour's silhouette does not switch it on and off)
-    fade = _smootherstep(nv / _HORIZON_FADE)
+    fade = smootherstep(nv / _HORIZON_FADE)
     out = (beta * fade)[:, None] * gloss
     mirror = None
     if sh.mirror:
@@ -917,8 +917,8 @@ def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax
                 + s[..., None, None] * (cp[None, ..., None] * t1[:, None, None]
                                         + sp[None, ..., None] * t2[:, None, None]))
         dirs = dirs.reshape(pos.shape[0], -1, 3)
-        w = jnp.maximum(_dot3(dirs, nrm[:, None]), 0.0) * (1.0 - cos_c)[:, None]
-        spacing = _atan2_poly(sin_c, cos_c) / (2.0 * nr)
+        w = jnp.maximum(dot3(dirs, nrm[:, None]), 0.0) * (1.0 - cos_c)[:, None]
+        spacing = atan2_poly(sin_c, cos_c) / (2.0 * nr)
         # the lookups computed once and summed node by node: a reduction over the nodes
         # fused the lookups' taps into every channel's sum (the samples' transfer −4 %)
         lv = materialise(_env_blur(env, dirs, jnp.broadcast_to(spacing[:, None], w.shape)),
@@ -1001,10 +1001,10 @@ def _sphere_form_factor(pos: jax.Array, nrm: jax.Array, centre: jax.Array, radiu
     plane (sinα = r/d, θ the centre's angle from the normal), and the C¹ horizon-clipped
     approximation sin²α (cosθ + sinα)²/(4 sinα) while it straddles it."""
     oc = centre - pos
-    d2 = jnp.maximum(_dot3(oc, oc), 1e-30)
+    d2 = jnp.maximum(dot3(oc, oc), 1e-30)
     sin2 = jnp.minimum(radius * radius / d2, 1.0)
     sin_a = jnp.sqrt(sin2)
-    cos_t = _dot3(nrm, oc) * jax.lax.rsqrt(d2)
+    cos_t = dot3(nrm, oc) * jax.lax.rsqrt(d2)
     part = (cos_t + sin_a) ** 2 / (4.0 * jnp.maximum(sin_a, 1e-12))
     return sin2 * jnp.where(cos_t >= sin_a, cos_t, jnp.where(cos_t > -sin_a, part, 0.0))
 
@@ -1058,8 +1058,8 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nr
         fr = geom.frame[q]
         rel = pos - geom.centre_j[q]
         ext = geom.extent[q]
-        tx = (_dot3(rel, fr[:, 0]) / ext + 1.0) * 0.5 * g + 0.5  # +1 border −0.5 centres
-        ty = (1.0 - _dot3(rel, fr[:, 1]) / ext) * 0.5 * g + 0.5
+        tx = (dot3(rel, fr[:, 0]) / ext + 1.0) * 0.5 * g + 0.5  # +1 border −0.5 centres
+        ty = (1.0 - dot3(rel, fr[:, 1]) / ext) * 0.5 * g + 0.5
         x0f, y0f = jnp.floor(tx), jnp.floor(ty)
         fx, fy = tx - x0f, ty - y0f
         x0 = jnp.clip(x0f.astype(jnp.int32), 0, g + 1)
@@ -1072,10 +1072,10 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nr
                          base + y1 * row + x1], -1)
         w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
         ff = _sphere_form_factor(pos, nrm, geom.centre_i[q], geom.radius_i[q])
-        lum = _taps_sum(tex, idx, w) * (ff / jnp.maximum(_taps_sum(tex_w, idx, w)[:, 0],
+        lum = taps_sum(tex, idx, w) * (ff / jnp.maximum(taps_sum(tex_w, idx, w)[:, 0],
                                                          1e-30))[:, None]
         # the grid holds the hemisphere of i facing j (its axis is −fr[:, 2] = c_i − c_j)
-        face = jnp.maximum(_dot3(nrm, fr[:, 2]), 0.0)
+        face = jnp.maximum(dot3(nrm, fr[:, 2]), 0.0)
         acc = acc + face[:, None] * lum
         wsum = wsum + face
     return acc / jnp.maximum(wsum, 1e-30)[:, None]
@@ -1098,10 +1098,10 @@ def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, 
     """Reflected directions (Q, 3) and normalised weights (Q,) of a quadrature of the
     receiver's gloss lobe D F G (V·H)/(N·V) dω_H over its visible part (one receiver)."""
     nv = jnp.clip(jnp.dot(nrm, view), 0.0, 1.0)
-    h, w, ch = _visible_nodes(nrm, view, mu, jnp.zeros_like(mu), nv, distribution=distribution,
+    h, w, ch = visible_nodes(nrm, view, mu, jnp.zeros_like(mu), nv, distribution=distribution,
                               radial=_LOBE_NODES[0], azimuthal=_LOBE_NODES[1],
                               radial_rule=_LOBE_RADIAL_RULE)
-    g, light = _lobe_factor(nrm, view, h, ch, mu, eta, geometry=geometry, fresnel=True)
+    g, light = lobe_factor(nrm, view, h, ch, mu, eta, geometry=geometry, fresnel=True)
     f = w * g
     return light, f / jnp.maximum(jnp.sum(f), 1e-30)
 
@@ -1120,18 +1120,18 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     cj = geom.centre_j[pair]  # (N, 3)
     rj = geom.radius_j[pair][:, None]
     oc = cj - pos
-    tp = _dot3(oc[:, None], dirs)
-    b2 = jnp.maximum(_dot3(oc, oc)[:, None] - tp * tp, 1e-14)  # (floors keep gradients finite)
+    tp = dot3(oc[:, None], dirs)
+    b2 = jnp.maximum(dot3(oc, oc)[:, None] - tp * tp, 1e-14)  # (floors keep gradients finite)
     b = jnp.sqrt(b2)
     half = jnp.maximum(jnp.minimum(edge[:, None] * tp, _EDGE_CAP * rj), 1e-6)
-    hit = _smootherstep(0.5 + (rj - b) / (2.0 * half)) * (tp > 0.0)
+    hit = smootherstep(0.5 + (rj - b) / (2.0 * half)) * (tp > 0.0)
     t = jnp.maximum(tp - jnp.sqrt(jnp.maximum(rj * rj - b2, 1e-14)), 0.0)
     y = pos[:, None] + t[..., None] * dirs
     rel = _normalize(y - cj[:, None]) * rj[..., None]  # on the bounding sphere (rim if missed)
     fr = geom.frame[pair]  # (N, 3, 3)
     ext = geom.extent[pair][:, None]
-    tx = (_dot3(rel, fr[:, None, 0]) / ext + 1.0) * 0.5 * g
-    ty = (1.0 - _dot3(rel, fr[:, None, 1]) / ext) * 0.5 * g
+    tx = (dot3(rel, fr[:, None, 0]) / ext + 1.0) * 0.5 * g
+    ty = (1.0 - dot3(rel, fr[:, None, 1]) / ext) * 0.5 * g
     texel = 2.0 * ext / g
     level = 0.5 * jnp.log2(1.0 + (half / texel) ** 2)  # ≈ log2 of the footprint, smooth
     # computed once (XLA would otherwise recompute them inside every consumer)
@@ -1143,7 +1143,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all
     # (N, Q, 8, C + 4) taps: 10× slower)
     lum_atlas, geo_atlas = atlas
-    geo = _materialise(_taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
+    geo = _materialise(taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
     cov = geo[..., 3]
     # the samples' normal where the atlas has coverage, the bounding sphere's elsewhere
     ny = _normalize(geo[..., :3] + (1.0 - jnp.clip(cov, 0.0, 1.0))[..., None] * rel
@@ -1154,7 +1154,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     wq = wts * hit
     wc = wq * cov
     ein = "nq,nqc->nc"
-    out = jnp.einsum(ein, wq, _taps_sum(lum_atlas, idx, w))  # L·cov
+    out = jnp.einsum(ein, wq, taps_sum(lum_atlas, idx, w))  # L·cov
     out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1) - hidden) @ sh.basis
     if mirror is not None:
         out = out + sh.to_output(jnp.einsum(ein, wc, mirror.reshape(n, nq, -1)))
@@ -1246,7 +1246,7 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
         a = jnp.where(inside, slot[jnp.where(inside, r * w + cc, 0)], -1)
         am = jnp.maximum(a, 0)
         d_refl, d_pos = refl_all[am] - refl, pos_all[am] - pos
-        change = jnp.sqrt(_dot3(d_refl, d_refl)) + jnp.sqrt(_dot3(d_pos, d_pos)) / gap
+        change = jnp.sqrt(dot3(d_refl, d_refl)) + jnp.sqrt(dot3(d_pos, d_pos)) / gap
         goods.append((a >= 0) & (obj_all[am] == obj) & (change <= _GLOSS_SMOOTH * width))
         idx.append(am)
         wks.append(wk)
@@ -1293,7 +1293,7 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     own, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl, gap,
                                      math.sqrt(2.0) * sh.mats["mu"][jnp.maximum(obj, 0)])
     res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active & own)
-    return jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
+    return jnp.where(own[:, None], res, taps_sum(res, a_idx, a_w))
 
 
 def _lobe_reach(geom: IRGeometry, sh: _Shading, pos: jax.Array, nrm: jax.Array,
@@ -1305,21 +1305,21 @@ def _lobe_reach(geom: IRGeometry, sh: _Shading, pos: jax.Array, nrm: jax.Array,
     k_per = geom.n_objects - 1
     mats = sh.mats
     o_all = jnp.maximum(obj, 0)
-    nv_all = _dot3(nrm, view)
+    nv_all = dot3(nrm, view)
     refl_all = 2.0 * nv_all[:, None] * nrm - view
     reach = jnp.zeros(obj.shape, bool)
     gap = jnp.full(obj.shape, jnp.inf, pos.dtype)
     for k in range(k_per):
         pair = o_all * k_per + k
         oc = geom.centre_j[pair] - pos
-        d2 = jnp.maximum(_dot3(oc, oc), 1e-30)
+        d2 = jnp.maximum(dot3(oc, oc), 1e-30)
         gap = jnp.minimum(gap, jnp.maximum(jnp.sqrt(d2) - geom.radius_j[pair], 1e-6))
         # angle(R, c_j − x) < asin(r_j/d) + reach, by cosines (no arccos per receiver)
-        lim = jnp.minimum(_atan2_poly(geom.radius_j[pair],
+        lim = jnp.minimum(atan2_poly(geom.radius_j[pair],
                                       jnp.sqrt(jnp.maximum(d2 - geom.radius_j[pair] ** 2,
                                                            1e-30)))
                           + _LOBE_REACH * mats["mu"][o_all] + 0.05, math.pi)
-        reach = reach | (_dot3(oc, refl_all) > _sincos_poly(lim)[1] * jnp.sqrt(d2))
+        reach = reach | (dot3(oc, refl_all) > sincos_poly(lim)[1] * jnp.sqrt(d2))
     return (obj >= 0) & (nv_all > 0.0) & reach, gap, refl_all
 
 
@@ -1350,7 +1350,7 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
         o = jnp.maximum(ob, 0)
         mu, eta = mats["mu"][o], mats["n"][o]
         beta, chi = mats["beta"][o], mats["chi"][o]
-        nv = _dot3(nn, vv)
+        nv = dot3(nn, vv)
         if same:
             m0 = materials[0]
             dirs, wts = jax.vmap(lambda a, b, m_, e_: _lobe_nodes(
@@ -1423,7 +1423,7 @@ def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> j
     sees = jnp.zeros(obj.shape, bool)
     for k in range(k_per):
         pair = jnp.maximum(obj, 0) * k_per + k
-        sees = sees | (_dot3(nrm, geom.centre_j[pair] - pos) > -geom.radius_j[pair])
+        sees = sees | (dot3(nrm, geom.centre_j[pair] - pos) > -geom.radius_j[pair])
     return sees & (obj >= 0)
 
 
@@ -1457,7 +1457,7 @@ def _less_hidden_sources(geom: IRGeometry, sh: _Shading, out: jax.Array, pos: ja
     hsrc = _hidden_source_gloss(sh, geom, obj, pos, nrm, view)
     if hsrc is not None:
         out = out - hsrc
-    return out, _sees(geom, pos, nrm, obj) & (_dot3(nrm, view) > 0.0)
+    return out, _sees(geom, pos, nrm, obj) & (dot3(nrm, view) > 0.0)
 
 
 def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: jax.Array,
@@ -1696,7 +1696,7 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
     pixel = jnp.full(obj.shape, -1, jnp.int32)
     if grid is not None:
         pixel, shape, step = grid[0][order], grid[1], grid[2]
-        refl_all = 2.0 * _dot3(nrm, view)[:, None] * nrm - view
+        refl_all = 2.0 * dot3(nrm, view)[:, None] * nrm - view
         at = (_pixel_slots(pixel, obj, shape), pos, refl_all, obj)
     mu = sh.mats["mu"]
 
@@ -1721,7 +1721,7 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
         res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active)
         if at is not None:
             own, a_idx, a_w = out[3:]
-            res = jnp.where(own[:, None], res, _taps_sum(res, a_idx, a_w))
+            res = jnp.where(own[:, None], res, taps_sum(res, a_idx, a_w))
         return jnp.where(ok[:, None], base + res, 0.0)[rank]
 
 

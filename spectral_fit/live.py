@@ -49,11 +49,23 @@ import numpy as np
 
 from .compositing import CameraModel, camera_model_from_sensitivities, composite_pixels
 from .dispatch import array_jit
+from .environment import white_reference
 from .errors import InputError
 from .scene import Scene
 
-__all__ = ["LiveSession", "FrameTimings", "RunStats", "scene_intrinsics", "white_reference",
-           "scene_camera_model", "camera_output_matrix", "pipeline_pays", "STEP_TRACES"]
+__all__ = [
+    "LiveSession",
+    "FrameTimings",
+    "RunStats",
+    "scene_intrinsics",
+
+    "scene_camera_model",
+    "camera_output_matrix",
+    "pipeline_pays",
+    "STEP_TRACES",
+    "live_step",
+    "put_on_device",
+]
 
 # windows of every raster size in a live plan at least: a size that the first poses do not
 # use (triangles larger than 4 pixels) is planned at the ladder's floor, 16, and an object
@@ -107,20 +119,6 @@ def scene_camera_model(scene: Scene, *, sensitivities: str | None = None,
             white_level=white_level)
     return dataclasses.replace(model, blur_px=float(scene.camera.blur_px),
                                noise=float(scene.camera.noise))
-
-
-def white_reference(environment: np.ndarray) -> np.ndarray:
-    """(L,) radiance of a white Lambertian facing world +Y (the table) under an
-    equirectangular map (Hm, Wm, L) (DESIGN §3 mapping: row k at polar angle π(k + ½)/Hm):
-    E(+Y)/π = (1/π) ∑ L cosθ sinθ Δθ Δφ over the upper hemisphere. Rotations about +Y do not
-    change it."""
-    env = np.asarray(environment, np.float64)
-    hm, wm = env.shape[:2]
-    theta = (np.arange(hm) + 0.5) * np.pi / hm
-    wgt = np.cos(theta) * np.sin(theta) * (np.pi / hm) * (2 * np.pi / wm)
-    wgt = np.where(theta < np.pi / 2, wgt, 0.0)
-    e = np.einsum("h,hwl->l", wgt, env)
-    return e / np.pi
 
 
 @dataclasses.dataclass
@@ -215,7 +213,7 @@ def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
     return out, stats
 
 
-_step = array_jit(_step_impl)
+live_step = array_jit(_step_impl)
 
 
 def pipeline_pays() -> bool:
@@ -271,7 +269,7 @@ class LiveSession:
             i mod len(devices)), each with its own copy of the prepared scene and its own
             compiled step; :meth:`run` keeps that many frames in flight. Default: every CPU
             device when the default backend is the CPU (one, unless the process split it:
-            :func:`~spectral_fit.startup.split_cpu_devices`), else the first accelerator.
+            :func:`~spectral_fit.process.split_cpu_devices`), else the first accelerator.
             Frames are the same on every device (same program, same inputs).
         lens: with a distorting lens (``[camera] distortion``), "undistort" (default): each
             video frame is resampled onto the pinhole K and the CG is rendered with that K, so
@@ -403,16 +401,16 @@ class LiveSession:
         pass-1 rasters to their generic capacities after they overflowed; True when they
         changed (the next render recompiles)."""
         from .raster import RasterConfig
-        from .renderer import _camera_clip, _ir_fallback, plan_capacities
+        from .renderer import camera_clip, ir_fallback, plan_capacities
 
         p = self.prep
-        ir_cfg = _ir_fallback(p) if interreflection else None
+        ir_cfg = ir_fallback(p) if interreflection else None
         if ir_cfg is not None:
             p = self.prep = dataclasses.replace(p, ir_raster_config=ir_cfg)
         v = np.asarray(p.vertices, np.float64)
         m = np.asarray(poses.model, np.float64)[np.asarray(p.vertex_object)]
         world = np.einsum("vij,vj->vi", m[:, :3, :3], v) + m[:, :3, 3]
-        clip = _camera_clip(np.asarray(p.projection, np.float64),
+        clip = camera_clip(np.asarray(p.projection, np.float64),
                             np.asarray(poses.view, np.float64),
                             None if p.lens is None else np.asarray(p.lens, np.float64), world,
                             np)
@@ -497,7 +495,7 @@ class LiveSession:
                     if len(self.devices) == 1:
                         placed, cam, put = grown, self.camera, jnp.asarray
                     else:
-                        placed, cam = _put(grown, dev), _put(self.camera, dev)
+                        placed, cam = put_on_device(grown, dev), put_on_device(self.camera, dev)
                         copies[dev] = (grown, placed, cam)
                         put = functools.partial(jax.device_put, device=dev)
                     model, view, visible = (put(x) for x in host)
@@ -507,7 +505,7 @@ class LiveSession:
                                                  visible=visible, mirror=self._mirror)
                         if stop.is_set():
                             return
-                    out, _ = _step(placed, placed.materials, model, view, visible,
+                    out, _ = live_step(placed, placed.materials, model, view, visible,
                                    put(background), cam, self._mirror, senders)
                     if stop.is_set():
                         return
@@ -596,7 +594,7 @@ class LiveSession:
             return self.prep, self.camera
         c = self._copies.get(dev)
         if c is None or c[0] is not self.prep:
-            c = (self.prep, _put(self.prep, dev), _put(self.camera, dev))
+            c = (self.prep, put_on_device(self.prep, dev), put_on_device(self.camera, dev))
             self._copies[dev] = c
         return c[1], c[2]
 
@@ -625,7 +623,7 @@ class LiveSession:
                                       model[visible]) <= self.ir_reuse_mm * 1e-3):
             self.ir_reuses += 1
             if dev not in self._senders:
-                self._senders[dev] = _put(next(iter(self._senders.values())), dev)
+                self._senders[dev] = put_on_device(next(iter(self._senders.values())), dev)
             return self._senders[dev]
         prep = self._placed(dev)[0]
         self._senders = {dev: render_senders(prep, prep.materials, model=inputs[0],
@@ -670,7 +668,7 @@ class LiveSession:
             self._adopt_grown()
         dev = _device_of(bg, self.devices)
         prep, camera = self._placed(dev)
-        return _step(prep, prep.materials, *inputs, bg, camera, self._mirror,
+        return live_step(prep, prep.materials, *inputs, bg, camera, self._mirror,
                      self._senders_for(poses, inputs, dev))
 
     def submit(self, frame: np.ndarray) -> _Pending:
@@ -690,13 +688,13 @@ class LiveSession:
         poses, bg, out, stats = pending.poses, pending.background, pending.out, pending.stats
         t0, t1, t2 = pending.times
         out = jax.block_until_ready(out)
-        from .renderer import _ir_fallback
+        from .renderer import ir_fallback
 
         planned = pending.prep
         for _ in range(3):
             # the pass-1 rasters' planned capacities overflowed: their generic ones, once
             ir = bool(stats["interreflection_overflow"]) and (
-                planned is not self.prep or _ir_fallback(self.prep) is not None)
+                planned is not self.prep or ir_fallback(self.prep) is not None)
             if not (bool(stats["overflow"]) or ir):
                 break
             if (planned is None or planned is self.prep) and not (
@@ -974,7 +972,7 @@ def _pixel_slots(pixels: float, frame_pixels: int) -> int:
     return min(frame_pixels, 1024 * -(-int(pixels + 64) // 1024))
 
 
-def _put(tree: Any, device: Any) -> Any:
+def put_on_device(tree: Any, device: Any) -> Any:
     """``tree`` with its arrays committed to ``device`` (other leaves unchanged: they are
     static parts of the compiled step)."""
     return jax.tree_util.tree_map(

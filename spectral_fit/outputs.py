@@ -17,7 +17,6 @@ Files (all optional, chosen by :func:`write_frame`'s arguments):
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,8 +24,7 @@ import numpy as np
 from .errors import InputError
 from .fileio import atomic_path
 
-__all__ = ["write_frame", "write_xyz_exr", "write_rgb_exr", "read_channels_exr",
-           "composite", "read_background"]
+__all__ = ["write_frame", "write_xyz_exr", "write_rgb_exr", "composite", "read_background"]
 
 
 def _write_exr(path: str | os.PathLike[str], image: np.ndarray, names: str,
@@ -58,17 +56,6 @@ def write_rgb_exr(path: str | os.PathLike[str], linear_rgb: Any, *, colourspace:
     """Write linear display RGB (H, W, 3) (display white = 1, unclipped) as channels R, G, B."""
     _write_exr(path, np.asarray(linear_rgb), "RGB", {"colourspace": colourspace,
                                                       "rgbEncoding": "linear"})
-
-
-def read_channels_exr(path: str | os.PathLike[str], names: str) -> np.ndarray:
-    """Read the single-letter channels ``names`` (e.g. "XYZ") of an OpenEXR as (H, W, len)."""
-    from .exr import _open
-
-    _, _, chans = _open(Path(path), header_only=False)
-    missing = [c for c in names if c not in chans]
-    if missing:
-        raise InputError(f"no channel(s) {missing}", path=path, field="channels")
-    return np.stack([np.asarray(chans[c].pixels, np.float32) for c in names], -1)
 
 
 def read_background(path: str | os.PathLike[str], shape: tuple[int, int]) -> np.ndarray:

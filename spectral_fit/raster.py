@@ -74,6 +74,7 @@ from .backend import materialise, on_accelerator
 from .errors import InputError
 
 __all__ = [
+    "clear_plans",
     "Raster",
     "RasterConfig",
     "PixelList",
@@ -89,15 +90,19 @@ __all__ = [
     "interpolate_pixels",
     "scatter_pixels",
     "clip_to_pixel",
+    "capacity_ladder",
+    "raster_jit",
+    "TILE_SIZES",
 ]
 
 _INT_MAX = np.iinfo(np.int32).max
 _CULL = ("none", "back", "front")
 
 
-def _ladder(n: float) -> int:
-    """Smallest capacity ≥ n on the quarter-octave ladder 2^k·{1, 1.25, 1.5, 1.75} (≥ 16)."""
-    n = max(16.0, float(n))
+def capacity_ladder(n: float, minimum: float = 16.0) -> int:
+    """Smallest capacity ≥ max(n, minimum) on the quarter-octave ladder 2^k·{1, 1.25, 1.5,
+    1.75}: buffer sizes from a small set, so that a grown capacity rarely means a new program."""
+    n = max(float(minimum), float(n))
     k = math.floor(math.log2(n))
     for f in (1.0, 1.25, 1.5, 1.75, 2.0):
         c = int(f * (1 << k))
@@ -129,19 +134,19 @@ class RasterConfig(NamedTuple):
         if len(sizes) != len(counts.windows):
             raise InputError(f"{len(counts.windows)} window counts for {len(sizes)} sizes",
                              field="tile_sizes")
-        caps = tuple(_ladder(headroom * n + 16) for n in counts.windows)
-        return cls(sizes, caps, _ladder(headroom * counts.blocks + 16))
+        caps = tuple(capacity_ladder(headroom * n + 16) for n in counts.windows)
+        return cls(sizes, caps, capacity_ladder(headroom * counts.blocks + 16))
 
     def grown(self, needed, headroom: float = 1.25, *, full: float = 1.0) -> RasterConfig:
         """Capacities raised to the ladder value ≥ ``headroom`` × ``needed`` where
         ``needed`` (windows per ladder size, then blocks) exceeds ``full`` × them (1: where
         they overflowed; below 1, ahead of an overflow, with ``headroom`` ≥ 1 / ``full``)."""
         needed = [int(n) for n in np.asarray(needed).tolist()]
-        caps = [c if n <= full * c else _ladder(headroom * n)
+        caps = [c if n <= full * c else capacity_ladder(headroom * n)
                 for c, n in zip(self.capacities, needed[:-1], strict=True)]
         blocks = self.block_capacity
         if needed[-1] > full * blocks:
-            blocks = _ladder(headroom * needed[-1])
+            blocks = capacity_ladder(headroom * needed[-1])
         return RasterConfig(self.tile_sizes, tuple(caps), blocks)
 
 
@@ -159,7 +164,8 @@ def default_config(num_triangles: int, shape: tuple[int, int]) -> RasterConfig:
     big = TILE_SIZES[-1]
     caps = [t] * (len(TILE_SIZES) - 1) + [min(t, area / (2 * big * big) + 64)]
     blocks = (-(-h // _TILE)) * (-(-w // _TILE)) / 2
-    return RasterConfig(TILE_SIZES, tuple(_ladder(c) for c in caps), _ladder(blocks))
+    return RasterConfig(TILE_SIZES, tuple(capacity_ladder(c) for c in caps),
+                        capacity_ladder(blocks))
 
 
 class PlanCounts(NamedTuple):
@@ -767,7 +773,7 @@ def _raster_single(clip, triangles, shape, cull, config):
 
 
 
-_raster_jit = jax.jit(_raster_single, static_argnames=("shape", "cull", "config"))
+raster_jit = jax.jit(_raster_single, static_argnames=("shape", "cull", "config"))
 
 
 def _raster_batch_impl(clip, triangles, shape, cull, config):
@@ -778,6 +784,12 @@ _raster_batch_jit = jax.jit(_raster_batch_impl, static_argnames=("shape", "cull"
 
 # configurations planned or grown, per (T, shape, cull, user config, batched)
 _LADDER: dict[tuple, RasterConfig] = {}
+
+
+def clear_plans() -> None:
+    """Forget the capacities :func:`rasterize` planned or grew in this process, so that the
+    next call plans from scratch (as a fresh process does)."""
+    _LADDER.clear()
 
 
 # ----------------------------------------------------------------------------- validation
@@ -884,7 +896,7 @@ def rasterize(clip_xyzw, triangles, shape: tuple[int, int], *, cull: str = "none
         InputError: wrong shapes or dtypes, non-finite positions, indices out of range
             (checked when the arguments are concrete, i.e. not inside a ``jit`` trace).
     """
-    return _run(_raster_jit, clip_xyzw, triangles, shape, cull, config, check)
+    return _run(raster_jit, clip_xyzw, triangles, shape, cull, config, check)
 
 
 def rasterize_batch(clip_xyzw, triangles, shape: tuple[int, int], *, cull: str = "none",

@@ -53,6 +53,7 @@ __all__ = [
     "shade_point_light",
     "to_paper_params",
     "from_paper_params",
+    "microfacet_fdg",
 ]
 
 DISTRIBUTIONS = ("gaussian", "beckmann")

@@ -56,8 +56,9 @@ from .culling import build_clusters, spatial_order
 from .dispatch import array_jit
 from .errors import InputError
 from .gbuffer import GBuffer, ObjectGeometry
+from .process import single_threaded_blas
+from .raster import capacity_ladder
 from .reflectance import Material
-from .startup import single_threaded_blas
 
 __all__ = [
     "Prepared",
@@ -73,6 +74,11 @@ __all__ = [
     "scene_materials",
     "load_environment",
     "TRACE_COUNT",
+    "camera_clip",
+    "ir_fallback",
+    "regrow",
+    "all_visible",
+    "plan_capacities",
 ]
 
 #: number of times :func:`render_frame` has been traced (i.e. compiled), for tests and reports
@@ -236,16 +242,6 @@ def load_environment(scene: Any, wavelengths: np.ndarray) -> np.ndarray:
     return np.asarray(img, np.float64) * spec.scale
 
 
-def _mesh(obj: Any):
-    from .mesh import icosphere, load_mesh, uv_sphere
-
-    if obj.shape == "uv_sphere":
-        return uv_sphere(obj.radius, obj.stacks, obj.slices)
-    if obj.shape == "icosphere":
-        return icosphere(obj.radius, obj.subdivisions)
-    return load_mesh(obj.mesh)
-
-
 def _ir_mesh(obj: Any, mesh: Any, mode: str) -> Any:
     """The mesh the interreflection's pass 1 rasterises for ``obj`` (whose camera mesh is
     ``mesh``). Gather mode resolves a sender on a (SUPERSAMPLE · g)² = 64² raster framed on
@@ -364,7 +360,7 @@ def _check_lens_tessellation(scene: Any, k: np.ndarray, shape: tuple[int, int],
                 "more finely (stacks/slices, or a denser mesh)", RuntimeWarning, stacklevel=3)
 
 
-def _camera_clip(projection: Any, view: Any, lens: Any, world: Any, xp: Any = jnp) -> Any:
+def camera_clip(projection: Any, view: Any, lens: Any, world: Any, xp: Any = jnp) -> Any:
     """Clip coordinates (V, 4) of world points (V, 3) seen by the camera: ``projection @
     view``, with the vertices distorted in eye space first when there is a ``lens``
     (:func:`~spectral_fit.lens.distort_eye`). ``xp``: ``jax.numpy`` (traced) or ``numpy``
@@ -376,16 +372,6 @@ def _camera_clip(projection: Any, view: Any, lens: Any, world: Any, xp: Any = jn
 
     eye = distort_eye(world @ view[:3, :3].T + view[:3, 3], lens, xp)
     return eye @ projection[:, :3].T + projection[:, 3]
-
-
-def _ladder(n: float) -> int:
-    """Smallest 2^k·{1, 1.25, 1.5, 1.75} ≥ n (≥ 64): capacities from a small set of sizes."""
-    n = max(64.0, float(n))
-    k = math.floor(math.log2(n))
-    for f in (1.0, 1.25, 1.5, 1.75, 2.0):
-        if int(f * (1 << k)) >= n:
-            return int(f * (1 << k))
-    raise AssertionError  # pragma: no cover
 
 
 _DISPLAYS: dict[tuple, Any] = {}
@@ -601,7 +587,7 @@ def prepare(
     ts = scene.interreflection.texture_size if texture_size is None else int(texture_size)
 
     # meshes in object frames, concatenated (and those the interreflection's pass 1 uses)
-    meshes = [_mesh(obj) for obj in scene.objects]
+    meshes = [obj.make_mesh() for obj in scene.objects]
     vertices, normals, triangles, vobj_a, tobj_a, vsl, tsl = _concat_meshes(meshes)
     # each object's triangles in a spatial order: runs of them are the clusters the frame
     # culls before its raster (spectral_fit.culling)
@@ -680,7 +666,7 @@ def prepare(
     world = np.einsum("vij,vj->vi", model[vobj_a][:, :3, :3].astype(np.float64),
                       vertices) + model[vobj_a][:, :3, 3]
     lens, rays, k_lens = _lens(scene, proj, shape)
-    clip = _camera_clip(proj.astype(np.float64), view.astype(np.float64), lens, world, np)
+    clip = camera_clip(proj.astype(np.float64), view.astype(np.float64), lens, world, np)
     if lens is not None:
         _check_lens_tessellation(scene, k_lens, shape, lens, world, view, triangles, tsl)
     cfg, _ = plan_capacities(clip, triangles, shape, headroom=headroom, cull=cull)
@@ -691,7 +677,7 @@ def prepare(
         for ta, tb in tsl:
             _, bound = plan_capacities(clip, triangles[ta:tb], shape, headroom=headroom,
                                        cull=cull)
-            caps.append(min(shape[0] * shape[1], _ladder(headroom * bound + 64)))
+            caps.append(min(shape[0] * shape[1], capacity_ladder(headroom * bound + 64, 64)))
         cap = tuple(caps)
     elif isinstance(pixel_capacity, int | np.integer):
         cap = (int(pixel_capacity),) * len(tsl)
@@ -1026,7 +1012,7 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     (:func:`~spectral_fit.environment.padded_bilinear`, bit-identical to the general one).
     Through a lens (``prep.pixel_rays``) each pixel's ray is looked up instead (rotated into
     the map frame)."""
-    from .environment import _uv_of, fast_direction_to_uv, padded_bilinear, padded_table
+    from .environment import fast_direction_to_uv, padded_bilinear, padded_table, uv_of
 
     env = prep.env
     hm, wm = env.texels.shape[:2]
@@ -1038,7 +1024,7 @@ def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
                          axis=-1)
         u, v = materialise_each(*fast_direction_to_uv(dmap))
     else:  # (u, v) straight from the rays' components, written once as two planes
-        u, v = materialise_each(*(c.reshape(-1) for c in _uv_of(
+        u, v = materialise_each(*(c.reshape(-1) for c in uv_of(
             *_pinhole_ray_components(prep, view, env.rotation))))
     return padded_bilinear(padded_table(flat, hm, wm), u, v, hm, wm)
 
@@ -1355,7 +1341,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     vis_v = visible[prep.vertex_object]
     world = jnp.where(vis_v[:, None], world_full, centres[prep.vertex_object])
     wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
-    clip = _camera_clip(prep.projection, view, prep.lens, world)
+    clip = camera_clip(prep.projection, view, prep.lens, world)
 
     # 2. rasterise (the triangles of the clusters that may face the eye), compact covered
     # pixels, G-buffer; triangle ids below are rows of that list
@@ -1517,7 +1503,7 @@ _render_jit = array_jit(_render_impl)
 
 
 @functools.cache
-def _all_visible(n: int) -> jax.Array:
+def all_visible(n: int) -> jax.Array:
     """(n,) True, made once (a new array per frame costs a dispatch on the frame's path);
     concrete even when first asked for inside a caller's trace (a cached tracer would leak)."""
     with jax.ensure_compile_time_eval():
@@ -1529,7 +1515,7 @@ def _check_frame_inputs(prep: Prepared, materials: Any, model: Any, view: Any, v
     mats = prep.materials if materials is None else materials
     model = prep.model if model is None else model
     view = prep.view if view is None else view
-    visible = _all_visible(prep.num_objects) if visible is None else visible
+    visible = all_visible(prep.num_objects) if visible is None else visible
     if not isinstance(model, jax.core.Tracer):
         m = np.shape(model)
         if m != (prep.num_objects, 4, 4):
@@ -1648,14 +1634,14 @@ def render(scene: Any, materials: Any = None, *, spectral: bool = False,
     planned), the capacities are grown and the frame is rendered again, with a warning."""
     prep = prepare(scene, **prepare_options)
     frame = render_frame(prep, materials, spectral=spectral)
-    return _regrow(prep, frame, materials, spectral)
+    return regrow(prep, frame, materials, spectral)
 
 
-def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Frame:
+def regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Frame:
     for _ in range(4):
         pix_over = bool(frame.stats["pixel_overflow"])
         ras_over = bool(frame.stats["raster_overflow"])
-        ir_cfg = _ir_fallback(prep) if bool(frame.stats["interreflection_overflow"]) else None
+        ir_cfg = ir_fallback(prep) if bool(frame.stats["interreflection_overflow"]) else None
         if not (pix_over or ras_over or ir_cfg is not None):
             return frame
         changes: dict[str, Any] = {}
@@ -1666,7 +1652,7 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
             counts = np.bincount(np.asarray(frame.object_id).reshape(-1) + 1,
                                  minlength=prep.num_objects + 1)[1:]
             changes["pixel_capacity"] = tuple(
-                max(c, min(h * w, _ladder(1.5 * int(n) + 64)))
+                max(c, min(h * w, capacity_ladder(1.5 * int(n) + 64, 64)))
                 for c, n in zip(prep.pixel_capacity, counts, strict=True))
         if ras_over and prep.clusters is not None:
             from .culling import count_clusters, grown_clusters
@@ -1679,7 +1665,7 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
             from .raster import rasterize
 
             world = _to_world(prep.vertices, prep.vertex_object, prep.model)
-            r = rasterize(_camera_clip(prep.projection, prep.view, prep.lens, world),
+            r = rasterize(camera_clip(prep.projection, prep.view, prep.lens, world),
                           prep.triangles, prep.shape,
                           cull=prep.cull, config=prep.raster_config, check=False)
             changes["raster_config"] = prep.raster_config.grown(np.asarray(r.needed), 1.5)
@@ -1690,7 +1676,7 @@ def _regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fra
     raise RuntimeError("render: buffers still overflow after growing them")
 
 
-def _ir_fallback(prep: Prepared) -> Any:
+def ir_fallback(prep: Prepared) -> Any:
     """The pass-1 raster capacities after an interreflection overflow: at least the generic
     ones (:func:`_ir_generic_config`); None when they are there already (nothing to grow)."""
     cur = prep.ir_raster_config

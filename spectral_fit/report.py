@@ -33,12 +33,13 @@ import numpy as np
 
 from .fileio import atomic_path, atomic_write_text
 from .fitting import FitResult
+from .paths import REPO_ROOT
 from .session import PARAMETERS
 
 __all__ = ["write_report", "materials_json", "mitsuba_snippet", "run_demo_fit",
            "DEMO_SESSION", "DEMO_CONFIG", "recovery_table"]
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = REPO_ROOT
 DEMO_CONFIG = ROOT / "configs" / "two_spheres.toml"
 DEMO_SESSION = ROOT / "measurements" / "sessions" / "two_spheres_demo"
 
@@ -149,7 +150,7 @@ def _residual_plot(result: FitResult, path: Path) -> None:
 def _render(scene: Any, result: FitResult, path: Path) -> str | None:
     """Render the fitted scene when the frame renderer exists; returns a note otherwise."""
     try:
-        from . import renderer
+        from .renderer import regrow
     except ImportError:
         return "frame renderer not available in this build"
     try:
@@ -165,7 +166,7 @@ def _render(scene: Any, result: FitResult, path: Path) -> str | None:
         fitted = {k: jnp.asarray([float(result.params[o.name][k]) for o in scene.objects],
                                  jnp.float32) for k in PARAMETERS}
         mats = dataclasses.replace(prep.materials, **fitted)
-        frame = renderer._regrow(prep, render_frame_cached(prep, mats), mats, False)
+        frame = regrow(prep, render_frame_cached(prep, mats), mats, False)
         from .plots import save_png
 
         save_png(path, np.asarray(frame.rgb))

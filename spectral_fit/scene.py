@@ -77,6 +77,8 @@ __all__ = [
     "MARKER_DICTIONARIES",
     "load_scene",
     "parse_scene",
+    "MAX_BLUR_PX",
+    "MAX_NOISE",
 ]
 
 _MISSING = object()
@@ -194,6 +196,20 @@ class ObjectSpec:
         m[:3, :3] = rot(2, rz) @ rot(1, ry) @ rot(0, rx) * self.scale
         m[:3, 3] = self.position
         return m
+
+    def make_mesh(self, *, world: bool = False) -> Any:
+        """The object's :class:`~spectral_fit.mesh.Mesh`: its UV sphere, icosphere or mesh
+        file in the object's own frame (metres), or moved into the world by
+        :meth:`model_matrix` (``world=True``)."""
+        from .mesh import icosphere, load_mesh, uv_sphere
+
+        if self.shape == "uv_sphere":
+            m = uv_sphere(self.radius, self.stacks, self.slices)
+        elif self.shape == "icosphere":
+            m = icosphere(self.radius, self.subdivisions)
+        else:
+            m = load_mesh(self.mesh)
+        return m.transformed(self.model_matrix()) if world else m
 
 
 #: OpenCV's predefined marker dictionaries and how many ids each holds

@@ -29,6 +29,7 @@ __all__ = [
     "resample",
     "read_spectrum_csv",
     "colour_sd",
+    "parse_spectrum_text",
 ]
 
 DEFAULT_START_NM = 380.0

@@ -24,9 +24,11 @@ from typing import Any
 
 import numpy as np
 
+from .paths import REPO_ROOT
+
 __all__ = ["TARGETS", "scene_white_xyz", "delta_e_patches", "validate", "delta_e_figure"]
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = REPO_ROOT
 
 TARGETS = {
     "direct": {"median": 0.5, "p90": 1.0},

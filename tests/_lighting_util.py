@@ -58,7 +58,7 @@ def smith_g1(c, m):
     return 1.0 / (1.0 + lam)
 
 
-def _bilinear_taps(h, w, ss):
+def bilinear_taps(h, w, ss):
     """The bilinear reconstruction of an (h, w) map at the centres of its ss× finer grid, as
     (F, 4) indices into the map's texels flattened (h·w) plus its two pole means (h·w, the
     first row's mean at v = 0; h·w + 1, the last row's at v = 1) and (F, 4) weights. Written
@@ -70,7 +70,7 @@ def _bilinear_taps(h, w, ss):
 
 
 def _taps_uv(h, w, u, v):
-    """(F, 4) indices and weights of the bilinear reconstruction (as in :func:`_bilinear_taps`)
+    """(F, 4) indices and weights of the bilinear reconstruction (as in :func:`bilinear_taps`)
     at map coordinates u, v (any equal shapes, F elements)."""
     u, v = np.asarray(u, np.float64).reshape(-1), np.asarray(v, np.float64).reshape(-1)
     ty, tx = v * h - 0.5, u * w - 0.5
@@ -120,7 +120,7 @@ def brute_gloss(img, n, v, mu, eta, *, rotation=None, ss=2, distribution="gaussi
     if model == "box":
         return f.reshape(h, ss, w, ss).sum(axis=(1, 3)).reshape(-1) @ flat
     if (key, "taps") not in _GEOMETRY:
-        _GEOMETRY[(key, "taps")] = _bilinear_taps(h, w, ss)
+        _GEOMETRY[(key, "taps")] = bilinear_taps(h, w, ss)
     idx, wt = _GEOMETRY[(key, "taps")]
     extra = None
     if refine > 1:

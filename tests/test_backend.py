@@ -107,9 +107,9 @@ def test_accelerator_layout_gradients_match_the_cpu_layout(prep, monkeypatch):
 def test_default_visibility_is_concrete_when_first_made_inside_a_trace():
     """The cached all-visible default of render_frame/render_pixels (called inside a caller's
     jit by the live step) must be an array, not the tracer of the first trace."""
-    renderer._all_visible.cache_clear()
-    inside = jax.jit(lambda: renderer._all_visible(3) & True)()
-    outside = renderer._all_visible(3)
+    renderer.all_visible.cache_clear()
+    inside = jax.jit(lambda: renderer.all_visible(3) & True)()
+    outside = renderer.all_visible(3)
     assert not isinstance(outside, jax.core.Tracer)
     np.testing.assert_array_equal(np.asarray(outside), [True, True, True])
     np.testing.assert_array_equal(np.asarray(inside), np.asarray(outside))

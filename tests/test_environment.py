@@ -337,9 +337,9 @@ def test_basis_coefficient_shading_matches_bands():
     basis = pca_basis(8, wl)
     env_b = EnvironmentMap.from_array(img)
     env_k = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor)
-    from spectral_fit.basis import _reflectances_5nm
+    from spectral_fit.basis import reflectances_5nm
 
-    _, refl = _reflectances_5nm()
+    _, refl = reflectances_5nm()
     W = xyz_weights(wl)
     cfg = _configs(0.2, 6, seed=5)
     des = []
@@ -413,14 +413,14 @@ def test_compressed_measured_map_keeps_its_gloss():
 @pytest.mark.parametrize("shape", [(16, 32), (7, 13)])
 def test_padded_bilinear_is_the_general_lookup_bit_for_bit(shape):
     """The background's lookup from the pole-row, wrapped-column layout
-    (``padded_bilinear``) returns exactly what the general taps (``_bilinear_taps`` +
-    ``_taps_sum``) return: random coordinates, both seams, the pole caps past the first and
+    (``padded_bilinear``) returns exactly what the general taps (``bilinear_taps`` +
+    ``taps_sum``) return: random coordinates, both seams, the pole caps past the first and
     last row centres, the very poles, and u, v exactly 0 and 1."""
     from spectral_fit.environment import (
-        _bilinear_taps,
-        _taps_sum,
+        bilinear_taps,
         padded_bilinear,
         padded_table,
+        taps_sum,
     )
 
     hm, wm = shape
@@ -437,8 +437,8 @@ def test_padded_bilinear_is_the_general_lookup_bit_for_bit(shape):
 
     @jax.jit
     def both(flat, u, v):
-        idx, w = _bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm), lead=True)
-        return (_taps_sum(flat, idx, w, lead=True),
+        idx, w = bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm), lead=True)
+        return (taps_sum(flat, idx, w, lead=True),
                 padded_bilinear(padded_table(flat, hm, wm), u, v, hm, wm))
 
     general, padded = (np.asarray(x) for x in both(flat, u, v))

@@ -16,9 +16,8 @@ from spectral_fit.environment import (
     EnvironmentMap,
     SplitSum,
     SplitSumMap,
-    _atan2_poly,
-    _sincos_poly,
     _wrap,
+    atan2_poly,
     direction_to_uv,
     fast_direction_to_uv,
     fast_lookup,
@@ -26,6 +25,7 @@ from spectral_fit.environment import (
     lobe_moment_table,
     lookup,
     rotation_y,
+    sincos_poly,
 )
 from spectral_fit.errors import InputError
 
@@ -49,7 +49,7 @@ def test_atan2_and_uv_match_the_library_functions():
     x = rng.normal(size=20000)
     x[:50], y[50:100], x[100:150] = 0.0, 0.0, -np.abs(x[100:150])
     y[100:150] = 0.0
-    got = np.asarray(_atan2_poly(jnp.asarray(y, jnp.float32), jnp.asarray(x, jnp.float32)))
+    got = np.asarray(atan2_poly(jnp.asarray(y, jnp.float32), jnp.asarray(x, jnp.float32)))
     assert np.abs(got - np.arctan2(np.float32(y), np.float32(x))).max() < 5e-7
     d = rng.normal(size=(20000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -66,13 +66,13 @@ def test_sincos_matches_the_library_and_its_gradient_is_cos_minus_sin():
     x = np.concatenate([np.random.default_rng(2).uniform(-60.0, 60.0, 20000),
                         np.arange(-8, 9) * (math.pi / 4), [0.0, 1e-30, -1e-30]])
     xs = jnp.asarray(x, jnp.float32)
-    s, c = _sincos_poly(xs)
+    s, c = sincos_poly(xs)
     x32 = np.float32(x).astype(np.float64)  # the float32 argument, exactly
     assert np.abs(np.asarray(s) - np.sin(x32)).max() < 1.5e-7
     assert np.abs(np.asarray(c) - np.cos(x32)).max() < 1.5e-7
     near = jnp.asarray(x[np.abs(x) < 2 * math.pi], jnp.float32)
-    ds = jax.vmap(jax.grad(lambda t: _sincos_poly(t)[0]))(near)
-    dc = jax.vmap(jax.grad(lambda t: _sincos_poly(t)[1]))(near)
+    ds = jax.vmap(jax.grad(lambda t: sincos_poly(t)[0]))(near)
+    dc = jax.vmap(jax.grad(lambda t: sincos_poly(t)[1]))(near)
     n64 = np.asarray(near, np.float64)
     assert np.abs(np.asarray(ds) - np.cos(n64)).max() < 1e-6
     assert np.abs(np.asarray(dc) + np.sin(n64)).max() < 1e-6

@@ -152,13 +152,13 @@ def test_compact_solver_matches_optimistix(small):
     noisy = np.asarray(pr.measured, np.float64) * (1.0 + 0.01 * rng.standard_normal(
         pr.measured.shape))
     pr = eqx.tree_at(lambda q: q.measured, pr, jnp.asarray(noisy, pr.values.dtype))
-    y0 = fitting._y_start(pr, np.asarray(pr.values, np.float64), 1.0)
+    y0 = fitting.y_start(pr, np.asarray(pr.values, np.float64), 1.0)
     ys = jnp.asarray(fitting._starts(pr, y0, 2, 7), pr.values.dtype)
     rw = jnp.ones((2, len(session.readings)), pr.values.dtype)
     out = {}
     for name in fitting.SOLVERS:
         opts = fitting.FitOptions(solver=name, rtol=1e-6, atol=1e-7)
-        o = fitting._solve_batch(pr, ys, rw, fitting._solver(opts, False), 100)
+        o = fitting.solve_batch(pr, ys, rw, fitting.make_solver(opts, False), 100)
         out[name] = {k: np.asarray(v, np.float64) for k, v in o.items()}
     a, b = out["compact"], out["optimistix"]
     assert a["converged"].all() and b["converged"].all()
@@ -212,7 +212,7 @@ def test_physical_from_y_matches_the_per_parameter_maps(small):
     scene, session, prep, env, clean = small
     pr = dataclasses.replace(prep.problem, free=prep.problem.free[:-1])  # one more fixed
     y = np.random.default_rng(1).normal(size=len(pr.free)) * 0.7
-    vals, scale = fitting._physical_from_y(pr, jnp.asarray(y, jnp.float32))
+    vals, scale = fitting.physical_from_y(pr, jnp.asarray(y, jnp.float32))
     want = np.array(pr.values, np.float64)
     for j, (o, k) in enumerate(pr.free):
         want[o, k] = float(fitting.to_physical(y[j], fitting.PARAMETERS[k]))

@@ -202,12 +202,12 @@ def test_gloss_render_vs_brute_force_bundled_map(anchor, mu):
 def test_oracle_bilinear_model_is_the_library_lookup():
     """The oracle's own bilinear upsampling (tests/_lighting_util) reproduces the library's
     lookup at the fine texel centres, poles and seam included: both define the same map."""
-    from _lighting_util import _bilinear_taps
+    from _lighting_util import bilinear_taps
 
     rng = np.random.default_rng(1)
     img = rng.uniform(0.0, 1.0, size=(6, 12, 2))
     env = EnvironmentMap.from_array(img)
-    idx, wt = _bilinear_taps(6, 12, 3)
+    idx, wt = bilinear_taps(6, 12, 3)
     flat = np.concatenate([img.reshape(-1, 2), img[0].mean(0)[None], img[-1].mean(0)[None]])
     want = np.einsum("fk,fkc->fc", wt, flat[idx])
     d = jnp.asarray(texel_directions(18, 36).reshape(-1, 3), jnp.float32)

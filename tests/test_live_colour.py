@@ -40,7 +40,7 @@ def _shot(scene, *, tone="srgb", gamma=2.2, seed=0):
     5100 white-balanced on the table's white sees the chart on the table."""
     import cv2
 
-    from spectral_fit.live import white_reference
+    from spectral_fit.environment import white_reference
     from spectral_fit.renderer import load_environment
 
     wl = scene.wavelengths

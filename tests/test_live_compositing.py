@@ -176,7 +176,7 @@ def test_composite_pixels_matches_the_full_image_composite():
 def test_white_reference_closed_forms():
     """E(+Y)/π of a white Lambertian facing up: a uniform map of radiance L gives L; a map
     bright only in the lower hemisphere gives 0; L ∝ cosθ (upper) gives (2/3)·L₀."""
-    from spectral_fit.live import white_reference
+    from spectral_fit.environment import white_reference
 
     hm, wm = 64, 128
     theta = (np.arange(hm) + 0.5) * np.pi / hm

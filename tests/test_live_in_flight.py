@@ -25,8 +25,8 @@ ROOT = HERE.parent
 
 _TWO = textwrap.dedent("""
     import json, sys
-    from spectral_fit import startup
-    assert startup.split_cpu_devices(2) == 2
+    from spectral_fit import process, startup
+    assert process.split_cpu_devices(2) == 2
     import jax, numpy as np
     sys.path.insert(0, sys.argv[1])
     from test_live_pipeline import SIZE, _frame, _scene
@@ -36,7 +36,7 @@ _TWO = textwrap.dedent("""
 
     mode, reuse = sys.argv[2], float(sys.argv[3])
     devs = jax.devices()
-    assert len(devs) == 2 and startup.split_cpu_devices(3) == 2  # too late: unchanged
+    assert len(devs) == 2 and process.split_cpu_devices(3) == 2  # too late: unchanged
     table = make_table(data.coffee(), [MarkerPlacement(3, -0.06, 0.0, 0.08),
                                        MarkerPlacement(7, 0.07, 0.02, 0.08)])
     eyes = [(0.0, 0.3, 0.25), (0.0, 0.3, 0.25), (0.05, 0.3, 0.24), (0.05, 0.3, 0.24),
@@ -144,12 +144,12 @@ def test_devices_argument_is_checked():
 def test_split_after_start_changes_nothing():
     import jax
 
-    from spectral_fit import startup
+    from spectral_fit import process
 
     jax.numpy.zeros(1)  # the backend is running
-    assert startup.split_cpu_devices(2) == len(jax.devices("cpu"))
+    assert process.split_cpu_devices(2) == len(jax.devices("cpu"))
     with pytest.raises(InputError, match=">= 1"):
-        startup.split_cpu_devices(0)
+        process.split_cpu_devices(0)
 
 
 def test_in_flight_must_be_positive():

@@ -202,7 +202,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     # 0.35: grown buffers unlike those the other tests compile (their programs stay theirs)
     s = live.LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.35)
     entered, release = threading.Event(), threading.Event()
-    step = live._step
+    step = live.live_step
 
     def held(*a, **k):  # the background compile's step waits until the test lets it go
         if threading.current_thread().name == "spectral_fit-grow-ahead":
@@ -210,7 +210,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
             assert release.wait(120)
         return step(*a, **k)
 
-    monkeypatch.setattr(live, "_step", held)
+    monkeypatch.setattr(live, "live_step", held)
     first = s.process(img)  # fills the buffers past 0.35: a compile of grown ones starts
     caps = (s.prep.pixel_capacity, s.prep.raster_config)
     assert entered.wait(120) and s.growing
@@ -221,7 +221,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     release.set()
     stopper.join(120)
     assert not stopper.is_alive() and not s.growing
-    monkeypatch.setattr(live, "_step", step)
+    monkeypatch.setattr(live, "live_step", step)
     s.grow_ahead = None  # no new compile: the next frame shows what the session kept
     again = s.process(img)
     assert s.replans_ahead == 0 and s.recompiles == 0

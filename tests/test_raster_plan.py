@@ -55,7 +55,7 @@ def test_plan_config_sizes_from_counts_and_renderer_shares_it():
     near = clip_of(camera(MID), mesh.vertices, translate((0.0, 0.0, 1.0)))
     both = raster.plan_config(np.stack([clip, near]), mesh.triangles, MID, headroom=1.0)
     c2 = raster.plan_counts(near, mesh.triangles, MID)
-    want = [raster._ladder(max(a, b) + 16) for a, b in zip(counts.windows, c2.windows,
+    want = [raster.capacity_ladder(max(a, b) + 16) for a, b in zip(counts.windows, c2.windows,
                                                            strict=True)]
     assert list(both.capacities) == want
     rcfg, pixels = plan_capacities(clip, mesh.triangles, MID, headroom=1.5)

@@ -369,7 +369,7 @@ def test_interreflection_changes_only_pixels_that_see_the_other_object(folder, p
 
 def test_render_cli_smoke(folder, tmp_path):
     from spectral_fit.cli import main
-    from spectral_fit.outputs import read_channels_exr
+    from spectral_fit.exr import read_channels_exr
 
     cfg = write_scene(folder, mode="none")
     png, xyz = tmp_path / "f.png", tmp_path / "f_xyz.exr"
@@ -528,7 +528,7 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
     equals one rendered with those from the start)."""
     import dataclasses
 
-    from spectral_fit.renderer import _ir_generic_config, _regrow, prepare, render_frame
+    from spectral_fit.renderer import _ir_generic_config, prepare, regrow, render_frame
 
     p = prepare(write_scene(folder, mode="gather"))
     tris = max(tb - ta for ta, tb in p.ir_triangle_slices)
@@ -539,7 +539,7 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
     f = render_frame(tiny)
     assert bool(f.stats["interreflection_overflow"])
     with pytest.warns(RuntimeWarning, match="ir_raster_config"):
-        g = _regrow(tiny, f, None, False)
+        g = regrow(tiny, f, None, False)
     assert not bool(g.stats["interreflection_overflow"])
     ref = render_frame(dataclasses.replace(p, ir_raster_config=generic))
     np.testing.assert_allclose(np.asarray(g.xyz), np.asarray(ref.xyz), rtol=1e-6, atol=1e-7)

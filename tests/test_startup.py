@@ -16,7 +16,7 @@ import jax
 import numpy as np
 import pytest
 
-from spectral_fit import startup
+from spectral_fit import process, startup
 from spectral_fit.errors import InputError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -368,7 +368,7 @@ def test_single_threaded_blas_sets_and_restores_openblas_threads():
     lib = ctypes.CDLL(libs[0])
     get = getattr(lib, "scipy_openblas_get_num_threads64_", None) or lib.openblas_get_num_threads
     before = get()
-    with startup.single_threaded_blas():
+    with process.single_threaded_blas():
         assert get() == 1
         np.testing.assert_allclose(x.T @ x, ref, rtol=1e-12)
     assert get() == before
@@ -489,8 +489,8 @@ def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monk
 
 _REUSE = r"""
 import ctypes, json, resource, sys
-from spectral_fit import startup
-applied = startup.retain_freed_memory() if sys.argv[1] == "on" else None
+from spectral_fit import process
+applied = process.retain_freed_memory() if sys.argv[1] == "on" else None
 libc = ctypes.CDLL(None)
 libc.malloc.restype = ctypes.c_void_p
 libc.malloc.argtypes = (ctypes.c_size_t,)
@@ -654,7 +654,7 @@ def test_cli_programs_stored_after_a_warm_jax_cache_are_reused(tmp_path):
 
 _FASTBINS = r"""
 import ctypes, gc, json
-from spectral_fit import startup
+from spectral_fit import process
 
 class MallInfo2(ctypes.Structure):
     _fields_ = [(k, ctypes.c_size_t) for k in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
@@ -686,8 +686,8 @@ def freed_small_blocks():
     return n
 
 before = freed_small_blocks()
-with startup._without_fastbins():
-    with startup._without_fastbins():  # nested (two loading threads): one restore, at the end
+with process.without_fastbins():
+    with process.without_fastbins():  # nested (two loading threads): one restore, at the end
         inside = freed_small_blocks()
     still = freed_small_blocks()
 after = freed_small_blocks()
@@ -720,6 +720,6 @@ def test_default_fastbin_limit(monkeypatch):
     import ctypes
 
     monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
-    assert startup._default_mxfast() == 64 * ctypes.sizeof(ctypes.c_size_t) // 4
+    assert process._default_mxfast() == 64 * ctypes.sizeof(ctypes.c_size_t) // 4
     monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2:glibc.malloc.mxfast=64")
-    assert startup._default_mxfast() == 64
+    assert process._default_mxfast() == 64

@@ -48,27 +48,27 @@ def _fit_demo(opts: BenchOptions, solver_name: str) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
 
-    from ..fitting import PARAMETERS, FitOptions, _physical_from_y, _solve_batch, _solver, _y_start
+    from ..fitting import PARAMETERS, FitOptions, make_solver, physical_from_y, solve_batch, y_start
     from ..report import DEMO_SESSION
 
     prep, session, prepare_s, prepare_cpu_s = _prepared(opts.quick)
     pr = prep.problem
     dt = pr.values.dtype
     fo = FitOptions(solver=solver_name)
-    y0 = jnp.asarray(_y_start(pr, np.asarray(pr.values, np.float64), 1.0)[None], dt)
+    y0 = jnp.asarray(y_start(pr, np.asarray(pr.values, np.float64), 1.0)[None], dt)
     rw = jnp.ones((1, len(session.readings)), dt)
-    solver = _solver(fo, False)
+    solver = make_solver(fo, False)
     cpu: dict[str, float] = {}
 
     def run() -> Any:
         c = time.process_time()
-        out = jax.block_until_ready(_solve_batch(pr, y0, rw, solver, fo.max_steps))
+        out = jax.block_until_ready(solve_batch(pr, y0, rw, solver, fo.max_steps))
         cpu.setdefault("first", time.process_time() - c)
         return out
 
     out = measure(run, repeats=max(3, min(opts.repeats, 10)))
     res = run()
-    vals = np.asarray(_physical_from_y(pr, res["y"][0])[0], np.float64)
+    vals = np.asarray(physical_from_y(pr, res["y"][0])[0], np.float64)
     errs = {}
     truth_path = DEMO_SESSION / "truth.json"
     if truth_path.is_file():

@@ -21,7 +21,7 @@ call, ``median_ms`` the steady state.
   caches), for the cached path of :mod:`spectral_fit.startup` (the headline figures) and for
   plain ``prepare`` + ``render_frame`` with JAX's persistent cache only; import time reported
   separately, CPU times beside wall times. The processes keep freed memory as the
-  ``spectral-fit`` command does (:func:`~spectral_fit.startup.retain_freed_memory`).
+  ``spectral-fit`` command does (:func:`~spectral_fit.process.retain_freed_memory`).
 
 ``--quick`` (harness smoke test) renders one small configuration for every frame case and runs
 two fresh processes (cold, warm) of the cached path for the cold start.
@@ -35,12 +35,12 @@ import os
 import subprocess
 import sys
 import tempfile
-from pathlib import Path
 from typing import Any
 
 from ..bench import BenchOptions, measure
+from ..paths import REPO_ROOT
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = REPO_ROOT
 CONFIG = ROOT / "configs" / "benchmark.toml"
 
 __all__ = ["CASES", "benchmark_scene"]
@@ -122,10 +122,10 @@ def cpu():  # this process and its finished children (render_frame_cached's comp
     return t.user + t.system + t.children_user + t.children_system
 t0, c0 = time.perf_counter(), cpu()
 import jax
-from spectral_fit import startup
+from spectral_fit import process, startup
 from spectral_fit.renderer import prepare, render_frame
 t1, c1 = time.perf_counter(), cpu()
-startup.retain_freed_memory()  # as the spectral-fit command does for every subcommand
+process.retain_freed_memory()  # as the spectral-fit command does for every subcommand
 startup.enable_compilation_cache(sys.argv[3])
 size = None if sys.argv[2] == "full" else (180, 120)
 if sys.argv[4] == "cached":

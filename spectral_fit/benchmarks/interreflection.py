@@ -15,16 +15,16 @@ image (``image_shape``), as the renderer does (gloss quadrature subsampled).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..bench import BenchOptions, measure
+from ..paths import REPO_ROOT
 
 __all__ = ["CASES", "benchmark_scene"]
 
-_ENV = Path(__file__).resolve().parents[2] / "measurements" / "benchmark" / \
+_ENV = REPO_ROOT / "measurements" / "benchmark" / \
     "anchor_environment.exr"
 
 

@@ -46,7 +46,7 @@ Figures:
 alone).
 
 ``live_in_flight``: two frames in flight, in a fresh process whose CPU is split into two JAX
-devices (:func:`~spectral_fit.startup.split_cpu_devices`; the split slows a lone frame by a
+devices (:func:`~spectral_fit.process.split_cpu_devices`; the split slows a lone frame by a
 few per cent, so the other cases run without it). Frame i runs on device i mod 2, at most two
 are dispatched and not yet finished; ``frame_interval_ms`` is the median over means of two
 consecutive intervals between finished frames (throughput: frames in flight finish in bunches),
@@ -77,10 +77,11 @@ from pathlib import Path
 from typing import Any
 
 from ..bench import BenchOptions, measure
+from ..paths import REPO_ROOT
 
 __all__ = ["CASES"]
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = REPO_ROOT
 CONFIG = ROOT / "configs" / "live_sample.toml"
 VIDEO = ROOT / "measurements" / "video" / "sample.mp4"
 BENCH_CONFIG = ROOT / "configs" / "live_benchmark.toml"
@@ -232,13 +233,13 @@ def _benchmark_scene_inputs(session: Any, background: Any, *, quick: bool = Fals
     import jax.numpy as jnp
 
     from ..live import camera_output_matrix
-    from ..renderer import _all_visible, mirror_needed, prepare, with_output
+    from ..renderer import all_visible, mirror_needed, prepare, with_output
     from .frame import benchmark_scene
 
     h, w = session.size
     prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
     prep = with_output(prep, camera_output_matrix(prep, session.camera))
-    return (prep, prep.materials, prep.model, prep.view, _all_visible(prep.num_objects),
+    return (prep, prep.materials, prep.model, prep.view, all_visible(prep.num_objects),
             jnp.asarray(background), session.camera, mirror_needed(prep.materials))
 
 
@@ -250,12 +251,12 @@ def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
     camera RGB and with its renderer options. ``quick``: 20×20 spheres."""
     import jax
 
-    from ..live import _step
+    from ..live import live_step
 
     prep, *args = _benchmark_scene_inputs(session, background, quick=quick)
 
     def step():
-        return _step(prep, *args)
+        return live_step(prep, *args)
 
     out = measure(lambda: step()[0], repeats=repeats)
     stats = jax.block_until_ready(step())[1]
@@ -269,7 +270,7 @@ def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
                                   mirror=args[6])
 
         state = jax.block_until_ready(senders())
-        reuse = measure(lambda: _step(prep, *args, state)[0], repeats=repeats)
+        reuse = measure(lambda: live_step(prep, *args, state)[0], repeats=repeats)
         out["objects_static"] = {"median_ms": reuse["median_ms"], "min_ms": reuse["min_ms"],
                                  "render_fps": 1e3 / reuse["median_ms"],
                                  "compile_s": reuse["compile_s"]}
@@ -347,9 +348,9 @@ def live_stages(opts: BenchOptions) -> dict[str, Any]:
 
 _IN_FLIGHT = r"""
 import json, sys
-from spectral_fit import startup
-startup.retain_freed_memory()
-assert startup.split_cpu_devices(2) == 2
+from spectral_fit import process, startup
+process.retain_freed_memory()
+assert process.split_cpu_devices(2) == 2
 from spectral_fit.benchmarks.live import _in_flight_figures
 print(json.dumps(_in_flight_figures(sys.argv[1] == "quick", int(sys.argv[2]))))
 """
@@ -401,7 +402,7 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
 
-    from ..live import LiveSession, _put, _step
+    from ..live import LiveSession, live_step, put_on_device
     from ..renderer import render_senders
     from ..scene import load_scene
 
@@ -418,8 +419,8 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
     prep = args[0]
 
     def figures(full: tuple[Any, ...]) -> dict[str, Any]:
-        on = [_put(full, d) for d in devs]
-        calls = [lambda a=a: _step(*a)[0] for a in on]
+        on = [put_on_device(full, d) for d in devs]
+        calls = [lambda a=a: live_step(*a)[0] for a in on]
         t0 = time.perf_counter()
         jax.block_until_ready(calls[0]())
         t1 = time.perf_counter()

@@ -46,11 +46,11 @@ def _compile_split(clip, tris, shape, cfg) -> dict[str, float]:
     also counts the other processes' load, the CPU time does not."""
     import jax
 
-    from ..raster import _raster_jit
+    from ..raster import raster_jit
 
     jax.clear_caches()
     t0, c0 = time.perf_counter(), time.process_time()
-    lowered = jax.jit(lambda c, t: _raster_jit(c, t, shape=shape, cull="none",
+    lowered = jax.jit(lambda c, t: raster_jit(c, t, shape=shape, cull="none",
                                                config=cfg)).lower(clip, tris)
     t1 = time.perf_counter()
     lowered.compile()
@@ -61,20 +61,19 @@ def _compile_split(clip, tris, shape, cfg) -> dict[str, float]:
 def _case(z: float, opts: BenchOptions) -> dict[str, Any]:
     import jax
 
-    from .. import raster
-    from ..raster import _raster_jit, plan_config
+    from ..raster import clear_plans, plan_config, raster_jit, rasterize
 
     clip, tris, shape = scene_clip(z, quick=opts.quick)
     # first call of the public entry point in a fresh cache: plan (NumPy, no compile)
     # + compile + one run: the latency a user sees once per (T, frame size, cull)
     jax.clear_caches()
-    raster._LADDER.clear()
+    clear_plans()
     t0 = time.perf_counter()
-    jax.block_until_ready(raster.rasterize(clip, tris, shape))
+    jax.block_until_ready(rasterize(clip, tris, shape))
     first_call_s = time.perf_counter() - t0
     cfg = plan_config(clip, tris, shape)  # capacities sized up front (not timed)
     jax.clear_caches()
-    fn = jax.jit(lambda c, t: _raster_jit(c, t, shape=shape, cull="none", config=cfg))
+    fn = jax.jit(lambda c, t: raster_jit(c, t, shape=shape, cull="none", config=cfg))
     out = measure(fn, clip, tris, repeats=opts.repeats)
     r = fn(clip, tris)
     if not opts.quick:  # (one more compile: left out of the quick smoke run)

@@ -10,16 +10,16 @@ two-depth, 2048-spp reference (as committed: 11 band triples × 2 depths × 8 pa
 from __future__ import annotations
 
 import itertools
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..bench import BenchOptions, measure
+from ..paths import REPO_ROOT
 
 __all__ = ["CASES"]
 
-_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "benchmark.toml"
+_CONFIG = REPO_ROOT / "configs" / "benchmark.toml"
 
 
 def reference_render(opts: BenchOptions) -> dict[str, Any]:
@@ -31,8 +31,7 @@ def reference_render(opts: BenchOptions) -> dict[str, Any]:
     from ..reference.export import (
         environment_texels,
         mitsuba_envmap_rows,
-        object_mesh,
-        scene_dict,
+            scene_dict,
     )
     from ..reference.render import objects_crop
     from ..scene import load_scene
@@ -43,7 +42,7 @@ def reference_render(opts: BenchOptions) -> dict[str, Any]:
     crop = objects_crop(scene)
     rows = mitsuba_envmap_rows(environment_texels(scene))
     idx = np.arange(3)
-    meshes = {o.name: object_mesh(o) for o in scene.objects}
+    meshes = {o.name: o.make_mesh(world=True) for o in scene.objects}
     refl = {o.name: np.asarray(o.material.reflectance)[idx] for o in scene.objects}
     seeds = itertools.count()
     state: dict[str, Any] = {}

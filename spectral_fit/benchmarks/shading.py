@@ -19,14 +19,14 @@ bilinear map at the centres of a 2× finer grid directly), quality "exact".
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..bench import BenchOptions, measure
+from ..paths import REPO_ROOT
 
-_ANCHOR_ENV = Path(__file__).resolve().parents[2] / "measurements" / "benchmark" / \
+_ANCHOR_ENV = REPO_ROOT / "measurements" / "benchmark" / \
     "anchor_environment.exr"
 
 
@@ -73,7 +73,7 @@ def _case(opts: BenchOptions, k: int | None) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
 
-    from ..basis import _reflectances_5nm, pca_basis
+    from ..basis import pca_basis, reflectances_5nm
     from ..environment import EnvironmentMap, shade_points, synthetic_environment
     from ..reflectance import make_material
     from ..spectra import default_wavelengths
@@ -82,7 +82,7 @@ def _case(opts: BenchOptions, k: int | None) -> dict[str, Any]:
     h, w = (32, 64) if opts.quick else (128, 256)
     n_points = 2_000 if opts.quick else 100_000
     img = synthetic_environment(h, w, wl)
-    w5, refl = _reflectances_5nm()
+    w5, refl = reflectances_5nm()
     s = np.interp(wl, w5, refl[15])
     if k is None:
         env = EnvironmentMap.from_array(img)

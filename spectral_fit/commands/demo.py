@@ -9,9 +9,11 @@ import sys
 import time
 from pathlib import Path
 
+from ..paths import REPO_ROOT
+
 HELP = "run the demo on the bundled data (environment, render, fit) and write pictures + JSON"
 
-ROOT = Path(__file__).resolve().parent.parent.parent
+ROOT = REPO_ROOT
 ENVIRONMENT = ROOT / "measurements" / "environment" / "studio_room.exr"
 CONFIG = ROOT / "configs" / "two_spheres.toml"
 
@@ -63,7 +65,7 @@ def render_step(out: Path) -> dict:
     import jax
 
     from ..outputs import write_frame
-    from ..renderer import _regrow
+    from ..renderer import regrow
     from ..scene import load_scene
     from ..startup import prepare_cached, render_frame_cached
 
@@ -73,7 +75,7 @@ def render_step(out: Path) -> dict:
     # disk, so a second demo loads them (docs/rendering.md "Cold start")
     prep = prepare_cached(CONFIG, progress=_say)
     frame = jax.block_until_ready(render_frame_cached(prep, spectral=True, progress=_say))
-    frame = _regrow(prep, frame, None, True)
+    frame = regrow(prep, frame, None, True)
     first = time.perf_counter() - t0
     again = []  # steady state: the median of a few frames after the first (the benchmark's
     # `spectral-fit bench` gives compile and steady-state times with more repeats)

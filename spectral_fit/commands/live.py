@@ -91,7 +91,8 @@ def _bar(i: int, n: int | None, render_ms: float, e2e_fps: float, in_flight: int
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
-    from ..startup import enable_compilation_cache, split_cpu_devices
+    from ..process import split_cpu_devices
+    from ..startup import enable_compilation_cache
 
     cpu_devices = args.cpu_devices
     if cpu_devices is None:  # threads keep one frame in flight: a second device only compiles

@@ -95,9 +95,9 @@ def run(args: argparse.Namespace) -> int:
     t3 = time.perf_counter()
     jax.block_until_ready(render_frame_cached(prep, spectral=bool(args.exr)))
     t_frame = time.perf_counter() - t3
-    from ..renderer import _regrow
+    from ..renderer import regrow
 
-    frame = _regrow(prep, frame, None, bool(args.exr))
+    frame = regrow(prep, frame, None, bool(args.exr))
     written = write_frame(frame, png=args.output, exr=args.exr, xyz_exr=args.xyz_exr,
                           rgb_exr=args.rgb_exr, mask_png=args.mask,
                           composite_png=args.composite, background=args.background,

@@ -16,11 +16,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..paths import REPO_ROOT
 
 __all__ = ["Reference", "REFERENCE_DIR", "load_reference", "save_reference", "reference_path"]
 
 #: Default folder of the committed references (the repository's measurements/reference).
-REFERENCE_DIR = Path(__file__).resolve().parents[2] / "measurements" / "reference"
+REFERENCE_DIR = REPO_ROOT / "measurements" / "reference"
 
 _ARRAYS = ("wavelengths", "boxes", "object_index", "normals", "points", "views", "spectra",
            "noise", "direct", "noise_direct", "ir_fraction", "ir_noise", "preview_xyz")

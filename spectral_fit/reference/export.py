@@ -33,12 +33,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..scene import ObjectSpec, Scene
+from ..scene import Scene
 
 __all__ = [
     "environment_texels",
     "mitsuba_envmap_rows",
-    "object_mesh",
     "band_groups",
     "Crop",
     "scene_dict",
@@ -85,19 +84,6 @@ def mitsuba_envmap_rows(texels: np.ndarray) -> np.ndarray:
     d = uv_to_direction(u[None, :], v[:, None]).reshape(-1, 3)
     out = jax.jit(jax.vmap(lambda x: lookup(env, x)))(jnp.asarray(d, jnp.float32))
     return np.array(out, np.float32).reshape(2 * h + 1, w, c)  # a writable copy
-
-
-def object_mesh(obj: ObjectSpec) -> Any:
-    """The object's :class:`~spectral_fit.mesh.Mesh` in world coordinates."""
-    from .. import mesh as meshes
-
-    if obj.shape == "uv_sphere":
-        m = meshes.uv_sphere(obj.radius, obj.stacks, obj.slices)
-    elif obj.shape == "icosphere":
-        m = meshes.icosphere(obj.radius, obj.subdivisions)
-    else:
-        m = meshes.load_mesh(obj.mesh)  # type: ignore[arg-type]
-    return m.transformed(obj.model_matrix())
 
 
 def band_groups(n_bands: int) -> list[np.ndarray]:
@@ -183,7 +169,8 @@ def scene_dict(
         spp: samples per pixel; ``max_depth``: Mitsuba's path depth (2 = single bounce).
         crop: render only this window of the frame.
         analytic_spheres: render sphere objects as exact spheres instead of their meshes.
-        meshes: object name -> world-space Mesh (default: :func:`object_mesh`), to reuse.
+        meshes: object name -> world-space Mesh, to reuse (default: each object's
+            ``ObjectSpec.make_mesh(world=True)``).
         sensors: Mitsuba sensor dicts replacing the scene's camera (e.g. instruments);
             ``mi.render(scene, sensor=i)`` picks one.
         objects: False leaves the scene's objects out (e.g. a white standard read alone).
@@ -247,6 +234,6 @@ def scene_dict(
             d[key] = {"type": "sphere", "center": list(obj.position),
                       "radius": float(obj.radius * obj.scale), "bsdf": bsdf}
         else:
-            mesh = (meshes or {}).get(obj.name) or object_mesh(obj)
+            mesh = (meshes or {}).get(obj.name) or obj.make_mesh(world=True)
             d[key] = _mi_mesh(mi, dr, key, mesh, mi.load_dict(bsdf))
     return d

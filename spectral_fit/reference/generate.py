@@ -5,18 +5,18 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..paths import REPO_ROOT
 from ..scene import Scene
 from .data import Reference
 from .render import objects_crop, render_spectral, sphere_patches
 
 __all__ = ["make_reference", "preview_png"]
 
-_REPO = Path(__file__).resolve().parents[2]
+_REPO = REPO_ROOT
 
 
 def _patch_means(stack: np.ndarray, boxes: np.ndarray, crop: Any) -> np.ndarray:

@@ -161,8 +161,7 @@ def render_readings(
         band_groups,
         environment_texels,
         mitsuba_envmap_rows,
-        object_mesh,
-        scene_dict,
+            scene_dict,
     )
 
     mi, _ = init_mitsuba()
@@ -174,7 +173,7 @@ def render_readings(
                              field=f"readings[{s.id}].object")
     t0 = time.perf_counter()
     rows = mitsuba_envmap_rows(environment_texels(scene))
-    meshes = {o.name: object_mesh(o) for o in scene.objects}
+    meshes = {o.name: o.make_mesh(world=True) for o in scene.objects}
     mask = _disc_mask(instrument.pixels)
     sensors = []
     for s in spots:

@@ -29,7 +29,6 @@ from .export import (
     band_groups,
     environment_texels,
     mitsuba_envmap_rows,
-    object_mesh,
     scene_dict,
 )
 
@@ -114,7 +113,7 @@ def render_spectral(
         if env.ndim != 3 or env.shape[2] != nb:
             raise InputError(f"expected (H, W, {nb}), got {env.shape}", field="environment")
         rows = mitsuba_envmap_rows(env)
-    meshes = {} if analytic_spheres else {o.name: object_mesh(o) for o in scene.objects}
+    meshes = {} if analytic_spheres else {o.name: o.make_mesh(world=True) for o in scene.objects}
     integrators = {d: mi.load_dict({"type": "path", "max_depth": int(d)}) for d in depths}
     out = np.zeros((len(depths), passes, crop.height, crop.width, nb), np.float32)
     for gi, idx in enumerate(band_groups(nb)):
