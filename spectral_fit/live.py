@@ -111,7 +111,7 @@ def scene_camera_model(scene: Scene, *, sensitivities: str | None = None,
 
 def white_reference(environment: np.ndarray) -> np.ndarray:
     """(L,) radiance of a white Lambertian facing world +Y (the table) under an
-    equirectangular map (Hm, Wm, L) (DESIGN §3 mapping: row k at polar angle π(k + ½)/Hm):
+    equirectangular map (Hm, Wm, L) (our mapping: row k at polar angle π(k + ½)/Hm):
     E(+Y)/π = (1/π) ∑ L cosθ sinθ Δθ Δφ over the upper hemisphere. Rotations about +Y do not
     change it."""
     env = np.asarray(environment, np.float64)
