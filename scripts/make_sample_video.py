@@ -10,11 +10,11 @@ Scenes:
   two 80 mm markers 110 mm apart, a camera with lens distortion (fx = 560 px) on an arc
   0.29–0.34 m from them; the last frames pan right so that marker 7 leaves the picture (its
   sphere must disappear, not freeze).
-* ``benchmark`` (``measurements/video/benchmark.mp4``, config ``configs/live_benchmark.toml``):
-  BENCHMARK.md's paper scene as a live scene: its camera (720×480, 90° vertical field of view,
-  no distortion) 0.275 m from the spheres' midpoint (the spheres 90 mm apart, on 60 mm
-  markers), looking down at 40–50° while it moves ±20° around them; both markers stay in view,
-  so every frame renders both spheres and their interreflection.
+* ``benchmark`` (``measurements/video/benchmark.mp4``, config ``configs/live_benchmark.toml``): the
+  benchmark scene (docs/benchmark.md) as a live scene: its camera (720×480, 90° vertical field of
+  view, no distortion) 0.275 m from the spheres' midpoint (the spheres 90 mm apart, on 60 mm
+  markers), looking down at 40–50° while it moves ±20° around them; both markers stay in view, so
+  every frame renders both spheres and their interreflection.
 
 Everything is exact ray tracing of a textured plane (spectral_fit.synthetic_video), so the true
 camera and marker poses of every frame are known; they are written next to the video as

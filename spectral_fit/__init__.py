@@ -13,7 +13,8 @@ from typing import Any
 
 __version__ = "0.1.0"
 
-# public name -> submodule that defines it (DESIGN §7 stable API, plus data-layer helpers)
+# public name -> submodule that defines it (the stable API of docs/conventions.md, plus
+# data-layer helpers)
 _EXPORTS: dict[str, str] = {
     "SpectralFitError": "errors",
     "InputError": "errors",

@@ -10,7 +10,7 @@ eye looks: on the 81-band grid it cuts the ΔE00 of 8-coefficient products rough
 
 The basis is NOT mean-centred, so the representation is linear:
 sums, scalings and filtering of spectra commute with projection, which is what lets the renderer
-integrate lighting coefficient by coefficient (DESIGN §4).
+integrate lighting coefficient by coefficient.
 
 Only the product ``S(λ)·E(λ)`` of two spectra needs more: its coefficients are
 ``c_k = Σ_ij a_i b_j T[i, j, k]`` with ``T = product_tensor()`` (K×K×K), and its XYZ is
@@ -163,7 +163,8 @@ def pca_basis(
         training: ``"reflectances"`` (CIE 2017 CES 99 + rawtoaces 190; the default: with visual
             weighting it also represents products with light sources best), ``"illuminants"``
             (CIE illuminants and measured light sources, unit-normalised), or both.
-        weighting: ``"visual"`` (see module docstring) or ``"none"`` (plain PCA, as in DESIGN §5).
+        weighting: ``"visual"`` (see module docstring) or ``"none"`` (plain PCA, as the
+            reference values of docs/conventions.md use).
     """
     wl = default_wavelengths() if wavelengths is None else validate_wavelengths(wavelengths)
     if not isinstance(k, int | np.integer) or k < 1 or k > wl.size:

@@ -5,9 +5,10 @@ name to a function ``case(opts: BenchOptions) -> dict``. A case builds its input
 :func:`measure` on the jitted function it times, and returns measure's dict with any extra
 figures added (pixel counts, accuracy, sizes).
 
-Every case reports compile time and steady-state time separately (DESIGN §7):
-``{"median_ms", "min_ms", "max_ms", "compile_s", "n", ...}``. Steady-state times are medians over
-``n`` calls after the first (compiling) call; every call blocks until its result is ready.
+Every case reports compile time and steady-state time separately (docs/conventions.md, 'Stable
+public API'): ``{"median_ms", "min_ms", "max_ms", "compile_s", "n", ...}``. Steady-state times are
+medians over ``n`` calls after the first (compiling) call; every call blocks until its result is
+ready.
 """
 
 from __future__ import annotations

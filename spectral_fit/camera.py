@@ -1,9 +1,9 @@
 """Cameras and poses: OpenGL perspective, look-at, intrinsics, OpenCV poses, marker frames.
 
-Conventions (DESIGN §3): right-handed world, +Y up; the OpenGL eye frame looks down −Z with +Y
-up; clip space −w ≤ x, y, z ≤ w; NDC (x, y) maps to pixel coordinates ((x + 1)/2·W,
-(1 − y)/2·H) with pixel centres at integer + 0.5 and row 0 at the top; NDC depth z/w runs from
-−1 (near) to +1 (far). Matrices are 4×4 acting on column vectors (``p_eye = V @ [p, 1]``).
+Conventions (docs/conventions.md, 'Conventions'): right-handed world, +Y up; the OpenGL eye frame
+looks down −Z with +Y up; clip space −w ≤ x, y, z ≤ w; NDC (x, y) maps to pixel coordinates
+((x + 1)/2·W, (1 − y)/2·H) with pixel centres at integer + 0.5 and row 0 at the top; NDC depth z/w
+runs from −1 (near) to +1 (far). Matrices are 4×4 acting on column vectors (``p_eye = V @ [p, 1]``).
 
 OpenCV cameras (+X right, +Y down, +Z forward; pixel (0, 0)'s centre at coordinate (0, 0))
 meet OpenGL in exactly one place, :func:`opencv_to_opengl_axes`; intrinsics and poses both go
@@ -102,7 +102,7 @@ def intrinsics_to_projection(k, width: int, height: int, near: float = 0.01,
     intrinsics ``k`` (3×3) for a ``width`` × ``height`` image.
 
     A point whose OpenCV projection is (u, v) lands on our pixel coordinates (u + 0.5, v + 0.5)
-    (DESIGN §3: pixel centres at integer + 0.5), so the pixel whose centre OpenCV calls (i, j)
+    (our pixel centres are at integer + 0.5), so the pixel whose centre OpenCV calls (i, j)
     is our pixel (row j, column i). Depth as :func:`perspective` (near → −1, far → +1).
     """
     k = jnp.asarray(k, jnp.float32)
@@ -235,7 +235,7 @@ def perspective_camera(eye, target, *, fov_y_deg: float = 90.0, aspect: float = 
 
 def interreflection_camera(center_i, center_j, *, aspect: float = 1.0, fov_y_deg: float = 90.0,
                            near: float = 0.01, far: float = 1000.0) -> Camera:
-    """The interreflection pass's camera (DESIGN §1, paper eqs. 1–3): at object i's centre,
+    """The interreflection pass's camera (paper eqs. 1–3): at object i's centre,
     looking at object j's centre, up = world +Y (with :func:`look_at`'s fallback when the two
     centres are vertically aligned), 90° vertical FOV, aspect of the target texture, near 0.01,
     far 1000. Object j's vertices go through ``projection @ view @ world_from_j``."""

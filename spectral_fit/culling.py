@@ -21,7 +21,7 @@ therefore hands the rasteriser only the triangles of the *clusters* that may fac
 **Why the test is exact up to its margin.** For a pinhole camera (clip x, y and w linear in
 the eye-space point with no constant term: any OpenGL perspective or intrinsics projection),
 the homogeneous pixel corners of a point p are hv(p) = L (p − e) with L = S P₃ V₃ (S the
-clip → pixel map of DESIGN §3, det S = −W·H/4; P₃ the projection's x, y, w rows on eye-space
+clip → pixel map of our convention, det S = −W·H/4; P₃ the projection's x, y, w rows on eye-space
 xyz; V₃ the view's rotation). With p = M₃ q + t, the rasteriser's orientation determinant of a
 triangle (q₀, q₁, q₂) is therefore
 

@@ -1,4 +1,4 @@
-"""Display output: exposure, display characterisation, clipping, tone encoding (DESIGN §3).
+"""Display output: exposure, display characterisation, clipping, tone encoding.
 
 Pipeline, per pixel::
 

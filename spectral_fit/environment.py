@@ -1,7 +1,8 @@
 """Spectral environment lighting on equirectangular maps, and shading under it (eq. 5).
 
-Map convention (DESIGN §3): texel (row k, column j) of an (H, W, C) map has its centre at
-v = (k + 0.5)/H, u = (j + 0.5)/W, with polar angle θ = πv from +Y and azimuth φ = 2πu, direction
+Map convention (docs/conventions.md, 'Conventions'): texel (row k, column j) of an (H, W, C) map
+has its centre at v = (k + 0.5)/H, u = (j + 0.5)/W, with polar angle θ = πv from +Y and azimuth
+φ = 2πu, direction
 
     d = (sinφ sinθ, cosθ, −cosφ sinθ)        (row 0 at the top, i.e. around +Y).
 
@@ -1169,8 +1170,8 @@ def gloss_integral(
     fresnel: bool = True,
     quality: str = "exact",
 ) -> jax.Array:
-    """Gloss radiance per unit β (C,): ∫ L(ω) F(n, θd) D(μ, θh) G / (4 cosθr) dω (DESIGN §2,
-    the gloss term of eq. 5).
+    """Gloss radiance per unit β (C,): ∫ L(ω) F(n, θd) D(μ, θh) G / (4 cosθr) dω (the gloss
+    term of eq. 5).
 
     Method. With dω_L = 4 (V·H) dω_H the integral is ∫ D(H) g(H) L(l(H)) dω_H,
     g = F G (V·H)/(N·V), over the half vectors whose reflection l(H) is above the surface. It is
@@ -1801,7 +1802,7 @@ def gloss_split_sum(
     settings: SplitSum | None = None,
 ) -> jax.Array:
     """Gloss radiance per unit β (..., C), the same integral as :func:`gloss_integral`
-    (DESIGN §2, the gloss term of eq. 5), by a pre-integrated ("split-sum") approximation:
+    (the gloss term of eq. 5), by a pre-integrated ("split-sum") approximation:
 
         gloss ≈ A(θr) · Σ_k w_k L_σ(d_k) + Σ_sources (exact),
 
@@ -1940,7 +1941,7 @@ def mirror_radiance(env: EnvironmentMap, normal: Any, view: Any, n: Any) -> jax.
 def shade(material: Material, env: EnvironmentMap, normal: Any, view: Any, *,
           quality: str = "exact") -> jax.Array:
     """Radiance (C,) leaving a surface point towards V under the environment, eq. (5) in
-    DESIGN §2's reading:
+    our physical reading:
 
         α S(λ) E_irr(λ, N)/π + β ∫ L F D G /(4 cosθr) dω + χ F(n, θr) L(λ, R).
 
@@ -1986,7 +1987,7 @@ def shade_points(material: Material, env: EnvironmentMap, normals: Any, views: A
 
 def white_reference(environment: np.ndarray) -> np.ndarray:
     """(L,) radiance of a white Lambertian facing world +Y (the table) under an
-    equirectangular map (Hm, Wm, L) (DESIGN §3 mapping: row k at polar angle π(k + ½)/Hm):
+    equirectangular map (Hm, Wm, L) (our mapping: row k at polar angle π(k + ½)/Hm):
     E(+Y)/π = (1/π) ∑ L cosθ sinθ Δθ Δφ over the upper hemisphere. Rotations about +Y do not
     change it."""
     env = np.asarray(environment, np.float64)

@@ -1,7 +1,7 @@
 """Spectral and RGB OpenEXR images.
 
 Spectral images use the layout of Fichet, Pacanowski & Wilkie, "An OpenEXR Layout for Spectral
-Images", JCGT 10(3), 2021 (DESIGN §3): one channel per wavelength, named
+Images", JCGT 10(3), 2021: one channel per wavelength, named
 
     <component>.<number><multiplier?><unit>
 
@@ -340,7 +340,7 @@ def read_spectral_exr_ex(
 def read_spectral_exr(
     path: str | os.PathLike[str], *, kind: str | None = None, allow_gaps: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Read a spectral OpenEXR image (DESIGN §7).
+    """Read a spectral OpenEXR image (stable API).
 
     Returns:
         ``(wavelengths_nm (L,) float64, image (H, W, L) float32)``; see
@@ -423,7 +423,7 @@ def write_spectral_exr(
     preview: bool = True,
     **attributes: Any,
 ) -> None:
-    """Write a spectral OpenEXR image in the Fichet et al. (2021) layout, atomically (DESIGN §7).
+    """Write a spectral OpenEXR image in the Fichet et al. (2021) layout, atomically (stable API).
 
     Args:
         path: destination (``.exr``).

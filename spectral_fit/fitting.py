@@ -1,4 +1,4 @@
-"""Fit α, β, χ, μ, n (and γ) of each object to spectroradiometer readings (DESIGN §2, §4).
+"""Fit α, β, χ, μ, n (and γ) of each object to spectroradiometer readings.
 
 Pipeline (geometry and poses are fixed while materials are fitted):
 
@@ -16,7 +16,7 @@ Pipeline (geometry and poses are fixed while materials are fitted):
        M_b(λ) = k(λ) · B ∘ mean_p∈field(b) [ α S(λ) E(λ, N_p)/π + β ∫ L F D G/(4 cosθr) dω
                                          + χ F(n, θr) L(λ, R_p) + I_p(λ) ]
 
-   (eq. 5 in DESIGN §2's reading; I_p the light of the neighbours, eq. 6 in the gather
+   (eq. 5 in our physical reading; I_p the light of the neighbours, eq. 6 in the gather
    reading, when the scene's interreflection mode is not "none" and every object is a
    sphere; every term is a weighted sum of cached radiances with weights from F, D, G, so
    the Jacobian is exact autodiff, interreflection included; B the instrument's band-pass,
@@ -259,7 +259,7 @@ def sample_radiance(problem: FitProblem, values: jax.Array) -> jax.Array:
 
 @eqx.filter_jit
 def interreflection_term(problem: FitProblem, values: jax.Array) -> jax.Array:
-    """(P, L) interreflection radiance (eq. 6, DESIGN §2's gather reading; unit environment
+    """(P, L) interreflection radiance (eq. 6 in the gather reading; unit environment
     scale) at the samples for physical parameters ``values (O, 6)``; zeros when off."""
     from .radiance_cache import cached_radiance
 
@@ -940,7 +940,7 @@ def _starts(problem: FitProblem, y0: np.ndarray, n: int, seed: int) -> np.ndarra
 
 @dataclasses.dataclass
 class FitResult:
-    """Outcome of :func:`fit` (DESIGN §7).
+    """Outcome of :func:`fit` (stable API).
 
     Attributes:
         params: {object: {alpha, beta, chi, mu, n, gamma}} fitted (free) or fixed values.
@@ -1087,7 +1087,7 @@ def _identifiability(labels: list[str], corr: np.ndarray, jtj: np.ndarray) -> li
 def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
         progress: Callable[[str], None] | None = None, prepared: Prepared | None = None,
         **kwargs: Any) -> FitResult:
-    """Fit the reflection-model parameters of the measured objects (DESIGN §7 ``fit``).
+    """Fit the reflection-model parameters of the measured objects (stable API ``fit``).
 
     Args:
         scene: a :class:`~spectral_fit.scene.Scene` or the path of its config.

@@ -1,7 +1,7 @@
 """Pytrees passed between the rasteriser, the shading and the interreflection passes.
 
 * :class:`ObjectGeometry` — one object's triangle mesh in WORLD space plus its centre (the
-  interreflection passes place their cameras at object centres, DESIGN §1).
+  interreflection passes place their cameras at object centres).
 * :class:`GBuffer` — a fixed-capacity list of surface samples to shade (deferred shading): the
   covered pixels of a camera view, the texels of an interreflection pass, or the measured spots
   of a spectroradiometer session. Unused slots have ``object == -1`` and must be ignored.

@@ -15,7 +15,7 @@ Pairs. For n objects there are P = n(n − 1) ordered pairs p = (i, j), i the ob
 RECEIVES light and j the one that sends it, stored in the order p = i·(n − 1) + k with
 j = k for k < i and j = k + 1 otherwise.
 
-"paper" mode — eq. (6) of Mochizuki & Tanaka, literally (DESIGN §1):
+"paper" mode — eq. (6) of Mochizuki & Tanaka, literally:
 
     C(λ) = α I_d S + α T_d(λ, x, y) + {β I_gloss + χ I_mirror} E + γ T_s(λ, x, y).
 
@@ -26,12 +26,12 @@ the diffuse-only radiance α_j S_j E_irr/π of j, and T_s, its specular-only rad
 Pass 2 projects the receiving fragment x through the same camera and, where the projection is
 valid (in front of the eye, inside the view, and the fragment facing j: N·(c_j − x) > 0), adds
 α_paper T_d + γ T_s looked up bilinearly at (x, y) (clamp to edge, texels outside j are 0). In
-our scaling α_paper = α/π (DESIGN §2), γ is the material's ``gamma``. There are no bounces.
+our scaling α_paper = α/π, γ is the material's ``gamma``. There are no bounces.
 
-"gather" mode — our correction (DESIGN §2). Pass 1 rasterises object j ORTHOGRAPHICALLY along
-the axis c_i → c_j (so it covers the whole hemisphere of j that faces i, not only the cap seen
-from c_i) at (4g)² and box-filters it into g × g surface samples y (g = ``gather_size``): area
-A_y, area-weighted mean position and normal, and coverage. The shading pass then:
+"gather" mode — our correction (docs/conventions.md). Pass 1 rasterises object j ORTHOGRAPHICALLY
+along the axis c_i → c_j (so it covers the whole hemisphere of j that faces i, not only the cap seen
+from c_i) at (4g)² and box-filters it into g × g surface samples y (g = ``gather_size``): area A_y,
+area-weighted mean position and normal, and coverage. The shading pass then:
 
 1. splits each sample's radiance into a view-independent part (j's diffuse α_j S_j E_irr/π,
    plus what it receives itself on later bounces) and a view-dependent part (gloss and mirror,
@@ -1903,7 +1903,7 @@ def interreflection_from(
     split_sum: tuple[Any, Any] | None = None,
 ) -> jax.Array:
     """Shading pass of the interreflection: radiance (N, C) to ADD to
-    ``shade(materials[obj], env, normal, view)`` at every receiver (DESIGN §1 eq. 6 / §2).
+    ``shade(materials[obj], env, normal, view)`` at every receiver (eq. 6).
 
     Args:
         geometry: from :func:`prepare_interreflection` (same objects, same order).
@@ -1976,7 +1976,7 @@ def interreflection(
     Modes: "paper" — eq. (6) literally (α_paper T_d + γ T_s, pass-1 textures of
     ``texture_size``² from the receiver's centre); "gather" — the neighbours' full radiance
     through the receiver's BRDF with per-fragment parallax, minus the environment they hide,
-    ``bounces`` exchanges (DESIGN §2); "none" — zeros. ``image_shape``, ``gloss_step``,
+    ``bounces`` exchanges; "none" — zeros. ``image_shape``, ``gloss_step``,
     ``output``: see :func:`interreflection_from`. See the module docstring.
     """
     _check_mode(mode)

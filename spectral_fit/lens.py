@@ -185,7 +185,7 @@ def pixel_rays(k: Any, lens: np.ndarray, shape: tuple[int, int], *,
                field: str = "camera.distortion", path: Any = None) -> np.ndarray:
     """Unit ray directions (H·W, 3) in OpenGL eye coordinates through every pixel centre of an
     image seen through the lens: pixel (row i, column j) has OpenCV coordinates (u, v) =
-    (j, i) (DESIGN §3: centres at integer + 0.5 in ours), undistorted with
+    (j, i) (ours has centres at integer + 0.5), undistorted with
     :func:`undistort_normalized`.
 
     Args:

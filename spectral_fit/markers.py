@@ -15,8 +15,8 @@ Frames (see also :mod:`spectral_fit.synthetic_video`):
   top edge, +Z out of the paper; corners in the order top-left, top-right, bottom-right,
   bottom-left at (∓s/2, ±s/2, 0). (R, t): x_cam = R·x_marker + t, metres.
 * Marker "ground" frame (used for offsets): the same origin with +Y = the marker's normal and
-  −Z = its top edge, so that a marker lying on a table has the world's Y-up axes
-  (DESIGN §3). ``marker_offset = [0, r, 0]`` puts a sphere of radius r ON the marker.
+  −Z = its top edge, so that a marker lying on a table has the world's Y-up axes.
+  ``marker_offset = [0, r, 0]`` puts a sphere of radius r ON the marker.
 * The OpenCV → OpenGL axis change happens only in :func:`spectral_fit.camera.opencv_pose_to_view`.
 
 Object placement: an object with ``marker = id`` sits at

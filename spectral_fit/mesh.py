@@ -1,8 +1,8 @@
 """Triangle meshes: generators (UV sphere, icosphere), OBJ/PLY loaders, model matrices.
 
-Conventions (DESIGN §3): lengths in metres, right-handed world with +Y up. Triangles are
-counter-clockwise seen from outside (their front face), so that ``(b − a) × (c − a)`` points out
-of a closed mesh. Model matrices are 4×4 and act on column vectors:
+Conventions (docs/conventions.md, 'Conventions'): lengths in metres, right-handed world with +Y up.
+Triangles are counter-clockwise seen from outside (their front face), so that ``(b − a) × (c − a)``
+points out of a closed mesh. Model matrices are 4×4 and act on column vectors:
 ``p_world = M @ [p, 1]``; compose them right to left (``translate(t) @ rotate_y(a) @ scale(s)``
 scales first).
 

@@ -1,4 +1,4 @@
-"""Material-independent radiance caches for fitting (DESIGN §2 eq. 5/6, §4 "Fitting").
+"""Material-independent radiance caches for fitting (eqs. 5 and 6).
 
 Geometry, poses and the environment are fixed while materials are fitted, so everything that
 does not depend on (α, β, χ, μ, n) is computed once, here, and the model for any parameters is
@@ -26,7 +26,7 @@ gloss sums). Then
 
 c_k = Δω_H,k (V·H)_k/(N·V): smooth in μ and n, so its derivatives are exact autodiff.
 
-Interreflection (eq. 6 in DESIGN §2's "gather" reading): every node direction, the mirror
+Interreflection (eq. 6 in the "gather" reading): every node direction, the mirror
 direction and every environment texel of the irradiance sum is ray-cast once against the OTHER
 objects (spheres, analytically). Directions that hit a neighbour take the neighbour's outgoing
 radiance instead of the environment: for each reading and neighbour a fixed set of probes

@@ -1,7 +1,7 @@
 """Triangle rasteriser in pure JAX: visibility without gradient, differentiable interpolation.
 
-Contract (DESIGN §4, §7; nvdiffrast-like)
------------------------------------------
+Contract (nvdiffrast-like)
+--------------------------
 ``rasterize(clip_xyzw (V, 4), triangles (T, 3), (H, W))`` returns a :class:`Raster` with, per
 pixel, ``tri_id`` (int32, −1 = no triangle), perspective-correct barycentrics ``bary`` (H, W, 3)
 of the visible triangle's three vertices, and ``depth`` = NDC z/w (−1 near … +1 far; 1 where
@@ -9,8 +9,8 @@ nothing is drawn). Visibility carries no gradient; :func:`interpolate` recompute
 in JAX from the winning triangle's clip-space vertices at each pixel centre and is
 differentiable with respect to the attributes AND the vertex positions.
 
-Conventions (DESIGN §3): OpenGL clip space, pixel centres at integer + 0.5, NDC (x, y) maps to
-pixel coordinates ((x + 1)/2·W, (1 − y)/2·H), row 0 at the top.
+Conventions (docs/conventions.md, 'Conventions'): OpenGL clip space, pixel centres at integer + 0.5,
+NDC (x, y) maps to pixel coordinates ((x + 1)/2·W, (1 − y)/2·H), row 0 at the top.
 
 Coverage rule
 -------------
@@ -322,7 +322,7 @@ class Raster(eqx.Module):
 
 def clip_to_pixel(clip: jax.Array, shape: tuple[int, int]) -> jax.Array:
     """Homogeneous pixel coordinates ``(..., 3)`` = (X, Y, w) of clip points ``(..., 4)``:
-    X/w, Y/w are the pixel coordinates of DESIGN §3 ((x/w + 1)/2·W, (1 − y/w)/2·H)."""
+    X/w, Y/w are the pixel coordinates of our convention ((x/w + 1)/2·W, (1 − y/w)/2·H)."""
     h, w = shape
     x, y, ww = clip[..., 0], clip[..., 1], clip[..., 3]
     return jnp.stack([(x + ww) * (0.5 * w), (ww - y) * (0.5 * h), ww], axis=-1)

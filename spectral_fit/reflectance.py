@@ -1,14 +1,14 @@
-"""The reflection model of plastic (DESIGN §1–§2): Lambert + Torrance–Sparrow gloss + mirror.
+"""The reflection model of plastic: Lambert + Torrance–Sparrow gloss + mirror.
 
 Pure JAX functions of a :class:`Material` (an ``equinox.Module``); they jit, vmap (over pixels and
 over materials) and differentiate in every parameter. Float32 by default; float64 when the caller
 runs under ``jax.enable_x64``.
 
-Angles (DESIGN §2): θi = ∠(N, L), θr = ∠(N, V), θh = ∠(N, H) (the paper's φ), θd = ∠(L, H) =
-∠(V, H) (the paper's θH), with H = (L + V)/|L + V|. All direction arguments are unit 3-vectors
-pointing AWAY from the surface.
+Angles (docs/conventions.md, 'Reflection model'): θi = ∠(N, L), θr = ∠(N, V), θh = ∠(N, H) (the
+paper's φ), θd = ∠(L, H) = ∠(V, H) (the paper's θH), with H = (L + V)/|L + V|. All direction
+arguments are unit 3-vectors pointing AWAY from the surface.
 
-Physical reading of eq. (4) of Mochizuki & Tanaka (DESIGN §2), radiance leaving towards V under a
+Physical reading of eq. (4) of Mochizuki & Tanaka, radiance leaving towards V under a
 point/directional light of irradiance E(λ) (W·m⁻²·nm⁻¹ on a surface facing the light):
 
     C(λ) = α S(λ) E(λ) cosθi / π  +  β F(n, θd) D(μ, θh) G / (4 cosθr) · E(λ)
@@ -67,7 +67,7 @@ GEOMETRIES = ("vcavity", "smith")
 def fresnel_dielectric(cos_theta: Any, n: Any) -> jax.Array:
     """Exact unpolarised Fresnel reflectance of a dielectric interface, F = (Rs + Rp)/2.
 
-    Formula (Cook & Torrance 1982, eq. in DESIGN §2): with c = cosθ, g² = n² + c² − 1,
+    Formula (Cook & Torrance 1982): with c = cosθ, g² = n² + c² − 1,
 
         F = ½ (g − c)²/(g + c)² · {1 + [c(g + c) − 1]² / [c(g − c) + 1]²}.
 
@@ -110,7 +110,7 @@ def gaussian_normalisation(mu: Any) -> jax.Array:
     = π K μ ∫₀^{π/(2μ)} e^{−s²} sin(2μs) ds. The last integral is evaluated by 48-point
     Gauss–Legendre on [0, min(π/(2μ), 6.5)] (smooth in μ; the cut at 6.5 changes it by < 1e-18),
     accurate to float64 round-off for every μ > 0. K(0.1) = 32.0438, K(0.5) = 1.49991
-    (DESIGN §5); K → 1/(πμ²) as μ → 0.
+    (docs/conventions.md, 'Reference values'); K → 1/(πμ²) as μ → 0.
     """
     mu = jnp.asarray(mu)
     dtype = mu.dtype if jnp.issubdtype(mu.dtype, jnp.floating) else jnp.float32
@@ -222,7 +222,7 @@ def microfacet_g(n_dot_h: Any, n_dot_v: Any, n_dot_l: Any, v_dot_h: Any, mu: Any
 
 
 class Material(eqx.Module):
-    """Parameters of the reflection model (DESIGN §2, our physical scaling).
+    """Parameters of the reflection model (our physical scaling).
 
     Attributes (scalars are 0-d arrays; a batch of materials stacks them for ``jax.vmap``):
         alpha: Lambert weight (α = 1: ideal Lambertian of albedo S).
@@ -383,7 +383,7 @@ def shade_point_light(
     *,
     product_tensor: Any = None,
 ) -> jax.Array:
-    """Radiance (C,) towards V from a point/directional light, eq. (4) in DESIGN §2's reading:
+    """Radiance (C,) towards V from a point/directional light, eq. (4) in our physical reading:
 
         α S(λ) E(λ) cosθi / π + β F(n, θd) D(μ, θh) G / (4 cosθr) · E(λ).
 

@@ -1,4 +1,4 @@
-"""Multipass frame renderer: scene → spectral frame → XYZ → display RGB (DESIGN §4, §7).
+"""Multipass frame renderer: scene → spectral frame → XYZ → display RGB.
 
 Two steps, so that a live loop or a fit never recompiles:
 
@@ -12,7 +12,7 @@ Two steps, so that a live loop or a fit never recompiles:
   matrices ``(O, 4, 4)``, the camera's view matrix ``(4, 4)`` and a visibility mask ``(O,)``.
   New poses, a hidden object or new material values reuse the same compiled program.
 
-Per frame (eq. 5 + eq. 6 of Mochizuki & Tanaka in DESIGN §2's reading):
+Per frame (eq. 5 + eq. 6 of Mochizuki & Tanaka in our physical reading):
 
 1. vertices → world (per-object model matrix) → clip; hidden objects collapse to a point, so
    their triangles are degenerate and draw nothing;
@@ -32,7 +32,7 @@ Per frame (eq. 5 + eq. 6 of Mochizuki & Tanaka in DESIGN §2's reading):
 
 Exposure ``"auto"``: the luminance of a perfect white Lambertian diffuser facing the camera
 under the environment, E_irr(−forward)·683∫ȳ/π, is shown as display white (the scene white of
-DESIGN §3), so diffuse objects never clip.
+docs/conventions.md, 'Colorimetry and display'), so diffuse objects never clip.
 """
 
 from __future__ import annotations
@@ -518,7 +518,7 @@ def prepare(
     quality: str = "fast",
     split_settings: Any = None,
 ) -> Prepared:
-    """Precompute a scene for :func:`render_frame` (explicit precomputation, DESIGN §4).
+    """Precompute a scene for :func:`render_frame` (explicit precomputation).
 
     Args:
         scene: a :class:`~spectral_fit.scene.Scene` (``load_scene``) or a path to a config.
@@ -1628,7 +1628,7 @@ def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, vi
 
 def render(scene: Any, materials: Any = None, *, spectral: bool = False,
            **prepare_options: Any) -> Frame:
-    """Convenience (DESIGN §7): :func:`prepare` + :func:`render_frame` with the config's
+    """Convenience (stable API): :func:`prepare` + :func:`render_frame` with the config's
     poses. ``scene`` is a Scene or a config path; ``prepare_options`` go to :func:`prepare`
     (size, mode, spectral_mode, k, ...). When a buffer overflowed (objects moved closer than
     planned), the capacities are grown and the frame is rendered again, with a warning."""

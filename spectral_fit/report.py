@@ -5,7 +5,7 @@
 - ``fit.json`` — parameters ± standard errors, correlations, bootstrap spread, warnings, per
   reading ΔE00 / Δu′v′ / xy / u′v′ measured and fitted, the hold-out prediction, timings, and
   the spectra (measured, fitted, σ) on the scene's grid;
-- ``materials.json`` — the fitted materials (DESIGN §2 scaling and the paper's), with S(λ);
+- ``materials.json`` — the fitted materials (our physical scaling and the paper's), with S(λ);
 - ``materials_mitsuba.xml`` — the materials as ``spectral_fit_model`` BSDFs (the reference
   renderer's plugin, ``spectral_fit.reference``);
 - ``chromaticity.png`` — CIE 1931 xy diagram, measured (+) and rendered (×) colours of every
@@ -45,11 +45,12 @@ DEMO_SESSION = ROOT / "measurements" / "sessions" / "two_spheres_demo"
 
 
 def materials_json(result: FitResult, scene: Any) -> dict[str, Any]:
-    """Fitted materials: parameters (DESIGN §2 physical scaling and the paper's), standard
+    """Fitted materials: parameters (our physical scaling and the paper's), standard
     errors, S(λ), the microfacet model."""
     from .reflectance import to_paper_params
 
-    out: dict[str, Any] = {"scaling": "DESIGN §2 (alpha = 1: ideal Lambertian of albedo S; "
+    out: dict[str, Any] = {"scaling": "physical, docs/conventions.md (alpha = 1: ideal Lambertian "
+                           "of albedo S; "
                            "beta = 1: energy-normalised microfacet lobe)",
                            "relative_to": result.relative_to,
                            "wavelengths_nm": [float(w) for w in result.wavelengths],

@@ -151,7 +151,7 @@ class InterreflectionSpec:
 
 @dataclasses.dataclass(frozen=True)
 class MaterialSpec:
-    """Material parameters in DESIGN §2's physical scaling (not the paper's)."""
+    """Material parameters in our physical scaling (not the paper's)."""
 
     reflectance: np.ndarray  # (L,) on the scene grid
     reflectance_source: str
@@ -655,7 +655,7 @@ def _markers(root: _Reader, objects: tuple[ObjectSpec, ...]) -> MarkerSpec:
 
 def load_scene(path: str | os.PathLike[str],
                overrides: Callable[[dict[str, Any]], None] | None = None) -> Scene:
-    """Read and validate a TOML scene config (DESIGN §7 ``load_scene``).
+    """Read and validate a TOML scene config (stable API ``load_scene``).
 
     ``overrides``, if given, may edit the parsed dict before validation (used by the CLI's
     ``--size``/``--mode`` options).

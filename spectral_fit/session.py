@@ -43,7 +43,7 @@ __all__ = [
     "write_session",
 ]
 
-#: Reflection-model parameters per object (DESIGN §2), in this order everywhere.
+#: Reflection-model parameters per object (docs/conventions.md), in this order everywhere.
 PARAMETERS = ("alpha", "beta", "chi", "mu", "n", "gamma")
 DEFAULT_FREE = ("alpha", "beta", "chi", "mu", "n")
 KINDS = ("object", "interreflection")
@@ -460,7 +460,7 @@ def _nnls2(A: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def load_session(path: str | os.PathLike[str], *, scene: Any = None) -> Session:
-    """Read and validate a measurement session (DESIGN §7 ``load_session``).
+    """Read and validate a measurement session (stable API ``load_session``).
 
     Args:
         path: the session folder or its ``session.toml``.

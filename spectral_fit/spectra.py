@@ -1,8 +1,8 @@
 """Wavelength grids, resampling of measured spectra, and spectrum files.
 
-Conventions (DESIGN §3): wavelengths in nm, default grid 380–780 nm at 5 nm (81 samples). Spectra
-are arrays whose LAST axis runs over wavelength, shape ``(..., L)``. This module is plain NumPy:
-it is the data layer, used before anything is handed to JAX.
+Conventions (docs/conventions.md, 'Conventions'): wavelengths in nm, default grid 380–780 nm at 5 nm
+(81 samples). Spectra are arrays whose LAST axis runs over wavelength, shape ``(..., L)``. This
+module is plain NumPy: it is the data layer, used before anything is handed to JAX.
 """
 
 from __future__ import annotations

@@ -42,10 +42,11 @@ panel is 5000 cd/m² and the lamp 20 000 cd/m².
 Units: spectral radiance W·sr⁻¹·m⁻²·nm⁻¹; luminances use 683 lm/W and the CIE 1931 2° observer
 on the output wavelength grid (so the stated luminances hold exactly on that grid).
 
-Mapping (DESIGN §3): texel (row k, column j) of a W × H map has its centre at u = (j + 0.5)/W,
-v = (k + 0.5)/H, φ = 2πu, θ = πv and direction d = (sin φ sin θ, cos θ, −cos φ sin θ); the forward
-direction −Z is at u = 0 (the left/right image edges), +Z at the image centre. Each texel is the
-mean of ``supersampling``² sub-samples on a regular grid in (u, v).
+Mapping (docs/conventions.md, 'Conventions'): texel (row k, column j) of a W × H map has its centre
+at u = (j + 0.5)/W, v = (k + 0.5)/H, φ = 2πu, θ = πv and direction
+d = (sin φ sin θ, cos θ, −cos φ sin θ); the forward direction −Z is at u = 0 (the left/right image
+edges), +Z at the image centre. Each texel is the mean of ``supersampling``² sub-samples on a
+regular grid in (u, v).
 """
 
 from __future__ import annotations
@@ -106,7 +107,7 @@ _SURF = list(SURFACES)
 
 
 def texel_directions(width: int, height: int, du: float = 0.5, dv: float = 0.5) -> np.ndarray:
-    """Unit directions (H, W, 3) at (j + du)/W, (k + dv)/H (DESIGN §3 equirectangular map)."""
+    """Unit directions (H, W, 3) at (j + du)/W, (k + dv)/H (our equirectangular mapping)."""
     u = (np.arange(width) + du) / width
     v = (np.arange(height) + dv) / height
     phi = 2.0 * np.pi * u[None, :]
@@ -226,7 +227,7 @@ def make_environment(
     """Build the synthetic studio-room environment map (see the module doc).
 
     Args:
-        width, height: map size (equirectangular, DESIGN §3); typically width = 2 · height.
+        width, height: map size (equirectangular); typically width = 2 · height.
         wavelengths: (L,) nm; default 380–780 nm at 5 nm.
         supersampling: n → n × n sub-samples per texel (box filter).
 

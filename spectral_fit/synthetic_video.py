@@ -1,6 +1,6 @@
 """Synthetic camera frames of a textured table with fiducial markers (test data, sample video).
 
-A flat table (the plane world y = 0, +Y up, DESIGN §3) carries a texture: a photograph with
+A flat table (the plane world y = 0, +Y up) carries a texture: a photograph with
 ArUco markers pasted on it at known places. A pinhole camera with OpenCV intrinsics ``K`` and
 distortion (k1, k2, p1, p2[, k3]) looks at it from a known pose; every output pixel is traced:
 its distorted pixel coordinate is undistorted (``cv2.undistortPoints``, exact every 4 pixels and

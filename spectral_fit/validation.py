@@ -8,8 +8,8 @@ reference) and "interreflection" patches (the rest). The reference's interreflec
 spectra (path depth 16) are the target of every mode; "none" is additionally compared with
 the reference's single-bounce spectra (depth 2), which checks the direct shading alone.
 
-Scene white (DESIGN §3): a perfect white Lambertian facing the camera under the environment
-(the same white the display exposure uses).
+Scene white (docs/conventions.md, 'Colorimetry and display'): a perfect white Lambertian facing the
+camera under the environment (the same white the display exposure uses).
 
 Targets (issue): direct regions median ≤ 0.5, 90th percentile ≤ 1.0; interreflection regions
 in gather mode median ≤ 0.5, 90th percentile ≤ 1.5; K = 8 basis vs bands: max ≤ 0.5.

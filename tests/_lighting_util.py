@@ -62,7 +62,7 @@ def bilinear_taps(h, w, ss):
     """The bilinear reconstruction of an (h, w) map at the centres of its ss× finer grid, as
     (F, 4) indices into the map's texels flattened (h·w) plus its two pole means (h·w, the
     first row's mean at v = 0; h·w + 1, the last row's at v = 1) and (F, 4) weights. Written
-    from the DESIGN §3 convention (texel centres at k + ½, wrap in u, linear towards the pole
+    from our map convention (texel centres at k + ½, wrap in u, linear towards the pole
     mean between the pole and the first/last row centre), independently of the library."""
     v = (np.arange(h * ss) + 0.5) / (h * ss)
     u = (np.arange(w * ss) + 0.5) / (w * ss)

@@ -145,7 +145,7 @@ def test_intrinsics_projection_matches_cv2_project_points():
     uv, _ = cv2.projectPoints(pts, rvec, t, k, None)
     cam = Camera(opencv_pose_to_view(r, t), proj)
     ours = _pixels(project(cam, pts), w, h)
-    # DESIGN §3: OpenCV's pixel (0, 0) centre is our (0.5, 0.5)
+    # OpenCV's pixel (0, 0) centre is our (0.5, 0.5)
     np.testing.assert_allclose(ours, uv[:, 0, :] + 0.5, atol=2e-3)
     ks = np.asarray(intrinsics_matrix(600.0, 610.0, 355.2, 243.7, skew=3.0), np.float64)
     cams = Camera(opencv_pose_to_view(r, t), intrinsics_to_projection(ks, w, h))

@@ -62,7 +62,7 @@ def test_texel_geometry():
     assert sa.sum() == pytest.approx(4 * math.pi, rel=1e-12)
     d = texel_directions(16, 32)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, rtol=1e-12)
-    # DESIGN §3: u = φ/2π, v = θ/π from +Y, d = (sinφ sinθ, cosθ, −cosφ sinθ)
+    # our mapping: u = φ/2π, v = θ/π from +Y, d = (sinφ sinθ, cosθ, −cosφ sinθ)
     np.testing.assert_allclose(uv_to_direction(0.0, 0.5), [0, 0, -1], atol=1e-12)
     np.testing.assert_allclose(uv_to_direction(0.25, 0.5), [1, 0, 0], atol=1e-12)
     np.testing.assert_allclose(uv_to_direction(0.3, 0.0), [0, 1, 0], atol=1e-12)
@@ -154,6 +154,8 @@ def test_sh_irradiance_within_bound_of_texel_sum(img3, env3):
 
 
 def test_gloss_furnace_beckmann():
+    """Closed form 1 − exp(−1/m²): the Beckmann slope distribution (Beckmann & Spizzichino 1963)
+    integrated up to θh = 45°, where the light direction reaches the horizon for V = N."""
     env = EnvironmentMap.from_array(np.ones((16, 32, 1)))
     n = jnp.asarray([0.0, 1.0, 0.0])
     for m in (0.5, 0.3, 0.8):

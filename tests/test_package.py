@@ -47,7 +47,7 @@ def _bench_case_names() -> list[str]:
 
 
 def test_bench_one_case_json_schema(capsys):
-    """One cheap benchmark case runs at its quick size and reports the DESIGN §7 schema (the
+    """One cheap benchmark case runs at its quick size and reports the bench JSON schema (the
     slow tier runs every case)."""
     assert "raster_paper" in _bench_case_names()
     assert main(["bench", "--quick", "--repeats", "2", "--json", "--cases", "raster_paper"]) == 0
@@ -61,7 +61,7 @@ def test_bench_one_case_json_schema(capsys):
 
 @pytest.mark.slow
 def test_bench_quick_json_schema(capsys):
-    """Every benchmark case runs at its quick size and reports the DESIGN §7 schema."""
+    """Every benchmark case runs at its quick size and reports the bench JSON schema."""
     assert main(["bench", "--quick", "--repeats", "2", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     cases = {k: v for k, v in result.items() if not k.startswith("_")}
@@ -71,7 +71,7 @@ def test_bench_quick_json_schema(capsys):
         assert figures["n"] == 2, name
         assert 0 < figures["min_ms"] <= figures["median_ms"] <= figures["max_ms"], name
         assert figures["compile_s"] > 0, name
-    # the live step on BENCHMARK.md's scene (the live target's scene) beside the video's own
+    # the live step on the benchmark scene (the live target's scene) beside the video's own
     bs = result["live_paper"]["benchmark_scene"]
     assert 0 < bs["min_ms"] <= bs["median_ms"] and bs["compile_s"] > 0
     assert bs["covered_pixels"] > 0 and not bs["overflow"]

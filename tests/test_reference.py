@@ -78,8 +78,9 @@ def test_white_furnace_gives_unit_radiance():
     assert np.abs(inner - 1.0).max() < (0.04 if JIT else 0.2)
 
 
-def test_gloss_furnace_matches_design_value():
-    """Gloss lobe alone, Beckmann m = 0.5, F = G = 1, V = N: 1 − exp(−1/m²) = 0.981684."""
+def test_gloss_furnace_matches_closed_form():
+    """Gloss lobe alone, Beckmann m = 0.5, F = G = 1, V = N: the closed form 1 − exp(−1/m²) =
+    0.981684 (Beckmann distribution integrated up to θh = 45°)."""
     img = np.asarray(mi.render(mi.load_dict(_sphere_scene(
         _bsdf(beta=1.0, mu=0.5, distribution="beckmann", unit_fg=True), fov=1.0, size=4,
         spp=4096 if JIT else 256))))
@@ -300,7 +301,7 @@ def test_envmap_rows_reproduce_our_lookup():
 
 def test_camera_and_silhouettes_match_our_conventions():
     """Black spheres left and right of the axis against a unit background: covered pixels are
-    where our camera rays (DESIGN §3: row 0 on top, +x to the right) hit the spheres."""
+    where our camera rays (row 0 on top, +x to the right) hit the spheres."""
     objs = [sphere_obj("left", (-0.045, 0.02, -0.1), alpha=0.0),
             sphere_obj("right", (0.045, 0.0, -0.1), alpha=0.0, radius=0.03)]
     _check_silhouettes(small_scene(objects=objs, width=48, height=32, fov=90.0), spp=16)

@@ -27,7 +27,8 @@ def luminance(spectrum) -> float:
 
 
 def direction(row, col, w, h):
-    """DESIGN §3, written out independently: u = φ/2π, v = θ/π, texel centres at k + 0.5."""
+    """Our equirectangular mapping, written out independently: u = φ/2π, v = θ/π, texel centres
+    at k + 0.5."""
     phi = 2 * np.pi * (col + 0.5) / w
     theta = np.pi * (row + 0.5) / h
     return np.array([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)])

@@ -1,4 +1,4 @@
-"""Benchmark cases of whole frames (BENCHMARK.md "paper" scene, ``configs/benchmark.toml``).
+"""Benchmark cases of whole frames (docs/benchmark.md "paper" scene, ``configs/benchmark.toml``).
 
 Every case prepares the scene once (not timed; reported as ``prepare_s``), then times the
 jit-compiled :func:`~spectral_fit.renderer.render_frame` (visibility, G-buffer, shading of the

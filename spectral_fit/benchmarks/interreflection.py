@@ -1,4 +1,4 @@
-"""Benchmark cases of the interreflection passes on the benchmark scene (BENCHMARK.md).
+"""Benchmark cases of the interreflection passes on the benchmark scene (docs/benchmark.md).
 
 Two UV spheres of radius 0.0375 m (100 × 100, 19,800 triangles each) at (∓0.045, 0, −0.275)
 (``ir_*_paper``) or z = −0.100 (``ir_gather_closeup``), the anchor's environment

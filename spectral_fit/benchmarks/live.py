@@ -4,8 +4,8 @@ Scene: ``configs/live_sample.toml``, the paper's two 75 mm spheres (UV 100×100,
 triangles each; ColorChecker N Ohta yellow and red; α = β = 1, μ = 0.1, n = 1.5) on two 80 mm
 ArUco markers, interreflection "gather", 31 bands (400–700 nm), 720×480, seen at 0.29–0.34 m
 by the sample video's camera (fx = 560 px, a 46° vertical field of view): ~18,000–22,000
-covered pixels, 2.6–3.1× the 6,944 of BENCHMARK.md's paper scene (90° vertical field of view,
-spheres at 0.275 m). Video: ``measurements/video/sample.mp4``.
+covered pixels, 2.6–3.1× the 6,944 of the paper scene (docs/benchmark.md; 90° vertical field of
+view, spheres at 0.275 m). Video: ``measurements/video/sample.mp4``.
 
 Figures:
 
@@ -27,7 +27,7 @@ Figures:
 * ``non_render_ms``: sequential end-to-end minus render (what the overlap can hide);
 * ``render_fps``, ``covered_pixels``, ``pixel_capacity``, ``recompiles`` (must stay 0),
   ``replans_ahead`` (buffers grown in the background; 0 on the bundled videos);
-* ``benchmark_scene``: RENDER-ONLY on BENCHMARK.md's paper scene itself (its camera, poses and
+* ``benchmark_scene``: RENDER-ONLY on the benchmark's paper scene itself (its camera, poses and
   capacities, ``benchmark_scene()`` of :mod:`.frame`), the same compiled live step (render
   with interreflection → the sample camera's RGB → composite over the first video frame):
   ``median_ms``, ``min_ms``, ``render_fps``, ``compile_s``, ``covered_pixels`` (the issue's
@@ -35,7 +35,7 @@ Figures:
   the sample video's own scene is the larger one above); ``objects_static``: the same step
   reusing the interreflection's camera-independent half (objects that stay put while the
   camera moves; ``renderer.render_senders``), and ``senders_ms``: that half alone;
-  ``end_to_end``: the whole loop on BENCHMARK.md's scene as a live scene
+  ``end_to_end``: the whole loop on the benchmark scene as a live scene
   (``configs/live_benchmark.toml`` on ``measurements/video/benchmark.mp4``: the benchmark's
   camera, spheres, materials, environment and two-bounce interreflection, the spheres on
   markers, the camera 0.275 m from them looking down at 40–50°; ~7,000 covered pixels like
@@ -52,7 +52,7 @@ are dispatched and not yet finished; ``frame_interval_ms`` is the median over me
 consecutive intervals between finished frames (throughput: frames in flight finish in bunches),
 ``one_at_a_time_ms`` the same step one frame at a time on one device of that process (latency):
 
-* ``benchmark_scene`` / ``benchmark_scene.objects_static``: the live step on BENCHMARK.md's
+* ``benchmark_scene`` / ``benchmark_scene.objects_static``: the live step on the benchmark
   scene computing its interreflection every frame / reusing the senders' half (as in
   ``live_paper``); the case's ``median_ms`` / ``min_ms`` / ``max_ms`` / ``render_fps`` are
   the static step's frame intervals (the step computing everything where there is no
@@ -188,7 +188,7 @@ def _end_to_end(session: Any, stream: Any, n: int) -> dict[str, Any]:
 
 
 def _benchmark_video(size: tuple[int, int], n: int, extra: dict[str, Any]) -> dict[str, Any]:
-    """``_end_to_end`` (``n`` frames) on BENCHMARK.md's scene as a live scene
+    """``_end_to_end`` (``n`` frames) on the benchmark scene as a live scene
     (``configs/live_benchmark.toml`` on ``measurements/video/benchmark.mp4``, frames resized to
     ``size`` (H, W) when needed; session options ``extra``), after a first frame that plans and
     compiles (``compile_s``); ``covered_pixels``: the last frame's."""
@@ -227,7 +227,7 @@ def _frames(src: Any, size: tuple[int, int]) -> Any:
 def _benchmark_scene_inputs(session: Any, background: Any, *, quick: bool = False
                             ) -> tuple[Any, ...]:
     """(prep, materials, model, view, visible, background, camera, mirror): the live step's
-    arguments for BENCHMARK.md's paper scene at the session's frame size, in its camera RGB
+    arguments for the benchmark's paper scene at the session's frame size, in its camera RGB
     and with its renderer options, composited over ``background``. ``quick``: 20×20
     spheres."""
     import jax.numpy as jnp
@@ -245,7 +245,7 @@ def _benchmark_scene_inputs(session: Any, background: Any, *, quick: bool = Fals
 
 def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
                           repeats: int = 20) -> dict[str, Any]:
-    """The compiled live step on BENCHMARK.md's paper scene (camera, poses, capacities
+    """The compiled live step on the benchmark's paper scene (camera, poses, capacities
     planned for it) at the video's frame size (720×480, the scene's own, for the sample
     video), composited over ``background`` (an undistorted video frame), in the session's
     camera RGB and with its renderer options. ``quick``: 20×20 spheres."""

@@ -1,4 +1,4 @@
-"""Benchmark cases ``raster_paper`` and ``raster_closeup`` (BENCHMARK.md).
+"""Benchmark cases ``raster_paper`` and ``raster_closeup`` (docs/benchmark.md).
 
 720×480, 90° vertical FOV, near 0.01, far 1000, camera at the origin looking down −Z; two UV
 spheres of radius 0.0375 m (100 stacks × 100 slices, 19,800 triangles each) centred at

@@ -1,6 +1,6 @@
 """Benchmark case ``reference_render`` (needs the optional extra ``validate``: Mitsuba 3).
 
-One band-triple render of the benchmark scene's objects crop (BENCHMARK.md, spheres at 0.275 m)
+One band-triple render of the benchmark scene's objects crop (docs/benchmark.md, spheres at 0.275 m)
 with our whole model as one Mitsuba BSDF, path depth 16, 64 samples per pixel (4 in quick mode).
 ``compile_s`` is the first render (scene load + Mitsuba's kernel compilation), ``median_ms`` a
 steady render. Extra figures: paths per second and the projected time of a full 31-band,

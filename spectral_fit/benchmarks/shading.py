@@ -7,7 +7,7 @@ PCA coefficients (environment and reflectance projected; the diffuse product thr
 K×K×K tensor). Gloss quality "render" (the frame renderer's).
 
 ``shade_frame_render`` / ``shade_frame_exact``: the covered pixels of the benchmark frame
-(BENCHMARK.md "paper": two spheres of radius 37.5 mm at z = −0.275 m, 720 × 480, 90° vertical
+(docs/benchmark.md "paper": two spheres of radius 37.5 mm at z = −0.275 m, 720 × 480, 90° vertical
 FOV; 6,944 pixels, normals and view directions from exact ray–sphere intersections), under the
 benchmark environment (``measurements/benchmark/anchor_environment.exr``, 31 bands, rotated
 180° about +Y), materials of the benchmark (α = β = 1, χ = 0, μ = 0.1, n = 1.5, ColorChecker

@@ -1,8 +1,8 @@
 """Offline ground truth: our exact reflection model in Mitsuba 3 (optional extra ``validate``).
 
 - :mod:`.bsdf`: ONE Mitsuba BSDF equal to the whole model α S/π + β F D G/(4 cosθi cosθr) + χ F δ
-  (DESIGN §2, §6): summing per-term renders would drop the cross terms that are the
-  interreflection.
+  (docs/conventions.md, 'External reference renderer'): summing per-term renders would drop the
+  cross terms that are the interreflection.
 - :mod:`.export`: a :class:`~spectral_fit.scene.Scene` as a Mitsuba scene (meshes, camera,
   environment with our mapping and rotation).
 - :mod:`.render`: spectral renders by the band trick (⌈L/3⌉ rgb renders), patches on spheres.

@@ -11,7 +11,7 @@ spectral_fit[validate]``, i.e. ``mitsuba>=3.5``). Variant choice, in order:
 3. ``scalar_rgb`` otherwise (no extra library; the Python BSDF then runs once per ray, roughly
    100× slower, which only suits tests at tiny sizes).
 
-Only rgb variants are used: the band trick (DESIGN §6) carries three spectral bands per render.
+Only rgb variants are used: the band trick carries three spectral bands per render.
 """
 
 from __future__ import annotations

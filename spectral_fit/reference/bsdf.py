@@ -1,9 +1,9 @@
-"""Our whole reflection model as ONE Mitsuba 3 BSDF (DESIGN §2 and §6).
+"""Our whole reflection model as ONE Mitsuba 3 BSDF.
 
 Plugin name ``spectral_fit_model``; per unit projected solid angle (Mitsuba's ``eval`` includes
 the cosine of the light direction, cosθi = wo.z in the local shading frame):
 
-    f(V, L) cosθi = α S/π · cosθi  +  β F(n, θd) D(μ, θh) G / (4 cosθr)         (eq. 4, §2)
+    f(V, L) cosθi = α S/π · cosθi  +  β F(n, θd) D(μ, θh) G / (4 cosθr)         (eq. 4)
 
 plus the delta lobe χ F(n, θr) δ(L − reflect(V)) (sampled only, flagged ``DeltaReflection``;
 ``eval``/``pdf`` exclude it, as Mitsuba expects). S is three numbers: in the band trick each
@@ -13,7 +13,7 @@ Properties: ``alpha``, ``beta``, ``chi``, ``mu``, ``n`` (floats), ``s0``, ``s1``
 the three channels), ``distribution`` ("gaussian" | "beckmann"), ``geometry`` ("vcavity" |
 "smith"), ``gaussian_k`` (K(μ) of the normalised Gaussian; default: computed by
 :func:`spectral_fit.reflectance.gaussian_normalisation`), ``unit_fg`` (test switch: F = G = 1 in
-the gloss lobe, for DESIGN §5's gloss furnace value).
+the gloss lobe, for the gloss furnace value).
 
 - D: Gaussian K(μ) exp(−(θh/μ)²) with ∫ D cosθh dω = 1, or Beckmann exp(−tan²θh/m²)/(π m² cos⁴θh).
 - G: V-cavity min(1, 2 NH NV/VH, 2 NH NL/VH), or separable Smith with Beckmann's G1 (m = μ).

@@ -2,7 +2,7 @@
 
 The same config renders in both renderers: meshes from :mod:`spectral_fit.mesh` posed by each
 object's model matrix (smooth vertex normals kept), the pinhole camera of ``[camera]`` (vertical
-field of view, look-at), and the environment map with our mapping and rotation (DESIGN §3, §6).
+field of view, look-at), and the environment map with our mapping and rotation.
 
 Environment placement. Our lookup (:func:`spectral_fit.environment.lookup`) puts texel row k at
 v = (k + ½)/H and is bilinear in (u, v), blending to the row mean at the poles. Mitsuba's
@@ -11,7 +11,7 @@ v = (k + ½)/H and is bilinear in (u, v), blending to the row mean at the poles.
 rows at θ = πk/(2H), filled by OUR lookup, reproduces our lookup exactly (to float32 round-off):
 those rows contain every knot of our piecewise-bilinear interpolant (the row centres at odd k,
 the poles at k = 0 and 2H), and bilinear interpolation of a bilinear function between its own
-knots is exact. (H + 1 rows at θ = πk/H, as DESIGN §6 suggests, misses the row centres and is
+knots is exact. (H + 1 rows at θ = πk/H misses the row centres and is
 only close: ~1e-3 relative on smooth maps, more at sharp edges.) The map's rotation goes into
 the emitter's ``to_world`` (world-from-map, as ours).
 

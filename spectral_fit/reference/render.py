@@ -1,4 +1,4 @@
-"""Spectral ground truth with the band trick (DESIGN §6) and the patch layout of the references.
+"""Spectral ground truth with the band trick and the patch layout of the references.
 
 An L-band render is ⌈L/3⌉ rgb renders of ONE BSDF equal to our whole model: render g carries
 bands 3g, 3g+1, 3g+2 in its r, g, b channels (environment and reflectances packed the same way;
@@ -162,7 +162,7 @@ def _view_matrix(position: tuple, look: tuple, up: tuple) -> np.ndarray:
 
 def camera_rays(scene: Scene, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World origin (3,) and unit directions (..., 3) through frame pixel coordinates (x, y)
-    (pixel centres at integer + 0.5, row 0 on top; DESIGN §3), from :func:`camera.look_at`;
+    (pixel centres at integer + 0.5, row 0 on top), from :func:`camera.look_at`;
     the vertical field of view, or the OpenCV intrinsics (principal point (cx + ½, cy + ½) in
     these coordinates), of a pinhole (distortion is not applied)."""
     cam = scene.camera
