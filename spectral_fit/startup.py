@@ -2,8 +2,8 @@
 
 A fresh process that renders a frame pays for three things before the first pixel: preparing the
 scene (:func:`~spectral_fit.renderer.prepare`: meshes, the environment's prefiltered levels and
-split-sum tables, capacity plans; 1–3 s of CPU on the benchmark scene), tracing and lowering the
-frame program to XLA (about 5 s of CPU) and compiling it (about 30 s of CPU on 2 cores).
+split-sum tables, capacity plans), tracing and lowering the frame program to XLA, and compiling
+it (by far the largest of the three).
 JAX's persistent compilation cache removes only the last of these: a cache hit still traces and
 lowers the whole program. This module keeps all three between processes:
 
@@ -28,7 +28,7 @@ never loads a stale entry. Set ``SPECTRAL_FIT_CACHE`` (or ``SPECTRAL_FIT_JAX_CAC
 empty string to disable a cache. Applications (the CLI, the benchmarks, the notebooks) opt in;
 the library never enables a cache by itself, because JAX's setting is process-global.
 
-Measured figures: docs/rendering.md ("Cold start").
+Where a first frame's time goes: docs/rendering.md ("Cold start").
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None, *,
             ``~/.cache/spectral_fit/jax`` (an empty variable disables the cache: returns None).
         min_compile_time_s: programs that compile faster than this are not stored. The default
             0 stores every program, so that a warm process compiles nothing at all (a frame's
-            few small eager programs add up to ~0.4 s of compile otherwise).
+            few small eager programs add up to a noticeable compile otherwise).
 
     A folder that cannot be created (read-only home) leaves the cache off and returns None.
     """
@@ -304,8 +304,8 @@ def single_threaded_blas() -> Any:
 
     OpenBLAS threads busy-wait for work. On a small, shared machine (2 cores, other processes
     running) its second thread competes with everything else, and :func:`prepare`'s matrix
-    products (the environment's spherical blurs and principal spectra) took 1.7–8 s of CPU
-    instead of 0.8 s on one thread, in paired runs (docs/rendering.md, "Cold start"). Only
+    products (the environment's spherical blurs and principal spectra) cost several times the
+    CPU they take on one thread (docs/rendering.md, "Cold start"). Only
     OpenBLAS libraries already loaded by the process are changed (found in /proc/self/maps);
     elsewhere this does nothing."""
     import ctypes
@@ -351,11 +351,11 @@ def retain_freed_memory() -> bool:
     XLA:CPU allocates each run's temporaries with ``malloc`` and frees them at its end. glibc
     serves blocks above its mmap threshold (at most 32 MB) with a fresh ``mmap`` and unmaps
     them on ``free``, and it unmaps a thread arena's extra heap (64 MB) as soon as it empties,
-    so every frame touched new pages: ~11,700 page faults per close-up frame (46 MB), 15–20 ms
-    of kernel CPU per frame. With no mmap'd blocks (``M_MMAP_MAX`` = 0), no trimming
+    so every frame touches new pages (tens of MB of page faults per close-up frame, paid in
+    kernel CPU). With no mmap'd blocks (``M_MMAP_MAX`` = 0), no trimming
     (``M_TRIM_THRESHOLD`` 2 GB) and a top pad of a whole arena heap (``M_TOP_PAD`` 64 MB, which
     keeps emptied heaps) the same memory is reused from the second frame on: < 150 faults per
-    frame, close-up 64 → 53–54 ms on 2 cores (docs/rendering.md, "Steady-state memory"). The
+    frame (docs/rendering.md, "Steady-state memory"). The
     cost: the process keeps its peak heap instead of shrinking.
 
     Applications opt in (the ``spectral-fit`` command does, for every subcommand); the library
@@ -441,9 +441,8 @@ def _without_fastbins() -> _WhileInside:
     Loading a stored executable is XLA rebuilding the program's HLO module, buffer assignment
     and kernel thunks from their protos: millions of small blocks allocated and freed, a
     quarter of the load's CPU under malloc. Without fastbins (``M_MXFAST`` = 0) small frees
-    are merged at once, and the benchmark frame's two programs loaded and ran 0.05–0.07 s
-    sooner (first frame after import 0.64 → 0.58 s in fresh processes, docs/rendering.md
-    "Cold start"). Frames themselves allocate
+    are merged at once, and the programs load and run their first time sooner
+    (docs/rendering.md, "Cold start"). Frames themselves allocate
     many small blocks, so the default comes back afterwards."""
     return _FASTBINS
 
@@ -843,8 +842,8 @@ def _strip_locations(lowered: Any) -> bool:
 
     XLA keeps each location as the op metadata of an HLO instruction, and a stored executable
     carries its HLO module, which a new process parses again when it loads the program: on the
-    benchmark frame (45,000 HLO instructions) the locations were 28 % of the stored bytes
-    (8.9 → 6.4 MB) and 0.15 s of the 0.84 s load. Names in a profile of a loaded program are
+    benchmark frame the locations are over a quarter of the stored bytes and a matching share
+    of the load. Names in a profile of a loaded program are
     lost with them (profile :func:`~spectral_fit.renderer.render_frame` instead)."""
     try:
         from jax._src.lib.mlir import passmanager
