@@ -7,8 +7,9 @@ make it fast on one make it slow on the other:
   ``lax.map`` loop, and chunks with nothing to do are skipped by ``lax.cond``: the chunk's
   intermediates stay in cache and the cost follows the number of covered pixels.
 * **Accelerator**: every iteration of a device loop and every ``lax.cond`` costs a round trip
-  to the host for its predicate and a few kernel launches, which on a frame of ~2 ms is what
-  dominates; there the batches run whole (or in a few very large chunks), all at once.
+  to the host for its predicate and a few kernel launches, which on a frame of a few
+  milliseconds is what dominates; there the batches run whole (or in a few very large
+  chunks), all at once.
 
 The choice is read when a function is traced (not when it runs), from the default backend; the
 environment variable ``SPECTRAL_FIT_LAYOUT`` overrides it (``auto``, the default; ``cpu``;
@@ -60,11 +61,10 @@ def materialise(x: Any, *, cut: bool = False) -> Any:
     reads it many times. ``cut=True`` forces the cut on the CPU layout: x passes through a
     ``lax.cond`` whose predicate is always true but unknown to the compiler (from the bits of
     x's first element). That costs a conditional and a buffer, and it stops fusions that
-    paid: used everywhere it made the benchmark frame 39 -> 55 ms of CPU, so only where it
-    was measured to pay (the gloss anchors' tests and taps of a frame's pixels: 7.5 ms of the
-    close-up's single fusion of its interreflection tail; the gloss quadrature's reordered
-    result; a frame's shaded slots before the composite or the image scatter: live step
-    3–7 %, close-up 3–4 % of one-core CPU). With the accelerator layout
+    pay: used everywhere it makes the frame slower, so it is used only where it pays (the
+    gloss anchors' tests and taps of a frame's pixels, otherwise recomputed inside one large
+    fusion of the interreflection's tail; the gloss quadrature's reordered result; a frame's
+    shaded slots before the composite or the image scatter). With the accelerator layout
     (:func:`on_accelerator`: a conditional there waits for the host) it is the barrier;
     under a batching ``vmap`` the conditional becomes a select (no cut)."""
     import jax
@@ -83,9 +83,8 @@ def materialise_each(*xs: Any, cut: bool = False) -> list[Any]:
     """:func:`materialise` of several arrays of one shape (...) at once: stacked on a new
     leading axis (n, ...) and returned as its planes ``[p[0], ..., p[n − 1]]``. A stack on the
     last axis instead (..., n) is a concatenate that XLA:CPU writes element by element,
-    switching between the n expressions at every element (not vectorised): five per-lookup
-    quantities of 16,384 lookups 190 → 105 µs with their consumer (in one process,
-    interleaved)."""
+    switching between the n expressions at every element (not vectorised), several times
+    slower than the leading-axis stack."""
     import jax.numpy as jnp
 
     p = materialise(jnp.stack(xs, axis=0), cut=cut)

@@ -51,9 +51,9 @@ def measure(fn: Callable[..., Any], *args: Any, repeats: int = 20, **kwargs: Any
             ) -> dict[str, float]:
     """Time ``fn(*args, **kwargs)``: the first call (tracing + compilation + one run) is reported
     as ``compile_s`` (minus nothing: it is the user's first-call latency); after ``WARMUP``
-    untimed calls (the first runs after compiling write their buffers' fresh memory: the
-    benchmark frame's first two took 48 ms against 18 ms after them), the next ``repeats``
-    calls as median/min/max milliseconds."""
+    untimed calls (the first runs after compiling write their buffers' fresh memory and are
+    several times slower than the steady ones), the next ``repeats`` calls as median/min/max
+    milliseconds."""
     t0 = time.perf_counter()
     _block(fn(*args, **kwargs))
     compile_s = time.perf_counter() - t0

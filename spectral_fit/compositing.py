@@ -351,8 +351,8 @@ def composite_pixels(frame, cg_linear, index, valid, model: CameraModel) -> jax.
 def _composite_as_seen(frame: jax.Array, cg: jax.Array, index: jax.Array,
                        model: CameraModel) -> jax.Array:
     """:func:`composite_pixels` with the camera's blur and noise given to the CG (see
-    :func:`_as_seen`); the noise is drawn for the slots only (a frame's worth of draws costs
-    ~17 ms on 2 cores at 720×480)."""
+    :func:`_as_seen`); the noise is drawn for the slots only (a frame's worth of draws would
+    cost more than the rest of the composite)."""
     h, w, _ = frame.shape
     rgba = jnp.concatenate([cg, jnp.ones((cg.shape[0], 1), cg.dtype)], axis=1)
     layer = jnp.zeros((h * w, 4), jnp.float32).at[index].set(rgba, mode="drop")
@@ -378,8 +378,8 @@ def _as_seen(frame: jax.Array, layer: jax.Array, model: CameraModel,
         layer = materialise(gaussian_blur(layer, model.blur_px), cut=True)
     cover = layer[..., 3:]
     # the frame decoded through a (256, 3) table: indexed by (code, channel), XLA:CPU gathers
-    # it in the composite's own loop (a (256,) table indexed by the (H, W, 3) codes became a
-    # separate gather: the whole composite 7.0 instead of 3.5 ms at 720×480)
+    # it in the composite's own loop (a (256,) table indexed by the (H, W, 3) codes becomes a
+    # separate gather that doubles the composite's cost)
     codes = jnp.broadcast_to(jnp.arange(256, dtype=jnp.float32)[:, None] / 255.0, (256, 3))
     table = decode_frame(codes, model)
     linear = table[frame.astype(jnp.int32), jnp.arange(3)] * (1.0 - cover) + layer[..., :3]

@@ -19,7 +19,7 @@ into readable errors here: the functions compiled with it use none.
 
 On the CPU the programs are compiled with :func:`cpu_compiler_options` (XLA's YNNPACK library
 fusions off: the frame's many reductions over 3 or 4 components and its tiny matrix products
-ran slower as library calls than as XLA's own loops).
+run slower as library calls than as XLA's own loops).
 """
 
 from __future__ import annotations
@@ -152,15 +152,13 @@ def cpu_compiler_options() -> dict[str, Any]:
     AVX-512, 512-bit vectors preferred (``xla_cpu_prefer_vector_width = 512``); {} elsewhere.
 
     jaxlib 0.10's XLA:CPU hands reductions and dot products to YNNPACK: for the frame's
-    (N, 3) norms and (N, 4) products a library call per kernel cost more than XLA's own
-    fused loops (a (12,288, 3) normalisation 0.31 → 0.09 ms; the benchmark frame with
-    interreflection −3.5 to −9 %, in-process interleaved; values within 1e-6 of the display
-    range). XLA:CPU's loops use 256-bit vectors by default even where the CPU has AVX-512;
-    512-bit ones made the benchmark frame 1.8–2.8 % and the close-up 2.5 % faster (2-core
-    AVX-512 Xeon, in-process interleaved; display RGB within 6e-6); it is not asked for on a
-    CPU without AVX-512 (wider vectors split in two there). :func:`requested_cpu_options`,
-    checked once per process with a one-op compile (~70 ms, so only where a program is
-    compiled); a jaxlib that does not know an option gets {} (its defaults).
+    (N, 3) norms and (N, 4) products a library call per kernel costs more than XLA's own
+    fused loops (values within 1e-6 of the display range). XLA:CPU's loops use 256-bit
+    vectors by default even where the CPU has AVX-512; 512-bit ones make the frames faster
+    there (display RGB within 6e-6); they are not asked for on a CPU without AVX-512 (wider
+    vectors split in two there). :func:`requested_cpu_options`, checked once per process with
+    a one-op compile (so only where a program is compiled); a jaxlib that does not know an
+    option gets {} (its defaults).
     ``SPECTRAL_FIT_XLA_CPU_DEFAULTS=0`` in the environment keeps XLA's defaults."""
     opts = requested_cpu_options()
     if not opts:

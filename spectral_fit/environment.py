@@ -709,8 +709,7 @@ def bilinear_taps(u: jax.Array, v: jax.Array, off: jax.Array, hk: jax.Array, wk:
     (wrapped in u; between the first (last) row centre and the pole blended linearly towards
     the pole mean stored after the level), elementwise in (u, v) and the level's (off, hk, wk).
     ``lead``: as (4, ...) instead, for :func:`taps_sum` with ``lead`` (a stack on the last
-    axis is a concatenate XLA:CPU writes element by element; benchmark frame −0.6 %, close-up
-    −1.6 %, in-process interleaved)."""
+    axis is a concatenate XLA:CPU writes element by element, which is slower)."""
     x0, fx, y0, north, south, wy1 = _tap_coords(u, v, hk, wk)
     x1 = jnp.where(x0 + 1 >= wk, 0, x0 + 1)
     r0 = off + jnp.clip(y0, 0, hk - 1) * wk
@@ -744,8 +743,8 @@ def padded_bilinear(table: jax.Array, u: jax.Array, v: jax.Array, hm: int, wm: i
     centres) at map coordinates u, v (N,), from :func:`padded_table`'s layout: the four taps
     are the texels at b, b + 1, b + Wm + 1 and b + Wm + 2 of one base index b, so the index
     arithmetic (done again for every channel of the result) is a third of the general one's.
-    The same texels, weights and summation order: bit-identical to the general lookup (the
-    frame's background 1.60 → 1.41 ms). Returns (N, C)."""
+    The same texels, weights and summation order: bit-identical to the general lookup, and
+    cheaper for the frame's background. Returns (N, C)."""
     wp = wm + 1
     x0, fx, y0, _, _, wy1 = _tap_coords(u, v, jnp.int32(hm), jnp.int32(wm))
     base = (jnp.clip(y0, -1, hm - 1) + 1) * wp + x0
@@ -1537,8 +1536,8 @@ def _lobe_moments(
     l1 = lt * cm + nl * sm
     lm = jnp.clip(nl * cm - lt * sm, -1.0, 1.0)  # cos γ
     sin_g = jnp.sqrt(jnp.maximum(l1 * l1 + lb * lb, 1e-30))
-    # (atan2_poly: XLA:CPU's atan2 is a scalar call; the frame's two tables evaluate it at
-    # 16,384 nodes, 0.19 of 0.73 ms; results within 1.2e-7 of it)
+    # (atan2_poly: XLA:CPU's atan2 is a scalar call, a large share of the tables' cost;
+    # results within 1.2e-7 of it)
     scale = atan2_poly(sin_g, lm) / sin_g  # γ / sin γ
     var_t = jnp.sum(g * (l1 * scale) ** 2) / a_safe
     var_b = jnp.sum(g * (lb * scale) ** 2) / a_safe
@@ -1585,8 +1584,8 @@ def _interp_moments(table: jax.Array, nv: jax.Array) -> jax.Array:
 def sincos_poly(x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(sin x, cos x) by elementwise arithmetic: Cody–Waite reduction by π/2 (three-part π/2)
     and the Cephes sinf/cosf polynomials on [−π/4, π/4] (|error| < 1e-7 for |x| < 100).
-    XLA:CPU calls libm's scalar sinf/cosf per element (~3× slower here, 65,536 pairs); the
-    gloss quadratures evaluate them per point and per node."""
+    XLA:CPU calls libm's scalar sinf/cosf per element (several times slower); the gloss
+    quadratures evaluate them per point and per node."""
     k = jnp.round(x * (2.0 / math.pi))
     r = ((x - k * 1.5703125) - k * 4.837512969970703125e-4) - k * 7.54978995489188216e-8
     r2 = r * r
@@ -1603,7 +1602,7 @@ def sincos_poly(x: jax.Array) -> tuple[jax.Array, jax.Array]:
 def atan2_poly(y: jax.Array, x: jax.Array) -> jax.Array:
     """atan2(y, x) by elementwise arithmetic: reduction to [0, tan π/8] and the Cephes atanf
     polynomial (|error| < 3e-7 rad). XLA:CPU vectorises it; its own atan2 (and arccos) is a
-    scalar library call, ~100× slower per element than exp or a division."""
+    scalar library call, far slower per element than exp or a division."""
     ax, ay = jnp.abs(x), jnp.abs(y)
     hi = jnp.maximum(ax, ay)
     a = jnp.minimum(ax, ay) / jnp.where(hi > 0.0, hi, 1.0)
@@ -1653,10 +1652,9 @@ def taps_sum(flat: jax.Array, idx: jax.Array, w: jax.Array, *, lead: bool = Fals
               ) -> jax.Array:
     """Σ_k w[..., k] flat[idx[..., k]]: (..., K) taps → (..., C), unrolled over k (XLA:CPU
     runs a reduction over a short middle axis, or a batched dot of tiny matrices, as a slow
-    loop: ~15× slower here than this sum of products), one gather per tap: a gather of all
-    K taps at once had the (..., K) indices written to memory first, whereas a tap's own
-    gather computes its index in place (the frame's background 2.14 → 1.50 ms; benchmark
-    frame 17.4 → 15.9 ms, in-process interleaved). ``lead``: the taps on the leading axis,
+    loop, much slower than this sum of products), one gather per tap: a gather of all K taps
+    at once has the (..., K) indices written to memory first, whereas a tap's own gather
+    computes its index in place. ``lead``: the taps on the leading axis,
     ``idx``, ``w`` (K, ...)."""
     if lead:
         out = flat.at[idx[0]].get(mode="promise_in_bounds") * w[0][..., None]
@@ -1856,8 +1854,7 @@ def gloss_split_sum(
     sr = jnp.sqrt(jnp.maximum(1.0 - nv * nv, 0.0))
     sd, cd = sincos_poly(delta)
     # each materialised block below is computed once per point (or per lookup); without the
-    # barriers XLA fuses it into, and recomputes it in, each of its consumers (measured on
-    # 65,536 points: 30 ms CPU without them, 19 ms with)
+    # barriers XLA fuses it into, and recomputes it in, each of its consumers
     albedo, var_t, var_b, cd, sd, sr, nv, *T = materialise_each(
         albedo, var_t, var_b, cd, sd, sr, nv, *T)
     # mirror direction R = nv N − sr T; P = ∂R/∂θr = −sr N − nv T (away from the normal);
@@ -1977,7 +1974,7 @@ def shade_points(material: Material, env: EnvironmentMap, normals: Any, views: A
     """:func:`shade` over many points, (P, 3) normals and views → (P, C), evaluated in batches
     of ``batch_size`` points (``jax.lax.map``): small batches keep each batch's gloss nodes and
     map taps (points × nodes × 8 × channels) in cache, which on a CPU is several times faster
-    than one large batch (measured: 32 points per batch vs 4096, ~3× on the benchmark frame).
+    than one large batch (such as 4096 points).
     jit/grad-able; the same numbers as ``jax.vmap(shade)``. ``quality``: see :func:`shade`."""
     normals = jnp.asarray(normals)
     views = jnp.asarray(views)

@@ -328,7 +328,8 @@ class FitOptions:
         dtype: float32 (default) or float64 (inside ``jax.enable_x64``).
         compress_tol: the gloss lookups run in the map's own principal spectra, as many as
             keep every texel within this relative error (see ``EnvironmentMap.from_array``);
-            3e-3 keeps 28 of 81 on the bundled map, 6x faster, gloss error 0.07 % of peak.
+            3e-3 keeps 28 of 81 on the bundled map (far fewer channels per lookup), gloss
+            error 0.07 % of peak.
         cache: node layout of the radiance cache
             (:class:`spectral_fit.radiance_cache.CacheOptions`).
         solver: "compact" (default; :class:`CompactLM`, the Levenberg–Marquardt iteration of
@@ -438,8 +439,8 @@ def _spot_samples(geoms: list[ObjectGeometry], positions: np.ndarray, aims: np.n
     cone test on each triangle's bounding sphere; typically a few dozen), in NumPy
     (Möller–Trumbore, front faces only, nearest hit). This gives the same first hits and
     perspective-correct barycentrics as rasterising the view with ``spectral_fit.raster``
-    (compared in the tests), without compiling the rasteriser for these tiny views (39 s here
-    for 10 views of 10×10 pixels). Returns per reading b and disc pixel k: position, normal,
+    (compared in the tests), without compiling the rasteriser for these tiny views (far
+    slower than the ray casting). Returns per reading b and disc pixel k: position, normal,
     view, object (−1: the ray misses every object), ray direction.
     """
     verts = np.concatenate([np.asarray(g.vertices, np.float64) for g in geoms])
@@ -561,8 +562,8 @@ def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = No
     """
     from .process import single_threaded_blas
 
-    # NumPy's OpenBLAS on one thread: its busy-waiting second thread took 12.5 s of CPU
-    # where one thread takes 3.7 s on the loaded 2-core machine (docs/fitting.md, "Timings")
+    # NumPy's OpenBLAS on one thread: on a loaded 2-core machine its busy-waiting second
+    # thread costs several times the CPU of one thread (docs/fitting.md, "Speed")
     with single_threaded_blas():
         return _prepare_fit(scene, session, options=options, env=env, geometries=geometries,
                             check=check)
@@ -760,8 +761,8 @@ def make_solver(opts: FitOptions, progress: bool) -> Any:
     ``optimistix.LevenbergMarquardt`` ("optimistix") whose damped steps solve the normal
     equations (JᵀJ + λI) δ = −Jᵀr by Cholesky (``lineax.Normal(lineax.Cholesky())``): with ~10
     unknowns and ~1500 residuals this is a 10×10 factorisation per step, where the default
-    QR of the materialised (B·L + F) × F augmented operator made each iteration ~7× slower
-    here (0.49 s against 3.35 s for the bundled session's 21-22 iterations, same optimum).
+    QR of the materialised (B·L + F) × F augmented operator makes each iteration several
+    times slower (same optimum).
     Forming JᵀJ squares the condition number; the damping keeps it positive definite, and
     the float64 exact-recovery test still reaches 1e-6."""
     if opts.solver == "compact":  # opts come from _fit_options, which checked the name
@@ -871,7 +872,7 @@ def solve_batch(problem: FitProblem, y0: jax.Array, rw: jax.Array, solver: Any,
 
     # one start after the other (``lax.map``): each solve stops at its own convergence and
     # runs the unbatched model, whose per-point contractions are plain batched matrix
-    # products (vmapped, they became ~10x slower general dot products on the CPU)
+    # products (vmapped, they become much slower general dot products on the CPU)
     return jax.lax.map(one, (y0, rw))
 
 

@@ -277,7 +277,7 @@ def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHE
     (:func:`_gather_samples`), so what it needs depends on the mesh and the view direction
     in the mesh's own frame only, not on distances or positions: counted
     (:func:`~spectral_fit.raster.plan_counts`, NumPy) along the six axes of that frame, each
-    at four rolls (~0.7 s for 20,000 triangles), and sized ``headroom`` × the maximum (+16, on
+    at four rolls (once per distinct mesh), and sized ``headroom`` × the maximum (+16, on
     the capacity ladder). A pose needing more still
     sets the overflow flag (the renderer then falls back to generic capacities).
 
@@ -423,7 +423,8 @@ def prepare_interreflection(
                          field="capacity_fraction")
     radii = [_bounding_radius(o) for o in objects]
     pairs = pair_list(n)
-    # (paper mode keeps one raster per pair: its batched raster ran 15 % slower)
+    # (paper mode keeps one raster per pair: batched, its raster's conditionals become
+    # selects, which is slower)
     if mode == "gather" and len(pairs) > 1 and _same_shapes(objects):
         return _gather_pass1_batched(objects, pairs, radii, gather_size, raster_config,
                                      texture_size)
@@ -492,8 +493,8 @@ def _gather_pass1_batched(objects: Sequence[ObjectGeometry], pairs: list[tuple[i
                           ) -> IRGeometry:
     """Gather-mode pass 1 of every pair (i, j) as one ``jax.vmap`` of :func:`_gather_samples`
     over the pairs (meshes of equal shapes): the same samples as one raster per pair, to float
-    rounding, in a program with one raster instead of P (the benchmark frame's senders' half
-    3.5 → 2.9 MB stored, loaded 0.06 s sooner; steady time unchanged or −0.4 ms)."""
+    rounding, in a program with one raster instead of P (a smaller stored program that loads
+    sooner; no slower per frame)."""
     senders = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[objects[j] for _, j in pairs])
     c_i = jnp.stack([jnp.asarray(objects[i].centre, jnp.float32) for i, _ in pairs])
     r_i = jnp.stack([radii[i] for i, _ in pairs])
@@ -586,8 +587,7 @@ def _build_mips(values: jax.Array, g: int) -> jax.Array:
     p, _, c = values.shape
     # computed once into memory: otherwise XLA:CPU fuses the texels' whole expression (a
     # bounce's lum: the samples' gather and its interpolation) into every level's reduction
-    # and evaluates it again there, g² times for the 1 × 1 level (benchmark frame −2.6 %,
-    # in-process interleaved)
+    # and evaluates it again there, g² times for the 1 × 1 level
     lev = materialise(values, cut=True).reshape(p, g, g, c)
     flat = []
     for s in _mip_levels(g):
@@ -595,7 +595,7 @@ def _build_mips(values: jax.Array, g: int) -> jax.Array:
             lev = lev.reshape(p, s, 2, s, 2, c).mean(axis=(2, 4))
             if on_accelerator():
                 # each level from the stored previous one: fused into the atlas's one
-                # kernel, the 1 × 1 level's thread summed all g² texels alone (H100: 67 µs)
+                # kernel, the 1 × 1 level's thread summed all g² texels alone
                 lev = jax.lax.optimization_barrier(lev)
         flat.append(jnp.pad(lev, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(p, -1, c))
     return jnp.concatenate(flat, axis=1).reshape(-1, c)
@@ -649,8 +649,8 @@ def _env_blur(env: EnvironmentMap, dirs: jax.Array, sigma: jax.Array) -> jax.Arr
         levels += [select_static([np.int32(h) for h, _ in shapes], lev),
                    select_static([np.int32(w) for _, w in shapes], lev),
                    select_static([np.int32(o) for o in env.level_offsets], lev)]
-    # computed once per lookup: fused into the taps, the select chains ran once per tap and
-    # per index/weight array (benchmark frame −5 %, close-up −3.5 %, in-process interleaved)
+    # computed once per lookup: fused into the taps, the select chains would run once per
+    # tap and per index/weight array
     levels = materialise_each(*levels)
     idx, wts = [], []
     for k, wl in ((0, 1.0 - w_hi), (1, w_hi)):
@@ -920,7 +920,7 @@ def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax
         w = jnp.maximum(dot3(dirs, nrm[:, None]), 0.0) * (1.0 - cos_c)[:, None]
         spacing = atan2_poly(sin_c, cos_c) / (2.0 * nr)
         # the lookups computed once and summed node by node: a reduction over the nodes
-        # fused the lookups' taps into every channel's sum (the samples' transfer −4 %)
+        # fused the lookups' taps into every channel's sum
         lv = materialise(_env_blur(env, dirs, jnp.broadcast_to(spacing[:, None], w.shape)),
                          cut=True)
         num = num + sum(w[:, q, None] * lv[:, q] for q in range(w.shape[1]))
@@ -1141,7 +1141,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     idx, w = _mip_taps(jnp.broadcast_to(pair[:, None], tx.shape), tx, ty, level, g)
     # two atlases, each tap sum consumed whole by one contraction: XLA:CPU then fuses the
     # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all
-    # (N, Q, 8, C + 4) taps: 10× slower)
+    # (N, Q, 8, C + 4) taps, many times slower)
     lum_atlas, geo_atlas = atlas
     geo = _materialise(taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
     cov = geo[..., 3]
@@ -1183,8 +1183,8 @@ def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: ja
 #: sorted first; chunks without an active receiver are skipped), each at least
 #: ``_GLOSS_MIN_CHUNK`` receivers (or all of them): one traced copy of the quadrature (compile
 #: time), at most one partly active chunk of wasted work, and few enough iterations that the
-#: loop's per-iteration overhead does not count (benchmark frame's 8,192 slots: 1024-receiver
-#: chunks 10 % less CPU than 128)
+#: loop's per-iteration overhead does not count (small chunks of 128 receivers cost more CPU
+#: on the benchmark frame)
 _GLOSS_CHUNKS = 64
 _GLOSS_MIN_CHUNK = 1024
 #: with the accelerator layout (:mod:`spectral_fit.backend`) the receivers run in chunks of
@@ -1251,8 +1251,8 @@ def _image_anchors(pixel: jax.Array, obj: jax.Array, shape: tuple[int, int], ste
         idx.append(am)
         wks.append(wk)
     # the four tests computed once into memory (N, 4): fused into the consumers, XLA:CPU
-    # recomputed them for every tap and channel of the interpolation (7.5 ms of the close-up
-    # frame), and for the 'own' flag again beside each tap's weight
+    # recomputed them for every tap and channel of the interpolation (one of the close-up
+    # frame's largest fusions), and for the 'own' flag again beside each tap's weight
     good = materialise(jnp.stack(goods, -1), cut=True)
     wk = jnp.stack(wks, -1)
     bad = jnp.any((wk > 0.0) & ~good, axis=-1)
@@ -1407,7 +1407,7 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
             i, sl = a
             # chunks past the active receivers are skipped; each iteration passes only its
             # own (size, C) result (a carried (N, C) buffer was copied through every
-            # conditional: 17 ms of the close-up frame's 64 iterations)
+            # conditional, a large cost over the 64 iterations)
             return None, jax.lax.cond(i * size < count, do,
                                       lambda _: jnp.zeros((size, c), pos.dtype), sl)
 
@@ -1742,12 +1742,12 @@ def _paper_textures(geom: IRGeometry, materials: Sequence[Material], env: Enviro
                     split: tuple[Any, Any] | None = None) -> tuple[jax.Array, jax.Array]:
     """Pass 1 shading: T_d, T_s (P, T², C) of each sender seen from the receiver's centre.
     The gloss uses the environment module's "render" quadrature (8 × 16 nodes: the textures
-    are a 64² approximation of the sender anyway, and "exact" costs ~10× more per texel), or
+    are a 64² approximation of the sender anyway, and "exact" costs far more per texel), or
     with ``split`` = (:class:`~spectral_fit.environment.SplitSumMap`, its
     :class:`~spectral_fit.environment.SplitSum` settings) the frame's split-sum gloss
-    (:func:`~spectral_fit.environment.gloss_split_sum`, quality "fast": the benchmark frame
-    in paper mode 2.6–3.1 s → 69 ms on the 2-core CPU, its texels' gloss within the split
-    sum's accuracy of the quadrature; it is 0 below the texel's horizon, as the quadrature)."""
+    (:func:`~spectral_fit.environment.gloss_split_sum`, quality "fast": many times cheaper
+    than the quadrature over the textures' texels, its texels' gloss within the split sum's
+    accuracy of the quadrature; it is 0 below the texel's horizon, as the quadrature)."""
     t2 = geom.texture_size ** 2
     c = env.channels
     tds, tss = [], []

@@ -69,8 +69,8 @@ __all__ = [
 
 # windows of every raster size in a live plan at least: a size that the first poses do not
 # use (triangles larger than 4 pixels) is planned at the ladder's floor, 16, and an object
-# coming closer goes from none to some dozens of them in one frame (the sample video: 0 -> 19),
-# too fast for growing ahead. 64 of them cost nothing measurable (sample video: 26.6 vs 26.2 ms)
+# coming closer goes from none to some dozens of them in one frame (as on the sample video),
+# too fast for growing ahead. 64 of them cost nothing measurable in a frame
 _MIN_WINDOWS = 64
 
 #: number of times the live step has been traced (compiled), for tests and reports
@@ -220,9 +220,9 @@ def pipeline_pays() -> bool:
     """Whether :meth:`LiveSession.run` overlaps its stages with threads by default: only when
     the compiled step runs on an accelerator (GPU, TPU). On the CPU backend XLA already spreads
     the step's parallel loops over every core; a reader thread beside it preempts one of the
-    step's workers and each loop then waits for that one (measured on a quiet 2-core CPU,
-    ``live_paper``: 58.7 ms per frame sequential, 80 ms threaded), so the stages run one after
-    the other there. Follows :func:`spectral_fit.backend.on_accelerator`."""
+    step's workers and each loop then waits for that one (on 2 cores the threaded loop is
+    slower than the sequential one), so the stages run one after the other there. Follows
+    :func:`spectral_fit.backend.on_accelerator`."""
     from .backend import on_accelerator
 
     return on_accelerator()
@@ -548,8 +548,7 @@ class LiveSession:
         next step (a trace, a compile or a run on one device: XLA's compiler cannot be
         interrupted) and wait for it; the session keeps its current buffers. For the end of
         a run, when no frame will use the grown ones: an interpreter that exits waits for
-        the whole compile otherwise (sample video, warm caches: 3.8 s after the last
-        frame)."""
+        the whole compile otherwise, seconds after the last frame."""
         if self._grow_stop is not None:
             self._grow_stop.set()
         self.join_background()

@@ -39,8 +39,8 @@ def single_threaded_blas() -> Any:
 
     OpenBLAS threads busy-wait for work. On a small, shared machine (2 cores, other processes
     running) its second thread competes with everything else, and :func:`prepare`'s matrix
-    products (the environment's spherical blurs and principal spectra) took 1.7–8 s of CPU
-    instead of 0.8 s on one thread, in paired runs (docs/rendering.md, "Cold start"). Only
+    products (the environment's spherical blurs and principal spectra) cost several times the
+    CPU they take on one thread (docs/rendering.md, "Cold start"). Only
     OpenBLAS libraries already loaded by the process are changed (found in /proc/self/maps);
     elsewhere this does nothing."""
     import ctypes
@@ -86,11 +86,11 @@ def retain_freed_memory() -> bool:
     XLA:CPU allocates each run's temporaries with ``malloc`` and frees them at its end. glibc
     serves blocks above its mmap threshold (at most 32 MB) with a fresh ``mmap`` and unmaps
     them on ``free``, and it unmaps a thread arena's extra heap (64 MB) as soon as it empties,
-    so every frame touched new pages: ~11,700 page faults per close-up frame (46 MB), 15–20 ms
-    of kernel CPU per frame. With no mmap'd blocks (``M_MMAP_MAX`` = 0), no trimming
+    so every frame touches new pages (tens of MB of page faults per close-up frame, paid in
+    kernel CPU). With no mmap'd blocks (``M_MMAP_MAX`` = 0), no trimming
     (``M_TRIM_THRESHOLD`` 2 GB) and a top pad of a whole arena heap (``M_TOP_PAD`` 64 MB, which
     keeps emptied heaps) the same memory is reused from the second frame on: < 150 faults per
-    frame, close-up 64 → 53–54 ms on 2 cores (docs/rendering.md, "Steady-state memory"). The
+    frame (docs/rendering.md, "Steady-state memory"). The
     cost: the process keeps its peak heap instead of shrinking.
 
     Applications opt in (the ``spectral-fit`` command does, for every subcommand); the library
@@ -176,9 +176,8 @@ def without_fastbins() -> WhileInside:
     Loading a stored executable is XLA rebuilding the program's HLO module, buffer assignment
     and kernel thunks from their protos: millions of small blocks allocated and freed, a
     quarter of the load's CPU under malloc. Without fastbins (``M_MXFAST`` = 0) small frees
-    are merged at once, and the benchmark frame's two programs loaded and ran 0.05–0.07 s
-    sooner (first frame after import 0.64 → 0.58 s in fresh processes, docs/rendering.md
-    "Cold start"). Frames themselves allocate
+    are merged at once, and the programs load and run their first time sooner
+    (docs/rendering.md, "Cold start"). Frames themselves allocate
     many small blocks, so the default comes back afterwards."""
     return _FASTBINS
 

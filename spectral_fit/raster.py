@@ -376,7 +376,7 @@ def _triangle_setup(clip, triangles, shape, cull):
     hv = [((c[0] + c[3]) * (0.5 * w), (c[3] - c[1]) * (0.5 * h), c[3]) for c in corners]
     # Dividing by a runtime 1.0 materialises a value: XLA:CPU does not duplicate an
     # "expensive" op (a divide) into several consumers, whereas it recomputes chains of cheap
-    # ops inside every consumer kernel (measured: the setup ran several times slower).
+    # ops inside every consumer kernel (the setup would run several times slower).
     one = jnp.where(clip[0, 3] == clip[0, 3], jnp.float32(1.0), jnp.float32(2.0))
     n, o, ends = _edge_setup(hv)
     # det = det[hv0; hv1; hv2], evaluated with the origin moved to the projection of the
@@ -475,7 +475,7 @@ def _triangle_setup(clip, triangles, shape, cull):
         # the columns computed together, one thread per triangle: the GPU fused the whole
         # setup into the stack, each thread computing one (triangle, column) element, so the
         # 34 columns' shared work (corners, determinant, clipped box) ran in every column
-        # and neighbouring threads took different branches (H100: 0.2 ms of the frame raster)
+        # and neighbouring threads took different branches
         cols = list(jax.lax.optimization_barrier(tuple(cols)))
     data = jnp.stack(cols, axis=1)
     # materialised once, instead of recomputed per gathered window (a divide by the runtime
@@ -545,8 +545,8 @@ def _scan(op, x, identity, block: int = 64):
 
     Blocked: a Hillis–Steele scan inside blocks of ``block`` elements, then a scan of the block
     totals. Loops instead of ``lax.associative_scan`` because XLA:CPU fuses the producers of
-    an associative scan's input into every level of it and recomputes them there (measured:
-    several times slower in the rasteriser); a loop carry is materialised.
+    an associative scan's input into every level of it and recomputes them there (several
+    times slower in the rasteriser); a loop carry is materialised.
     """
     n = x.shape[-1]
     if n <= block:
@@ -1004,8 +1004,8 @@ def compact_flags(flags: jax.Array, capacity: int) -> tuple[jax.Array, jax.Array
     """The positions of the first ``capacity`` True entries of ``flags`` ``(N,)`` bool, in
     increasing order, and how many True entries there are (int32 scalar; may exceed
     ``capacity``): ``jnp.nonzero(flags, size=capacity)`` without a prefix sum or a scatter
-    over all N entries (XLA:CPU runs both as serial loops: ~10 ns per entry, 3–4 ms each for a
-    720 × 480 frame).
+    over all N entries (XLA:CPU runs both as serial loops, which over a whole frame's pixels
+    are among the costliest steps of a frame).
 
     The flags are packed 32 to a uint32 word (a reduction); a prefix sum of the words'
     population counts (N/32 entries), turned into a histogram over the slots and prefix-summed

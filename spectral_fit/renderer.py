@@ -251,7 +251,7 @@ def _ir_mesh(obj: Any, mesh: Any, mode: str) -> Any:
     polygon lies within 0.0012 r = 0.04 texel of the sphere) and an icosphere subdivided at
     most until it has ≥ 64² triangles (4 times: 5,120). Same sphere, same samples to well
     below the raster's resolution (tests/test_interreflection.py), at a fifth of the
-    pass-1 raster's triangles (benchmark frame: pass 1 3.2 → 1.5 ms). Meshes from files and
+    pass-1 raster's triangles (about half the pass's cost). Meshes from files and
     the paper mode (eq. 6's textures, rasterised at texture_size in perspective) keep
     ``mesh``."""
     from .interreflection import GATHER_SIZE, SUPERSAMPLE
@@ -465,8 +465,8 @@ def _ir_raster_config(mode: str, texture_size: int, triangles: int,
     pose (``meshes``: (vertices in the object's frame, triangles);
     :func:`~spectral_fit.interreflection.plan_gather_pass1`: 1.5× the most that 24 views (six
     axes, four rolls each) need;
-    the generic sizes gave the 4×4 windows 80× what the benchmark spheres use, 6 ms of CPU per
-    frame); without meshes the generic sizes. Paper: the generic sizes, and at least twice
+    the generic sizes give the 4×4 windows 80× what the benchmark spheres use, a cost paid
+    every frame); without meshes the generic sizes. Paper: the generic sizes, and at least twice
     what the configured poses need (:func:`plan_capacities` on each pair's view)."""
     if mode == "none":
         return None
@@ -1040,8 +1040,7 @@ def _pinhole_ray_components(prep: Prepared, view: jax.Array, rot: jax.Array
     and w does not depend on (x, y) for a projection whose last row is (0, 0, −1, 0) (any
     OpenGL pinhole, intrinsics included): one 3 × 3 map from (x, y, 1) to the direction. The
     components are evaluated inside the (u, v) kernel (no (H, W, 3) stack and normalisation
-    written out first: benchmark frame −4.7 %, close-up −2.8 %, in-process interleaved;
-    display RGB within 9e-6)."""
+    written out first, which is slower; display RGB within 9e-6)."""
     h, w = prep.shape
     inv = inverse_4x4(prep.projection @ view)
     eye = eye_position(view)
@@ -1123,10 +1122,10 @@ _ACCEL_CHUNK = 65536
 def _chunk_size(capacity: int) -> int:
     """Slots per shading chunk: chunks beyond the covered-pixel count are skipped, so the
     shading cost follows the count (to within one chunk), not the planned capacity; chunks of
-    a few thousand points also keep the gloss's intermediates in cache (measured on the
-    close-up: 57,344 slots at once 45 ms CPU, in chunks of 2048–4096 20 ms, for 32,894
-    covered pixels). With the accelerator layout (:mod:`spectral_fit.backend`) the chunks are
-    as large as the capacity, up to 65,536 slots."""
+    a few thousand points also keep the gloss's intermediates in cache (about twice as fast
+    on the close-up as one batch of all slots). With the accelerator layout
+    (:mod:`spectral_fit.backend`) the chunks are as large as the capacity, up to 65,536
+    slots."""
     if on_accelerator():
         return min(capacity, _ACCEL_CHUNK)
     if capacity >= 32768:
@@ -1243,7 +1242,7 @@ def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple
     slots (row-major order), the lists one after the other: the
     :func:`~spectral_fit.raster.covered_pixels` of each object's part of the raster, by
     :func:`~spectral_fit.raster.compact_flags` per object (no prefix sum or scatter over the
-    frame: those were ~11 ms CPU of a 720 × 480 frame). ``tri_id``, ``obj_img`` (H, W) int32
+    frame: XLA:CPU runs those as serial loops). ``tri_id``, ``obj_img`` (H, W) int32
     (−1 = none). Returns the :class:`~spectral_fit.raster.PixelList` (count = all objects'
     covered pixels, overflow = any object's list overflowed) and the per-object covered
     counts (may exceed capacity)."""
@@ -1485,7 +1484,7 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         linear = display_linear(xyz, **kw)
         rgb = encode(linear, prep.display)
         # the gamut fractions over the covered pixels' slots (N ≪ H·W) rather than the masked
-        # image: four frame-wide reductions were ~1.4 ms of one core (benchmark frame −3 %)
+        # image: four frame-wide reductions cost a noticeable share of the frame
         fractions = gamut_fractions(display_linear(xyz_px, **kw), px.valid)
     count = px.stats["covered_pixels"]
     stats = {
@@ -1606,7 +1605,7 @@ def render_frame(prep: Prepared, materials: Any = None, *, model: Any = None, vi
             (None): :func:`mirror_needed`: without it only when every χ is a concrete 0 (the
             paper's plastics; not under ``jax.grad``/``vmap``/``jit``, where χ is traced),
             which leaves out the neighbours' mirror radiance the interreflection would
-            otherwise carry in every channel (~13 % of the benchmark frame); the first χ
+            otherwise carry in every channel (a tenth of the frame); the first χ
             that is not 0 then compiles the frame with it. True: always with it (e.g. a slider
             for χ that should never recompile). False: every χ taken as 0 (refused when a
             concrete χ is not 0).

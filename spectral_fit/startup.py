@@ -2,8 +2,8 @@
 
 A fresh process that renders a frame pays for three things before the first pixel: preparing the
 scene (:func:`~spectral_fit.renderer.prepare`: meshes, the environment's prefiltered levels and
-split-sum tables, capacity plans; 1–3 s of CPU on the benchmark scene), tracing and lowering the
-frame program to XLA (about 5 s of CPU) and compiling it (about 30 s of CPU on 2 cores).
+split-sum tables, capacity plans), tracing and lowering the frame program to XLA, and compiling
+it (by far the largest of the three).
 JAX's persistent compilation cache removes only the last of these: a cache hit still traces and
 lowers the whole program. This module keeps all three between processes:
 
@@ -32,7 +32,7 @@ the versions). Set ``SPECTRAL_FIT_CACHE`` (or ``SPECTRAL_FIT_JAX_CACHE``) to an 
 disable a cache. Applications (the CLI, the benchmarks, the notebooks) opt in; the library never
 enables a cache by itself, because JAX's setting is process-global.
 
-Measured figures: docs/rendering.md ("Cold start").
+Where a first frame's time goes: docs/rendering.md ("Cold start").
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None, *,
             ``~/.cache/spectral_fit/jax`` (an empty variable disables the cache: returns None).
         min_compile_time_s: programs that compile faster than this are not stored. The default
             0 stores every program, so that a warm process compiles nothing at all (a frame's
-            few small eager programs add up to ~0.4 s of compile otherwise).
+            few small eager programs add up to a noticeable compile otherwise).
 
     Returns:
         The folder in use (``<path>/<library_versions_tag()>``), or None when the cache is off.
@@ -699,8 +699,8 @@ def _strip_locations(lowered: Any) -> bool:
 
     XLA keeps each location as the op metadata of an HLO instruction, and a stored executable
     carries its HLO module, which a new process parses again when it loads the program: on the
-    benchmark frame (45,000 HLO instructions) the locations were 28 % of the stored bytes
-    (8.9 → 6.4 MB) and 0.15 s of the 0.84 s load. Names in a profile of a loaded program are
+    benchmark frame the locations are over a quarter of the stored bytes and a matching share
+    of the load. Names in a profile of a loaded program are
     lost with them (profile :func:`~spectral_fit.renderer.render_frame` instead)."""
     try:
         from jax._src.lib.mlir import passmanager

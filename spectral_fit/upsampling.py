@@ -13,7 +13,7 @@ Methods:
   Upsampling", CGF 2019 (colour's ``find_coefficients_Jakob2019`` and ``sd_Jakob2019``): smooth
   sigmoid spectra, more saturated and always within [0, 1] as reflectances, but NOT linear in
   RGB, so a lifted map must not be filtered/downsampled spectrally as if it were (filter the
-  RGB first, then lift). colour's optimiser runs per distinct colour (~40 ms each), so it suits
+  RGB first, then lift). colour's optimiser runs once per distinct colour (slow), so it suits
   material colours and small images, not whole environment maps.
 
 Reflectance vs emission: ``emission=False`` returns reflectance-like spectra whose colour under

@@ -37,8 +37,8 @@ def _say(msg: str) -> None:
 
 
 def enable_compilation_cache() -> str | None:
-    """Keep XLA's compiled programs between runs (the fit's solver takes ~3 s of CPU to
-    compile, more on a loaded machine): ``$SPECTRAL_FIT_JAX_CACHE`` or
+    """Keep XLA's compiled programs between runs (compiling the fit's solver is most of its
+    first call): ``$SPECTRAL_FIT_JAX_CACHE`` or
     ``~/.cache/spectral_fit/jax``; set the variable to an empty string to disable.
     Applications (this CLI) opt in; the library never does."""
     from ..startup import enable_compilation_cache as enable

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     enable_compilation_cache(min_compile_time_s=1.0)  # docs/rendering.md "Cold start"
     # the config is read (and checked, errors naming its file and field) by prepare_cached,
     # unless its prepared scene is stored: that skips the scene's parsing, and with it
-    # colour-science's import (~0.7 s; its package imports its plotting and matplotlib)
+    # colour-science's import (slow: its package imports its plotting and matplotlib)
     t1 = time.perf_counter()
     prep = prepare_cached(args.config, size=size, mode=args.mode,
                           spectral_mode=args.spectral_mode, k=args.k, progress=_say)

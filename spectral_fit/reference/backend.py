@@ -8,8 +8,8 @@ spectral_fit[validate]``, i.e. ``mitsuba>=3.5``). Variant choice, in order:
 2. ``llvm_ad_rgb`` when an LLVM shared library of version >= 16 is found (Dr.Jit's LLVM backend
    crashed with Debian 12's default LLVM 15; Debian's ``libllvm19`` works); the library is
    handed to Dr.Jit through ``DRJIT_LIBLLVM_PATH`` unless that is already set;
-3. ``scalar_rgb`` otherwise (no extra library; the Python BSDF then runs once per ray, roughly
-   100× slower, which only suits tests at tiny sizes).
+3. ``scalar_rgb`` otherwise (no extra library; the Python BSDF then runs once per ray, far
+   slower, which only suits tests at tiny sizes).
 
 Only rgb variants are used: the band trick carries three spectral bands per render.
 """
