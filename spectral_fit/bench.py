@@ -91,10 +91,13 @@ def run_benchmarks(
     names: list[str] | None = None,
     opts: BenchOptions | None = None,
     progress: Callable[[str], None] | None = None,
+    *,
+    cases: dict[str, Callable[[BenchOptions], dict[str, Any]]] | None = None,
 ) -> dict[str, Any]:
-    """Run the named cases (all when None); returns ``{case: figures}``."""
+    """Run the named cases (all when None) of ``cases`` (default: :func:`discover_cases`);
+    returns ``{case: figures}``."""
     opts = opts or BenchOptions()
-    cases = discover_cases()
+    cases = discover_cases() if cases is None else dict(cases)
     if names:
         unknown = sorted(set(names) - set(cases))
         if unknown:

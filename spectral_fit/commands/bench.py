@@ -19,6 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="small inputs, to check the harness (figures not comparable)")
     p.add_argument("-o", "--output", default=None, help="also write the JSON to this file")
     p.add_argument("--json", action="store_true", help="print the JSON object on stdout")
+    p.add_argument("--gl-baseline", action="store_true",
+                   help="run the OpenGL baseline's cases instead (the paper's two-pass pipeline "
+                   "on Mesa's EGL; needs the 'gl' extra; docs/benchmark.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -26,18 +29,28 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..fileio import atomic_write_text
 
+    gl_cases = None
+    if args.gl_baseline:
+        from ..benchmarks.gl_baseline import GL_CASES
+
+        gl_cases = GL_CASES
     if args.list:
-        print("\n".join(sorted(discover_cases())))
+        print("\n".join(sorted(gl_cases if gl_cases is not None else discover_cases())))
         return 0
     if args.repeats < 1:
         raise InputError("must be at least 1", field="--repeats")
     names = [n.strip() for n in args.cases.split(",") if n.strip()] if args.cases else None
+    gl_meta: dict[str, str] = {}
+    if gl_cases is not None:  # fail at once (one line) without moderngl or EGL
+        from ..benchmarks.gl_baseline import gl_info
+
+        gl_meta = gl_info()
 
     def progress(name: str) -> None:
         print(f"bench: {name} ...", file=sys.stderr, flush=True)
 
     results = run_benchmarks(names, BenchOptions(repeats=args.repeats, quick=args.quick),
-                             progress)
+                             progress, cases=gl_cases)
     import jax
 
     results["_meta"] = {
@@ -48,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
         "machine": platform.machine(),
         "repeats": args.repeats,
         "quick": args.quick,
+        **gl_meta,
     }
     text = json.dumps(results, indent=2, sort_keys=True)
     if args.output:
