@@ -81,7 +81,6 @@ from .backend import materialise, materialise_each, on_accelerator, prefix_chunk
 from .camera import interreflection_camera, look_at, project
 from .environment import (
     EnvironmentMap,
-    _materialise,
     atan2_poly,
     bilinear_taps,
     dot3,
@@ -1143,7 +1142,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all
     # (N, Q, 8, C + 4) taps, many times slower)
     lum_atlas, geo_atlas = atlas
-    geo = _materialise(taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
+    geo = materialise(taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
     cov = geo[..., 3]
     # the samples' normal where the atlas has coverage, the bounding sphere's elsewhere
     ny = _normalize(geo[..., :3] + (1.0 - jnp.clip(cov, 0.0, 1.0))[..., None] * rel
@@ -1366,7 +1365,7 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
                 dirs = d_k if dirs is None else jnp.where(sel[:, None, None], d_k, dirs)
                 wts = w_k if wts is None else jnp.where(sel[:, None], w_k, wts)
         # computed once (XLA would otherwise recompute the nodes inside every consumer)
-        dw = _materialise(jnp.concatenate([dirs, wts[..., None]], -1))
+        dw = materialise(jnp.concatenate([dirs, wts[..., None]], -1))
         dirs, wts = dw[..., :3], dw[..., 3]
         albedo = _albedo_at(sh.albedo, ob, nv)
         lobe_sigma = math.sqrt(2.0) * mu

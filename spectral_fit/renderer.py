@@ -897,7 +897,8 @@ def _gloss_and_mirror(env_gloss: Any, split_map: Any, env_mirror: Any, moments: 
     per unit β looked up in ``env_gloss``'s channels, F(n, N·V) times the mirror radiance
     along R from ``env_mirror`` (N, C; None when ``env_mirror`` is None: no mirror term), and
     N·V (N, 1)."""
-    from .environment import _materialise, fast_lookup, fresnel_dielectric, gloss_split_sum
+    from .environment import fast_lookup, gloss_split_sum
+    from .reflectance import fresnel_dielectric
 
     gloss = gloss_split_sum(env_gloss, split_map, moments, nrm, v, m.mu, m.n,
                             settings=settings, distribution=m.distribution,
@@ -905,7 +906,7 @@ def _gloss_and_mirror(env_gloss: Any, split_map: Any, env_mirror: Any, moments: 
     nv = (nrm[:, 0] * v[:, 0] + nrm[:, 1] * v[:, 1] + nrm[:, 2] * v[:, 2])[:, None]
     refl = 2.0 * nv * nrm - v
     # per-point factors computed once (not inside each of the C channels' expressions)
-    fac = _materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
+    fac = materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
     mirror = None if env_mirror is None else fac[:, 0:1] * fast_lookup(env_mirror, refl)
     return gloss, mirror, fac[:, 1:2]
 
