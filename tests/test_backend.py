@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _rendering_util import write_scene
+from helpers.rendering import write_scene
 
 from spectral_fit import backend, raster, renderer
 from spectral_fit.errors import InputError

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _lighting_util import anchor_map, brute_gloss, configs, grazing_configs, unit
+from helpers.lighting import anchor_map, brute_gloss, configs, grazing_configs, unit
 
 from spectral_fit.environment import (
     EnvironmentMap,
@@ -200,9 +200,9 @@ def test_gloss_render_vs_brute_force_bundled_map(anchor, mu):
 
 
 def test_oracle_bilinear_model_is_the_library_lookup():
-    """The oracle's own bilinear upsampling (tests/_lighting_util) reproduces the library's
+    """The oracle's own bilinear upsampling (tests/helpers/lighting.py) reproduces the library's
     lookup at the fine texel centres, poles and seam included: both define the same map."""
-    from _lighting_util import _bilinear_taps
+    from helpers.lighting import _bilinear_taps
 
     rng = np.random.default_rng(1)
     img = rng.uniform(0.0, 1.0, size=(6, 12, 2))
@@ -219,7 +219,7 @@ def test_below_mu_005_tends_to_albedo_times_map(anchor):
     """Below μ = 0.05 the same quadrature runs on the (bilinear) map itself: as μ → 0 the
     gloss tends to A(θr)·L(R), A the lobe albedo, i.e. F(θr)·L(R) (a Fresnel mirror) — the
     map resolves nothing finer than its texels. Continuous through 0.05."""
-    from _lighting_util import fresnel
+    from helpers.lighting import fresnel
 
     img, env, lamp = anchor
     g = jax.jit(lambda n, v, m: gloss_integral(env, n, v, m, 1.5))

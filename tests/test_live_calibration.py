@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("cv2")
 
 import cv2
-from _live_util import DIST, ENV, SIZE, K
+from helpers.live import DIST, ENV, SIZE, K
 
 from spectral_fit.camera_calibration import (
     CalibrationTarget,

@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from _live_util import ENV, scene_dict
+from helpers.live import ENV, scene_dict
 
 from spectral_fit.compositing import (
     CameraModel,

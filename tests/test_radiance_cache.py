@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _fitting_util import TRUE, assert_recovered, spots, write_session, write_small_scene
+from helpers.fitting import TRUE, assert_recovered, spots, write_session, write_small_scene
 
 from spectral_fit import fitting
 from spectral_fit import radiance_cache as rc

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from _reference_util import (  # noqa: E402
+from helpers.reference import (  # noqa: E402
     fully_covered,
     pixel_subsamples,
     single_bounce_quadrature,
@@ -382,16 +382,11 @@ def test_intrinsics_silhouettes_match_our_camera_rays():
 
 def test_generator_smoke_run(tmp_path):
     """scripts/make_references.py at a tiny size: files written, loadable, consistent."""
-    import importlib.util
-
-    from _reference_util import REPO
+    from helpers import load_script
 
     from spectral_fit.reference import load_reference
 
-    spec = importlib.util.spec_from_file_location("make_references",
-                                                  REPO / "scripts" / "make_references.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("make_references")
     rc = mod.main(["--only", "benchmark", "--size", "288", "192", "--bands", "500", "520", "10",
                    "--spp", "2", "--passes", "2", "--out", str(tmp_path)])
     assert rc == 0
@@ -412,7 +407,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     import json
     import tomllib
 
-    from _reference_util import REPO
+    from helpers.reference import REPO
 
     from spectral_fit.environment import EnvironmentMap, irradiance_exact
     from spectral_fit.reference.export import environment_texels

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _reference_util import REPO
+from helpers.reference import REPO
 
 from spectral_fit.colorimetry import xyz_weights
 from spectral_fit.errors import InputError

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _rendering_util import CENTRES, RADIUS, SIZE, ray_directions, write_scene
+from helpers.rendering import CENTRES, RADIUS, SIZE, ray_directions, write_scene
 
 from spectral_fit.errors import InputError
 

@@ -4,13 +4,13 @@ smooth analytic environment maps, brute-force quadrature)."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
+from helpers import ROOT
 from spectral_fit.scene import parse_scene
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = ROOT
 BENCH_ENV = REPO / "measurements" / "benchmark" / "anchor_environment.exr"
 
 

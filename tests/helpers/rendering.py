@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from helpers import ROOT
+
 ANCHOR_ENV = ROOT / "measurements" / "benchmark" / "anchor_environment.exr"
 
 SIZE = (128, 96)  # W, H of the test frames

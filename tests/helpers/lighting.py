@@ -5,11 +5,11 @@ closed forms of F, D and G (independent of spectral_fit.reflectance)."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 from scipy.special import erf
 
+from helpers import ROOT
 from spectral_fit.environment import (
     EnvironmentMap,
     rotation_y,
@@ -18,8 +18,7 @@ from spectral_fit.environment import (
 )
 from spectral_fit.exr import read_spectral_exr
 
-ANCHOR = Path(__file__).resolve().parents[1] / "measurements" / "benchmark" / \
-    "anchor_environment.exr"
+ANCHOR = ROOT / "measurements" / "benchmark" / "anchor_environment.exr"
 
 
 def anchor_map():
