@@ -34,10 +34,10 @@ def test_layout_variable(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def prep(tmp_path_factory):
+def prep(scene_folder):
     # gather interreflection, two colours, a mirror term: every layout-dependent path runs
-    return renderer.prepare(write_scene(tmp_path_factory.mktemp("layout"), mode="gather",
-                                        same_colour=False, chi=0.3))
+    return renderer.prepare(write_scene(scene_folder, mode="gather", same_colour=False,
+                                        chi=0.3))
 
 
 def _with_layout(monkeypatch, accelerator: bool, fn):

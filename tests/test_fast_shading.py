@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers.lighting import anchor_map, brute_gloss, configs, fresnel, gaussian_k, unit
+from helpers.lighting import brute_gloss, configs, fresnel, gaussian_k, unit
 
 from spectral_fit.environment import (
     EnvironmentMap,
@@ -31,8 +31,8 @@ from spectral_fit.errors import InputError
 
 
 @pytest.fixture(scope="module")
-def anchor():
-    img, env, lamp = anchor_map()
+def anchor(anchor_lighting):
+    img, env, lamp = anchor_lighting
     pre = SplitSumMap.from_environment(env, img)
     return img, env, pre, lamp
 

@@ -60,7 +60,7 @@ def small(tmp_path_factory):
     return scene, session, prep, env, clean
 
 
-def test_uniform_environment_oracle(tmp_path):
+def test_uniform_environment_oracle(tmp_path, small_scene_config):
     """Under a uniform map L0 a spot's reading is closed-form: α S L0 (Lambert; E = π L0) plus
     χ L0 · mean F(n, θr) over the field (mirror), with θr from an analytic sphere intersection
     of the field's rays (independent of the mesh and of the ray caster)."""
@@ -70,7 +70,7 @@ def test_uniform_environment_oracle(tmp_path):
     from spectral_fit.exr import write_spectral_exr
     from spectral_fit.reflectance import fresnel_dielectric
 
-    cfg = write_small_scene(tmp_path)
+    cfg = small_scene_config
     wl = np.arange(400.0, 701.0, 20.0)
     L0 = 1e-3 * (1.0 + (wl - 400.0) / 300.0)
     write_spectral_exr(tmp_path / "env.exr", wl, np.broadcast_to(L0, (16, 32, wl.size))

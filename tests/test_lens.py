@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ import pytest
 pytest.importorskip("cv2")
 
 import cv2  # noqa: E402  (after the skip: the `live` extra)
+from helpers import ROOT  # noqa: E402
 
 from spectral_fit.errors import InputError
 from spectral_fit.lens import (
@@ -24,7 +24,6 @@ from spectral_fit.lens import (
     undistort_normalized,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 GL = np.array([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL eye axes
 K = np.array([[210.0, 0.0, 121.0], [0.0, 205.0, 78.5], [0.0, 0.0, 1.0]])  # 240 x 160
 SIZE = (160, 240)

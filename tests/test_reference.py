@@ -407,7 +407,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     import json
     import tomllib
 
-    from helpers.reference import REPO
+    from helpers import ROOT
 
     from spectral_fit.environment import EnvironmentMap, irradiance_exact
     from spectral_fit.reference.export import environment_texels
@@ -415,7 +415,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     from spectral_fit.scene import load_scene
     from spectral_fit.spectra import read_spectrum_csv
 
-    scene = load_scene(REPO / "configs" / "two_spheres.toml",
+    scene = load_scene(ROOT / "configs" / "two_spheres.toml",
                        lambda d: d["spectral"].update(start_nm=540, end_nm=560, step_nm=10))
     inst = Spectroradiometer(pixels=8, repeats=4)
     white = {"position": [0.0, 0.0, -0.275], "normal": [0.0, 0.0, 1.0], "reflectance": 0.99}
@@ -424,7 +424,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     man = tomllib.loads(m.read_text())
     assert man["session"]["format"] == 1 and len(man["readings"]) == 10
     assert (m.parent / man["session"]["scene"]).resolve() == (
-        REPO / "configs" / "two_spheres.toml").resolve()
+        ROOT / "configs" / "two_spheres.toml").resolve()
     truth = json.loads((m.parent / "truth.json").read_text())
     wl = np.asarray(truth["wavelengths_nm"])
     assert wl[0] == 540 and wl[-1] == 560 and np.allclose(np.diff(wl), 1.0)

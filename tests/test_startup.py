@@ -15,8 +15,8 @@ from typing import Any
 import jax
 import numpy as np
 import pytest
-from helpers import ROOT
-from helpers.rendering import ANCHOR_ENV, scene_toml
+from helpers import ANCHOR_ENV, ROOT
+from helpers.rendering import scene_toml
 
 from spectral_fit import startup
 from spectral_fit.errors import InputError

@@ -20,6 +20,9 @@ from types import ModuleType
 ROOT = Path(__file__).resolve().parents[2]
 TESTS = ROOT / "tests"
 SCRIPTS = ROOT / "scripts"
+#: the bundled maps: the benchmark's anchor map (31 bands) and the studio room (81 bands)
+ANCHOR_ENV = ROOT / "measurements" / "benchmark" / "anchor_environment.exr"
+STUDIO_ROOM = ROOT / "measurements" / "environment" / "studio_room.exr"
 
 
 def subprocess_env(**extra: str) -> dict[str, str]:

@@ -6,7 +6,7 @@ import functools
 
 import numpy as np
 
-from helpers import ROOT
+from helpers import ANCHOR_ENV
 
 #: intrinsics (OpenCV) and distortion (k1, k2, p1, p2, k3) of the synthetic camera, 720×480
 K = np.array([[520.0, 0.0, 355.0], [0.0, 515.0, 243.0], [0.0, 0.0, 1.0]])
@@ -40,7 +40,6 @@ def rotation_angle_deg(ra, rb) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-ENV = ROOT / "measurements" / "benchmark" / "anchor_environment.exr"
 
 
 def scene_dict(*, markers=None, objects=None, width=720, height=480, intrinsics=True):
@@ -53,7 +52,7 @@ def scene_dict(*, markers=None, objects=None, width=720, height=480, intrinsics=
     d = {
         "frame": {"width": width, "height": height},
         "camera": cam,
-        "environment": {"file": str(ENV), "rotation_y_deg": 180.0},
+        "environment": {"file": str(ANCHOR_ENV), "rotation_y_deg": 180.0},
         "spectral": {"start_nm": 400.0, "end_nm": 700.0, "step_nm": 10.0},
         "objects": objects if objects is not None else [
             {"name": "yellow", "radius": 0.03, "stacks": 24, "slices": 24, "marker": 3,
