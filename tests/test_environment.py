@@ -337,9 +337,9 @@ def test_basis_coefficient_shading_matches_bands():
     basis = pca_basis(8, wl)
     env_b = EnvironmentMap.from_array(img)
     env_k = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor)
-    from spectral_fit.basis import _reflectances_5nm
+    from spectral_fit.basis import training_spectra
 
-    _, refl = _reflectances_5nm()
+    refl = training_spectra("reflectances", wl)
     W = xyz_weights(wl)
     cfg = _configs(0.2, 6, seed=5)
     des = []

@@ -359,8 +359,8 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
     generic ones (one recompilation), and equals the frame of a session that never overflowed."""
     import dataclasses
 
+    from spectral_fit.interreflection import SUPERSAMPLE, pass1_config
     from spectral_fit.live import LiveSession
-    from spectral_fit.renderer import _ir_generic_config
 
     both, _ = tables
     img, _, _ = small_frame(both, (0.0, 0.3, 0.25), seed=3)
@@ -371,7 +371,7 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
         capacities=(16, 16, 16)))
     got = s.process(img)
     tris = max(tb - ta for ta, tb in s.prep.ir_triangle_slices)
-    assert s.prep.ir_raster_config.capacities == _ir_generic_config(
-        "gather", s.prep.ir_texture_size, tris).capacities
+    assert s.prep.ir_raster_config.capacities == pass1_config(  # the generic gather capacities
+        tris, SUPERSAMPLE * 16).capacities
     assert s.recompiles == 1 and ok.recompiles == 0
     assert np.abs(got.astype(int) - want.astype(int)).max() <= 1

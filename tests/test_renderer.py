@@ -522,11 +522,13 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder)
     equals one rendered with those from the start)."""
     import dataclasses
 
-    from spectral_fit.renderer import _ir_generic_config, _regrow, prepare, render_frame
+    from spectral_fit.interreflection import SUPERSAMPLE, pass1_config
+    from spectral_fit.renderer import _regrow, prepare, render_frame
 
     p = prepare(write_scene(scene_folder, mode="gather"))
     tris = max(tb - ta for ta, tb in p.ir_triangle_slices)
-    generic = _ir_generic_config("gather", p.ir_texture_size, tris)
+    # the renderer's generic gather capacities (test_interreflection checks they are these)
+    generic = pass1_config(tris, SUPERSAMPLE * 16)
     assert not bool(render_frame(p).stats["interreflection_overflow"])
     tiny = dataclasses.replace(p, ir_raster_config=p.ir_raster_config._replace(
         capacities=(16, 16, 16)))
