@@ -40,8 +40,6 @@ def rotation_angle_deg(ra, rb) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-
-
 def scene_dict(*, markers=None, objects=None, width=720, height=480, intrinsics=True):
     """A small scene config (dict) with the synthetic camera and two marker-attached spheres."""
     cam = {}
