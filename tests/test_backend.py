@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _rendering_util import write_scene
+from helpers.rendering import write_scene
 
 from spectral_fit import backend, raster, renderer
 from spectral_fit.errors import InputError
@@ -34,10 +34,10 @@ def test_layout_variable(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def prep(tmp_path_factory):
+def prep(scene_folder):
     # gather interreflection, two colours, a mirror term: every layout-dependent path runs
-    return renderer.prepare(write_scene(tmp_path_factory.mktemp("layout"), mode="gather",
-                                        same_colour=False, chi=0.3))
+    return renderer.prepare(write_scene(scene_folder, mode="gather", same_colour=False,
+                                        chi=0.3))
 
 
 def _with_layout(monkeypatch, accelerator: bool, fn):

@@ -4,12 +4,12 @@ brute force, mirror, eq. (5) shading, gradients vs finite differences, vmap, bas
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import STUDIO_ROOM
 
 from spectral_fit.environment import (
     SH_C1,
@@ -339,9 +339,9 @@ def test_basis_coefficient_shading_matches_bands():
     basis = pca_basis(8, wl)
     env_b = EnvironmentMap.from_array(img)
     env_k = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor)
-    from spectral_fit.basis import reflectances_5nm
+    from spectral_fit.basis import training_spectra
 
-    _, refl = reflectances_5nm()
+    refl = training_spectra("reflectances", wl)
     W = xyz_weights(wl)
     cfg = _configs(0.2, 6, seed=5)
     des = []
@@ -385,9 +385,7 @@ def test_compressed_measured_map_keeps_its_gloss():
     1e-3 of the largest value; measured 2.4e-6, asserted 2e-5 (3e-2 gives 4e-5 and fails)."""
     from spectral_fit.exr import read_spectral_exr
 
-    path = Path(__file__).resolve().parents[1] / "measurements" / "environment" / \
-        "studio_room.exr"
-    _, img = read_spectral_exr(path)
+    _, img = read_spectral_exr(STUDIO_ROOM)
     img = np.asarray(img, np.float64)
     small = EnvironmentMap.from_array(img, compress_tol=1e-3)
     full = EnvironmentMap.from_array(img, compress_tol=0.0)

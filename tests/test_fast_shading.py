@@ -1,5 +1,5 @@
 """Quality "fast" of the frame renderer: the split-sum gloss (environment.gloss_split_sum) against
-brute force (tests/_lighting_util.py), its lobe moments against a direct sum over reflected
+brute force (tests/helpers/lighting.py), its lobe moments against a direct sum over reflected
 directions, its gradients against central differences, and the vectorisable atan2 / (u, v)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _lighting_util import anchor_map, brute_gloss, configs, fresnel, gaussian_k, unit
+from helpers.lighting import brute_gloss, configs, fresnel, gaussian_k, unit
 
 from spectral_fit.environment import (
     EnvironmentMap,
@@ -31,8 +31,8 @@ from spectral_fit.errors import InputError
 
 
 @pytest.fixture(scope="module")
-def anchor():
-    img, env, lamp = anchor_map()
+def anchor(anchor_lighting):
+    img, env, lamp = anchor_lighting
     pre = SplitSumMap.from_environment(env, img)
     return img, env, pre, lamp
 
@@ -202,7 +202,7 @@ def test_split_sum_gradients_match_finite_differences(anchor):
 
 
 def test_settings_are_checked(anchor, tmp_path):
-    from _rendering_util import write_scene
+    from helpers.rendering import write_scene
 
     from spectral_fit.renderer import prepare
 

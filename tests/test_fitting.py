@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
-from _fitting_util import (
+from helpers import subprocess_env
+from helpers.fitting import (
     CENTRES,
     RADIUS,
     TRUE,
@@ -28,7 +27,6 @@ from spectral_fit.errors import InputError
 from spectral_fit.scene import load_scene
 from spectral_fit.session import load_session
 
-ROOT = Path(__file__).resolve().parent.parent
 RES = 6  # spot resolution in these tests
 
 
@@ -62,7 +60,7 @@ def small(tmp_path_factory):
     return scene, session, prep, env, clean
 
 
-def test_uniform_environment_oracle(tmp_path):
+def test_uniform_environment_oracle(tmp_path, small_scene_config):
     """Under a uniform map L0 a spot's reading is closed-form: α S L0 (Lambert; E = π L0) plus
     χ L0 · mean F(n, θr) over the field (mirror), with θr from an analytic sphere intersection
     of the field's rays (independent of the mesh and of the ray caster)."""
@@ -72,7 +70,7 @@ def test_uniform_environment_oracle(tmp_path):
     from spectral_fit.exr import write_spectral_exr
     from spectral_fit.reflectance import fresnel_dielectric
 
-    cfg = write_small_scene(tmp_path)
+    cfg = small_scene_config
     wl = np.arange(400.0, 701.0, 20.0)
     L0 = 1e-3 * (1.0 + (wl - 400.0) / 300.0)
     write_spectral_exr(tmp_path / "env.exr", wl, np.broadcast_to(L0, (16, 32, wl.size))
@@ -280,14 +278,13 @@ _X64 = textwrap.dedent("""
     import jax
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp, numpy as np
-    sys.path.insert(0, sys.argv[1])
     warnings.simplefilter("ignore")
-    from _fitting_util import TRUE, spots, write_session, write_small_scene
+    from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
     from spectral_fit import fitting
     from spectral_fit.scene import load_scene
     from spectral_fit.session import load_session
-    root = Path(sys.argv[2])
+    root = Path(sys.argv[1])
     cfg = write_small_scene(root)
     scene = load_scene(cfg)
     opts = fitting.FitOptions(spot_resolution=5, dtype=jnp.float64)
@@ -306,9 +303,8 @@ _X64 = textwrap.dedent("""
 @pytest.mark.slow
 def test_exact_recovery_float64(tmp_path):
     """Float64 (own process): noiseless own-model readings, 4 starts, every parameter to 1e-6."""
-    out = subprocess.run([sys.executable, "-c", _X64, str(Path(__file__).parent),
-                          str(tmp_path)], capture_output=True, text=True, timeout=900,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    out = subprocess.run([sys.executable, "-c", _X64, str(tmp_path)], capture_output=True,
+                         text=True, timeout=900, env=subprocess_env())
     assert out.returncode == 0, out.stderr[-3000:]
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert got["status"] == "converged"
@@ -349,15 +345,14 @@ _SHARD = textwrap.dedent("""
     import os, sys, json, warnings
     os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
     import jax, numpy as np
-    sys.path.insert(0, sys.argv[1])
     warnings.simplefilter("ignore")
-    from _fitting_util import TRUE, spots, write_session, write_small_scene
+    from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
     from spectral_fit import fitting
     from spectral_fit.scene import load_scene
     from spectral_fit.session import load_session
     assert len(jax.devices()) == 2
-    root = Path(sys.argv[2])
+    root = Path(sys.argv[1])
     cfg = write_small_scene(root)
     scene = load_scene(cfg)
     opts = fitting.FitOptions(spot_resolution=4)
@@ -380,9 +375,8 @@ _SHARD = textwrap.dedent("""
 def test_sharded_batch_two_devices(tmp_path):
     """fit_many shards K sessions over 2 (forced host) devices and gives the single-device
     numbers."""
-    out = subprocess.run([sys.executable, "-c", _SHARD, str(Path(__file__).parent),
-                          str(tmp_path)], capture_output=True, text=True, timeout=900,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    out = subprocess.run([sys.executable, "-c", _SHARD, str(tmp_path)], capture_output=True,
+                         text=True, timeout=900, env=subprocess_env())
     assert out.returncode == 0, out.stderr[-3000:]
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert len(got["devices"]) == 2
@@ -471,8 +465,8 @@ def test_report_render_is_the_fitted_scene_rendered(tmp_path, monkeypatch):
     import dataclasses
     from types import SimpleNamespace
 
-    from _rendering_util import scene_toml as two_spheres_toml
-    from _rendering_util import symmetric_environment
+    from helpers.rendering import scene_toml as two_spheres_toml
+    from helpers.rendering import symmetric_environment
     from PIL import Image
 
     from spectral_fit import renderer, report, startup

@@ -6,16 +6,15 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _interreflection_util import (
+from helpers import load_script, subprocess_env
+from helpers.interreflection import (
     CENTRES,
     R,
     gbuffer,
@@ -418,11 +417,8 @@ def test_gradients_float32_gather(gather_geom, linear_env):
 def test_gradients_match_finite_differences():
     """d(Σ w · IR)/d(every material parameter of both objects) vs central differences, float64,
     gather (2 bounces) and paper mode, in a fresh interpreter (x64)."""
-    here = Path(__file__).resolve().parent
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [str(here.parent), str(here), os.environ.get("PYTHONPATH", "")])}
-    res = subprocess.run([sys.executable, str(here / "_interreflection_util.py"), "gradients"],
-                         capture_output=True, text=True, env=env, timeout=600)
+    res = subprocess.run([sys.executable, "-m", "helpers.interreflection", "gradients"],
+                         capture_output=True, text=True, env=subprocess_env(), timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     data = json.loads(res.stdout.strip().splitlines()[-1])
     for key, rows in data.items():
@@ -439,8 +435,7 @@ def test_gather_against_path_traced_reference():
     """Benchmark frame vs the committed Mitsuba reference (depth 16): ΔE00 of 5×5 patch means,
     gather mode with 2 bounces, issue 6's targets (direct: median ≤ 0.5, p90 ≤ 1.0;
     interreflection-dominated: median ≤ 0.5, p90 ≤ 1.5)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    from interreflection_reference import main
+    main = load_script("interreflection_reference").main
 
     out = main(["--modes", "gather2"])["gather2"]
     assert out["direct"]["median"] <= 0.5 and out["direct"]["p90"] <= 1.0, out
@@ -482,7 +477,7 @@ def _lamp_env():
 def _brute_force_case(points, cone, lobe):
     """Gather (1 bounce) vs the float64 brute-force single bounce at receiver points given as
     (object, polar angle from the axis to the neighbour, azimuth) on two glossy spheres."""
-    from _interreflection_util import brute_force_single_bounce
+    from helpers.interreflection import brute_force_single_bounce
 
     objs = sphere_objects(stacks=32)
     env = _lamp_env()

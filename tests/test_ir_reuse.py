@@ -135,7 +135,7 @@ def test_live_session_reuses_senders_while_objects_stay_put():
     visibility change, and nothing recompiles."""
     import dataclasses
 
-    from _live_util import scene_dict
+    from helpers.live import scene_dict
 
     from spectral_fit.live import STEP_TRACES, LiveSession
     from spectral_fit.markers import Poses

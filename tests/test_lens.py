@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ import pytest
 pytest.importorskip("cv2")
 
 import cv2  # noqa: E402  (after the skip: the `live` extra)
+from helpers import ROOT  # noqa: E402
 
 from spectral_fit.errors import InputError
 from spectral_fit.lens import (
@@ -24,7 +24,6 @@ from spectral_fit.lens import (
     undistort_normalized,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 GL = np.array([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL eye axes
 K = np.array([[210.0, 0.0, 121.0], [0.0, 205.0, 78.5], [0.0, 0.0, 1.0]])  # 240 x 160
 SIZE = (160, 240)
@@ -288,13 +287,12 @@ def test_lens_benchmark_scene_rays_are_opencvs():
     inside the frame: every pixel centre's ray projects back onto that centre through
     OpenCV's model (checked on a sparse grid)."""
     from spectral_fit.benchmarks.frame import LENS, benchmark_scene
-    from spectral_fit.camera import projection_to_intrinsics
-    from spectral_fit.renderer import _projection
+    from spectral_fit.live import scene_intrinsics
 
     scene = benchmark_scene(distortion=LENS, quick=True)
     assert scene.camera.distortion == LENS and scene.camera.intrinsics is None
     h, w = scene.height, scene.width
-    k = np.asarray(projection_to_intrinsics(_projection(scene, (h, w)), w, h), np.float64)
+    k = np.asarray(scene_intrinsics(scene, (h, w))[0], np.float64)
     rays = pixel_rays(k, lens_parameters(np.asarray(LENS)), (h, w)).reshape(h, w, 3)
     v, u = np.mgrid[0:h:37, 0:w:53]
     back, _ = cv2.projectPoints((rays[v.ravel(), u.ravel()] * GL).astype(np.float64),

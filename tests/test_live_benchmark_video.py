@@ -11,7 +11,8 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from _live_util import ROOT, rotation_angle_deg
+from helpers import ROOT
+from helpers.live import rotation_angle_deg
 
 from spectral_fit.live import scene_intrinsics
 from spectral_fit.markers import MarkerDetector

@@ -11,7 +11,8 @@ import pytest
 pytest.importorskip("cv2")
 
 import cv2
-from _live_util import DIST, ENV, SIZE, K
+from helpers import ANCHOR_ENV
+from helpers.live import DIST, SIZE, K
 
 from spectral_fit.camera_calibration import (
     CalibrationTarget,
@@ -90,7 +91,7 @@ fov_y_deg = 60.0  # replaced by the intrinsics
 distortion = [0.0, 0.0, 0.0, 0.0]
 
 [environment]
-file = "{ENV}"
+file = "{ANCHOR_ENV}"
 
 [[objects]]
 name = "ball"

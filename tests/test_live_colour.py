@@ -13,7 +13,8 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from _live_util import ENV, scene_dict
+from helpers import ANCHOR_ENV
+from helpers.live import scene_dict
 
 from spectral_fit.compositing import (
     CameraModel,
@@ -112,7 +113,7 @@ def test_calibrate_colour_command_writes_the_config_and_live_uses_it(scene, tmp_
     cfg = tmp_path / "scene.toml"
     cfg.write_text("\n".join([
         "# my scene", "[frame]", "width = 720", "height = 480", "",
-        "[environment]", f'file = "{ENV}"', "rotation_y_deg = 180.0  # keep me", "",
+        "[environment]", f'file = "{ANCHOR_ENV}"', "rotation_y_deg = 180.0  # keep me", "",
         "[spectral]", "start_nm = 400.0", "end_nm = 700.0", "step_nm = 10.0", "",
         "[camera_colour]", "matrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]", "",
         "[[objects]]", 'name = "ball"', "radius = 0.03", ""]))

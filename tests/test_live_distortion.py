@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("cv2")
 pytest.importorskip("spectral_fit.renderer")
 
-from _live_util import K, scene_dict, table
+from helpers.live import K, scene_dict, table
 
 from spectral_fit.errors import InputError
 from spectral_fit.scene import parse_scene

@@ -6,11 +6,9 @@ before JAX starts its backend)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,23 +16,21 @@ import pytest
 pytest.importorskip("cv2")
 pytest.importorskip("spectral_fit.renderer")
 
-from spectral_fit.errors import InputError
+from helpers import ROOT, subprocess_env
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
+from spectral_fit.errors import InputError
 
 _TWO = textwrap.dedent("""
     import json, sys
     from spectral_fit import process, startup
     assert process.split_cpu_devices(2) == 2
     import jax, numpy as np
-    sys.path.insert(0, sys.argv[1])
-    from test_live_pipeline import SIZE, _frame, _scene
+    from helpers.live import SMALL_SIZE as SIZE, small_frame as _frame, small_scene as _scene
     from skimage import data
     from spectral_fit.live import LiveSession, STEP_TRACES
     from spectral_fit.synthetic_video import MarkerPlacement, make_table
 
-    mode, reuse = sys.argv[2], float(sys.argv[3])
+    mode, reuse = sys.argv[1], float(sys.argv[2])
     devs = jax.devices()
     assert len(devs) == 2 and process.split_cpu_devices(3) == 2  # too late: unchanged
     table = make_table(data.coffee(), [MarkerPlacement(3, -0.06, 0.0, 0.08),
@@ -82,10 +78,10 @@ _TWO = textwrap.dedent("""
 
 
 def _two_devices(mode: str, reuse_mm: float = 0.5) -> dict:
-    out = subprocess.run([sys.executable, "-c", _TWO, str(HERE), mode, str(reuse_mm)],
+    out = subprocess.run([sys.executable, "-c", _TWO, mode, str(reuse_mm)],
                          capture_output=True,
                          text=True, timeout=900,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+                         env=subprocess_env())
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 

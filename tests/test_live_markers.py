@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from _live_util import DIST, MARKER_SIZE, K, frame, rotation_angle_deg, scene_dict, table
+from helpers.live import DIST, MARKER_SIZE, K, frame, rotation_angle_deg, scene_dict, table
 
 from spectral_fit.errors import InputError
 from spectral_fit.markers import MarkerDetection, MarkerDetector, MarkerTracker, ground_frame

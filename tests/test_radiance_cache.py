@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _fitting_util import TRUE, assert_recovered, spots, write_session, write_small_scene
+from helpers.fitting import TRUE, assert_recovered, spots, write_session
 
 from spectral_fit import fitting
 from spectral_fit import radiance_cache as rc
@@ -146,7 +146,7 @@ def test_interreflection_against_reference_readings():
             if p in truth[name]:
                 vals[o, k] = truth[name][p]
     v = jnp.asarray(vals, jnp.float32)
-    with_ir = np.asarray(fitting._predict_jit(pr, v, jnp.float32(1.0)), np.float64)
+    with_ir = np.asarray(eqx.filter_jit(fitting.predict)(pr, v, jnp.float32(1.0)), np.float64)
     ir = np.asarray(fitting.interreflection_term(pr, v), np.float64)
     cal = np.asarray(pr.calibration, np.float64)
     band = np.asarray(pr.band, np.float64)
@@ -164,11 +164,11 @@ def test_interreflection_against_reference_readings():
 
 
 @pytest.mark.slow
-def test_recovery_with_interreflection_own_model(tmp_path):
+def test_recovery_with_interreflection_own_model(tmp_path, small_scene_config):
     """Noiseless readings of the cached model WITH interreflection (two spheres 15 mm apart,
     spots facing each other included): the fit, whose Jacobian holds the interreflection
     term's derivative, recovers every parameter (float32: within 2e-3 relative)."""
-    cfg = write_small_scene(tmp_path)
+    cfg = small_scene_config
     cfg.write_text(cfg.read_text().replace('mode = "none"', 'mode = "gather"'))
     scene = load_scene(cfg)
     env = fitting.scene_environment(scene, compress_tol=3e-3)

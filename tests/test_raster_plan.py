@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _raster_util import MID, SMALL, camera, clip_of, rasterize_padded
-from test_raster import _two_spheres, soup
+from helpers.raster import MID, SMALL, camera, clip_of, rasterize_padded, soup, two_spheres
 
 from spectral_fit import raster
 from spectral_fit.errors import InputError
@@ -36,7 +35,7 @@ def test_plan_counts_equal_the_rasterisers_counts_on_soups(seed, cull):
 
 
 def test_plan_counts_near_plane_crossing_meshes():
-    mesh = _two_spheres(-2.0)
+    mesh = two_spheres(-2.0)
     cam = camera(MID, near=0.5)
     for z in (0.0, 1.3, 1.6):  # in front, cut by the near plane, around the eye
         clip = clip_of(cam, mesh.vertices, translate((0.0, 0.0, z)))
@@ -44,7 +43,7 @@ def test_plan_counts_near_plane_crossing_meshes():
 
 
 def test_plan_config_sizes_from_counts_and_renderer_shares_it():
-    mesh = _two_spheres(-2.0)
+    mesh = two_spheres(-2.0)
     clip = clip_of(camera(MID), mesh.vertices)
     counts = raster.plan_counts(clip, mesh.triangles, MID)
     cfg = raster.plan_config(clip, mesh.triangles, MID, headroom=1.5)

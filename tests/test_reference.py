@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from _reference_util import (  # noqa: E402
+from helpers.reference import (  # noqa: E402
     fully_covered,
     pixel_subsamples,
     single_bounce_quadrature,
@@ -383,16 +383,11 @@ def test_intrinsics_silhouettes_match_our_camera_rays():
 
 def test_generator_smoke_run(tmp_path):
     """scripts/make_references.py at a tiny size: files written, loadable, consistent."""
-    import importlib.util
-
-    from _reference_util import REPO
+    from helpers import load_script
 
     from spectral_fit.reference import load_reference
 
-    spec = importlib.util.spec_from_file_location("make_references",
-                                                  REPO / "scripts" / "make_references.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("make_references")
     rc = mod.main(["--only", "benchmark", "--size", "288", "192", "--bands", "500", "520", "10",
                    "--spp", "2", "--passes", "2", "--out", str(tmp_path)])
     assert rc == 0
@@ -413,7 +408,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     import json
     import tomllib
 
-    from _reference_util import REPO
+    from helpers import ROOT
 
     from spectral_fit.environment import EnvironmentMap, irradiance_exact
     from spectral_fit.reference.export import environment_texels
@@ -421,7 +416,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     from spectral_fit.scene import load_scene
     from spectral_fit.spectra import read_spectrum_csv
 
-    scene = load_scene(REPO / "configs" / "two_spheres.toml",
+    scene = load_scene(ROOT / "configs" / "two_spheres.toml",
                        lambda d: d["spectral"].update(start_nm=540, end_nm=560, step_nm=10))
     inst = Spectroradiometer(pixels=8, repeats=4)
     white = {"position": [0.0, 0.0, -0.275], "normal": [0.0, 0.0, 1.0], "reflectance": 0.99}
@@ -430,7 +425,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     man = tomllib.loads(m.read_text())
     assert man["session"]["format"] == 1 and len(man["readings"]) == 10
     assert (m.parent / man["session"]["scene"]).resolve() == (
-        REPO / "configs" / "two_spheres.toml").resolve()
+        ROOT / "configs" / "two_spheres.toml").resolve()
     truth = json.loads((m.parent / "truth.json").read_text())
     wl = np.asarray(truth["wavelengths_nm"])
     assert wl[0] == 540 and wl[-1] == 560 and np.allclose(np.diff(wl), 1.0)

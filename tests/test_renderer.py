@@ -13,21 +13,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _rendering_util import CENTRES, RADIUS, SIZE, ray_directions, write_scene
+from helpers.rendering import CENTRES, RADIUS, SIZE, ray_directions, write_scene
 
 from spectral_fit.errors import InputError
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    return tmp_path_factory.mktemp("render")
-
-
-@pytest.fixture(scope="module")
-def prep(folder):
+def prep(scene_folder):
     from spectral_fit.renderer import prepare
 
-    return prepare(write_scene(folder, mode="none"))
+    return prepare(write_scene(scene_folder, mode="none"))
 
 
 @pytest.fixture(scope="module")
@@ -311,10 +306,10 @@ def test_object_pixel_lists_match_covered_pixels_per_object():
     assert bool(pix.overflow) and [bool(q.overflow) for q in want] == [False, True, False]
 
 
-def test_bad_inputs_name_the_option(prep, folder):
+def test_bad_inputs_name_the_option(prep, scene_folder):
     from spectral_fit.renderer import prepare, render_frame
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     with pytest.raises(InputError, match="mode"):
         prepare(cfg, mode="sideways")
     with pytest.raises(InputError, match="size"):
@@ -338,13 +333,13 @@ def _interreflection_available() -> bool:
 @pytest.mark.skipif(not _interreflection_available(),
                     reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
 @pytest.mark.parametrize("mode", ["gather", pytest.param("paper", marks=pytest.mark.slow)])
-def test_interreflection_changes_only_pixels_that_see_the_other_object(folder, prep, frame,
+def test_interreflection_changes_only_pixels_that_see_the_other_object(scene_folder, prep, frame,
                                                                        mode):
     """A pixel on sphere i can receive light from sphere j only if j rises above i's tangent
     plane there: N·(c_j − p) > −R. Elsewhere interreflection must change nothing."""
     from spectral_fit.renderer import prepare, render_frame
 
-    p_ir = prepare(write_scene(folder, mode=mode))
+    p_ir = prepare(write_scene(scene_folder, mode=mode))
     f = render_frame(p_ir)
     mask = np.asarray(frame.mask)
     assert np.array_equal(mask, np.asarray(f.mask))
@@ -367,11 +362,11 @@ def test_interreflection_changes_only_pixels_that_see_the_other_object(folder, p
     assert not np.any(changed & ~sees), int(np.sum(changed & ~sees))
 
 
-def test_render_cli_smoke(folder, tmp_path):
+def test_render_cli_smoke(scene_folder, tmp_path):
     from spectral_fit.cli import main
     from spectral_fit.exr import read_channels_exr
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     png, xyz = tmp_path / "f.png", tmp_path / "f_xyz.exr"
     rc = main(["render", str(cfg), "-o", str(png), "--xyz-exr", str(xyz), "--size",
                f"{SIZE[0]}x{SIZE[1]}", "--mode", "none", "--mask", str(tmp_path / "m.png")])
@@ -380,10 +375,10 @@ def test_render_cli_smoke(folder, tmp_path):
     assert img.shape == (SIZE[1], SIZE[0], 3) and img[..., 1].min() > 0
 
 
-def test_render_cli_json(folder, tmp_path, capsys):
+def test_render_cli_json(scene_folder, tmp_path, capsys):
     from spectral_fit.cli import main
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     rc = main(["render", str(cfg), "-o", str(tmp_path / "f.png"), "--json"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
@@ -397,10 +392,10 @@ def test_render_cli_json(folder, tmp_path, capsys):
     (["--size", "0x10"], "--size"),
     (["--composite", "c.png"], "--background"),
 ])
-def test_render_cli_bad_input(folder, tmp_path, capsys, args, needle):
+def test_render_cli_bad_input(scene_folder, tmp_path, capsys, args, needle):
     from spectral_fit.cli import main
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     rc = main(["render", str(cfg), "-o", str(tmp_path / "f.png"), *args])
     err = capsys.readouterr().err
     assert rc == 2 and needle in err and "Traceback" not in err
@@ -488,14 +483,14 @@ def test_gather_mode_matches_the_path_traced_reference():
 
 @pytest.mark.skipif(not _interreflection_available(),
                     reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
-def test_mirror_switch_is_exact_and_follows_chi(folder):
+def test_mirror_switch_is_exact_and_follows_chi(scene_folder):
     """Every χ a concrete 0: the frame is compiled without the mirror term, and equals the
     frame compiled with it; a χ that is not 0 compiles it in (its light reaches the other
     object through the interreflection); χ traced keeps it; mirror=False with χ != 0 is
     refused."""
     from spectral_fit.renderer import mirror_needed, prepare, render_frame
 
-    p = prepare(write_scene(folder, mode="gather"))
+    p = prepare(write_scene(scene_folder, mode="gather"))
     assert not mirror_needed(p.materials)
     auto = render_frame(p)
     full = render_frame(p, mirror=True)
@@ -522,17 +517,19 @@ def test_mirror_switch_is_exact_and_follows_chi(folder):
 
 @pytest.mark.skipif(not _interreflection_available(),
                     reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
-def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
+def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder):
     """Gather pass-1 capacities are planned per mesh (small); a pose that overflows them is
     reported, and render's regrow re-renders with the generic capacities (the frame then
     equals one rendered with those from the start)."""
     import dataclasses
 
-    from spectral_fit.renderer import _ir_generic_config, prepare, regrow, render_frame
+    from spectral_fit.interreflection import SUPERSAMPLE, pass1_config
+    from spectral_fit.renderer import prepare, regrow, render_frame
 
-    p = prepare(write_scene(folder, mode="gather"))
+    p = prepare(write_scene(scene_folder, mode="gather"))
     tris = max(tb - ta for ta, tb in p.ir_triangle_slices)
-    generic = _ir_generic_config("gather", p.ir_texture_size, tris)
+    # the renderer's generic gather capacities (test_interreflection checks they are these)
+    generic = pass1_config(tris, SUPERSAMPLE * 16)
     assert not bool(render_frame(p).stats["interreflection_overflow"])
     tiny = dataclasses.replace(p, ir_raster_config=p.ir_raster_config._replace(
         capacities=(16, 16, 16)))
@@ -545,12 +542,12 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
     np.testing.assert_allclose(np.asarray(g.xyz), np.asarray(ref.xyz), rtol=1e-6, atol=1e-7)
 
 
-def test_frame_stages_are_named_for_profilers(folder):
+def test_frame_stages_are_named_for_profilers(scene_folder):
     """The frame program's operations carry the stage names that docs/rendering.md lists for
     reading profiler traces (jax.named_scope: they appear in the HLO op names)."""
     from spectral_fit import renderer
 
-    p = renderer.prepare(write_scene(folder, mode="gather"))
+    p = renderer.prepare(write_scene(scene_folder, mode="gather"))
     args = renderer._check_frame_inputs(p, None, None, None, None)
     text = renderer._render_jit.lower(p, *args, False, True, False).as_text(debug_info=True)
     for stage in ("raster", "pixel_lists", "shading", "ir_pass1", "ir_sample_shading",

@@ -4,18 +4,17 @@ import copy
 import math
 import shutil
 import tomllib
-from pathlib import Path
 
 import colour
 import numpy as np
 import pytest
+from helpers import ROOT
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from spectral_fit.errors import InputError
 from spectral_fit.scene import load_scene, parse_scene
 
-ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "configs" / "two_spheres.toml"
 
 

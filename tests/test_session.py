@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _fitting_util import SMALL_CONFIG, spots
+from helpers.fitting import SMALL_CONFIG, spots
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 

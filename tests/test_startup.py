@@ -15,13 +15,11 @@ from typing import Any
 import jax
 import numpy as np
 import pytest
+from helpers import ANCHOR_ENV, ROOT
+from helpers.rendering import scene_toml
 
 from spectral_fit import process, startup
 from spectral_fit.errors import InputError
-
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _rendering_util import ANCHOR_ENV, scene_toml  # noqa: E402
 
 
 def _small_env(path: Path, scale: float = 1.0) -> Path:

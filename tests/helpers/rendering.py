@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-ANCHOR_ENV = ROOT / "measurements" / "benchmark" / "anchor_environment.exr"
+from helpers import ANCHOR_ENV
 
 SIZE = (128, 96)  # W, H of the test frames
 RADIUS = 0.0375

@@ -4,14 +4,11 @@ smooth analytic environment maps, brute-force quadrature)."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
+from helpers import ANCHOR_ENV, ROOT
 from spectral_fit.scene import parse_scene
-
-REPO = Path(__file__).resolve().parents[1]
-BENCH_ENV = REPO / "measurements" / "benchmark" / "anchor_environment.exr"
 
 
 def small_scene(*, objects: list[dict], width: int = 32, height: int = 32, fov: float = 20.0,
@@ -21,11 +18,11 @@ def small_scene(*, objects: list[dict], width: int = 32, height: int = 32, fov: 
     data = {
         "frame": {"width": width, "height": height},
         "camera": {"fov_y_deg": fov, "position": list(position), "look_at": list(look_at)},
-        "environment": {"file": str(BENCH_ENV), "rotation_y_deg": rotation_y_deg},
+        "environment": {"file": str(ANCHOR_ENV), "rotation_y_deg": rotation_y_deg},
         "spectral": {"start_nm": bands[0], "end_nm": bands[1], "step_nm": bands[2]},
         "objects": objects,
     }
-    return parse_scene(data, path=REPO / "configs" / "test.toml")
+    return parse_scene(data, path=ROOT / "configs" / "test.toml")
 
 
 def sphere_obj(name: str, position, radius: float = 0.0375, **material) -> dict:

@@ -10,6 +10,7 @@ import numpy as np
 
 from spectral_fit import raster
 from spectral_fit.camera import perspective_camera, project
+from spectral_fit.mesh import concat_meshes, translate, uv_sphere
 
 SMALL = (32, 64)  # (H, W) of the frames compared with the brute-force reference
 MID = (72, 96)
@@ -59,6 +60,28 @@ def camera(shape, *, fov_y_deg=60.0, near=0.01, far=100.0):
 
 def clip_of(cam, vertices, model=None):
     return np.asarray(project(cam, vertices, model))
+
+
+def soup(seed, n_tri=48, *, behind=True):
+    """Random triangles of all sizes in eye space (some crossing the near plane, the eye plane
+    and the far plane), projected with the test camera: (clip (3n, 4), tris (n, 3))."""
+    rng = np.random.default_rng(seed)
+    cam = camera(SMALL, near=0.5, far=6.0)
+    centre = np.stack([rng.uniform(-2, 2, n_tri), rng.uniform(-1.5, 1.5, n_tri),
+                       rng.uniform(-7, -0.3 if behind else -1.0, n_tri)], -1)
+    size = np.exp(rng.uniform(np.log(0.02), np.log(4.0), n_tri))[:, None, None]
+    pts = centre[:, None, :] + size * rng.normal(size=(n_tri, 3, 3))
+    verts = pts.reshape(-1, 3)
+    tris = np.arange(3 * n_tri).reshape(n_tri, 3)
+    return clip_of(cam, verts), tris
+
+
+def two_spheres(z):
+    """Two UV spheres (radius 0.3, 12 × 16) side by side at depth ``z`` (and ``z`` − 0.2), one
+    mesh."""
+    s = uv_sphere(0.3, 12, 16)
+    return concat_meshes([s.transformed(translate((-0.35, 0.0, z))),
+                          s.transformed(translate((0.35, 0.1, z - 0.2)))])[0]
 
 
 def pixel_rays(cam, shape):

@@ -5,11 +5,11 @@ closed forms of F, D and G (independent of spectral_fit.reflectance)."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 from scipy.special import erf
 
+from helpers import ANCHOR_ENV
 from spectral_fit.environment import (
     EnvironmentMap,
     rotation_y,
@@ -18,14 +18,11 @@ from spectral_fit.environment import (
 )
 from spectral_fit.exr import read_spectral_exr
 
-ANCHOR = Path(__file__).resolve().parents[1] / "measurements" / "benchmark" / \
-    "anchor_environment.exr"
-
 
 def anchor_map():
     """The benchmark's anchor map as the lighting tests use it: (img (H, W, C) float64, the
     EnvironmentMap with its 180° rotation, the world direction (3,) of its brightest texel)."""
-    _, img = read_spectral_exr(ANCHOR)
+    _, img = read_spectral_exr(ANCHOR_ENV)
     img = np.asarray(img, np.float64)
     env = EnvironmentMap.from_array(img, rotation_y_deg=180.0)
     lum = img.sum(-1)

@@ -1,6 +1,7 @@
 """Shared helpers of the interreflection tests (small scenes, analytic environments) and the
-float64 gradient check, run in its own interpreter (``python tests/_interreflection_util.py``)
-so that ``jax_enable_x64`` never leaks into other tests."""
+float64 gradient check, run in its own interpreter (``python -m helpers.interreflection
+gradients``, tests/ on the import path) so that ``jax_enable_x64`` never leaks into other
+tests."""
 
 from __future__ import annotations
 
