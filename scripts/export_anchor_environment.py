@@ -41,7 +41,7 @@ def main() -> None:
                     default=str(HERE.parent / "measurements" / "benchmark" /
                                 "anchor_environment.exr"))
     args = ap.parse_args()
-    from spectral_fit.exr import write_spectral_exr
+    from spectral_fit.io import write_spectral_exr
 
     anchor = load_anchor(Path(args.anchor_dir))
     env = np.asarray(anchor.make_env(), dtype=np.float32)  # (128, 256, 31)

@@ -30,16 +30,16 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from helpers.lighting import brute_gloss, configs, grazing_configs  # noqa: E402
 
-from spectral_fit.environment import (  # noqa: E402
+from spectral_fit.io import read_spectral_exr  # noqa: E402
+from spectral_fit.lighting import (  # noqa: E402
     EnvironmentMap,
     SplitSumMap,
     gloss_integral,
     gloss_split_sum,
     lobe_moment_table,
     rotation_y,
-    texel_directions,  # noqa: E402
+    texel_directions,
 )
-from spectral_fit.exr import read_spectral_exr  # noqa: E402
 
 MAPS = {"benchmark": (ROOT / "measurements/benchmark/anchor_environment.exr", 180.0),
         "room": (ROOT / "measurements/environment/studio_room.exr", 0.0)}

@@ -1,5 +1,5 @@
-"""The two work layouts (spectral_fit.backend): the accelerator layout (whole batches at once,
-no device loops or conditionals) renders the same frame, with the same gradients, as the CPU
+"""The two work layouts (spectral_fit._runtime.backend): the accelerator layout (whole batches at
+once, no device loops or conditionals) renders the same frame, with the same gradients, as the CPU
 layout (chunks in a loop, empty chunks skipped). Both run here on the CPU."""
 
 from __future__ import annotations
@@ -12,11 +12,13 @@ import numpy as np
 import pytest
 from helpers.rendering import write_scene
 
-from spectral_fit import backend, raster, renderer
-from spectral_fit.errors import InputError
+from spectral_fit._runtime import backend
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.geometry import _raster as raster
+from spectral_fit.rendering import _renderer as renderer
 
 # the module (the package exports a function of the same name)
-interreflection = importlib.import_module("spectral_fit.interreflection")
+interreflection = importlib.import_module("spectral_fit.rendering.interreflection._transport")
 
 
 def test_layout_variable(monkeypatch):

@@ -4,15 +4,17 @@ import colour
 import numpy as np
 import pytest
 
-from spectral_fit.basis import pca_basis, training_spectra
-from spectral_fit.colorimetry import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.color import (
+    default_wavelengths,
     delta_e00,
+    pca_basis,
     radiance_to_xyz,
     reflectance_to_xyz,
+    training_spectra,
+    wavelength_grid,
     xyz_to_lab,
 )
-from spectral_fit.errors import InputError
-from spectral_fit.spectra import default_wavelengths, wavelength_grid
 
 WL10 = wavelength_grid(400, 700, 10)
 CC = colour.SDS_COLOURCHECKERS["BabelColor Average"]

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from spectral_fit.commands.bench import results_path, results_table
+from spectral_fit.cli.commands.bench import results_path, results_table
 
 META = {"date": "2026-12-05", "cpu": "AMD EPYC 9R14 Processor", "cores": 2, "backend": "cpu",
         "devices": ["TFRT_CPU_0"]}

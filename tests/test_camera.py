@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spectral_fit.camera import (
+from spectral_fit.geometry import (
     Camera,
     interreflection_camera,
     intrinsics_matrix,
@@ -25,7 +25,7 @@ from spectral_fit.camera import (
     relative_transform,
     view_to_opencv_pose,
 )
-from spectral_fit.mesh import rotate, translate
+from spectral_fit.io import rotate, translate
 
 
 def _ndc(clip):
@@ -191,7 +191,7 @@ def test_closed_form_inverses_match_numpy():
     """inverse_3x3 / inverse_4x4 (closed forms, no LAPACK) against float64 numpy.linalg.inv on
     random well-conditioned matrices and on a projection·view product; eye_position against
     the eye given to look_at; gradients against jnp.linalg.inv's."""
-    from spectral_fit.camera import eye_position, inverse_3x3, inverse_4x4
+    from spectral_fit.geometry import eye_position, inverse_3x3, inverse_4x4
 
     rng = np.random.default_rng(3)
     m4 = (rng.normal(size=(40, 4, 4)) + 3 * np.eye(4)).astype(np.float32)

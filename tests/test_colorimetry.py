@@ -5,9 +5,10 @@ import colour
 import numpy as np
 import pytest
 
-from spectral_fit.colorimetry import (
+from spectral_fit.color import (
     cmfs,
     daylight_coefficients,
+    default_wavelengths,
     delta_e00,
     delta_uv_prime,
     integration_weights,
@@ -18,7 +19,6 @@ from spectral_fit.colorimetry import (
     xyz_to_xy,
     xyz_weights,
 )
-from spectral_fit.spectra import default_wavelengths
 
 WL = default_wavelengths()
 SHAPE = colour.SpectralShape(380, 780, 5)
@@ -103,7 +103,7 @@ def test_lab_against_reference_white():
     a = 500 * (f(cc[0] / n[0]) - f(cc[1] / n[1]))
     b = 200 * (f(cc[1] / n[1]) - f(cc[2] / n[2]))
     np.testing.assert_allclose(xyz_to_lab(c, white), [L, a, b], rtol=1e-6)
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
 
     with pytest.raises(InputError, match="white_xyz"):
         xyz_to_lab(c, [1.0, 0.0, 1.0])

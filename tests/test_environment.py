@@ -11,17 +11,21 @@ import numpy as np
 import pytest
 from helpers import STUDIO_ROOM
 
-from spectral_fit.environment import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import (
     SH_C1,
     SH_C2,
     SH_C3,
     SH_C4,
     SH_C5,
     EnvironmentMap,
+    fresnel_dielectric,
+    gaussian_d,
     gloss_integral,
     irradiance_exact,
     irradiance_sh,
     lookup,
+    make_material,
     mirror_radiance,
     rotation_y,
     shade,
@@ -29,12 +33,6 @@ from spectral_fit.environment import (
     texel_directions,
     texel_solid_angles,
     uv_to_direction,
-)
-from spectral_fit.errors import InputError
-from spectral_fit.reflectance import (
-    fresnel_dielectric,
-    gaussian_d,
-    make_material,
     vcavity_g,
 )
 
@@ -331,15 +329,14 @@ def test_vmap_pixels_and_materials_equals_loop(img3, env3):
 
 
 def test_basis_coefficient_shading_matches_bands():
-    from spectral_fit.basis import pca_basis
-    from spectral_fit.colorimetry import delta_e00, xyz_to_lab, xyz_weights
+    from spectral_fit.color import delta_e00, pca_basis, xyz_to_lab, xyz_weights
 
     wl = np.arange(380.0, 781.0, 5.0)
     img = synthetic_environment(16, 32, wl, lamp_radius_deg=12.0)
     basis = pca_basis(8, wl)
     env_b = EnvironmentMap.from_array(img)
     env_k = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor)
-    from spectral_fit.basis import training_spectra
+    from spectral_fit.color import training_spectra
 
     refl = training_spectra("reflectances", wl)
     W = xyz_weights(wl)
@@ -383,7 +380,7 @@ def test_compressed_measured_map_keeps_its_gloss():
     equals the
     uncompressed map's (``compress_tol=0``, every band kept). The tolerance bounds the error by
     1e-3 of the largest value; measured 2.4e-6, asserted 2e-5 (3e-2 gives 4e-5 and fails)."""
-    from spectral_fit.exr import read_spectral_exr
+    from spectral_fit.io import read_spectral_exr
 
     _, img = read_spectral_exr(STUDIO_ROOM)
     img = np.asarray(img, np.float64)
@@ -416,12 +413,7 @@ def test_padded_bilinear_is_the_general_lookup_bit_for_bit(shape):
     (``padded_bilinear``) returns exactly what the general taps (``bilinear_taps`` +
     ``taps_sum``) return: random coordinates, both seams, the pole caps past the first and
     last row centres, the very poles, and u, v exactly 0 and 1."""
-    from spectral_fit.environment import (
-        bilinear_taps,
-        padded_bilinear,
-        padded_table,
-        taps_sum,
-    )
+    from spectral_fit.lighting import bilinear_taps, padded_bilinear, padded_table, taps_sum
 
     hm, wm = shape
     rng = np.random.default_rng(hm)

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from helpers.lighting import brute_gloss, configs, fresnel, gaussian_k, unit
 
-from spectral_fit.environment import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import (
     EnvironmentMap,
     SplitSum,
     SplitSumMap,
-    _wrap,
     atan2_poly,
     direction_to_uv,
     fast_direction_to_uv,
@@ -27,7 +27,7 @@ from spectral_fit.environment import (
     rotation_y,
     sincos_poly,
 )
-from spectral_fit.errors import InputError
+from spectral_fit.lighting._environment import _wrap
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +124,7 @@ def _brute_moments(mu, theta_r, n=1.5, rows=1024):
 
 @pytest.mark.parametrize("mu", [0.1, 0.3])
 def test_lobe_moments_match_a_direct_sum_over_reflected_directions(mu):
-    from spectral_fit.environment import _interp_moments
+    from spectral_fit.lighting._environment import _interp_moments
 
     table = lobe_moment_table(mu, 1.5)
     for deg in (0.0, 30.0, 60.0, 75.0):
@@ -204,7 +204,7 @@ def test_split_sum_gradients_match_finite_differences(anchor):
 def test_settings_are_checked(anchor, tmp_path):
     from helpers.rendering import write_scene
 
-    from spectral_fit.renderer import prepare
+    from spectral_fit.rendering import prepare
 
     _, env, pre, _ = anchor
     table = lobe_moment_table(0.1, 1.5)

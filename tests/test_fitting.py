@@ -22,10 +22,9 @@ from helpers.fitting import (
     write_small_scene,
 )
 
-from spectral_fit import fitting
-from spectral_fit.errors import InputError
-from spectral_fit.scene import load_scene
-from spectral_fit.session import load_session
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.fitting import _fit as fitting
+from spectral_fit.io import load_scene, load_session
 
 RES = 6  # spot resolution in these tests
 
@@ -40,7 +39,7 @@ def small(tmp_path_factory):
     standard that calibrates it; returns (scene, session, prepared, env)."""
     import jax.numpy as jnp
 
-    from spectral_fit.environment import irradiance_exact
+    from spectral_fit.lighting import irradiance_exact
 
     root = tmp_path_factory.mktemp("fit")
     cfg = write_small_scene(root)
@@ -66,9 +65,9 @@ def test_uniform_environment_oracle(tmp_path, small_scene_config):
     of the field's rays (independent of the mesh and of the ray caster)."""
     import jax.numpy as jnp
 
-    from spectral_fit.camera import look_at
-    from spectral_fit.exr import write_spectral_exr
-    from spectral_fit.reflectance import fresnel_dielectric
+    from spectral_fit.geometry import look_at
+    from spectral_fit.io import write_spectral_exr
+    from spectral_fit.lighting import fresnel_dielectric
 
     cfg = small_scene_config
     wl = np.arange(400.0, 701.0, 20.0)
@@ -242,12 +241,11 @@ def test_spot_missing_object(small, tmp_path):
 
 @pytest.mark.slow
 def test_ray_cast_matches_rasteriser(small):
-    """The field samples from the exact ray cast equal those of spectral_fit.raster on the
+    """The field samples from the exact ray cast equal those of spectral_fit.geometry on the
     same camera (objects hit, positions)."""
     import jax.numpy as jnp
 
-    from spectral_fit.camera import look_at, perspective
-    from spectral_fit.raster import rasterize
+    from spectral_fit.geometry import look_at, perspective, rasterize
 
     scene, session, prep, env, clean = small
     geoms = prep.geometries
@@ -281,9 +279,9 @@ _X64 = textwrap.dedent("""
     warnings.simplefilter("ignore")
     from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
-    from spectral_fit import fitting
-    from spectral_fit.scene import load_scene
-    from spectral_fit.session import load_session
+    from spectral_fit.fitting import _fit as fitting
+    from spectral_fit.io import load_scene
+    from spectral_fit.io import load_session
     root = Path(sys.argv[1])
     cfg = write_small_scene(root)
     scene = load_scene(cfg)
@@ -348,9 +346,9 @@ _SHARD = textwrap.dedent("""
     warnings.simplefilter("ignore")
     from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
-    from spectral_fit import fitting
-    from spectral_fit.scene import load_scene
-    from spectral_fit.session import load_session
+    from spectral_fit.fitting import _fit as fitting
+    from spectral_fit.io import load_scene
+    from spectral_fit.io import load_session
     assert len(jax.devices()) == 2
     root = Path(sys.argv[1])
     cfg = write_small_scene(root)
@@ -387,7 +385,7 @@ def test_sharded_batch_two_devices(tmp_path):
 def test_band_matrix_matches_instrument_response():
     """The model's band-pass equals the reference spectroradiometer's (an independent
     implementation) on spiky spectra, and is the identity without a bandwidth."""
-    from spectral_fit.reference.instrument import instrument_response
+    from spectral_fit.validation.reference.instrument import instrument_response
 
     wl = np.arange(380.0, 781.0, 5.0)
     rng = np.random.default_rng(3)
@@ -440,7 +438,7 @@ def test_bundled_session_recovery_targets():
     ``spectral-fit demo`` does (every reading, interreflection readings included, with the
     interreflection term in the model): recovery within the issue's targets (α, β 3 %,
     μ 5 %, χ 0.02, n 0.03)."""
-    from spectral_fit.report import DEMO_CONFIG, DEMO_SESSION
+    from spectral_fit.fitting import DEMO_CONFIG, DEMO_SESSION
 
     truth = json.loads((DEMO_SESSION / "truth.json").read_text())["params"]
     scene = load_scene(DEMO_CONFIG)
@@ -469,9 +467,11 @@ def test_report_render_is_the_fitted_scene_rendered(tmp_path, monkeypatch):
     from helpers.rendering import symmetric_environment
     from PIL import Image
 
-    from spectral_fit import renderer, report, startup
-    from spectral_fit.plots import save_png
-    from spectral_fit.session import PARAMETERS
+    from spectral_fit.color import save_png
+    from spectral_fit.fitting import _report as report
+    from spectral_fit.io import PARAMETERS
+    from spectral_fit.rendering import _cache as startup
+    from spectral_fit.rendering import _renderer as renderer
 
     monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(tmp_path / "cache"))
     env = symmetric_environment(tmp_path / "env.exr")

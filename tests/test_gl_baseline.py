@@ -1,4 +1,4 @@
-"""The OpenGL baseline (spectral_fit.benchmarks.gl) against the JAX renderer.
+"""The OpenGL baseline (spectral_fit.bench.cases.gl) against the JAX renderer.
 
 Both render the benchmark scene (configs/benchmark.toml: two UV spheres of 100 × 100, 31 bands,
 the bundled anchor environment) at 360×240 from the same ``prepare(scene, mode="paper")``
@@ -24,15 +24,15 @@ SIZE = (360, 240)
 def frames(tmp_path_factory):
     pytest.importorskip("moderngl", reason="moderngl not installed (pip install "
                         "'spectral_fit[gl]')")
-    from spectral_fit.benchmarks.gl import GLUnavailable, create_context
+    from spectral_fit.bench.cases.gl import GLUnavailable, create_context
 
     try:
         ctx = create_context()
     except GLUnavailable as exc:
         pytest.skip(f"no OpenGL 4.5 context through EGL: {exc}")
-    from spectral_fit.benchmarks.frame import benchmark_scene
-    from spectral_fit.benchmarks.gl import BaselineInputs, GLBaseline, baseline_inputs
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.bench.cases.frame import benchmark_scene
+    from spectral_fit.bench.cases.gl import BaselineInputs, GLBaseline, baseline_inputs
+    from spectral_fit.rendering import prepare, render_frame
 
     prep = prepare(benchmark_scene(), size=SIZE, mode="paper")
     inputs = baseline_inputs(prep)
@@ -55,7 +55,7 @@ def frames(tmp_path_factory):
 
 
 def _delta_e(a: np.ndarray, b: np.ndarray, white: np.ndarray) -> np.ndarray:
-    from spectral_fit.colorimetry import delta_e00, xyz_to_lab
+    from spectral_fit.color import delta_e00, xyz_to_lab
 
     return delta_e00(xyz_to_lab(a, white), xyz_to_lab(b, white))
 

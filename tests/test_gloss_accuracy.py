@@ -10,9 +10,8 @@ import pytest
 from helpers import STUDIO_ROOM
 from helpers.lighting import brute_gloss, configs, grazing_configs, unit
 
-from spectral_fit.environment import (
+from spectral_fit.lighting import (
     EnvironmentMap,
-    _sphere_blur,
     gloss_integral,
     lookup,
     rotation_y,
@@ -20,6 +19,7 @@ from spectral_fit.environment import (
     texel_directions,
     texel_solid_angles,
 )
+from spectral_fit.lighting._environment import _sphere_blur
 
 
 def test_sphere_blur_is_the_direct_spherical_gaussian_sum():
@@ -100,7 +100,7 @@ def test_gloss_exact_vs_brute_force_dense(anchor_lighting, mu):
 def room():
     """The bundled room map (2° lamp of 8 source texels, a window and a ceiling panel with
     sharp edges): (img, EnvironmentMap, world direction of its brightest texel)."""
-    from spectral_fit.exr import read_spectral_exr
+    from spectral_fit.io import read_spectral_exr
 
     _, img = read_spectral_exr(STUDIO_ROOM)
     img = np.asarray(img, np.float64)
@@ -273,7 +273,7 @@ def test_uniform_map_all_options_match_brute_force():
 
 
 def test_unknown_quality_rejected(anchor_lighting):
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
 
     _, env, _ = anchor_lighting
     with pytest.raises(InputError) as e:
@@ -283,8 +283,8 @@ def test_unknown_quality_rejected(anchor_lighting):
 
 
 def test_unknown_node_rule_rejected():
-    from spectral_fit.environment import GlossQuadrature
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
+    from spectral_fit.lighting import GlossQuadrature
 
     with pytest.raises(InputError) as e:
         EnvironmentMap.from_array(np.ones((8, 16, 1)), quadrature=GlossQuadrature(nodes="x"))
@@ -304,8 +304,7 @@ def test_unknown_node_rule_rejected():
 
 
 def test_shade_points_batches_equal_vmap():
-    from spectral_fit.environment import shade, shade_points
-    from spectral_fit.reflectance import make_material
+    from spectral_fit.lighting import make_material, shade, shade_points
 
     wl = np.array([450.0, 550.0, 650.0])
     env = EnvironmentMap.from_array(synthetic_environment(16, 32, wl))

@@ -14,10 +14,8 @@ pytest.importorskip("cv2")
 from helpers import ROOT
 from helpers.live import rotation_angle_deg
 
-from spectral_fit.live import scene_intrinsics
-from spectral_fit.markers import MarkerDetector
-from spectral_fit.scene import load_scene
-from spectral_fit.video import read_frames
+from spectral_fit.io import load_scene
+from spectral_fit.live import MarkerDetector, read_frames, scene_intrinsics
 
 CONFIG = ROOT / "configs" / "live_benchmark.toml"
 VIDEO = ROOT / "measurements" / "video" / "benchmark.mp4"

@@ -14,21 +14,22 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.renderer")
+pytest.importorskip("spectral_fit.rendering._renderer")
 
 from helpers import ROOT, subprocess_env
 
-from spectral_fit.errors import InputError
+from spectral_fit._runtime.errors import InputError
 
 _TWO = textwrap.dedent("""
     import json, sys
-    from spectral_fit import process, startup
+    from spectral_fit._runtime import process as process
+    from spectral_fit.rendering import _cache as startup
     assert process.split_cpu_devices(2) == 2
     import jax, numpy as np
     from helpers.live import SMALL_SIZE as SIZE, small_frame as _frame, small_scene as _scene
     from skimage import data
     from spectral_fit.live import LiveSession, STEP_TRACES
-    from spectral_fit.synthetic_video import MarkerPlacement, make_table
+    from spectral_fit.live import MarkerPlacement, make_table
 
     mode, reuse = sys.argv[1], float(sys.argv[2])
     devs = jax.devices()
@@ -128,7 +129,7 @@ def test_live_command_checks_cpu_devices(tmp_path, capsys):
 def test_devices_argument_is_checked():
     import jax
 
-    from spectral_fit.live import _frame_devices
+    from spectral_fit.live._session import _frame_devices
 
     assert _frame_devices(None) == tuple(jax.devices())
     assert _frame_devices(jax.devices()[0]) == (jax.devices()[0],)
@@ -140,7 +141,7 @@ def test_devices_argument_is_checked():
 def test_split_after_start_changes_nothing():
     import jax
 
-    from spectral_fit import process
+    from spectral_fit._runtime import process
 
     jax.numpy.zeros(1)  # the backend is running
     assert process.split_cpu_devices(2) == len(jax.devices("cpu"))

@@ -9,17 +9,13 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.renderer")
+pytest.importorskip("spectral_fit.rendering._renderer")
 
 from helpers.live import DIST, KS, SMALL_SIZE, K, scene_dict, small_frame, small_scene
 from skimage import data
 
-from spectral_fit.scene import parse_scene
-from spectral_fit.synthetic_video import (
-    MarkerPlacement,
-    make_table,
-    marker_pose_in_camera,
-)
+from spectral_fit.io import parse_scene
+from spectral_fit.live import MarkerPlacement, make_table, marker_pose_in_camera
 
 R = 0.03  # sphere radius (m)
 
@@ -58,8 +54,8 @@ def test_a_new_session_of_the_same_scene_starts_from_the_stored_prepared_scene(
     session of the same scene, size and options loads the stored one (equal leaf by leaf)."""
     import jax
 
-    from spectral_fit import startup
     from spectral_fit.live import LiveSession
+    from spectral_fit.rendering import _cache as startup
 
     monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(tmp_path))
     before = dict(startup.CACHE_STATS)
@@ -81,7 +77,7 @@ def test_a_new_session_of_the_same_scene_starts_from_the_stored_prepared_scene(
 
 def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, tables):
     from spectral_fit.live import STEP_TRACES
-    from spectral_fit.renderer import TRACE_COUNT
+    from spectral_fit.rendering import TRACE_COUNT
 
     both, only3 = tables
     eyes = [(0.0, 0.3, 0.25), (0.12, 0.28, 0.28), (-0.1, 0.33, 0.22)]
@@ -172,7 +168,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     renders on with its own buffers, the same picture, nothing re-planned or recompiled."""
     import threading
 
-    from spectral_fit import live
+    from spectral_fit.live import _session as live
 
     both, _ = tables
     img = small_frame(both, (0.0, 0.3, 0.25), seed=20)[0]
@@ -210,7 +206,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
 def test_threaded_run_gives_the_sequential_frames(session, tables):
     """run(): reader/render/writer threads give the frames of process(), in order, with
     per-stage timings; an error on the reader thread reaches the caller."""
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
 
     both, _ = tables
     frames = [small_frame(both, eye, seed=30 + n)[0]
@@ -239,7 +235,7 @@ def test_threaded_run_gives_the_sequential_frames(session, tables):
 
 def test_live_command_writes_complete_video(tmp_path, tables, capsys):
     from spectral_fit.cli import main
-    from spectral_fit.video import VideoSink, count_frames
+    from spectral_fit.live import VideoSink, count_frames
 
     both, _ = tables
     src = tmp_path / "in.avi"
@@ -283,7 +279,7 @@ def test_live_command_writes_complete_video(tmp_path, tables, capsys):
 
 
 def test_video_size_must_match_calibration(tmp_path):
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
     from spectral_fit.live import LiveSession
 
     with pytest.raises(InputError, match="calibrated at 240x160.*another aspect ratio"):
@@ -305,7 +301,7 @@ def test_resized_video_scales_the_intrinsics():
 def test_fov_camera_keeps_its_distortion():
     """A ``fov_y_deg`` camera with ``[camera] distortion``: the live session undistorts (or
     renders through) the lens the renderer applies, not a pinhole (it was dropped)."""
-    from spectral_fit.camera import perspective, projection_to_intrinsics
+    from spectral_fit.geometry import perspective, projection_to_intrinsics
     from spectral_fit.live import scene_intrinsics
 
     d = scene_dict(intrinsics=False)
@@ -326,7 +322,7 @@ def test_lost_marker_object_leaves_no_interreflection():
     collapsed geometry of a hidden object into NaN)."""
     import jax.numpy as jnp
 
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
     d = scene_dict(markers=False, width=120, height=80, intrinsics=False)
     for o, x in zip(d["objects"], (-0.045, 0.045), strict=True):
@@ -359,8 +355,9 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
     generic ones (one recompilation), and equals the frame of a session that never overflowed."""
     import dataclasses
 
-    from spectral_fit.interreflection import SUPERSAMPLE, pass1_config
     from spectral_fit.live import LiveSession
+    from spectral_fit.rendering.interreflection import pass1_config
+    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
 
     both, _ = tables
     img, _, _ = small_frame(both, (0.0, 0.3, 0.25), seed=3)

@@ -13,7 +13,7 @@ from spectral_fit.cli import COMMANDS, main
 def test_import_is_light():
     """`import spectral_fit` must not start JAX, colour-science, OpenEXR or matplotlib."""
     code = (
-        "import sys, spectral_fit, spectral_fit.errors, spectral_fit.spectra;"
+        "import sys, spectral_fit, spectral_fit._runtime.errors, spectral_fit.color;"
         "heavy = [m for m in ('jax', 'colour', 'OpenEXR', 'matplotlib', 'equinox') "
         "if m in sys.modules]; print(heavy)"
     )

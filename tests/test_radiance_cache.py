@@ -14,17 +14,18 @@ import numpy as np
 import pytest
 from helpers.fitting import TRUE, assert_recovered, spots, write_session
 
-from spectral_fit import fitting
-from spectral_fit import radiance_cache as rc
-from spectral_fit.environment import EnvironmentMap, shade, synthetic_environment
-from spectral_fit.reflectance import (
+from spectral_fit.fitting import _fit as fitting
+from spectral_fit.fitting import _radiance_cache as rc
+from spectral_fit.io import load_scene, load_session
+from spectral_fit.lighting import (
+    EnvironmentMap,
     fresnel_dielectric,
     gaussian_d,
     make_material,
+    shade,
+    synthetic_environment,
     vcavity_g,
 )
-from spectral_fit.scene import load_scene
-from spectral_fit.session import load_session
 
 WL = np.linspace(400.0, 700.0, 16)
 
@@ -50,7 +51,7 @@ def setup():
 
 def _brute_gloss(img, env, N, V, mu, n=1.5):
     """Σ over every texel of the unfiltered map of L F D G/(4 cosθr) Δω (the definition)."""
-    from spectral_fit.environment import texel_directions, texel_solid_angles
+    from spectral_fit.lighting import texel_directions, texel_solid_angles
 
     h, w, _ = img.shape
     d = texel_directions(h, w).reshape(-1, 3) @ np.asarray(env.rotation, np.float64).T
@@ -131,8 +132,8 @@ def test_interreflection_against_reference_readings():
     of the bundled session (Mitsuba reference, path depth 16) agrees within 3 %, while the
     same model without the neighbours' light is off by more than 20 % at the red sphere's
     spot facing the yellow one; object-colour spots within 1.5 %."""
-    from spectral_fit.colorimetry import radiance_to_xyz
-    from spectral_fit.report import DEMO_CONFIG, DEMO_SESSION
+    from spectral_fit.color import radiance_to_xyz
+    from spectral_fit.fitting import DEMO_CONFIG, DEMO_SESSION
 
     scene = load_scene(DEMO_CONFIG)
     session = load_session(DEMO_SESSION, scene=scene)

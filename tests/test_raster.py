@@ -32,10 +32,10 @@ from helpers.raster_reference import reference_raster
 from matplotlib.path import Path as MplPath
 from scipy.spatial import ConvexHull
 
-from spectral_fit import raster
-from spectral_fit.camera import perspective_camera, project
-from spectral_fit.errors import InputError
-from spectral_fit.mesh import concat_meshes, icosphere, rotate, translate, uv_sphere
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.geometry import _raster as raster
+from spectral_fit.geometry import perspective_camera, project
+from spectral_fit.io import concat_meshes, icosphere, rotate, translate, uv_sphere
 
 # ----------------------------------------------------------------------------- scenes
 
@@ -363,9 +363,9 @@ _FD_SCRIPT = textwrap.dedent("""
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp, numpy as np
     from helpers.raster import MID, camera
-    from spectral_fit import raster
-    from spectral_fit.camera import project
-    from spectral_fit.mesh import icosphere, translate
+    from spectral_fit.geometry import _raster as raster
+    from spectral_fit.geometry import project
+    from spectral_fit.io import icosphere, translate
 
     m = icosphere(0.4, 1).transformed(translate((0.05, -0.03, -1.3)))
     cam = camera(MID)
@@ -624,7 +624,7 @@ def test_benchmark_scene_is_watertight_at_full_size():
     edge-on triangles at pixel coordinates in the hundreds): the front faces and the back
     faces of the closed spheres cover exactly the same pixels (a crack or a wrongly oriented
     sliver shows up as a difference), and so does the unculled frame."""
-    from spectral_fit.benchmarks.raster import scene_clip
+    from spectral_fit.bench.cases.raster import scene_clip
 
     clip, tris, shape = scene_clip(-0.275)
     masks = {cull: np.asarray(raster.rasterize(clip, tris, shape, cull=cull).tri_id) >= 0

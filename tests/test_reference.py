@@ -21,7 +21,7 @@ from helpers.reference import (  # noqa: E402
     sphere_obj,
 )
 
-from spectral_fit.reference.backend import init_mitsuba  # noqa: E402
+from spectral_fit.validation.reference.backend import init_mitsuba  # noqa: E402
 
 mi, dr = init_mitsuba()
 JIT = mi.variant().startswith(("llvm", "cuda"))
@@ -32,7 +32,7 @@ def _env_lookup(texels: np.ndarray, rotation_y_deg: float):
     import jax
     import jax.numpy as jnp
 
-    from spectral_fit.environment import EnvironmentMap, GlossQuadrature, lookup
+    from spectral_fit.lighting import EnvironmentMap, GlossQuadrature, lookup
 
     env = EnvironmentMap.from_array(texels, rotation_y_deg=rotation_y_deg, compress_tol=0.0,
                                     quadrature=GlossQuadrature(levels=0, max_sources=0))
@@ -92,8 +92,8 @@ def test_gloss_furnace_matches_closed_form():
 @pytest.mark.parametrize("rotation", [0.0, 180.0])
 def test_mirror_alone_is_fresnel_times_environment(rotation):
     """χ = 1 alone (delta lobe): radiance F(n, θr) · L(R), sub-pixel averaged, vs our lookup."""
-    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
-    from spectral_fit.reflectance import fresnel_dielectric
+    from spectral_fit.lighting import fresnel_dielectric
+    from spectral_fit.validation.reference.render import camera_rays, render_spectral, sphere_hits
 
     centre = (0.01, -0.005, -0.3)
     scene = small_scene(objects=[sphere_obj("m", centre, alpha=0.0, chi=1.0, n=1.5)],
@@ -134,7 +134,7 @@ def test_mirror_alone_is_fresnel_times_environment(rotation):
 def test_single_bounce_sphere_matches_quadrature(model):
     """Depth-2 render of one sphere (α = 1, β = 1, S coloured) vs brute-force quadrature of the
     environment integral at 20 pixels (normal and view from the ray–sphere hit): < 1 %."""
-    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+    from spectral_fit.validation.reference.render import camera_rays, render_spectral, sphere_hits
 
     dist, geom, mu = model
     centre = (0.004, 0.003, -0.3)
@@ -255,7 +255,7 @@ def test_sampling_consistent_with_eval_and_pdf(case):
 
 
 def fresnel_np(c: float, n: float) -> float:
-    from spectral_fit.reflectance import fresnel_dielectric
+    from spectral_fit.lighting import fresnel_dielectric
 
     return float(fresnel_dielectric(c, n))
 
@@ -266,8 +266,8 @@ def fresnel_np(c: float, n: float) -> float:
 def test_envmap_rows_reproduce_our_lookup():
     """Mitsuba's envmap fed 2H + 1 rows of our lookup (export.mitsuba_envmap_rows) returns our
     lookup, rotation included, at random directions (relative 1e-4)."""
-    from spectral_fit.environment import rotation_y
-    from spectral_fit.reference.export import mitsuba_envmap_rows
+    from spectral_fit.lighting import rotation_y
+    from spectral_fit.validation.reference.export import mitsuba_envmap_rows
 
     tex = smooth_environment(16, 32)
     tex[5, 7] = [40.0, 10.0, 1.0]  # a sharp texel: bilinear structure matters
@@ -310,7 +310,7 @@ def test_camera_and_silhouettes_match_our_conventions():
 def _check_silhouettes(scene, spp: int) -> None:
     """Mitsuba's render of black spheres against a unit background is 0 on the pixels whose
     four corners see a sphere through our camera rays and 1 where none does."""
-    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+    from spectral_fit.validation.reference.render import camera_rays, render_spectral, sphere_hits
 
     r = render_spectral(scene, spp=spp, passes=1, depths=(2,), environment=1.0)
     img = r.mean(2)[..., 0]
@@ -342,10 +342,10 @@ def test_intrinsics_camera_rays_match_mitsuba_and_our_projection():
     """An intrinsics camera's sensor (fov from fy, principal point offsets): Mitsuba's rays
     through film points equal our camera rays, and our renderer's projection of points on those
     rays lands on the same pixel coordinates."""
-    from spectral_fit import camera
-    from spectral_fit.reference.export import scene_dict
-    from spectral_fit.reference.render import camera_rays
-    from spectral_fit.renderer import _projection
+    from spectral_fit.geometry import _camera as camera
+    from spectral_fit.rendering._renderer import _projection
+    from spectral_fit.validation.reference.export import scene_dict
+    from spectral_fit.validation.reference.render import camera_rays
 
     scene = _intrinsics_scene(objects=[sphere_obj("a", (0.0, 0.0, -0.3))],
                               position=(0.01, 0.02, 0.03), look_at=(0.2, -0.1, -1.0))
@@ -385,7 +385,7 @@ def test_generator_smoke_run(tmp_path):
     """scripts/make_references.py at a tiny size: files written, loadable, consistent."""
     from helpers import load_script
 
-    from spectral_fit.reference import load_reference
+    from spectral_fit.validation.reference import load_reference
 
     mod = load_script("make_references")
     rc = mod.main(["--only", "benchmark", "--size", "288", "192", "--bands", "500", "520", "10",
@@ -410,11 +410,11 @@ def test_simulated_spectroradiometer_session(tmp_path):
 
     from helpers import ROOT
 
-    from spectral_fit.environment import EnvironmentMap, irradiance_exact
-    from spectral_fit.reference.export import environment_texels
-    from spectral_fit.reference.instrument import Spectroradiometer, simulate_readings
-    from spectral_fit.scene import load_scene
-    from spectral_fit.spectra import read_spectrum_csv
+    from spectral_fit.color import read_spectrum_csv
+    from spectral_fit.io import load_scene
+    from spectral_fit.lighting import EnvironmentMap, irradiance_exact
+    from spectral_fit.validation.reference.export import environment_texels
+    from spectral_fit.validation.reference.instrument import Spectroradiometer, simulate_readings
 
     scene = load_scene(ROOT / "configs" / "two_spheres.toml",
                        lambda d: d["spectral"].update(start_nm=540, end_nm=560, step_nm=10))
@@ -441,7 +441,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     env = EnvironmentMap.from_array(environment_texels(scene), diffuse="exact",
                                     rotation_y_deg=scene.environment.rotation_y_deg)
     e = np.asarray(irradiance_exact(env, np.array([0.0, 0.0, 1.0], np.float32)), np.float64)
-    from spectral_fit.reference.instrument import instrument_response
+    from spectral_fit.validation.reference.instrument import instrument_response
 
     expect = instrument_response(scene.wavelengths, 0.99 * e / math.pi, wl, 5.0)
     got = np.asarray(truth["white"]["mean"])
@@ -449,7 +449,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
 
 
 def test_instrument_band_pass_closed_forms():
-    from spectral_fit.reference.instrument import instrument_response
+    from spectral_fit.validation.reference.instrument import instrument_response
 
     wl = np.arange(380.0, 781.0, 5.0)
     out_wl = np.arange(400.0, 760.0, 1.0)
@@ -464,9 +464,9 @@ def test_instrument_band_pass_closed_forms():
 
 
 def test_bad_input_is_a_clear_error(tmp_path):
-    from spectral_fit.errors import InputError
-    from spectral_fit.reference.export import scene_dict
-    from spectral_fit.reference.render import render_spectral
+    from spectral_fit._runtime.errors import InputError
+    from spectral_fit.validation.reference.export import scene_dict
+    from spectral_fit.validation.reference.render import render_spectral
 
     other = "scalar_rgb" if JIT else "llvm_ad_rgb"
     with pytest.raises(InputError, match="SPECTRAL_FIT_MI_VARIANT"):

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from helpers import ANCHOR_ENV, ROOT
 
-from spectral_fit.colorimetry import xyz_weights
-from spectral_fit.errors import InputError
-from spectral_fit.reference import load_reference
-from spectral_fit.reference.render import sphere_patches
-from spectral_fit.scene import load_scene
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.color import xyz_weights
+from spectral_fit.io import load_scene
+from spectral_fit.validation.reference import load_reference
+from spectral_fit.validation.reference.render import sphere_patches
 
 NAMES = ["benchmark", "two_spheres"]
 
@@ -101,10 +101,9 @@ def test_direct_light_matches_our_shading_where_the_neighbour_is_hidden():
     eq. (5) shading (exact irradiance, gloss quadrature) averaged over the 25 pixel centres."""
     import jax.numpy as jnp
 
-    from spectral_fit.environment import EnvironmentMap, shade_points
-    from spectral_fit.reference.export import environment_texels
-    from spectral_fit.reference.render import camera_rays, sphere_hits
-    from spectral_fit.reflectance import make_material
+    from spectral_fit.lighting import EnvironmentMap, make_material, shade_points
+    from spectral_fit.validation.reference.export import environment_texels
+    from spectral_fit.validation.reference.render import camera_rays, sphere_hits
 
     ref = load_reference("benchmark")
     scene = load_scene(ROOT / ref.config)
@@ -144,9 +143,8 @@ def test_environment_export_reads_spectral_and_rgb_maps(tmp_path):
     an RGB map lifted to the scene's bands; an object without reflectance gets the 0.5 default."""
     import OpenEXR
 
-    from spectral_fit.exr import read_spectral_exr
-    from spectral_fit.reference.export import environment_texels
-    from spectral_fit.scene import parse_scene
+    from spectral_fit.io import parse_scene, read_spectral_exr
+    from spectral_fit.validation.reference.export import environment_texels
 
     scene = load_scene(ROOT / "configs" / "benchmark.toml",
                        lambda d: d["environment"].update(scale=2.0))
@@ -169,7 +167,7 @@ def test_committed_sr3a_session_is_consistent_with_its_truth():
     import json
     import tomllib
 
-    from spectral_fit.spectra import read_spectrum_csv
+    from spectral_fit.color import read_spectrum_csv
 
     folder = ROOT / "measurements" / "reference" / "sr3a_two_spheres"
     man = tomllib.loads((folder / "session.toml").read_text())

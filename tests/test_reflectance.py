@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spectral_fit.errors import InputError
-from spectral_fit.reflectance import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import (
     Material,
     beckmann_d,
     brdf,

@@ -15,25 +15,25 @@ import numpy as np
 import pytest
 from helpers.rendering import CENTRES, RADIUS, SIZE, ray_directions, write_scene
 
-from spectral_fit.errors import InputError
+from spectral_fit._runtime.errors import InputError
 
 
 @pytest.fixture(scope="module")
 def prep(scene_folder):
-    from spectral_fit.renderer import prepare
+    from spectral_fit.rendering import prepare
 
     return prepare(write_scene(scene_folder, mode="none"))
 
 
 @pytest.fixture(scope="module")
 def frame(prep):
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.rendering import render_frame
 
     return jax.block_until_ready(render_frame(prep))
 
 
 def _xyz_weights(prep):
-    from spectral_fit.colorimetry import xyz_weights
+    from spectral_fit.color import xyz_weights
 
     return xyz_weights(np.asarray(prep.wavelengths))
 
@@ -63,8 +63,8 @@ def test_display_stats_over_the_covered_slots_equal_to_display_on_the_image(prep
     route through the image), also with a quarter of the exposure (pixels overexposed)."""
     import dataclasses
 
-    from spectral_fit.display import to_display
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.color import to_display
+    from spectral_fit.rendering import render_frame
 
     p = dataclasses.replace(prep, exposure=prep.exposure * scale)
     f = frame if scale == 1.0 else render_frame(p)
@@ -81,7 +81,7 @@ def test_display_stats_over_the_covered_slots_equal_to_display_on_the_image(prep
 
 
 def test_background_is_the_environment_seen_by_the_camera(prep, frame):
-    from spectral_fit.environment import lookup
+    from spectral_fit.lighting import lookup
 
     h, w = prep.shape
     rows, cols = np.nonzero(~np.asarray(frame.mask))
@@ -99,8 +99,8 @@ def test_single_sphere_matches_shading_of_the_analytic_hit(prep):
     eq. (5) shading of the exact ray–sphere intersection (normal and view from the sphere, not
     from the mesh; irradiance by brute-force summation over the map's texels, not from the
     renderer's irradiance map)."""
-    from spectral_fit.environment import shade
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.lighting import shade
+    from spectral_fit.rendering import render_frame
 
     f = render_frame(prep, visible=jnp.array([False, True]))
     mask = np.asarray(f.mask)
@@ -150,8 +150,8 @@ def test_mirror_symmetric_scene_gives_a_mirror_symmetric_image(prep, frame):
 
 
 def test_new_poses_view_visibility_and_materials_do_not_recompile(prep, frame):
-    from spectral_fit.mesh import rotate_y, translate
-    from spectral_fit.renderer import TRACE_COUNT, render_frame
+    from spectral_fit.io import rotate_y, translate
+    from spectral_fit.rendering import TRACE_COUNT, render_frame
 
     before = TRACE_COUNT["render_frame"]
     model = np.asarray(prep.model).copy()
@@ -187,8 +187,8 @@ def test_gradients_match_finite_differences(prep):
     """d(loss)/d(parameter) for every material parameter of both objects (and one reflectance
     band each) against central differences. The loss weights XYZ of the covered pixels by a
     fixed random pattern, so errors cannot cancel."""
-    from spectral_fit.reflectance import Material
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.lighting import Material
+    from spectral_fit.rendering import render_frame
 
     refl = np.asarray(prep.materials.reflectance)
     mats = Material(alpha=jnp.array([0.9, 0.7]), beta=jnp.array([1.1, 0.8]),
@@ -230,7 +230,7 @@ def test_gradients_match_finite_differences(prep):
 def test_frame_without_background(prep, frame):
     """background=False: the same covered pixels, zeros elsewhere (the live composite's
     case: the video frame replaces the environment)."""
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.rendering import render_frame
 
     f = render_frame(prep, background=False)
     mask = np.asarray(frame.mask)
@@ -249,8 +249,8 @@ def test_chunked_xyz_shading_matches_the_band_shading(prep):
 
     import equinox as eqx
 
-    from spectral_fit.gbuffer import GBuffer
-    from spectral_fit.renderer import _as_stacked, _shade_fast, _shade_out
+    from spectral_fit.geometry import GBuffer
+    from spectral_fit.rendering._renderer import _as_stacked, _shade_fast, _shade_out
 
     cap, counts = 8192, (3000, 5000)
     p = dataclasses.replace(prep, pixel_capacity=(cap, cap))
@@ -285,8 +285,8 @@ def test_object_pixel_lists_match_covered_pixels_per_object():
     """The frame's per-object pixel lists (one prefix count per object, one scatter) equal
     raster.covered_pixels of each object's part of the raster, concatenated, on a random
     object image with three objects, one of them overflowing its capacity."""
-    from spectral_fit.raster import Raster, covered_pixels
-    from spectral_fit.renderer import _object_pixel_lists
+    from spectral_fit.geometry import Raster, covered_pixels
+    from spectral_fit.rendering._renderer import _object_pixel_lists
 
     rng = np.random.default_rng(11)
     h, w = 37, 53
@@ -307,7 +307,7 @@ def test_object_pixel_lists_match_covered_pixels_per_object():
 
 
 def test_bad_inputs_name_the_option(prep, scene_folder):
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
     cfg = write_scene(scene_folder, mode="none")
     with pytest.raises(InputError, match="mode"):
@@ -331,13 +331,13 @@ def _interreflection_available() -> bool:
 
 
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+                    reason="the interreflection (gather/paper modes) is not in this tree")
 @pytest.mark.parametrize("mode", ["gather", pytest.param("paper", marks=pytest.mark.slow)])
 def test_interreflection_changes_only_pixels_that_see_the_other_object(scene_folder, prep, frame,
                                                                        mode):
     """A pixel on sphere i can receive light from sphere j only if j rises above i's tangent
     plane there: N·(c_j − p) > −R. Elsewhere interreflection must change nothing."""
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
     p_ir = prepare(write_scene(scene_folder, mode=mode))
     f = render_frame(p_ir)
@@ -364,7 +364,7 @@ def test_interreflection_changes_only_pixels_that_see_the_other_object(scene_fol
 
 def test_render_cli_smoke(scene_folder, tmp_path):
     from spectral_fit.cli import main
-    from spectral_fit.exr import read_channels_exr
+    from spectral_fit.io import read_channels_exr
 
     cfg = write_scene(scene_folder, mode="none")
     png, xyz = tmp_path / "f.png", tmp_path / "f_xyz.exr"
@@ -416,7 +416,7 @@ def test_render_cli_missing_or_malformed_config(tmp_path, capsys):
 
 def _reference():
     try:
-        from spectral_fit.reference import load_reference
+        from spectral_fit.validation.reference import load_reference
 
         return load_reference("benchmark")
     except (ImportError, InputError) as exc:  # pragma: no cover - depends on the checkout
@@ -424,10 +424,11 @@ def _reference():
 
 
 def _patch_delta_e(ref, mode, *, spectral_mode=None, k=None, diffuse="map"):
-    from spectral_fit.colorimetry import radiance_to_xyz, xyz_weights
-    from spectral_fit.renderer import load_environment, prepare, render_frame
-    from spectral_fit.scene import load_scene
-    from spectral_fit.validation import ROOT, scene_white_xyz
+    from spectral_fit.color import radiance_to_xyz, xyz_weights
+    from spectral_fit.io import load_scene
+    from spectral_fit.rendering import load_environment, prepare, render_frame
+    from spectral_fit.validation import scene_white_xyz
+    from spectral_fit.validation._compare import ROOT
 
     scene = load_scene(ROOT / ref.config)
     wl = scene.wavelengths
@@ -467,7 +468,7 @@ def test_basis_k8_matches_bands_on_the_benchmark():
 
 @pytest.mark.slow
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+                    reason="the interreflection (gather/paper modes) is not in this tree")
 def test_gather_mode_matches_the_path_traced_reference():
     """Gather mode vs Mitsuba depth 16: direct regions median ≤ 0.5, p90 ≤ 1.0;
     interreflection-dominated regions median ≤ 0.5, p90 ≤ 1.5 (ΔE00, 5×5 patch means)."""
@@ -482,13 +483,13 @@ def test_gather_mode_matches_the_path_traced_reference():
 
 
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+                    reason="the interreflection (gather/paper modes) is not in this tree")
 def test_mirror_switch_is_exact_and_follows_chi(scene_folder):
     """Every χ a concrete 0: the frame is compiled without the mirror term, and equals the
     frame compiled with it; a χ that is not 0 compiles it in (its light reaches the other
     object through the interreflection); χ traced keeps it; mirror=False with χ != 0 is
     refused."""
-    from spectral_fit.renderer import mirror_needed, prepare, render_frame
+    from spectral_fit.rendering import mirror_needed, prepare, render_frame
 
     p = prepare(write_scene(scene_folder, mode="gather"))
     assert not mirror_needed(p.materials)
@@ -516,15 +517,16 @@ def test_mirror_switch_is_exact_and_follows_chi(scene_folder):
 
 
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+                    reason="the interreflection (gather/paper modes) is not in this tree")
 def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder):
     """Gather pass-1 capacities are planned per mesh (small); a pose that overflows them is
     reported, and render's regrow re-renders with the generic capacities (the frame then
     equals one rendered with those from the start)."""
     import dataclasses
 
-    from spectral_fit.interreflection import SUPERSAMPLE, pass1_config
-    from spectral_fit.renderer import prepare, regrow, render_frame
+    from spectral_fit.rendering import prepare, regrow, render_frame
+    from spectral_fit.rendering.interreflection import pass1_config
+    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
 
     p = prepare(write_scene(scene_folder, mode="gather"))
     tris = max(tb - ta for ta, tb in p.ir_triangle_slices)
@@ -545,7 +547,7 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder)
 def test_frame_stages_are_named_for_profilers(scene_folder):
     """The frame program's operations carry the stage names that docs/rendering.md lists for
     reading profiler traces (jax.named_scope: they appear in the HLO op names)."""
-    from spectral_fit import renderer
+    from spectral_fit.rendering import _renderer as renderer
 
     p = renderer.prepare(write_scene(scene_folder, mode="gather"))
     args = renderer._check_frame_inputs(p, None, None, None, None)
@@ -561,8 +563,8 @@ def test_camera_culls_back_faces_of_closed_meshes_without_changing_a_pixel(prep,
     faces (about half the windows planned); rasterising the same pose without culling (the
     capacities planned for it) gives the identical triangle ids, and so the frame's mask and
     object ids."""
-    from spectral_fit.raster import plan_config, rasterize
-    from spectral_fit.renderer import _to_world
+    from spectral_fit.geometry import plan_config, rasterize
+    from spectral_fit.rendering._renderer import _to_world
 
     assert prep.cull == "back"
     world = _to_world(prep.vertices, prep.vertex_object, prep.model)
@@ -601,7 +603,7 @@ def test_cli_render_refuses_output_names_of_another_format(tmp_path, capsys, opt
     """`spectral-fit render` refuses an output whose extension is not its format's (it wrote
     PNG bytes into frame.jpg) before anything is rendered, naming the option and the file."""
     from spectral_fit.cli import main
-    from spectral_fit.validation import ROOT
+    from spectral_fit.validation._compare import ROOT
 
     target = tmp_path / name
     args = ["render", str(ROOT / "configs" / "two_spheres.toml"), option, str(target)]

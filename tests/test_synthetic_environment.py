@@ -10,9 +10,9 @@ import pytest
 from helpers import STUDIO_ROOM
 from PIL import Image
 
-from spectral_fit import synthetic_environment as se
 from spectral_fit.cli import main
-from spectral_fit.exr import read_spectral_exr, read_spectral_exr_ex
+from spectral_fit.io import read_spectral_exr, read_spectral_exr_ex
+from spectral_fit.lighting import _synthetic as se
 
 SHAPE = colour.SpectralShape(380, 780, 5)
 CMFS = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(SHAPE)

@@ -77,9 +77,9 @@ def assert_recovered(params: dict, *, rel: float, chi_abs: float) -> None:
 
 def write_small_scene(folder: Path, *, env_size: tuple[int, int] = (16, 32)) -> Path:
     """Write the small scene (two icospheres, a 16×32 synthetic environment, 16 bands)."""
-    from spectral_fit.environment import synthetic_environment
-    from spectral_fit.exr import write_spectral_exr
-    from spectral_fit.spectra import wavelength_grid
+    from spectral_fit.color import wavelength_grid
+    from spectral_fit.io import write_spectral_exr
+    from spectral_fit.lighting import synthetic_environment
 
     folder.mkdir(parents=True, exist_ok=True)
     wl = wavelength_grid(400.0, 700.0, 20.0)
@@ -120,7 +120,7 @@ def write_session(folder: Path, scene_path: Path, readings: np.ndarray, wl: np.n
                   white: dict | None = None, noise: dict | None = None,
                   objects: dict | None = None) -> Path:
     """A session of the given spot readings (B, L) (or repeats (B, M, L))."""
-    from spectral_fit.session import write_session as ws
+    from spectral_fit.io import write_session as ws
 
     sp = spot_list or spots()
     rl = []

@@ -18,8 +18,8 @@ CENTRES = ((-0.045, 0.0, -0.275), (0.045, 0.0, -0.275))
 def sphere_objects(stacks: int = 32, centres=CENTRES, radius: float = R):
     import jax.numpy as jnp
 
-    from spectral_fit.gbuffer import ObjectGeometry
-    from spectral_fit.mesh import translate, uv_sphere
+    from spectral_fit.geometry import ObjectGeometry
+    from spectral_fit.io import translate, uv_sphere
 
     out = []
     for c in centres:
@@ -31,7 +31,7 @@ def sphere_objects(stacks: int = 32, centres=CENTRES, radius: float = R):
 
 def linear_env_texels(a, b, height: int = 16, width: int = 32) -> np.ndarray:
     """Map (H, W, C) of L(d) = a + b·d_y per channel (map frame = world)."""
-    from spectral_fit.environment import texel_directions
+    from spectral_fit.lighting import texel_directions
 
     d = texel_directions(height, width)
     return np.asarray(a)[None, None, :] + d[..., 1:2] * np.asarray(b)[None, None, :]
@@ -40,7 +40,7 @@ def linear_env_texels(a, b, height: int = 16, width: int = 32) -> np.ndarray:
 def make_env(texels, dtype=None):
     import jax.numpy as jnp
 
-    from spectral_fit.environment import EnvironmentMap
+    from spectral_fit.lighting import EnvironmentMap
 
     return EnvironmentMap.from_array(texels, compress_tol=0.0, dtype=dtype or jnp.float32)
 
@@ -56,7 +56,7 @@ def gbuffer(positions, normals, views, objects, capacity: int | None = None):
     """A GBuffer of the given samples, padded with empty slots up to ``capacity``."""
     import jax.numpy as jnp
 
-    from spectral_fit.gbuffer import GBuffer
+    from spectral_fit.geometry import GBuffer
 
     k = len(objects)
     cap = capacity or k
@@ -73,7 +73,7 @@ def gbuffer(positions, normals, views, objects, capacity: int | None = None):
 
 def material(*, alpha=1.0, beta=0.0, chi=0.0, mu=0.1, n=1.5, gamma=0.0, reflectance=(1, 1, 1),
              dtype=None):
-    from spectral_fit.reflectance import make_material
+    from spectral_fit.lighting import make_material
 
     return make_material(alpha=alpha, beta=beta, chi=chi, mu=mu, n=n, gamma=gamma,
                          reflectance=np.asarray(reflectance, np.float64), dtype=dtype)
@@ -89,7 +89,7 @@ def gradient_check() -> dict:
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from spectral_fit.interreflection import interreflection_from, prepare_interreflection
+    from spectral_fit.rendering.interreflection import interreflection_from, prepare_interreflection
 
     f64 = jnp.float64
     objs = sphere_objects(stacks=10)
@@ -202,8 +202,7 @@ def _bf_eval(mat_j, receiver, env, dirs, normals, n, v):
     if not _BF_EVAL:
         import jax
 
-        from spectral_fit.environment import lookup, shade
-        from spectral_fit.reflectance import gloss_brdf
+        from spectral_fit.lighting import gloss_brdf, lookup, shade
 
         def f(mj, mi, e, d, ny, nn, vv):
             lj = jax.vmap(lambda a, b: shade(mj, e, a, b))(ny, -d)

@@ -1,6 +1,6 @@
 """Brute-force gloss oracle shared by the lighting tests: the texel sum of L F D G /(4 cosθr) Δω
 over a supersampled map (each texel a box of constant radiance), float64 NumPy, with its own
-closed forms of F, D and G (independent of spectral_fit.reflectance)."""
+closed forms of F, D and G (independent of spectral_fit.lighting)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,8 @@ import numpy as np
 from scipy.special import erf
 
 from helpers import ANCHOR_ENV
-from spectral_fit.environment import (
-    EnvironmentMap,
-    rotation_y,
-    texel_directions,
-    texel_solid_angles,
-)
-from spectral_fit.exr import read_spectral_exr
+from spectral_fit.io import read_spectral_exr
+from spectral_fit.lighting import EnvironmentMap, rotation_y, texel_directions, texel_solid_angles
 
 
 def anchor_map():

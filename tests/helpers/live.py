@@ -19,7 +19,7 @@ MARKER_SIZE = 0.08
 def table():
     from skimage import data
 
-    from spectral_fit.synthetic_video import MarkerPlacement, make_table
+    from spectral_fit.live import MarkerPlacement, make_table
 
     return make_table(data.coffee(), [MarkerPlacement(3, -0.06, 0.0, MARKER_SIZE),
                                       MarkerPlacement(7, 0.07, 0.02, MARKER_SIZE)])
@@ -27,7 +27,7 @@ def table():
 
 def frame(eye, target=(0.0, 0.0, 0.0), *, blur_px=0.8, noise=2.0, seed=0, dist=DIST, k=K):
     """(image, R, t) of the table seen from ``eye`` (world, m)."""
-    from spectral_fit.synthetic_video import camera_pose_looking_at, render_table
+    from spectral_fit.live import camera_pose_looking_at, render_table
 
     r, t = camera_pose_looking_at(eye, target)
     img = render_table(table(), k, dist, r, t, SIZE, blur_px=blur_px, noise=noise,
@@ -76,7 +76,7 @@ KS = np.array([[K[0, 0] / S, 0, (K[0, 2] + 0.5) / S - 0.5],
 def small_scene(tmp_path=None, **markers):
     """The live scene of :func:`scene_dict` at :data:`SMALL_SIZE` (intrinsics :data:`KS`, 32-stack
     spheres, no interreflection); ``markers``: overrides of the markers table."""
-    from spectral_fit.scene import parse_scene
+    from spectral_fit.io import parse_scene
 
     d = scene_dict(markers={"size": 0.08, **markers}, width=SMALL_SIZE[1], height=SMALL_SIZE[0])
     d["camera"]["intrinsics"] = {"fx": KS[0, 0], "fy": KS[1, 1], "cx": KS[0, 2],
@@ -89,7 +89,7 @@ def small_scene(tmp_path=None, **markers):
 
 def small_frame(table, eye, seed=0):
     """(image, R, t) of ``table`` seen from ``eye`` at :data:`SMALL_SIZE` (camera :data:`KS`)."""
-    from spectral_fit.synthetic_video import camera_pose_looking_at, render_table
+    from spectral_fit.live import camera_pose_looking_at, render_table
 
     r, t = camera_pose_looking_at(eye, (0.0, 0.0, 0.0))
     img = render_table(table, KS, DIST, r, t, SMALL_SIZE, blur_px=0.5, noise=1.5,

@@ -8,9 +8,9 @@ import contextlib
 import jax
 import numpy as np
 
-from spectral_fit import raster
-from spectral_fit.camera import perspective_camera, project
-from spectral_fit.mesh import concat_meshes, translate, uv_sphere
+from spectral_fit.geometry import _raster as raster
+from spectral_fit.geometry import perspective_camera, project
+from spectral_fit.io import concat_meshes, translate, uv_sphere
 
 SMALL = (32, 64)  # (H, W) of the frames compared with the brute-force reference
 MID = (72, 96)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from helpers import ANCHOR_ENV, ROOT
-from spectral_fit.scene import parse_scene
+from spectral_fit.io import parse_scene
 
 
 def small_scene(*, objects: list[dict], width: int = 32, height: int = 32, fov: float = 20.0,
@@ -34,7 +34,7 @@ def sphere_obj(name: str, position, radius: float = 0.0375, **material) -> dict:
 
 def smooth_environment(h: int = 32, w: int = 64) -> np.ndarray:
     """A smooth positive 3-band map (h, w, 3) in the map frame: a gradient plus a soft lobe."""
-    from spectral_fit.environment import texel_directions
+    from spectral_fit.lighting import texel_directions
 
     d = texel_directions(h, w)
     s = np.array([0.4, 0.6, -0.7])
@@ -53,7 +53,7 @@ def pixel_subsamples(x: np.ndarray, y: np.ndarray, k: int = 3) -> tuple[np.ndarr
 
 def fully_covered(scene, centre, radius, xs, ys) -> np.ndarray:
     """Pixels (top-left corners xs, ys) whose four corners all see the sphere."""
-    from spectral_fit.reference.render import camera_rays, sphere_hits
+    from spectral_fit.validation.reference.render import camera_rays, sphere_hits
 
     ok = np.ones(np.shape(xs), bool)
     for cx, cy in ((0, 0), (1, 0), (0, 1), (1, 1)):
@@ -81,7 +81,7 @@ def single_bounce_quadrature(env_lookup, normals, views, *, alpha, s, beta, mu, 
     """Brute-force ∫ L(ω) f(V, ω) cosθ dω (N, 3) for unit normals/views (N, 3): the diffuse part
     in (cosθ, φ) about N, the gloss part in half-vector angles about N (dω = 4 V·H dω_h).
     ``env_lookup``: (M, 3) world directions -> (M, 3) radiance."""
-    from spectral_fit.reflectance import fresnel_dielectric, microfacet_d, microfacet_g
+    from spectral_fit.lighting import fresnel_dielectric, microfacet_d, microfacet_g
 
     N = normals.shape[0]
     t, b = frame(normals)

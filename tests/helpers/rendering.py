@@ -16,7 +16,7 @@ CENTRES = ((-0.045, 0.0, -0.275), (0.045, 0.0, -0.275))
 
 def symmetric_environment(path: Path) -> Path:
     """Write the mirror-symmetric benchmark environment (31 bands) to ``path``."""
-    from spectral_fit.exr import read_spectral_exr, write_spectral_exr
+    from spectral_fit.io import read_spectral_exr, write_spectral_exr
 
     wl, img = read_spectral_exr(ANCHOR_ENV)
     sym = 0.5 * (img + img[:, ::-1])
