@@ -1,12 +1,14 @@
-"""Write the benchmark environment map (BENCHMARK.md) as a spectral EXR for benchmark.toml.
+"""Write the benchmark environment map (docs/benchmark.md) as a spectral EXR for benchmark.toml.
 
-The map is made by ``make_env`` of the OpenGL anchor's ``scene.py`` (a measuring stick kept
-outside this repository, in ``../shared/anchors``). This script only calls it and stores its
-output, so that the benchmark config and the reference renders use exactly the anchor's pixels:
-256×128, 31 bands 400–700 nm, relative radiance (sky zenith luminance 1 in the anchor's units),
-forward direction −Z at the image centre (the config rotates it by 180° about +Y).
+The map is made by ``make_env`` of the OpenGL anchor's ``scene.py``, an external measuring stick
+that is not part of this repository; pass the folder that holds it. This script only calls it and
+stores its output, so that the benchmark config and the reference renders use exactly the
+anchor's pixels: 256×128, 31 bands 400–700 nm, relative radiance (sky zenith luminance 1 in the
+anchor's units), forward direction −Z at the image centre (the config rotates it by 180° about
++Y). The result is committed as ``measurements/benchmark/anchor_environment.exr``, so nothing
+else needs the anchor.
 
-Usage: python scripts/export_anchor_environment.py [ANCHOR_DIR] [-o OUT.exr]
+Usage: python scripts/export_anchor_environment.py ANCHOR_DIR [-o OUT.exr]
 """
 
 from __future__ import annotations
@@ -34,12 +36,12 @@ def load_anchor(anchor_dir: Path):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("anchor_dir", nargs="?", default=str(HERE.parent.parent / "shared" / "anchors"))
+    ap.add_argument("anchor_dir", help="folder with the anchor's scene.py")
     ap.add_argument("-o", "--output",
                     default=str(HERE.parent / "measurements" / "benchmark" /
                                 "anchor_environment.exr"))
     args = ap.parse_args()
-    from spectral_fit.exr import write_spectral_exr
+    from spectral_fit.io import write_spectral_exr
 
     anchor = load_anchor(Path(args.anchor_dir))
     env = np.asarray(anchor.make_env(), dtype=np.float32)  # (128, 256, 31)

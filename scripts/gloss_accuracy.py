@@ -1,5 +1,5 @@
 """Accuracy tables of the gloss integral (docs/lighting.md): relative error of
-``gloss_integral`` vs the brute-force oracle of tests/_lighting_util.py (texel sum over the map
+``gloss_integral`` vs the brute-force oracle of tests/helpers/lighting.py (texel sum over the map
 upsampled 4×, float64) on the two bundled maps, per μ and quality.
 
     python scripts/gloss_accuracy.py [--model bilinear|box] [--mus 0.05,0.1,...]
@@ -28,18 +28,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from _lighting_util import brute_gloss, configs, grazing_configs  # noqa: E402
+from helpers.lighting import brute_gloss, configs, grazing_configs  # noqa: E402
 
-from spectral_fit.environment import (  # noqa: E402
+from spectral_fit.io import read_spectral_exr  # noqa: E402
+from spectral_fit.lighting import (  # noqa: E402
     EnvironmentMap,
     SplitSumMap,
     gloss_integral,
     gloss_split_sum,
     lobe_moment_table,
     rotation_y,
-    texel_directions,  # noqa: E402
+    texel_directions,
 )
-from spectral_fit.exr import read_spectral_exr  # noqa: E402
 
 MAPS = {"benchmark": (ROOT / "measurements/benchmark/anchor_environment.exr", 180.0),
         "room": (ROOT / "measurements/environment/studio_room.exr", 0.0)}

@@ -25,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def reference_white(env, wavelengths) -> np.ndarray:
     import jax.numpy as jnp
 
-    from spectral_fit.colorimetry import radiance_to_xyz
-    from spectral_fit.environment import irradiance_exact, texel_solid_angles
+    from spectral_fit.color import radiance_to_xyz
+    from spectral_fit.lighting import irradiance_exact, texel_solid_angles
 
     tex = np.asarray(env.texels, np.float64)
     sa = texel_solid_angles(*tex.shape[:2])
@@ -53,11 +53,11 @@ def main(argv: list[str] | None = None) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from spectral_fit.benchmarks.interreflection import benchmark_scene
-    from spectral_fit.colorimetry import delta_e00, radiance_to_xyz, xyz_to_lab
-    from spectral_fit.interreflection import interreflection
-    from spectral_fit.raster import PixelList, scatter_pixels
-    from spectral_fit.reference import load_reference
+    from spectral_fit.bench.cases.interreflection import benchmark_scene
+    from spectral_fit.color import delta_e00, radiance_to_xyz, xyz_to_lab
+    from spectral_fit.geometry import PixelList, scatter_pixels
+    from spectral_fit.rendering.interreflection import interreflection
+    from spectral_fit.validation.reference import load_reference
 
     ref = load_reference(args.reference)
     # exact irradiance (texel sum): order-2 SH rings by up to ~25 % on this map's lamp, which

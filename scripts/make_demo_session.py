@@ -30,9 +30,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from spectral_fit.fitting import FitOptions, scene_environment, simulate_readings  # noqa: E402
-from spectral_fit.reflectance import fresnel_dielectric  # noqa: E402
-from spectral_fit.scene import load_scene  # noqa: E402
-from spectral_fit.session import write_session  # noqa: E402
+from spectral_fit.io import (  # noqa: E402
+    load_scene,
+    write_session,  # noqa: E402
+)
+from spectral_fit.lighting import fresnel_dielectric  # noqa: E402
 
 CONFIG = ROOT / "configs" / "two_spheres.toml"
 OUT = ROOT / "measurements" / "sessions" / "two_spheres_demo"
@@ -117,13 +119,14 @@ def calibration_error(wl: np.ndarray) -> np.ndarray:
 
 def main_reference(out: Path = OUT, spp: int = 512) -> None:
     """The bundled session: the same spots and true parameters rendered by the independent
-    Mitsuba reference (spectral_fit.reference: our whole model as one BSDF, path depth 16,
+    Mitsuba reference (spectral_fit.validation.reference: our whole model as one BSDF, path depth
+    16,
     band trick) and read by its simulated SR-3A (1 nm output, 5 nm band-pass, repeatability
     0.4 %, floor 5e-4 of the peak, gain jitter 0.2 %, 3 repeats)."""
     import dataclasses
 
-    from spectral_fit.reference.instrument import ReadingSpec, Spectroradiometer
-    from spectral_fit.reference.instrument import simulate_readings as sim
+    from spectral_fit.validation.reference.instrument import ReadingSpec, Spectroradiometer
+    from spectral_fit.validation.reference.instrument import simulate_readings as sim
 
     scene = load_scene(CONFIG)
     objs = []
@@ -152,7 +155,8 @@ def main_reference(out: Path = OUT, spp: int = 512) -> None:
     truth = json.loads((out / "truth.json").read_text())
     truth["params"] = TRUE
     truth["independent"] = True
-    truth["generator"] = ("scripts/make_demo_session.py (spectral_fit.reference.instrument."
+    truth["generator"] = ("scripts/make_demo_session.py ("
+                          "spectral_fit.validation.reference.instrument."
                           f"simulate_readings, {spp} spp, path depth 16)")
     (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
     print(f"wrote {out}")
@@ -168,7 +172,7 @@ def main(out: Path = OUT) -> None:
     clean = simulate_readings(scene, sp, params=TRUE, calibration=k, env=env,
                               options=FitOptions(spot_resolution=16))
     # white standard: Lambertian, reflectance 0.98, between the spheres facing the origin
-    from spectral_fit.environment import irradiance_exact
+    from spectral_fit.lighting import irradiance_exact
 
     w_pos = np.array([0.0, 0.0, -0.275])
     w_n = _unit(-w_pos)

@@ -4,11 +4,12 @@
     python scripts/make_references.py --only benchmark --spp 64 --passes 2 --out /tmp/ref
 
 Each config is rendered at path depths 2 and 16 with the band trick (see
-spectral_fit/reference/render.py) and reduced to per-patch mean spectra; writes <name>.npz,
+spectral_fit/validation/reference/render.py) and reduced to per-patch mean spectra; writes
+<name>.npz,
 <name>.png (preview with patch outlines) and <name>.json (summary) per config, and the simulated
 SR-3A session of two_spheres in <out>/sr3a_two_spheres (session.toml, CSV files, truth.json).
 The Mitsuba variant comes from SPECTRAL_FIT_MI_VARIANT or is chosen automatically
-(spectral_fit/reference/backend.py). The defaults reproduce the committed files.
+(spectral_fit/validation/reference/backend.py). The defaults reproduce the committed files.
 """
 
 from __future__ import annotations
@@ -42,10 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
-    from spectral_fit.fileio import atomic_write_text
-    from spectral_fit.reference.data import save_reference
-    from spectral_fit.reference.generate import make_reference, preview_png
-    from spectral_fit.scene import load_scene
+    from spectral_fit._runtime.fileio import atomic_write_text
+    from spectral_fit.io import load_scene
+    from spectral_fit.validation.reference.data import save_reference
+    from spectral_fit.validation.reference.generate import make_reference, preview_png
 
     def overrides(d: dict) -> None:
         if args.size:
@@ -70,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
                           + "\n")
         print(json.dumps(summary, sort_keys=True), flush=True)
     if "session" in todo:  # the simulated SR-3A session of two_spheres
-        from spectral_fit.reference.instrument import simulate_readings
+        from spectral_fit.validation.reference.instrument import simulate_readings
 
         scene = load_scene(REPO / CONFIGS["two_spheres"], overrides)
         folder = args.out / "sr3a_two_spheres"

@@ -10,13 +10,13 @@ Scenes:
   two 80 mm markers 110 mm apart, a camera with lens distortion (fx = 560 px) on an arc
   0.29–0.34 m from them; the last frames pan right so that marker 7 leaves the picture (its
   sphere must disappear, not freeze).
-* ``benchmark`` (``measurements/video/benchmark.mp4``, config ``configs/live_benchmark.toml``):
-  BENCHMARK.md's paper scene as a live scene: its camera (720×480, 90° vertical field of view,
-  no distortion) 0.275 m from the spheres' midpoint (the spheres 90 mm apart, on 60 mm
-  markers), looking down at 40–50° while it moves ±20° around them; both markers stay in view,
-  so every frame renders both spheres and their interreflection.
+* ``benchmark`` (``measurements/video/benchmark.mp4``, config ``configs/live_benchmark.toml``): the
+  benchmark scene (docs/benchmark.md) as a live scene: its camera (720×480, 90° vertical field of
+  view, no distortion) 0.275 m from the spheres' midpoint (the spheres 90 mm apart, on 60 mm
+  markers), looking down at 40–50° while it moves ±20° around them; both markers stay in view, so
+  every frame renders both spheres and their interreflection.
 
-Everything is exact ray tracing of a textured plane (spectral_fit.synthetic_video), so the true
+Everything is exact ray tracing of a textured plane (spectral_fit.live), so the true
 camera and marker poses of every frame are known; they are written next to the video as
 ``<name>.poses.json`` (mid-shutter; OpenCV convention: x_cam = R x_world + t, metres;
 world = table, +Y up).
@@ -107,14 +107,15 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     from skimage import data
 
-    from spectral_fit.synthetic_video import (
+    from spectral_fit.live import (
         MarkerPlacement,
+        VideoSink,
         camera_pose_looking_at,
+        count_frames,
         make_table,
         marker_pose_in_camera,
         render_table,
     )
-    from spectral_fit.video import VideoSink, count_frames
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", choices=sorted(SCENES), default="sample")
@@ -159,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
             "size_hw": list(SIZE), "marker_size": sc.marker_size, "markers": sc.markers,
             "fps": args.fps,
             "note": "poses at the middle of each frame's shutter", "frames": poses}
-    from spectral_fit.fileio import atomic_write_text
+    from spectral_fit._runtime.fileio import atomic_write_text
 
     atomic_write_text(out.with_suffix(".poses.json"), json.dumps(meta) + "\n")
     n = count_frames(out)

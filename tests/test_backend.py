@@ -1,5 +1,5 @@
-"""The two work layouts (spectral_fit.backend): the accelerator layout (whole batches at once,
-no device loops or conditionals) renders the same frame, with the same gradients, as the CPU
+"""The two work layouts (spectral_fit._runtime.backend): the accelerator layout (whole batches at
+once, no device loops or conditionals) renders the same frame, with the same gradients, as the CPU
 layout (chunks in a loop, empty chunks skipped). Both run here on the CPU."""
 
 from __future__ import annotations
@@ -10,13 +10,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _rendering_util import write_scene
+from helpers.rendering import write_scene
 
-from spectral_fit import backend, raster, renderer
-from spectral_fit.errors import InputError
+from spectral_fit._runtime import backend
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.geometry import _raster as raster
+from spectral_fit.rendering import _renderer as renderer
 
 # the module (the package exports a function of the same name)
-interreflection = importlib.import_module("spectral_fit.interreflection")
+interreflection = importlib.import_module("spectral_fit.rendering.interreflection._transport")
 
 
 def test_layout_variable(monkeypatch):
@@ -34,10 +36,10 @@ def test_layout_variable(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def prep(tmp_path_factory):
+def prep(scene_folder):
     # gather interreflection, two colours, a mirror term: every layout-dependent path runs
-    return renderer.prepare(write_scene(tmp_path_factory.mktemp("layout"), mode="gather",
-                                        same_colour=False, chi=0.3))
+    return renderer.prepare(write_scene(scene_folder, mode="gather", same_colour=False,
+                                        chi=0.3))
 
 
 def _with_layout(monkeypatch, accelerator: bool, fn):
@@ -107,9 +109,9 @@ def test_accelerator_layout_gradients_match_the_cpu_layout(prep, monkeypatch):
 def test_default_visibility_is_concrete_when_first_made_inside_a_trace():
     """The cached all-visible default of render_frame/render_pixels (called inside a caller's
     jit by the live step) must be an array, not the tracer of the first trace."""
-    renderer._all_visible.cache_clear()
-    inside = jax.jit(lambda: renderer._all_visible(3) & True)()
-    outside = renderer._all_visible(3)
+    renderer.all_visible.cache_clear()
+    inside = jax.jit(lambda: renderer.all_visible(3) & True)()
+    outside = renderer.all_visible(3)
     assert not isinstance(outside, jax.core.Tracer)
     np.testing.assert_array_equal(np.asarray(outside), [True, True, True])
     np.testing.assert_array_equal(np.asarray(inside), np.asarray(outside))

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spectral_fit.camera import (
+from spectral_fit.geometry import (
     Camera,
     interreflection_camera,
     intrinsics_matrix,
@@ -25,7 +25,7 @@ from spectral_fit.camera import (
     relative_transform,
     view_to_opencv_pose,
 )
-from spectral_fit.mesh import rotate, translate
+from spectral_fit.io import rotate, translate
 
 
 def _ndc(clip):
@@ -145,7 +145,7 @@ def test_intrinsics_projection_matches_cv2_project_points():
     uv, _ = cv2.projectPoints(pts, rvec, t, k, None)
     cam = Camera(opencv_pose_to_view(r, t), proj)
     ours = _pixels(project(cam, pts), w, h)
-    # DESIGN §3: OpenCV's pixel (0, 0) centre is our (0.5, 0.5)
+    # OpenCV's pixel (0, 0) centre is our (0.5, 0.5)
     np.testing.assert_allclose(ours, uv[:, 0, :] + 0.5, atol=2e-3)
     ks = np.asarray(intrinsics_matrix(600.0, 610.0, 355.2, 243.7, skew=3.0), np.float64)
     cams = Camera(opencv_pose_to_view(r, t), intrinsics_to_projection(ks, w, h))
@@ -191,7 +191,7 @@ def test_closed_form_inverses_match_numpy():
     """inverse_3x3 / inverse_4x4 (closed forms, no LAPACK) against float64 numpy.linalg.inv on
     random well-conditioned matrices and on a projection·view product; eye_position against
     the eye given to look_at; gradients against jnp.linalg.inv's."""
-    from spectral_fit.camera import eye_position, inverse_3x3, inverse_4x4
+    from spectral_fit.geometry import eye_position, inverse_3x3, inverse_4x4
 
     rng = np.random.default_rng(3)
     m4 = (rng.normal(size=(40, 4, 4)) + 3 * np.eye(4)).astype(np.float32)

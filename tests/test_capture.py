@@ -6,16 +6,16 @@ import colour
 import numpy as np
 import pytest
 
-from spectral_fit.capture import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.color import illuminant, xyz_weights
+from spectral_fit.lighting import (
     camera_lifter,
     camera_sensitivities,
     compare_lifting,
     lift_generic_mallett,
     simulate_capture,
+    synthetic_environment,
 )
-from spectral_fit.colorimetry import illuminant, xyz_weights
-from spectral_fit.environment import synthetic_environment
-from spectral_fit.errors import InputError
 
 WL = np.arange(380.0, 781.0, 5.0)
 

@@ -1,12 +1,14 @@
-"""Colorimetry against colour-science and the DESIGN §5 oracles."""
+"""Colorimetry against colour-science and published oracles (sources in docs/conventions.md,
+'Reference values')."""
 
 import colour
 import numpy as np
 import pytest
 
-from spectral_fit.colorimetry import (
+from spectral_fit.color import (
     cmfs,
     daylight_coefficients,
+    default_wavelengths,
     delta_e00,
     delta_uv_prime,
     integration_weights,
@@ -17,7 +19,6 @@ from spectral_fit.colorimetry import (
     xyz_to_xy,
     xyz_weights,
 )
-from spectral_fit.spectra import default_wavelengths
 
 WL = default_wavelengths()
 SHAPE = colour.SpectralShape(380, 780, 5)
@@ -26,11 +27,14 @@ CMFS = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(SHAP
 
 
 def test_ciede2000_sharma_pair_1():
+    """Sharma, Wu & Dalal, Color Res. Appl. 30(1), 2005, Table 1, pair 1: ΔE00 = 2.0425."""
     assert delta_e00([50.0, 2.6772, -79.7751], [50.0, 0.0, -82.7485]) == pytest.approx(
         2.0425, abs=1e-4)
 
 
 def test_daylight_coefficients_oracles():
+    """CIE 015:2018 daylight formula: M1, M2 of D65's chromaticity (unrounded); fitting the
+    tabulated D65 instead gives slightly different values (our computation)."""
     sd = colour.sd_CIE_illuminant_D_series(np.array([0.3127, 0.3290]), M1_M2_rounding=False)
     m1, m2 = daylight_coefficients(sd[WL], WL)
     assert m1 == pytest.approx(-0.2897, abs=1e-4) and m2 == pytest.approx(-0.6668, abs=1e-4)
@@ -99,7 +103,7 @@ def test_lab_against_reference_white():
     a = 500 * (f(cc[0] / n[0]) - f(cc[1] / n[1]))
     b = 200 * (f(cc[1] / n[1]) - f(cc[2] / n[2]))
     np.testing.assert_allclose(xyz_to_lab(c, white), [L, a, b], rtol=1e-6)
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
 
     with pytest.raises(InputError, match="white_xyz"):
         xyz_to_lab(c, [1.0, 0.0, 1.0])

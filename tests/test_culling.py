@@ -1,4 +1,4 @@
-"""Cluster culling before the camera raster (spectral_fit.culling): the raster of the kept
+"""Cluster culling before the camera raster (spectral_fit.geometry): the raster of the kept
 clusters' triangles equals the raster of every triangle, bit for bit, over poses that stress the
 orientation identity (eye near the surface, inside an object, objects behind the eye or across
 the near plane, mirrored models, off-centre and flipped projections, non-convex meshes)."""
@@ -11,20 +11,22 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spectral_fit import raster
-from spectral_fit.camera import intrinsics_to_projection, look_at, perspective
-from spectral_fit.culling import (
+from spectral_fit.geometry import (
     CLUSTER_SIZE,
     MARGIN,
     build_clusters,
     cluster_rows,
     count_clusters,
     grown_clusters,
+    intrinsics_to_projection,
+    look_at,
+    perspective,
     spatial_order,
     visible_clusters,
     worst_direction_count,
 )
-from spectral_fit.mesh import Mesh, concat_meshes, icosphere, is_closed_outward, uv_sphere
+from spectral_fit.geometry import _raster as raster
+from spectral_fit.io import Mesh, concat_meshes, icosphere, is_closed_outward, uv_sphere
 
 SHAPE = (48, 64)
 
@@ -239,8 +241,8 @@ def test_spatial_order_and_the_directional_bound():
 
 
 def test_frames_with_and_without_clusters_are_identical():
-    from spectral_fit.benchmarks.frame import benchmark_scene
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.bench.cases.frame import benchmark_scene
+    from spectral_fit.rendering import prepare, render_frame
 
     prep = prepare(benchmark_scene(z=-0.275), mode="none", size=(96, 64))
     assert prep.clusters is not None and prep.cull == "back"

@@ -5,10 +5,10 @@ import json
 import numpy as np
 from PIL import Image
 
-from spectral_fit import startup
 from spectral_fit.cli import main
-from spectral_fit.colorimetry import radiance_to_xyz
-from spectral_fit.exr import read_spectral_exr
+from spectral_fit.color import radiance_to_xyz
+from spectral_fit.io import read_spectral_exr
+from spectral_fit.rendering import _cache as startup
 
 
 def test_demo_writes_pictures_and_summary(tmp_path, capsys):

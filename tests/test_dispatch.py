@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spectral_fit import dispatch
-from spectral_fit.dispatch import array_jit
+from spectral_fit._runtime import dispatch
+from spectral_fit._runtime.dispatch import array_jit
 
 
 class Box(eqx.Module):
@@ -96,7 +96,7 @@ def test_cpu_programs_compile_without_library_fusions_and_nest_in_a_callers_jit(
     off: the (N, 3) norm below is one of XLA's own loops, not a library call); inside a
     caller's jit (tracers, or concrete arguments closed over) the same function runs without
     them (JAX refuses compiler options on a nested jit) and gives the same values."""
-    from spectral_fit.dispatch import cpu_compiler_options
+    from spectral_fit._runtime.dispatch import cpu_compiler_options
 
     def unit(x):
         return x / jnp.linalg.norm(x, axis=-1, keepdims=True)

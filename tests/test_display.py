@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spectral_fit.display import Display, decode, encode, fit_display_csv, to_display
-from spectral_fit.errors import InputError
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.color import Display, decode, encode, fit_display_csv, to_display
 
 
 def test_srgb_curve_matches_iec_61966_2_1_in_colour():

@@ -4,24 +4,28 @@ brute force, mirror, eq. (5) shading, gradients vs finite differences, vmap, bas
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import STUDIO_ROOM
 
-from spectral_fit.environment import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import (
     SH_C1,
     SH_C2,
     SH_C3,
     SH_C4,
     SH_C5,
     EnvironmentMap,
+    fresnel_dielectric,
+    gaussian_d,
     gloss_integral,
     irradiance_exact,
     irradiance_sh,
     lookup,
+    make_material,
     mirror_radiance,
     rotation_y,
     shade,
@@ -29,12 +33,6 @@ from spectral_fit.environment import (
     texel_directions,
     texel_solid_angles,
     uv_to_direction,
-)
-from spectral_fit.errors import InputError
-from spectral_fit.reflectance import (
-    fresnel_dielectric,
-    gaussian_d,
-    make_material,
     vcavity_g,
 )
 
@@ -62,7 +60,7 @@ def test_texel_geometry():
     assert sa.sum() == pytest.approx(4 * math.pi, rel=1e-12)
     d = texel_directions(16, 32)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, rtol=1e-12)
-    # DESIGN §3: u = φ/2π, v = θ/π from +Y, d = (sinφ sinθ, cosθ, −cosφ sinθ)
+    # our mapping: u = φ/2π, v = θ/π from +Y, d = (sinφ sinθ, cosθ, −cosφ sinθ)
     np.testing.assert_allclose(uv_to_direction(0.0, 0.5), [0, 0, -1], atol=1e-12)
     np.testing.assert_allclose(uv_to_direction(0.25, 0.5), [1, 0, 0], atol=1e-12)
     np.testing.assert_allclose(uv_to_direction(0.3, 0.0), [0, 1, 0], atol=1e-12)
@@ -154,6 +152,8 @@ def test_sh_irradiance_within_bound_of_texel_sum(img3, env3):
 
 
 def test_gloss_furnace_beckmann():
+    """Closed form 1 − exp(−1/m²): the Beckmann slope distribution (Beckmann & Spizzichino 1963)
+    integrated up to θh = 45°, where the light direction reaches the horizon for V = N."""
     env = EnvironmentMap.from_array(np.ones((16, 32, 1)))
     n = jnp.asarray([0.0, 1.0, 0.0])
     for m in (0.5, 0.3, 0.8):
@@ -329,17 +329,16 @@ def test_vmap_pixels_and_materials_equals_loop(img3, env3):
 
 
 def test_basis_coefficient_shading_matches_bands():
-    from spectral_fit.basis import pca_basis
-    from spectral_fit.colorimetry import delta_e00, xyz_to_lab, xyz_weights
+    from spectral_fit.color import delta_e00, pca_basis, xyz_to_lab, xyz_weights
 
     wl = np.arange(380.0, 781.0, 5.0)
     img = synthetic_environment(16, 32, wl, lamp_radius_deg=12.0)
     basis = pca_basis(8, wl)
     env_b = EnvironmentMap.from_array(img)
     env_k = EnvironmentMap.from_array(basis.project(img), product_tensor=basis.product_tensor)
-    from spectral_fit.basis import _reflectances_5nm
+    from spectral_fit.color import training_spectra
 
-    _, refl = _reflectances_5nm()
+    refl = training_spectra("reflectances", wl)
     W = xyz_weights(wl)
     cfg = _configs(0.2, 6, seed=5)
     des = []
@@ -381,11 +380,9 @@ def test_compressed_measured_map_keeps_its_gloss():
     equals the
     uncompressed map's (``compress_tol=0``, every band kept). The tolerance bounds the error by
     1e-3 of the largest value; measured 2.4e-6, asserted 2e-5 (3e-2 gives 4e-5 and fails)."""
-    from spectral_fit.exr import read_spectral_exr
+    from spectral_fit.io import read_spectral_exr
 
-    path = Path(__file__).resolve().parents[1] / "measurements" / "environment" / \
-        "studio_room.exr"
-    _, img = read_spectral_exr(path)
+    _, img = read_spectral_exr(STUDIO_ROOM)
     img = np.asarray(img, np.float64)
     small = EnvironmentMap.from_array(img, compress_tol=1e-3)
     full = EnvironmentMap.from_array(img, compress_tol=0.0)
@@ -413,15 +410,10 @@ def test_compressed_measured_map_keeps_its_gloss():
 @pytest.mark.parametrize("shape", [(16, 32), (7, 13)])
 def test_padded_bilinear_is_the_general_lookup_bit_for_bit(shape):
     """The background's lookup from the pole-row, wrapped-column layout
-    (``padded_bilinear``) returns exactly what the general taps (``_bilinear_taps`` +
-    ``_taps_sum``) return: random coordinates, both seams, the pole caps past the first and
+    (``padded_bilinear``) returns exactly what the general taps (``bilinear_taps`` +
+    ``taps_sum``) return: random coordinates, both seams, the pole caps past the first and
     last row centres, the very poles, and u, v exactly 0 and 1."""
-    from spectral_fit.environment import (
-        _bilinear_taps,
-        _taps_sum,
-        padded_bilinear,
-        padded_table,
-    )
+    from spectral_fit.lighting import bilinear_taps, padded_bilinear, padded_table, taps_sum
 
     hm, wm = shape
     rng = np.random.default_rng(hm)
@@ -437,8 +429,8 @@ def test_padded_bilinear_is_the_general_lookup_bit_for_bit(shape):
 
     @jax.jit
     def both(flat, u, v):
-        idx, w = _bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm), lead=True)
-        return (_taps_sum(flat, idx, w, lead=True),
+        idx, w = bilinear_taps(u, v, jnp.int32(0), jnp.int32(hm), jnp.int32(wm), lead=True)
+        return (taps_sum(flat, idx, w, lead=True),
                 padded_bilinear(padded_table(flat, hm, wm), u, v, hm, wm))
 
     general, padded = (np.asarray(x) for x in both(flat, u, v))

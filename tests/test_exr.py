@@ -14,15 +14,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from spectral_fit.errors import InputError
-from spectral_fit.exr import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.color import parse_spectrum_text, read_spectrum_csv
+from spectral_fit.io import (
     parse_channel_name,
     read_rgb_exr,
     read_spectral_exr,
     read_spectral_exr_ex,
     write_spectral_exr,
 )
-from spectral_fit.spectra import parse_spectrum_text, read_spectrum_csv
 
 SPEED_OF_LIGHT = 299_792_458.0
 

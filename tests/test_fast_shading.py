@@ -1,5 +1,5 @@
 """Quality "fast" of the frame renderer: the split-sum gloss (environment.gloss_split_sum) against
-brute force (tests/_lighting_util.py), its lobe moments against a direct sum over reflected
+brute force (tests/helpers/lighting.py), its lobe moments against a direct sum over reflected
 directions, its gradients against central differences, and the vectorisable atan2 / (u, v)."""
 
 from __future__ import annotations
@@ -10,15 +10,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _lighting_util import anchor_map, brute_gloss, configs, fresnel, gaussian_k, unit
+from helpers.lighting import brute_gloss, configs, fresnel, gaussian_k, unit
 
-from spectral_fit.environment import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import (
     EnvironmentMap,
     SplitSum,
     SplitSumMap,
-    _atan2_poly,
-    _sincos_poly,
-    _wrap,
+    atan2_poly,
     direction_to_uv,
     fast_direction_to_uv,
     fast_lookup,
@@ -26,13 +25,14 @@ from spectral_fit.environment import (
     lobe_moment_table,
     lookup,
     rotation_y,
+    sincos_poly,
 )
-from spectral_fit.errors import InputError
+from spectral_fit.lighting._environment import _wrap
 
 
 @pytest.fixture(scope="module")
-def anchor():
-    img, env, lamp = anchor_map()
+def anchor(anchor_lighting):
+    img, env, lamp = anchor_lighting
     pre = SplitSumMap.from_environment(env, img)
     return img, env, pre, lamp
 
@@ -49,7 +49,7 @@ def test_atan2_and_uv_match_the_library_functions():
     x = rng.normal(size=20000)
     x[:50], y[50:100], x[100:150] = 0.0, 0.0, -np.abs(x[100:150])
     y[100:150] = 0.0
-    got = np.asarray(_atan2_poly(jnp.asarray(y, jnp.float32), jnp.asarray(x, jnp.float32)))
+    got = np.asarray(atan2_poly(jnp.asarray(y, jnp.float32), jnp.asarray(x, jnp.float32)))
     assert np.abs(got - np.arctan2(np.float32(y), np.float32(x))).max() < 5e-7
     d = rng.normal(size=(20000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -66,13 +66,13 @@ def test_sincos_matches_the_library_and_its_gradient_is_cos_minus_sin():
     x = np.concatenate([np.random.default_rng(2).uniform(-60.0, 60.0, 20000),
                         np.arange(-8, 9) * (math.pi / 4), [0.0, 1e-30, -1e-30]])
     xs = jnp.asarray(x, jnp.float32)
-    s, c = _sincos_poly(xs)
+    s, c = sincos_poly(xs)
     x32 = np.float32(x).astype(np.float64)  # the float32 argument, exactly
     assert np.abs(np.asarray(s) - np.sin(x32)).max() < 1.5e-7
     assert np.abs(np.asarray(c) - np.cos(x32)).max() < 1.5e-7
     near = jnp.asarray(x[np.abs(x) < 2 * math.pi], jnp.float32)
-    ds = jax.vmap(jax.grad(lambda t: _sincos_poly(t)[0]))(near)
-    dc = jax.vmap(jax.grad(lambda t: _sincos_poly(t)[1]))(near)
+    ds = jax.vmap(jax.grad(lambda t: sincos_poly(t)[0]))(near)
+    dc = jax.vmap(jax.grad(lambda t: sincos_poly(t)[1]))(near)
     n64 = np.asarray(near, np.float64)
     assert np.abs(np.asarray(ds) - np.cos(n64)).max() < 1e-6
     assert np.abs(np.asarray(dc) + np.sin(n64)).max() < 1e-6
@@ -124,7 +124,7 @@ def _brute_moments(mu, theta_r, n=1.5, rows=1024):
 
 @pytest.mark.parametrize("mu", [0.1, 0.3])
 def test_lobe_moments_match_a_direct_sum_over_reflected_directions(mu):
-    from spectral_fit.environment import _interp_moments
+    from spectral_fit.lighting._environment import _interp_moments
 
     table = lobe_moment_table(mu, 1.5)
     for deg in (0.0, 30.0, 60.0, 75.0):
@@ -202,9 +202,9 @@ def test_split_sum_gradients_match_finite_differences(anchor):
 
 
 def test_settings_are_checked(anchor, tmp_path):
-    from _rendering_util import write_scene
+    from helpers.rendering import write_scene
 
-    from spectral_fit.renderer import prepare
+    from spectral_fit.rendering import prepare
 
     _, env, pre, _ = anchor
     table = lobe_moment_table(0.1, 1.5)

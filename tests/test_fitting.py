@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
-from _fitting_util import (
+from helpers import subprocess_env
+from helpers.fitting import (
     CENTRES,
     RADIUS,
     TRUE,
@@ -23,12 +22,10 @@ from _fitting_util import (
     write_small_scene,
 )
 
-from spectral_fit import fitting
-from spectral_fit.errors import InputError
-from spectral_fit.scene import load_scene
-from spectral_fit.session import load_session
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.fitting import _fit as fitting
+from spectral_fit.io import load_scene, load_session
 
-ROOT = Path(__file__).resolve().parent.parent
 RES = 6  # spot resolution in these tests
 
 
@@ -42,7 +39,7 @@ def small(tmp_path_factory):
     standard that calibrates it; returns (scene, session, prepared, env)."""
     import jax.numpy as jnp
 
-    from spectral_fit.environment import irradiance_exact
+    from spectral_fit.lighting import irradiance_exact
 
     root = tmp_path_factory.mktemp("fit")
     cfg = write_small_scene(root)
@@ -62,17 +59,17 @@ def small(tmp_path_factory):
     return scene, session, prep, env, clean
 
 
-def test_uniform_environment_oracle(tmp_path):
+def test_uniform_environment_oracle(tmp_path, small_scene_config):
     """Under a uniform map L0 a spot's reading is closed-form: α S L0 (Lambert; E = π L0) plus
     χ L0 · mean F(n, θr) over the field (mirror), with θr from an analytic sphere intersection
     of the field's rays (independent of the mesh and of the ray caster)."""
     import jax.numpy as jnp
 
-    from spectral_fit.camera import look_at
-    from spectral_fit.exr import write_spectral_exr
-    from spectral_fit.reflectance import fresnel_dielectric
+    from spectral_fit.geometry import look_at
+    from spectral_fit.io import write_spectral_exr
+    from spectral_fit.lighting import fresnel_dielectric
 
-    cfg = write_small_scene(tmp_path)
+    cfg = small_scene_config
     wl = np.arange(400.0, 701.0, 20.0)
     L0 = 1e-3 * (1.0 + (wl - 400.0) / 300.0)
     write_spectral_exr(tmp_path / "env.exr", wl, np.broadcast_to(L0, (16, 32, wl.size))
@@ -152,13 +149,13 @@ def test_compact_solver_matches_optimistix(small):
     noisy = np.asarray(pr.measured, np.float64) * (1.0 + 0.01 * rng.standard_normal(
         pr.measured.shape))
     pr = eqx.tree_at(lambda q: q.measured, pr, jnp.asarray(noisy, pr.values.dtype))
-    y0 = fitting._y_start(pr, np.asarray(pr.values, np.float64), 1.0)
+    y0 = fitting.y_start(pr, np.asarray(pr.values, np.float64), 1.0)
     ys = jnp.asarray(fitting._starts(pr, y0, 2, 7), pr.values.dtype)
     rw = jnp.ones((2, len(session.readings)), pr.values.dtype)
     out = {}
     for name in fitting.SOLVERS:
         opts = fitting.FitOptions(solver=name, rtol=1e-6, atol=1e-7)
-        o = fitting._solve_batch(pr, ys, rw, fitting._solver(opts, False), 100)
+        o = fitting.solve_batch(pr, ys, rw, fitting.make_solver(opts, False), 100)
         out[name] = {k: np.asarray(v, np.float64) for k, v in o.items()}
     a, b = out["compact"], out["optimistix"]
     assert a["converged"].all() and b["converged"].all()
@@ -212,7 +209,7 @@ def test_physical_from_y_matches_the_per_parameter_maps(small):
     scene, session, prep, env, clean = small
     pr = dataclasses.replace(prep.problem, free=prep.problem.free[:-1])  # one more fixed
     y = np.random.default_rng(1).normal(size=len(pr.free)) * 0.7
-    vals, scale = fitting._physical_from_y(pr, jnp.asarray(y, jnp.float32))
+    vals, scale = fitting.physical_from_y(pr, jnp.asarray(y, jnp.float32))
     want = np.array(pr.values, np.float64)
     for j, (o, k) in enumerate(pr.free):
         want[o, k] = float(fitting.to_physical(y[j], fitting.PARAMETERS[k]))
@@ -244,12 +241,11 @@ def test_spot_missing_object(small, tmp_path):
 
 @pytest.mark.slow
 def test_ray_cast_matches_rasteriser(small):
-    """The field samples from the exact ray cast equal those of spectral_fit.raster on the
+    """The field samples from the exact ray cast equal those of spectral_fit.geometry on the
     same camera (objects hit, positions)."""
     import jax.numpy as jnp
 
-    from spectral_fit.camera import look_at, perspective
-    from spectral_fit.raster import rasterize
+    from spectral_fit.geometry import look_at, perspective, rasterize
 
     scene, session, prep, env, clean = small
     geoms = prep.geometries
@@ -280,14 +276,13 @@ _X64 = textwrap.dedent("""
     import jax
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp, numpy as np
-    sys.path.insert(0, sys.argv[1])
     warnings.simplefilter("ignore")
-    from _fitting_util import TRUE, spots, write_session, write_small_scene
+    from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
-    from spectral_fit import fitting
-    from spectral_fit.scene import load_scene
-    from spectral_fit.session import load_session
-    root = Path(sys.argv[2])
+    from spectral_fit.fitting import _fit as fitting
+    from spectral_fit.io import load_scene
+    from spectral_fit.io import load_session
+    root = Path(sys.argv[1])
     cfg = write_small_scene(root)
     scene = load_scene(cfg)
     opts = fitting.FitOptions(spot_resolution=5, dtype=jnp.float64)
@@ -306,9 +301,8 @@ _X64 = textwrap.dedent("""
 @pytest.mark.slow
 def test_exact_recovery_float64(tmp_path):
     """Float64 (own process): noiseless own-model readings, 4 starts, every parameter to 1e-6."""
-    out = subprocess.run([sys.executable, "-c", _X64, str(Path(__file__).parent),
-                          str(tmp_path)], capture_output=True, text=True, timeout=900,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    out = subprocess.run([sys.executable, "-c", _X64, str(tmp_path)], capture_output=True,
+                         text=True, timeout=900, env=subprocess_env())
     assert out.returncode == 0, out.stderr[-3000:]
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert got["status"] == "converged"
@@ -349,15 +343,14 @@ _SHARD = textwrap.dedent("""
     import os, sys, json, warnings
     os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
     import jax, numpy as np
-    sys.path.insert(0, sys.argv[1])
     warnings.simplefilter("ignore")
-    from _fitting_util import TRUE, spots, write_session, write_small_scene
+    from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
-    from spectral_fit import fitting
-    from spectral_fit.scene import load_scene
-    from spectral_fit.session import load_session
+    from spectral_fit.fitting import _fit as fitting
+    from spectral_fit.io import load_scene
+    from spectral_fit.io import load_session
     assert len(jax.devices()) == 2
-    root = Path(sys.argv[2])
+    root = Path(sys.argv[1])
     cfg = write_small_scene(root)
     scene = load_scene(cfg)
     opts = fitting.FitOptions(spot_resolution=4)
@@ -380,9 +373,8 @@ _SHARD = textwrap.dedent("""
 def test_sharded_batch_two_devices(tmp_path):
     """fit_many shards K sessions over 2 (forced host) devices and gives the single-device
     numbers."""
-    out = subprocess.run([sys.executable, "-c", _SHARD, str(Path(__file__).parent),
-                          str(tmp_path)], capture_output=True, text=True, timeout=900,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    out = subprocess.run([sys.executable, "-c", _SHARD, str(tmp_path)], capture_output=True,
+                         text=True, timeout=900, env=subprocess_env())
     assert out.returncode == 0, out.stderr[-3000:]
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert len(got["devices"]) == 2
@@ -393,7 +385,7 @@ def test_sharded_batch_two_devices(tmp_path):
 def test_band_matrix_matches_instrument_response():
     """The model's band-pass equals the reference spectroradiometer's (an independent
     implementation) on spiky spectra, and is the identity without a bandwidth."""
-    from spectral_fit.reference.instrument import instrument_response
+    from spectral_fit.validation.reference.instrument import instrument_response
 
     wl = np.arange(380.0, 781.0, 5.0)
     rng = np.random.default_rng(3)
@@ -446,7 +438,7 @@ def test_bundled_session_recovery_targets():
     ``spectral-fit demo`` does (every reading, interreflection readings included, with the
     interreflection term in the model): recovery within the issue's targets (α, β 3 %,
     μ 5 %, χ 0.02, n 0.03)."""
-    from spectral_fit.report import DEMO_CONFIG, DEMO_SESSION
+    from spectral_fit.fitting import DEMO_CONFIG, DEMO_SESSION
 
     truth = json.loads((DEMO_SESSION / "truth.json").read_text())["params"]
     scene = load_scene(DEMO_CONFIG)
@@ -471,13 +463,15 @@ def test_report_render_is_the_fitted_scene_rendered(tmp_path, monkeypatch):
     import dataclasses
     from types import SimpleNamespace
 
-    from _rendering_util import scene_toml as two_spheres_toml
-    from _rendering_util import symmetric_environment
+    from helpers.rendering import scene_toml as two_spheres_toml
+    from helpers.rendering import symmetric_environment
     from PIL import Image
 
-    from spectral_fit import renderer, report, startup
-    from spectral_fit.plots import save_png
-    from spectral_fit.session import PARAMETERS
+    from spectral_fit.color import save_png
+    from spectral_fit.fitting import _report as report
+    from spectral_fit.io import PARAMETERS
+    from spectral_fit.rendering import _cache as startup
+    from spectral_fit.rendering import _renderer as renderer
 
     monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(tmp_path / "cache"))
     env = symmetric_environment(tmp_path / "env.exr")

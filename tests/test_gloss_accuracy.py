@@ -7,11 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _lighting_util import anchor_map, brute_gloss, configs, grazing_configs, unit
+from helpers import STUDIO_ROOM
+from helpers.lighting import brute_gloss, configs, grazing_configs, unit
 
-from spectral_fit.environment import (
+from spectral_fit.lighting import (
     EnvironmentMap,
-    _sphere_blur,
     gloss_integral,
     lookup,
     rotation_y,
@@ -19,11 +19,7 @@ from spectral_fit.environment import (
     texel_directions,
     texel_solid_angles,
 )
-
-
-@pytest.fixture(scope="module")
-def anchor():
-    return anchor_map()
+from spectral_fit.lighting._environment import _sphere_blur
 
 
 def test_sphere_blur_is_the_direct_spherical_gaussian_sum():
@@ -77,11 +73,11 @@ def _grid(lamp, mu, seed, k=8, grazing=(70.0, 80.0)):
 
 
 @pytest.mark.parametrize("mu", [0.05, 0.1, 0.2, 0.3, 0.5])
-def test_gloss_exact_vs_brute_force_bundled_map(anchor, mu):
+def test_gloss_exact_vs_brute_force_bundled_map(anchor_lighting, mu):
     """The issue's bound: < 1 % (every band) for μ in [0.05, 0.5], θr <= 60°. Grazing views
     (70°, 80°): measured up to 1.7 % (μ = 0.2, in the blend with the texel sum;
     docs/lighting.md has the full tables): bounded at 2 %."""
-    img, env, lamp = anchor
+    img, env, lamp = anchor_lighting
     rel = _relative_errors(env, img, mu, _grid(lamp, mu, int(mu * 1000) + 1), "exact",
                            rotation_y(180.0))
     print(f"exact mu={mu}: median {np.median(rel):.4f} max {rel.max():.4f}")
@@ -90,11 +86,11 @@ def test_gloss_exact_vs_brute_force_bundled_map(anchor, mu):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mu", [0.05, 0.07, 0.1, 0.14, 0.2, 0.25, 0.3, 0.4, 0.5])
-def test_gloss_exact_vs_brute_force_dense(anchor, mu):
+def test_gloss_exact_vs_brute_force_dense(anchor_lighting, mu):
     """A denser grid on the benchmark map (16 configurations with θr <= 60° and 8 grazing ones
     up to 80° per μ; the grid of scripts/gloss_accuracy.py), the oracle refined for
     μ <= 0.1. Measured worst: 0.35 % (θr <= 60°), 0.66 % (grazing, μ = 0.14)."""
-    img, env, lamp = anchor
+    img, env, lamp = anchor_lighting
     cfg = _grid(lamp, mu, int(mu * 1000) + 7, k=16, grazing=(65.0, 70.0, 75.0, 80.0))
     rel = _relative_errors(env, img, mu, cfg, "exact", rotation_y(180.0), refine=_refine(mu))
     assert rel[:16].max() < 0.01 and rel[16:].max() < 0.01, rel
@@ -104,13 +100,9 @@ def test_gloss_exact_vs_brute_force_dense(anchor, mu):
 def room():
     """The bundled room map (2° lamp of 8 source texels, a window and a ceiling panel with
     sharp edges): (img, EnvironmentMap, world direction of its brightest texel)."""
-    from pathlib import Path
+    from spectral_fit.io import read_spectral_exr
 
-    from spectral_fit.exr import read_spectral_exr
-
-    path = Path(__file__).resolve().parents[1] / "measurements" / "environment" / \
-        "studio_room.exr"
-    _, img = read_spectral_exr(path)
+    _, img = read_spectral_exr(STUDIO_ROOM)
     img = np.asarray(img, np.float64)
     lum = img.sum(-1)
     i, j = np.unravel_index(np.argmax(lum), lum.shape)
@@ -191,8 +183,8 @@ def test_oracle_refined_is_the_fine_sum(room):
 
 
 @pytest.mark.parametrize("mu", [0.1, 0.3])
-def test_gloss_render_vs_brute_force_bundled_map(anchor, mu):
-    img, env, lamp = anchor
+def test_gloss_render_vs_brute_force_bundled_map(anchor_lighting, mu):
+    img, env, lamp = anchor_lighting
     rel = _relative_errors(env, img, mu, configs(lamp, mu, 8, int(mu * 1000) + 2), "render",
                            rotation_y(180.0))
     print(f"render mu={mu}: median {np.median(rel):.4f} max {rel.max():.4f}")
@@ -200,14 +192,14 @@ def test_gloss_render_vs_brute_force_bundled_map(anchor, mu):
 
 
 def test_oracle_bilinear_model_is_the_library_lookup():
-    """The oracle's own bilinear upsampling (tests/_lighting_util) reproduces the library's
+    """The oracle's own bilinear upsampling (tests/helpers/lighting.py) reproduces the library's
     lookup at the fine texel centres, poles and seam included: both define the same map."""
-    from _lighting_util import _bilinear_taps
+    from helpers.lighting import bilinear_taps
 
     rng = np.random.default_rng(1)
     img = rng.uniform(0.0, 1.0, size=(6, 12, 2))
     env = EnvironmentMap.from_array(img)
-    idx, wt = _bilinear_taps(6, 12, 3)
+    idx, wt = bilinear_taps(6, 12, 3)
     flat = np.concatenate([img.reshape(-1, 2), img[0].mean(0)[None], img[-1].mean(0)[None]])
     want = np.einsum("fk,fkc->fc", wt, flat[idx])
     d = jnp.asarray(texel_directions(18, 36).reshape(-1, 3), jnp.float32)
@@ -215,13 +207,13 @@ def test_oracle_bilinear_model_is_the_library_lookup():
     np.testing.assert_allclose(got, want, atol=2e-6)
 
 
-def test_below_mu_005_tends_to_albedo_times_map(anchor):
+def test_below_mu_005_tends_to_albedo_times_map(anchor_lighting):
     """Below μ = 0.05 the same quadrature runs on the (bilinear) map itself: as μ → 0 the
     gloss tends to A(θr)·L(R), A the lobe albedo, i.e. F(θr)·L(R) (a Fresnel mirror) — the
     map resolves nothing finer than its texels. Continuous through 0.05."""
-    from _lighting_util import fresnel
+    from helpers.lighting import fresnel
 
-    img, env, lamp = anchor
+    img, env, lamp = anchor_lighting
     g = jax.jit(lambda n, v, m: gloss_integral(env, n, v, m, 1.5))
     for n, v in configs(lamp, 0.02, 6, seed=5)[1::2]:  # away from the lamp's edge
         N, V = jnp.asarray(n, jnp.float32), jnp.asarray(v, jnp.float32)
@@ -280,10 +272,10 @@ def test_uniform_map_all_options_match_brute_force():
                                                err_msg=f"{distribution} {geometry} {mu}")
 
 
-def test_unknown_quality_rejected(anchor):
-    from spectral_fit.errors import InputError
+def test_unknown_quality_rejected(anchor_lighting):
+    from spectral_fit._runtime.errors import InputError
 
-    _, env, _ = anchor
+    _, env, _ = anchor_lighting
     with pytest.raises(InputError) as e:
         gloss_integral(env, jnp.array([0.0, 1.0, 0.0]), jnp.array([0.0, 1.0, 0.0]), 0.1, 1.5,
                        quality="fast")
@@ -291,8 +283,8 @@ def test_unknown_quality_rejected(anchor):
 
 
 def test_unknown_node_rule_rejected():
-    from spectral_fit.environment import GlossQuadrature
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
+    from spectral_fit.lighting import GlossQuadrature
 
     with pytest.raises(InputError) as e:
         EnvironmentMap.from_array(np.ones((8, 16, 1)), quadrature=GlossQuadrature(nodes="x"))
@@ -312,8 +304,7 @@ def test_unknown_node_rule_rejected():
 
 
 def test_shade_points_batches_equal_vmap():
-    from spectral_fit.environment import shade, shade_points
-    from spectral_fit.reflectance import make_material
+    from spectral_fit.lighting import make_material, shade, shade_points
 
     wl = np.array([450.0, 550.0, 650.0])
     env = EnvironmentMap.from_array(synthetic_environment(16, 32, wl))

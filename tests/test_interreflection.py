@@ -6,16 +6,15 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _interreflection_util import (
+from helpers import load_script, subprocess_env
+from helpers.interreflection import (
     CENTRES,
     R,
     gbuffer,
@@ -26,14 +25,14 @@ from _interreflection_util import (
     surface_points,
 )
 
-from spectral_fit.errors import InputError
-from spectral_fit.interreflection import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import fresnel_dielectric, gaussian_d, vcavity_g
+from spectral_fit.rendering.interreflection import (
     interreflection,
     interreflection_from,
     pair_list,
     prepare_interreflection,
 )
-from spectral_fit.reflectance import fresnel_dielectric, gaussian_d, vcavity_g
 
 C0, C1 = np.asarray(CENTRES[0]), np.asarray(CENTRES[1])
 CAP = 16  # receiver slots of every test G-buffer (one compilation per mode)
@@ -240,7 +239,7 @@ def test_mirror_symmetric_scene(mode, gather_geom, paper_geom):
     """Spheres at ±x, identical materials, an environment symmetric under x → −x: mirrored
     receivers get the same correction."""
     geom = gather_geom if mode == "gather" else paper_geom
-    from spectral_fit.environment import texel_directions
+    from spectral_fit.lighting import texel_directions
 
     d = texel_directions(16, 32)
     tex = (0.6 + 0.3 * d[..., 1:2] + 0.2 * d[..., 0:1] ** 2 + 0.15 * d[..., 2:3]) * np.array(
@@ -284,7 +283,7 @@ def test_paper_textures_by_the_split_sum_match_the_quadrature(paper_geom):
     """Paper mode's pass-1 textures with ``split_sum`` (the frame's quality "fast") carry the
     sender's gloss as the "render" quadrature does, within the split sum's error on a smooth
     sky; the diffuse and mirror texels are the same code (equal with β = 0)."""
-    from spectral_fit.environment import SplitSum, SplitSumMap
+    from spectral_fit.lighting import SplitSum, SplitSumMap
 
     texels = linear_env_texels([1.0, 0.8, 0.6], [0.5, 0.2, -0.1])
     env = make_env(texels)
@@ -418,11 +417,8 @@ def test_gradients_float32_gather(gather_geom, linear_env):
 def test_gradients_match_finite_differences():
     """d(Σ w · IR)/d(every material parameter of both objects) vs central differences, float64,
     gather (2 bounces) and paper mode, in a fresh interpreter (x64)."""
-    here = Path(__file__).resolve().parent
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [str(here.parent), str(here), os.environ.get("PYTHONPATH", "")])}
-    res = subprocess.run([sys.executable, str(here / "_interreflection_util.py"), "gradients"],
-                         capture_output=True, text=True, env=env, timeout=600)
+    res = subprocess.run([sys.executable, "-m", "helpers.interreflection", "gradients"],
+                         capture_output=True, text=True, env=subprocess_env(), timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     data = json.loads(res.stdout.strip().splitlines()[-1])
     for key, rows in data.items():
@@ -439,8 +435,7 @@ def test_gather_against_path_traced_reference():
     """Benchmark frame vs the committed Mitsuba reference (depth 16): ΔE00 of 5×5 patch means,
     gather mode with 2 bounces, issue 6's targets (direct: median ≤ 0.5, p90 ≤ 1.0;
     interreflection-dominated: median ≤ 0.5, p90 ≤ 1.5)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    from interreflection_reference import main
+    main = load_script("interreflection_reference").main
 
     out = main(["--modes", "gather2"])["gather2"]
     assert out["direct"]["median"] <= 0.5 and out["direct"]["p90"] <= 1.0, out
@@ -469,7 +464,7 @@ def test_diffuse_at_samples_matches_receivers(gather_geom, linear_env):
 
 def _lamp_env():
     """Linear sky plus a 12× warm lamp of 10° radius up-left behind (a view-dependent gloss)."""
-    from spectral_fit.environment import texel_directions
+    from spectral_fit.lighting import texel_directions
 
     d = texel_directions(32, 64)
     lamp = np.array([-0.5, 0.6, 0.6]) / np.linalg.norm([-0.5, 0.6, 0.6])
@@ -482,7 +477,7 @@ def _lamp_env():
 def _brute_force_case(points, cone, lobe):
     """Gather (1 bounce) vs the float64 brute-force single bounce at receiver points given as
     (object, polar angle from the axis to the neighbour, azimuth) on two glossy spheres."""
-    from _interreflection_util import brute_force_single_bounce
+    from helpers.interreflection import brute_force_single_bounce
 
     objs = sphere_objects(stacks=32)
     env = _lamp_env()
@@ -535,7 +530,7 @@ def test_image_anchor_lookup_of_the_anchor_map(step):
     an image size that no step divides); anchors and non-receivers evaluate themselves."""
     import importlib
 
-    ir = importlib.import_module("spectral_fit.interreflection")
+    ir = importlib.import_module("spectral_fit.rendering.interreflection._transport")
     h, w = 37, 53
     rng = np.random.default_rng(step)
     pix = rng.permutation(h * w)[: (h * w * 3) // 4].astype(np.int32)
@@ -579,7 +574,7 @@ def test_gloss_subsampled_on_image_pixels():
     identical, 99 % of the pixels within 2 % of the peak and 0.5 % of it on average (the benchmark
     scene's close-up at 360×240; pixels next to silhouettes and where the lobe's view of
     the neighbour changes fast are evaluated themselves)."""
-    from spectral_fit.benchmarks.interreflection import benchmark_scene
+    from spectral_fit.bench.cases.interreflection import benchmark_scene
 
     sc = benchmark_scene(-0.100, stacks=48, shape=(240, 360), capacity=20480)
     objs, mats, env, rec = sc["objects"], sc["materials"], sc["env"], sc["receivers"]
@@ -608,7 +603,7 @@ def test_lobe_rings_at_equal_mass():
     in t) against it exactly, ∫ s e^{−2s²} ds = (1 − e^{−2 s_max²})/4, with 1 to 3 rings, for
     s_max set by the truncation and by the horizon (grazing views); 2 rings uniform in s
     (the other rule) miss that integral by 40 %."""
-    from spectral_fit.environment import _lobe_rings
+    from spectral_fit.lighting._environment import _lobe_rings
 
     for nv, width in ((1.0, 0.1), (0.2, 0.1), (0.05, 0.6)):
         for radial in (1, 2, 3):
@@ -633,7 +628,7 @@ def test_partition_is_the_stable_argsort():
     """The gloss quadrature's compaction of the active receivers (a stable partition by
     counting) vs numpy's stable argsort of the 0/1 keys, and its rank the inverse
     permutation."""
-    from spectral_fit.interreflection import _partition
+    from spectral_fit.rendering.interreflection._transport import _partition
 
     rng = np.random.default_rng(3)
     for n, frac in ((1, 0.5), (7, 0.0), (64, 1.0), (5000, 0.3)):
@@ -656,7 +651,7 @@ def test_output_channels_match_the_mapped_result(k, diffuse_at):
     Within 1e-5 of the peak."""
     import dataclasses
 
-    from spectral_fit.benchmarks.interreflection import benchmark_scene
+    from spectral_fit.bench.cases.interreflection import benchmark_scene
 
     sc = benchmark_scene(-0.100, stacks=24, shape=(120, 180), capacity=6144, k=k)
     objs, env, rec = sc["objects"], sc["env"], sc["receivers"]
@@ -679,7 +674,7 @@ def test_output_channels_match_the_mapped_result(k, diffuse_at):
 
 def _rotated_pair(mesh, rot, cj):
     """Two copies of ``mesh`` rotated by ``rot`` (3, 3): one at the origin, one at ``cj``."""
-    from spectral_fit.gbuffer import ObjectGeometry
+    from spectral_fit.geometry import ObjectGeometry
 
     return [ObjectGeometry(jnp.asarray(mesh.vertices) @ rot.T + c, jnp.asarray(mesh.normals)
                            @ rot.T, jnp.asarray(mesh.triangles), c)
@@ -689,7 +684,7 @@ def _rotated_pair(mesh, rot, cj):
 def _random_placements(seed, n, distance):
     """``n`` (rotation (3, 3), neighbour centre (3,)) float32 pairs: a random axis and angle,
     and a random direction at ``distance``."""
-    from spectral_fit.mesh import rotate
+    from spectral_fit.io import rotate
 
     rng = np.random.default_rng(seed)
     for _ in range(n):
@@ -705,9 +700,9 @@ def test_planned_pass1_capacities_hold_for_any_orientation():
     seen along 24 random directions, each with a random roll, must fit its capacities
     (overflow is what the rasteriser itself reports), and they are far below the generic
     ones (the 4×4 windows: T for the generic sizing)."""
-    from spectral_fit.gbuffer import ObjectGeometry
-    from spectral_fit.interreflection import plan_gather_pass1, prepare_interreflection
-    from spectral_fit.mesh import uv_sphere
+    from spectral_fit.geometry import ObjectGeometry
+    from spectral_fit.io import uv_sphere
+    from spectral_fit.rendering.interreflection import plan_gather_pass1, prepare_interreflection
 
     sph = uv_sphere(0.0375, 100, 100)  # the paper's spheres: 19,800 triangles
     cfg = plan_gather_pass1(sph.vertices, sph.triangles)
@@ -736,9 +731,10 @@ def test_generic_pass1_capacities_hold_for_coarse_and_fine_meshes(kind):
     capacity overflowed) holds what the pass-1 raster of a coarse icosphere (80 large
     triangles: many 16×16 windows each) and of a finer UV sphere needs along random
     directions (the rasteriser's own overflow flag), and the renderer's fallback is it."""
-    from spectral_fit.interreflection import SUPERSAMPLE, pass1_config, prepare_interreflection
-    from spectral_fit.mesh import icosphere, uv_sphere
-    from spectral_fit.renderer import _ir_generic_config
+    from spectral_fit.io import icosphere, uv_sphere
+    from spectral_fit.rendering._renderer import _ir_generic_config
+    from spectral_fit.rendering.interreflection import pass1_config, prepare_interreflection
+    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
 
     sph = icosphere(0.0375, 1) if kind == "ico" else uv_sphere(0.0375, 24, 24)
     t = len(sph.triangles)
@@ -767,9 +763,9 @@ def test_pass1_sphere_tessellated_for_its_raster():
     camera's mesh."""
     from types import SimpleNamespace
 
-    from spectral_fit.interreflection import plan_gather_pass1, prepare_interreflection
-    from spectral_fit.mesh import uv_sphere
-    from spectral_fit.renderer import _ir_mesh
+    from spectral_fit.io import uv_sphere
+    from spectral_fit.rendering._renderer import _ir_mesh
+    from spectral_fit.rendering.interreflection import plan_gather_pass1, prepare_interreflection
 
     full = uv_sphere(R, 100, 100)
     obj = SimpleNamespace(shape="uv_sphere", radius=R, stacks=100, slices=100)
@@ -845,7 +841,7 @@ def test_valid_first_receivers_match_the_one_pass_receivers(gather_geom, monkeyp
     between the valid ones, with a lamp (hidden sources), gloss and a mirror term, 2 bounces."""
     import importlib
 
-    module = importlib.import_module("spectral_fit.interreflection")
+    module = importlib.import_module("spectral_fit.rendering.interreflection._transport")
     x0, n0 = facing_points(C0, C1, [0.0, 20.0, 40.0, 60.0])
     x1, n1 = facing_points(C1, C0, [10.0, 35.0])
     x, n = np.concatenate([x0, x1]), np.concatenate([n0, n1])

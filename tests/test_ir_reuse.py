@@ -7,15 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("spectral_fit.renderer")
+pytest.importorskip("spectral_fit.rendering._renderer")
 
 import jax.numpy as jnp
 
-from spectral_fit.errors import InputError
+from spectral_fit._runtime.errors import InputError
 
 
 def _views():
-    from spectral_fit.camera import look_at
+    from spectral_fit.geometry import look_at
 
     up = jnp.array([0.0, 1.0, 0.0])
     target = jnp.array([0.0, 0.0, -0.275])
@@ -25,8 +25,8 @@ def _views():
 
 @pytest.fixture(scope="module")
 def prep():
-    from spectral_fit.benchmarks.frame import benchmark_scene
-    from spectral_fit.renderer import prepare
+    from spectral_fit.bench.cases.frame import benchmark_scene
+    from spectral_fit.rendering import prepare
 
     return prepare(benchmark_scene(quick=True), size=(96, 64), mode="gather")
 
@@ -35,8 +35,8 @@ def test_split_frame_equals_the_frame_that_computes_its_senders(prep):
     """render_pixels(senders=render_senders(...)) against render_pixels alone, for three
     camera views of one object state (one senders' computation), and for moved objects; the
     interreflection is a visible part of those pixels (so the comparison can fail)."""
-    from spectral_fit.dispatch import array_jit
-    from spectral_fit.renderer import TRACE_COUNT, render_pixels, render_senders
+    from spectral_fit._runtime.dispatch import array_jit
+    from spectral_fit.rendering import TRACE_COUNT, render_pixels, render_senders
 
     pixels = array_jit(lambda p, model, view, senders: render_pixels(
         p, model=model, view=view, senders=senders, mirror=False).values)
@@ -67,7 +67,7 @@ def test_render_frame_with_senders_equals_the_frame(prep):
     """render_frame(senders=...) (a turntable or camera path over objects that stay put)
     against render_frame alone, two camera views of one senders' state; without the
     interreflection the frame differs visibly (so the comparison can fail)."""
-    from spectral_fit.renderer import render_frame, render_senders
+    from spectral_fit.rendering import render_frame, render_senders
 
     senders = render_senders(prep, mirror=False)
     for view in _views()[1:]:
@@ -83,8 +83,8 @@ def test_render_frame_with_senders_equals_the_frame(prep):
 
 
 def test_senders_need_gather_mode():
-    from spectral_fit.benchmarks.frame import benchmark_scene
-    from spectral_fit.renderer import prepare, render_frame, render_pixels, render_senders
+    from spectral_fit.bench.cases.frame import benchmark_scene
+    from spectral_fit.rendering import prepare, render_frame, render_pixels, render_senders
 
     p = prepare(benchmark_scene(quick=True), size=(48, 32), mode="none")
     with pytest.raises(InputError, match="gather"):
@@ -103,8 +103,8 @@ def test_senders_need_gather_mode():
 def test_max_displacement_is_the_largest_vertex_displacement():
     """The bounding-box corner bound against the displacement of every vertex of a mesh,
     brute force, for random rigid motions and a scaled one."""
-    from spectral_fit.live import _max_displacement
-    from spectral_fit.mesh import rotate, uv_sphere
+    from spectral_fit.io import rotate, uv_sphere
+    from spectral_fit.live._session import _max_displacement
 
     sph = uv_sphere(0.03, 16, 16)
     v = np.c_[sph.vertices, np.ones(len(sph.vertices))]
@@ -135,12 +135,11 @@ def test_live_session_reuses_senders_while_objects_stay_put():
     visibility change, and nothing recompiles."""
     import dataclasses
 
-    from _live_util import scene_dict
+    from helpers.live import scene_dict
 
-    from spectral_fit.live import STEP_TRACES, LiveSession
-    from spectral_fit.markers import Poses
-    from spectral_fit.renderer import TRACE_COUNT
-    from spectral_fit.scene import parse_scene
+    from spectral_fit.io import parse_scene
+    from spectral_fit.live import STEP_TRACES, LiveSession, Poses
+    from spectral_fit.rendering import TRACE_COUNT
 
     d = scene_dict(markers={"size": 0.08}, width=120, height=80, intrinsics=False)
     for o in d["objects"]:
@@ -191,7 +190,7 @@ def test_live_command_reuse_option():
     """``--ir-reuse-mm``: millimetres >= 0 or 'off'; anything else is refused by name."""
     import argparse
 
-    from spectral_fit.commands.live import _reuse_mm, add_arguments
+    from spectral_fit.cli.commands.live import _reuse_mm, add_arguments
 
     assert _reuse_mm("0.5") == 0.5 and _reuse_mm("0") == 0.0 and _reuse_mm("OFF") is None
     for bad in ("-1", "nan", "inf", "half"):

@@ -1,4 +1,4 @@
-"""Lens distortion of the render camera (spectral_fit.lens and the renderer's use of it),
+"""Lens distortion of the render camera (spectral_fit.geometry and the renderer's use of it),
 checked against OpenCV's own implementation of the model (projectPoints, undistortPoints), a
 closed-form fold radius, and an analytic sphere silhouette seen through the lens."""
 
@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,9 +13,10 @@ import pytest
 pytest.importorskip("cv2")
 
 import cv2  # noqa: E402  (after the skip: the `live` extra)
+from helpers import ROOT  # noqa: E402
 
-from spectral_fit.errors import InputError
-from spectral_fit.lens import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.geometry import (
     distort_eye,
     distort_normalized,
     lens_parameters,
@@ -24,7 +24,6 @@ from spectral_fit.lens import (
     undistort_normalized,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 GL = np.array([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL eye axes
 K = np.array([[210.0, 0.0, 121.0], [0.0, 205.0, 78.5], [0.0, 0.0, 1.0]])  # 240 x 160
 SIZE = (160, 240)
@@ -117,7 +116,7 @@ SPHERE = (0.06, 0.03, -0.2)
 
 
 def _scene(dist, *, sphere_at=SPHERE, intrinsics=True):
-    from spectral_fit.scene import load_scene
+    from spectral_fit.io import load_scene
 
     sc = load_scene(ROOT / "configs" / "benchmark.toml")
     cam = dataclasses.replace(
@@ -130,7 +129,7 @@ def _scene(dist, *, sphere_at=SPHERE, intrinsics=True):
 
 @pytest.fixture(scope="module")
 def frames():
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
     out = {}
     for name, dist in (("lens", DIST5), ("pinhole", None)):
@@ -176,7 +175,7 @@ def test_background_is_the_environment_along_each_pixels_ray(frames):
     import jax
     import jax.numpy as jnp
 
-    from spectral_fit.environment import lookup
+    from spectral_fit.lighting import lookup
 
     prep, frame = frames["lens"]
     v, u = np.meshgrid(np.arange(SIZE[0]), np.arange(SIZE[1]), indexing="ij")
@@ -198,7 +197,7 @@ def test_background_is_the_environment_along_each_pixels_ray(frames):
 
 
 def test_a_lens_without_distortion_renders_the_pinhole_frame():
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
     zero = prepare(_scene([0.0, 0.0, 0.0, 0.0, 0.0]), mode="none")
     assert zero.lens is None and zero.pixel_rays is None  # the pinhole program itself
@@ -210,7 +209,7 @@ def test_a_lens_without_distortion_renders_the_pinhole_frame():
 
 
 def test_a_lens_that_folds_inside_the_frame_is_an_error():
-    from spectral_fit.renderer import prepare
+    from spectral_fit.rendering import prepare
 
     # the benchmark's 90° camera reaches normalised radius 1.8 at the corners; r (1 − 0.05 r²)
     # never gets there (its largest value is 1.72, at its fold radius 2.58)
@@ -221,8 +220,8 @@ def test_a_lens_that_folds_inside_the_frame_is_an_error():
 
 def test_fov_camera_is_distorted_too():
     """A camera given by its field of view (no intrinsics) goes through the lens as well."""
-    from spectral_fit.camera import projection_to_intrinsics
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.geometry import projection_to_intrinsics
+    from spectral_fit.rendering import prepare, render_frame
 
     dist = np.array([-0.02, 0.0, 0.0, 0.0])
     at = (0.2, 0.1, -0.2)  # normalised (1, 0.5): the lens moves it by ~2 px
@@ -255,8 +254,8 @@ def test_distortion_is_differentiable():
 def test_edge_error_closed_form_and_coarse_mesh_warning():
     """The midpoint error of a straight edge under k1 alone, against its closed form; prepare
     warns for a coarsely tessellated object near the frame's edge and not for a fine one."""
-    from spectral_fit.lens import edge_error_px
-    from spectral_fit.renderer import prepare
+    from spectral_fit.geometry import edge_error_px
+    from spectral_fit.rendering import prepare
 
     k1 = -0.2
     lens = lens_parameters([k1, 0.0, 0.0, 0.0])
@@ -287,14 +286,13 @@ def test_lens_benchmark_scene_rays_are_opencvs():
     90° vertical field of view) with the bundled webcam's distortion, which must not fold
     inside the frame: every pixel centre's ray projects back onto that centre through
     OpenCV's model (checked on a sparse grid)."""
-    from spectral_fit.benchmarks.frame import LENS, benchmark_scene
-    from spectral_fit.camera import projection_to_intrinsics
-    from spectral_fit.renderer import _projection
+    from spectral_fit.bench.cases.frame import LENS, benchmark_scene
+    from spectral_fit.live import scene_intrinsics
 
     scene = benchmark_scene(distortion=LENS, quick=True)
     assert scene.camera.distortion == LENS and scene.camera.intrinsics is None
     h, w = scene.height, scene.width
-    k = np.asarray(projection_to_intrinsics(_projection(scene, (h, w)), w, h), np.float64)
+    k = np.asarray(scene_intrinsics(scene, (h, w))[0], np.float64)
     rays = pixel_rays(k, lens_parameters(np.asarray(LENS)), (h, w)).reshape(h, w, 3)
     v, u = np.mgrid[0:h:37, 0:w:53]
     back, _ = cv2.projectPoints((rays[v.ravel(), u.ravel()] * GL).astype(np.float64),

@@ -1,6 +1,6 @@
-"""The bundled benchmark video (measurements/video/benchmark.mp4, configs/live_benchmark.toml):
-BENCHMARK.md's paper scene as a live scene. Its markers give the poses it was made with, and the
-spheres on them cover about as many pixels as in the benchmark frame."""
+"""The bundled benchmark video (measurements/video/benchmark.mp4, configs/live_benchmark.toml): the
+benchmark scene (docs/benchmark.md) as a live scene. Its markers give the poses it was made with,
+and the spheres on them cover about as many pixels as in the benchmark frame."""
 
 from __future__ import annotations
 
@@ -11,12 +11,11 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from _live_util import ROOT, rotation_angle_deg
+from helpers import ROOT
+from helpers.live import rotation_angle_deg
 
-from spectral_fit.live import scene_intrinsics
-from spectral_fit.markers import MarkerDetector
-from spectral_fit.scene import load_scene
-from spectral_fit.video import read_frames
+from spectral_fit.io import load_scene
+from spectral_fit.live import MarkerDetector, read_frames, scene_intrinsics
 
 CONFIG = ROOT / "configs" / "live_benchmark.toml"
 VIDEO = ROOT / "measurements" / "video" / "benchmark.mp4"
@@ -78,13 +77,13 @@ def _covered_pixels(centres_cam: np.ndarray, radius: float, k: np.ndarray) -> in
 
 
 def test_spheres_cover_about_the_benchmark_frames_pixels(bundled):
-    """BENCHMARK.md: the two spheres cover 6,944 pixels of the benchmark frame; on the video's
+    """docs/benchmark.md: the two spheres cover 6,944 pixels of the benchmark frame; on the video's
     camera path (0.275 m from their midpoint, looking down) they cover within 15 % of that."""
     scene, _, meta = bundled
     k, _ = scene_intrinsics(scene)
     r = 0.0375
     bench = _covered_pixels(np.array([[-0.045, 0.0, 0.275], [0.045, 0.0, 0.275]]), r, k)
-    assert abs(bench - 6944) < 0.01 * 6944  # this count against BENCHMARK.md's
+    assert abs(bench - 6944) < 0.01 * 6944  # this count against docs/benchmark.md's
     world = np.array([[-0.045, r, 0.0], [0.045, r, 0.0]])  # on markers 3 and 7 (table, +Y up)
     for f in meta["frames"][::6]:
         rc, tc = np.asarray(f["camera_R"]), np.asarray(f["camera_t"])

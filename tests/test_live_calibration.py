@@ -11,17 +11,20 @@ import pytest
 pytest.importorskip("cv2")
 
 import cv2
-from _live_util import DIST, ENV, SIZE, K
+from helpers import ANCHOR_ENV
+from helpers.live import DIST, SIZE, K
 
-from spectral_fit.camera_calibration import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.io import load_scene
+from spectral_fit.live import (
     CalibrationTarget,
+    Table,
     calibrate_images,
+    camera_pose_looking_at,
+    render_table,
     target_image,
     write_calibrated_config,
 )
-from spectral_fit.errors import InputError
-from spectral_fit.scene import load_scene
-from spectral_fit.synthetic_video import Table, camera_pose_looking_at, render_table
 
 
 def _views(target, n, seed=0):
@@ -90,7 +93,7 @@ fov_y_deg = 60.0  # replaced by the intrinsics
 distortion = [0.0, 0.0, 0.0, 0.0]
 
 [environment]
-file = "{ENV}"
+file = "{ANCHOR_ENV}"
 
 [[objects]]
 name = "ball"

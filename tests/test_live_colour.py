@@ -13,9 +13,11 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from _live_util import ENV, scene_dict
+from helpers import ANCHOR_ENV
+from helpers.live import scene_dict
 
-from spectral_fit.compositing import (
+from spectral_fit.io import parse_scene
+from spectral_fit.live import (
     CameraModel,
     calibrate_colour,
     camera_model_from_sensitivities,
@@ -24,7 +26,6 @@ from spectral_fit.compositing import (
     encode_frame,
     frame_delta_e00,
 )
-from spectral_fit.scene import parse_scene
 
 CORNERS = np.array([[140, 100], [590, 120], [570, 410], [120, 380]], np.float32)
 HELD_OUT = [2, 7, 10, 15, 19, 22]
@@ -40,8 +41,8 @@ def _shot(scene, *, tone="srgb", gamma=2.2, seed=0):
     5100 white-balanced on the table's white sees the chart on the table."""
     import cv2
 
-    from spectral_fit.live import white_reference
-    from spectral_fit.renderer import load_environment
+    from spectral_fit.lighting import white_reference
+    from spectral_fit.rendering import load_environment
 
     wl = scene.wavelengths
     white = white_reference(load_environment(scene, wl))
@@ -103,8 +104,8 @@ def test_calibrate_colour_command_writes_the_config_and_live_uses_it(scene, tmp_
     import cv2
 
     from spectral_fit.cli import main
+    from spectral_fit.io import load_scene
     from spectral_fit.live import scene_camera_model
-    from spectral_fit.scene import load_scene
 
     img, enc = _shot(scene, seed=2)
     png = tmp_path / "chart.png"
@@ -112,7 +113,7 @@ def test_calibrate_colour_command_writes_the_config_and_live_uses_it(scene, tmp_
     cfg = tmp_path / "scene.toml"
     cfg.write_text("\n".join([
         "# my scene", "[frame]", "width = 720", "height = 480", "",
-        "[environment]", f'file = "{ENV}"', "rotation_y_deg = 180.0  # keep me", "",
+        "[environment]", f'file = "{ANCHOR_ENV}"', "rotation_y_deg = 180.0  # keep me", "",
         "[spectral]", "start_nm = 400.0", "end_nm = 700.0", "step_nm = 10.0", "",
         "[camera_colour]", "matrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]", "",
         "[[objects]]", 'name = "ball"', "radius = 0.03", ""]))
@@ -156,7 +157,7 @@ def test_calibrate_colour_command_writes_the_config_and_live_uses_it(scene, tmp_
     ({"matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "gain": 2}, "camera_colour.gain"),
 ])
 def test_camera_colour_table_errors_name_the_key(table, key):
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
 
     d = scene_dict()
     d["camera_colour"] = table

@@ -10,8 +10,8 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from spectral_fit.colorimetry import illuminant, xyz_weights
-from spectral_fit.compositing import (
+from spectral_fit.color import illuminant, xyz_weights
+from spectral_fit.live import (
     camera_model_from_colorchecker,
     camera_model_from_sensitivities,
     colorchecker_reflectances,
@@ -68,7 +68,7 @@ def test_sensitivity_model_matches_colorimetry(light, camera, mean_max):
 
 def test_luther_camera_is_colorimetric():
     """Sensitivities that are a linear mix of the CMFs: both routes are exact (ΔE00 ≈ 0)."""
-    from spectral_fit.colorimetry import cmfs
+    from spectral_fit.color import cmfs
 
     mix = np.array([[0.9, 0.3, -0.1], [-0.2, 1.1, 0.1], [0.0, 0.05, 0.95]])
     sens = cmfs(WL) @ mix.T
@@ -176,7 +176,7 @@ def test_composite_pixels_matches_the_full_image_composite():
 def test_white_reference_closed_forms():
     """E(+Y)/π of a white Lambertian facing up: a uniform map of radiance L gives L; a map
     bright only in the lower hemisphere gives 0; L ∝ cosθ (upper) gives (2/3)·L₀."""
-    from spectral_fit.live import white_reference
+    from spectral_fit.lighting import white_reference
 
     hm, wm = 64, 128
     theta = (np.arange(hm) + 0.5) * np.pi / hm

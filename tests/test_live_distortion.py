@@ -10,17 +10,13 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.renderer")
+pytest.importorskip("spectral_fit.rendering._renderer")
 
-from _live_util import K, scene_dict, table
+from helpers.live import K, scene_dict, table
 
-from spectral_fit.errors import InputError
-from spectral_fit.scene import parse_scene
-from spectral_fit.synthetic_video import (
-    camera_pose_looking_at,
-    marker_pose_in_camera,
-    render_table,
-)
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.io import parse_scene
+from spectral_fit.live import camera_pose_looking_at, marker_pose_in_camera, render_table
 
 S = 3  # 240×160 frames
 SIZE = (160, 240)
@@ -82,8 +78,7 @@ def shot():
 
 
 def test_undistorted_frames_put_the_sphere_on_its_silhouette(shot):
-    from spectral_fit.live import LiveSession
-    from spectral_fit.markers import MarkerDetector, MarkerTracker
+    from spectral_fit.live import LiveSession, MarkerDetector, MarkerTracker
 
     img, r, t = shot
     (pin, pin_d), (raw, _) = _sphere_masks(r, t, 7)

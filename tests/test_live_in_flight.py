@@ -6,37 +6,34 @@ before JAX starts its backend)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.renderer")
+pytest.importorskip("spectral_fit.rendering._renderer")
 
-from spectral_fit.errors import InputError
+from helpers import ROOT, subprocess_env
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
+from spectral_fit._runtime.errors import InputError
 
 _TWO = textwrap.dedent("""
     import json, sys
-    from spectral_fit import startup
-    assert startup.split_cpu_devices(2) == 2
+    from spectral_fit._runtime import process as process
+    from spectral_fit.rendering import _cache as startup
+    assert process.split_cpu_devices(2) == 2
     import jax, numpy as np
-    sys.path.insert(0, sys.argv[1])
-    from test_live_pipeline import SIZE, _frame, _scene
+    from helpers.live import SMALL_SIZE as SIZE, small_frame as _frame, small_scene as _scene
     from skimage import data
     from spectral_fit.live import LiveSession, STEP_TRACES
-    from spectral_fit.synthetic_video import MarkerPlacement, make_table
+    from spectral_fit.live import MarkerPlacement, make_table
 
-    mode, reuse = sys.argv[2], float(sys.argv[3])
+    mode, reuse = sys.argv[1], float(sys.argv[2])
     devs = jax.devices()
-    assert len(devs) == 2 and startup.split_cpu_devices(3) == 2  # too late: unchanged
+    assert len(devs) == 2 and process.split_cpu_devices(3) == 2  # too late: unchanged
     table = make_table(data.coffee(), [MarkerPlacement(3, -0.06, 0.0, 0.08),
                                        MarkerPlacement(7, 0.07, 0.02, 0.08)])
     eyes = [(0.0, 0.3, 0.25), (0.0, 0.3, 0.25), (0.05, 0.3, 0.24), (0.05, 0.3, 0.24),
@@ -82,10 +79,10 @@ _TWO = textwrap.dedent("""
 
 
 def _two_devices(mode: str, reuse_mm: float = 0.5) -> dict:
-    out = subprocess.run([sys.executable, "-c", _TWO, str(HERE), mode, str(reuse_mm)],
+    out = subprocess.run([sys.executable, "-c", _TWO, mode, str(reuse_mm)],
                          capture_output=True,
                          text=True, timeout=900,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+                         env=subprocess_env())
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -132,7 +129,7 @@ def test_live_command_checks_cpu_devices(tmp_path, capsys):
 def test_devices_argument_is_checked():
     import jax
 
-    from spectral_fit.live import _frame_devices
+    from spectral_fit.live._session import _frame_devices
 
     assert _frame_devices(None) == tuple(jax.devices())
     assert _frame_devices(jax.devices()[0]) == (jax.devices()[0],)
@@ -144,12 +141,12 @@ def test_devices_argument_is_checked():
 def test_split_after_start_changes_nothing():
     import jax
 
-    from spectral_fit import startup
+    from spectral_fit._runtime import process
 
     jax.numpy.zeros(1)  # the backend is running
-    assert startup.split_cpu_devices(2) == len(jax.devices("cpu"))
+    assert process.split_cpu_devices(2) == len(jax.devices("cpu"))
     with pytest.raises(InputError, match=">= 1"):
-        startup.split_cpu_devices(0)
+        process.split_cpu_devices(0)
 
 
 def test_in_flight_must_be_positive():

@@ -8,12 +8,17 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from _live_util import DIST, MARKER_SIZE, K, frame, rotation_angle_deg, scene_dict, table
+from helpers.live import DIST, MARKER_SIZE, K, frame, rotation_angle_deg, scene_dict, table
 
-from spectral_fit.errors import InputError
-from spectral_fit.markers import MarkerDetection, MarkerDetector, MarkerTracker, ground_frame
-from spectral_fit.scene import MarkerSpec, parse_scene
-from spectral_fit.synthetic_video import marker_pose_in_camera
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.io import MarkerSpec, parse_scene
+from spectral_fit.live import (
+    MarkerDetection,
+    MarkerDetector,
+    MarkerTracker,
+    ground_frame,
+    marker_pose_in_camera,
+)
 
 EYES = [(0.0, 0.25, 0.2), (0.15, 0.2, 0.25), (-0.2, 0.3, 0.15)]
 
@@ -83,12 +88,7 @@ def test_small_markers_with_thin_margins_keep_their_accuracy():
     11×11 refinement window reached the margin's outer edge: 10° / 15 mm median errors)."""
     from skimage import data
 
-    from spectral_fit.synthetic_video import (
-        MarkerPlacement,
-        camera_pose_looking_at,
-        make_table,
-        render_table,
-    )
+    from spectral_fit.live import MarkerPlacement, camera_pose_looking_at, make_table, render_table
 
     k = np.array([[240.0, 0.0, 359.5], [0.0, 240.0, 239.5], [0.0, 0.0, 1.0]])
     tab = make_table(data.coffee(), [MarkerPlacement(3, -0.045, 0.0, 0.06),

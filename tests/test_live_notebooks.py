@@ -3,17 +3,14 @@ tier (about 30 s for the three)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
+from helpers import ROOT
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipywidgets")
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.renderer")
-
-ROOT = Path(__file__).resolve().parents[1]
+pytest.importorskip("spectral_fit.rendering._renderer")
 
 
 def _run(name: str) -> nbformat.NotebookNode:

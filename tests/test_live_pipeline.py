@@ -9,35 +9,15 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.renderer")
+pytest.importorskip("spectral_fit.rendering._renderer")
 
-from _live_util import DIST, K, scene_dict
+from helpers.live import DIST, KS, SMALL_SIZE, K, scene_dict, small_frame, small_scene
 from skimage import data
 
-from spectral_fit.scene import parse_scene
-from spectral_fit.synthetic_video import (
-    MarkerPlacement,
-    camera_pose_looking_at,
-    make_table,
-    marker_pose_in_camera,
-    render_table,
-)
+from spectral_fit.io import parse_scene
+from spectral_fit.live import MarkerPlacement, make_table, marker_pose_in_camera
 
-S = 3  # frames at 1/3 of the 720×480 test camera: 240×160
-SIZE = (160, 240)
-KS = np.array([[K[0, 0] / S, 0, (K[0, 2] + 0.5) / S - 0.5],
-               [0, K[1, 1] / S, (K[1, 2] + 0.5) / S - 0.5], [0, 0, 1.0]])
 R = 0.03  # sphere radius (m)
-
-
-def _scene(tmp_path=None, **markers):
-    d = scene_dict(markers={"size": 0.08, **markers}, width=SIZE[1], height=SIZE[0])
-    d["camera"]["intrinsics"] = {"fx": KS[0, 0], "fy": KS[1, 1], "cx": KS[0, 2],
-                                 "cy": KS[1, 2]}
-    for o in d["objects"]:
-        o["stacks"] = o["slices"] = 32
-    d["interreflection"] = {"mode": "none"}
-    return parse_scene(d, path=None if tmp_path is None else tmp_path / "live.toml")
 
 
 @pytest.fixture(scope="module")
@@ -48,19 +28,12 @@ def tables():
     return both, only3
 
 
-def _frame(table, eye, seed=0):
-    r, t = camera_pose_looking_at(eye, (0.0, 0.0, 0.0))
-    img = render_table(table, KS, DIST, r, t, SIZE, blur_px=0.5, noise=1.5,
-                       rng=np.random.default_rng(seed))
-    return img, r, t
-
-
 def _analytic_mask(table, marker_id, r, t):
     """Pixels whose centre ray passes within the sphere's angular radius (OpenCV pixel
     (j, i) is our pixel centre (j + 0.5, i + 0.5)); also the boundary distance in pixels."""
     rm, tm = marker_pose_in_camera(table, marker_id, r, t)
     c = rm @ np.array([0.0, 0.0, R]) + tm  # centre: R along the marker's +Z (its normal)
-    jj, ii = np.meshgrid(np.arange(SIZE[1]), np.arange(SIZE[0]))
+    jj, ii = np.meshgrid(np.arange(SMALL_SIZE[1]), np.arange(SMALL_SIZE[0]))
     d = np.stack([jj, ii, np.ones_like(jj)], -1).astype(np.float64) @ np.linalg.inv(KS).T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     ang = np.arccos(np.clip(d @ (c / np.linalg.norm(c)), -1, 1))
@@ -72,7 +45,7 @@ def _analytic_mask(table, marker_id, r, t):
 def session():
     from spectral_fit.live import LiveSession
 
-    return LiveSession(_scene(hold_frames=0), size=SIZE)
+    return LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE)
 
 
 def test_a_new_session_of_the_same_scene_starts_from_the_stored_prepared_scene(
@@ -81,13 +54,13 @@ def test_a_new_session_of_the_same_scene_starts_from_the_stored_prepared_scene(
     session of the same scene, size and options loads the stored one (equal leaf by leaf)."""
     import jax
 
-    from spectral_fit import startup
     from spectral_fit.live import LiveSession
+    from spectral_fit.rendering import _cache as startup
 
     monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(tmp_path))
     before = dict(startup.CACHE_STATS)
-    one = LiveSession(_scene(hold_frames=0), size=SIZE)
-    two = LiveSession(_scene(hold_frames=0), size=SIZE)
+    one = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE)
+    two = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE)
     assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 1
     assert startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
     la, ta = jax.tree_util.tree_flatten(one.prep)
@@ -104,15 +77,15 @@ def test_a_new_session_of_the_same_scene_starts_from_the_stored_prepared_scene(
 
 def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, tables):
     from spectral_fit.live import STEP_TRACES
-    from spectral_fit.renderer import TRACE_COUNT
+    from spectral_fit.rendering import TRACE_COUNT
 
     both, only3 = tables
     eyes = [(0.0, 0.3, 0.25), (0.12, 0.28, 0.28), (-0.1, 0.33, 0.22)]
     traces = None
     for n, eye in enumerate(eyes):
-        img, r, t = _frame(both, eye, seed=n)
+        img, r, t = small_frame(both, eye, seed=n)
         out = session.process(img)
-        assert out.shape == (*SIZE, 3) and out.dtype == np.uint8
+        assert out.shape == (*SMALL_SIZE, 3) and out.dtype == np.uint8
         assert session.last_poses.visible.tolist() == [True, True]
         oid = np.asarray(session.last_object_id)
         for j, mid in enumerate((3, 7)):
@@ -128,14 +101,14 @@ def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, table
         if n == 0:
             traces = (STEP_TRACES["step"], TRACE_COUNT["render_frame"], session.recompiles)
     # frames in flight (submit n+1 before finishing n) give the same pictures
-    a, _, _ = _frame(both, eyes[0], seed=0)
-    b, _, _ = _frame(both, eyes[2], seed=2)
+    a, _, _ = small_frame(both, eyes[0], seed=0)
+    b, _, _ = small_frame(both, eyes[2], seed=2)
     seq = [session.process(a), session.process(b)]
     pa, pb = session.submit(a), session.submit(b)
     np.testing.assert_array_equal(session.finish(pa), seq[0])
     np.testing.assert_array_equal(session.finish(pb), seq[1])
     # marker 7 lost: its sphere is masked out, same compiled program
-    img, r, t = _frame(only3, eyes[1], seed=9)
+    img, r, t = small_frame(only3, eyes[1], seed=9)
     session.process(img)
     assert session.last_poses.visible.tolist() == [True, False]
     oid = np.asarray(session.last_object_id)
@@ -150,9 +123,9 @@ def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(sessi
     from spectral_fit.live import STEP_TRACES, LiveSession
 
     both, _ = tables
-    img = _frame(both, (0.0, 0.3, 0.25), seed=20)[0]
+    img = small_frame(both, (0.0, 0.3, 0.25), seed=20)[0]
     ref = session.process(img)  # (its step traced before the count, when run alone)
-    s = LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.3)
+    s = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=0.3)
     first = s.process(img)  # the plan on these poses: 30-60 % of the buffers in use
     caps = (s.prep.pixel_capacity, s.prep.raster_config)
     traces = STEP_TRACES["step"]
@@ -174,19 +147,19 @@ def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(sessi
     # a frame that overflows while grown buffers compile (another fraction: another plan, a
     # compile under way) waits for them instead of re-planning on its own, and is rendered
     # again with them: the picture of a session planned for it
-    t = LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.25)
+    t = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=0.25)
     t.process(img)
-    close = _frame(both, (0.0, 0.2, 0.17), seed=21)[0]  # ~2.4x the pixels of ``img``
+    close = small_frame(both, (0.0, 0.2, 0.17), seed=21)[0]  # ~2.4x the pixels of ``img``
     pending = t.submit(close)
     growing = t.growing and pending.prep is not None
     overflowed = bool(pending.stats["overflow"])  # its 4-pixel raster windows
     got = t.finish(pending)
     assert t.replans_ahead == 1 and t.recompiles == 0
     assert overflowed or not growing
-    want = LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=None).process(close)
+    want = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=None).process(close)
     np.testing.assert_array_equal(got, want)
     with pytest.raises(Exception, match="grow_ahead"):
-        LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=1.5)
+        LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=1.5)
 
 
 def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, monkeypatch):
@@ -195,14 +168,14 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     renders on with its own buffers, the same picture, nothing re-planned or recompiled."""
     import threading
 
-    from spectral_fit import live
+    from spectral_fit.live import _session as live
 
     both, _ = tables
-    img = _frame(both, (0.0, 0.3, 0.25), seed=20)[0]
+    img = small_frame(both, (0.0, 0.3, 0.25), seed=20)[0]
     # 0.35: grown buffers unlike those the other tests compile (their programs stay theirs)
-    s = live.LiveSession(_scene(hold_frames=0), size=SIZE, grow_ahead=0.35)
+    s = live.LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=0.35)
     entered, release = threading.Event(), threading.Event()
-    step = live._step
+    step = live.live_step
 
     def held(*a, **k):  # the background compile's step waits until the test lets it go
         if threading.current_thread().name == "spectral_fit-grow-ahead":
@@ -210,7 +183,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
             assert release.wait(120)
         return step(*a, **k)
 
-    monkeypatch.setattr(live, "_step", held)
+    monkeypatch.setattr(live, "live_step", held)
     first = s.process(img)  # fills the buffers past 0.35: a compile of grown ones starts
     caps = (s.prep.pixel_capacity, s.prep.raster_config)
     assert entered.wait(120) and s.growing
@@ -221,7 +194,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     release.set()
     stopper.join(120)
     assert not stopper.is_alive() and not s.growing
-    monkeypatch.setattr(live, "_step", step)
+    monkeypatch.setattr(live, "live_step", step)
     s.grow_ahead = None  # no new compile: the next frame shows what the session kept
     again = s.process(img)
     assert s.replans_ahead == 0 and s.recompiles == 0
@@ -233,10 +206,10 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
 def test_threaded_run_gives_the_sequential_frames(session, tables):
     """run(): reader/render/writer threads give the frames of process(), in order, with
     per-stage timings; an error on the reader thread reaches the caller."""
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
 
     both, _ = tables
-    frames = [_frame(both, eye, seed=30 + n)[0]
+    frames = [small_frame(both, eye, seed=30 + n)[0]
               for n, eye in enumerate([(0.0, 0.3, 0.25), (0.05, 0.3, 0.24), (-0.05, 0.31, 0.25),
                                        (0.02, 0.29, 0.26)])]
     want = [session.process(f) for f in frames]
@@ -262,17 +235,17 @@ def test_threaded_run_gives_the_sequential_frames(session, tables):
 
 def test_live_command_writes_complete_video(tmp_path, tables, capsys):
     from spectral_fit.cli import main
-    from spectral_fit.video import VideoSink, count_frames
+    from spectral_fit.live import VideoSink, count_frames
 
     both, _ = tables
     src = tmp_path / "in.avi"
-    with VideoSink(src, fps=10.0, size=SIZE) as sink:
+    with VideoSink(src, fps=10.0, size=SMALL_SIZE) as sink:
         for n, eye in enumerate([(0.0, 0.3, 0.25), (0.03, 0.3, 0.25), (0.06, 0.3, 0.25)]):
-            sink.write(_frame(both, eye, seed=n)[0])
+            sink.write(small_frame(both, eye, seed=n)[0])
     cfg = tmp_path / "live.toml"
-    d = scene_dict(width=SIZE[1], height=SIZE[0])
+    d = scene_dict(width=SMALL_SIZE[1], height=SMALL_SIZE[0])
     lines = [
-        "[frame]", f"width = {SIZE[1]}", f"height = {SIZE[0]}", "",
+        "[frame]", f"width = {SMALL_SIZE[1]}", f"height = {SMALL_SIZE[0]}", "",
         "[camera]",
         f"intrinsics = {{ fx = {KS[0, 0]}, fy = {KS[1, 1]}, cx = {KS[0, 2]}, cy = {KS[1, 2]} }}",
         f"distortion = {[float(x) for x in DIST]}", "",
@@ -306,17 +279,17 @@ def test_live_command_writes_complete_video(tmp_path, tables, capsys):
 
 
 def test_video_size_must_match_calibration(tmp_path):
-    from spectral_fit.errors import InputError
+    from spectral_fit._runtime.errors import InputError
     from spectral_fit.live import LiveSession
 
     with pytest.raises(InputError, match="calibrated at 240x160.*another aspect ratio"):
-        LiveSession(_scene(tmp_path), size=(480, 640))
+        LiveSession(small_scene(tmp_path), size=(480, 640))
 
 
 def test_resized_video_scales_the_intrinsics():
     from spectral_fit.live import scene_intrinsics
 
-    k, dist = scene_intrinsics(_scene(), (480, 720))
+    k, dist = scene_intrinsics(small_scene(), (480, 720))
     # pixel centres at +0.5: (c + 0.5) scales, not c
     np.testing.assert_allclose(k[0], [KS[0, 0] * 3, 0, (KS[0, 2] + 0.5) * 3 - 0.5])
     np.testing.assert_allclose(k[1], [0, KS[1, 1] * 3, (KS[1, 2] + 0.5) * 3 - 0.5])
@@ -328,7 +301,7 @@ def test_resized_video_scales_the_intrinsics():
 def test_fov_camera_keeps_its_distortion():
     """A ``fov_y_deg`` camera with ``[camera] distortion``: the live session undistorts (or
     renders through) the lens the renderer applies, not a pinhole (it was dropped)."""
-    from spectral_fit.camera import perspective, projection_to_intrinsics
+    from spectral_fit.geometry import perspective, projection_to_intrinsics
     from spectral_fit.live import scene_intrinsics
 
     d = scene_dict(intrinsics=False)
@@ -349,7 +322,7 @@ def test_lost_marker_object_leaves_no_interreflection():
     collapsed geometry of a hidden object into NaN)."""
     import jax.numpy as jnp
 
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
     d = scene_dict(markers=False, width=120, height=80, intrinsics=False)
     for o, x in zip(d["objects"], (-0.045, 0.045), strict=True):
@@ -383,18 +356,19 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
     import dataclasses
 
     from spectral_fit.live import LiveSession
-    from spectral_fit.renderer import _ir_generic_config
+    from spectral_fit.rendering.interreflection import pass1_config
+    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
 
     both, _ = tables
-    img, _, _ = _frame(both, (0.0, 0.3, 0.25), seed=3)
-    ok = LiveSession(_scene(hold_frames=0), size=SIZE, mode="gather")
+    img, _, _ = small_frame(both, (0.0, 0.3, 0.25), seed=3)
+    ok = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, mode="gather")
     want = ok.process(img)
-    s = LiveSession(_scene(hold_frames=0), size=SIZE, mode="gather")
+    s = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, mode="gather")
     s.prep = dataclasses.replace(s.prep, ir_raster_config=s.prep.ir_raster_config._replace(
         capacities=(16, 16, 16)))
     got = s.process(img)
     tris = max(tb - ta for ta, tb in s.prep.ir_triangle_slices)
-    assert s.prep.ir_raster_config.capacities == _ir_generic_config(
-        "gather", s.prep.ir_texture_size, tris).capacities
+    assert s.prep.ir_raster_config.capacities == pass1_config(  # the generic gather capacities
+        tris, SUPERSAMPLE * 16).capacities
     assert s.recompiles == 1 and ok.recompiles == 0
     assert np.abs(got.astype(int) - want.astype(int)).max() <= 1

@@ -7,8 +7,8 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from spectral_fit.errors import InputError
-from spectral_fit.video import VideoSink, VideoSource, count_frames, read_frames
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.live import VideoSink, VideoSource, count_frames, read_frames
 
 
 def _ramp(i, shape=(48, 64)):

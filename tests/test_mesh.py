@@ -9,8 +9,8 @@ import struct
 import numpy as np
 import pytest
 
-from spectral_fit.errors import InputError
-from spectral_fit.mesh import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.io import (
     Mesh,
     concat_meshes,
     icosphere,

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spectral_fit.errors import InputError
+from spectral_fit._runtime.errors import InputError
 
 
 def _frame(h=12, w=16, bands=31, seed=0):
     import jax.numpy as jnp
 
-    from spectral_fit.renderer import Frame
+    from spectral_fit.rendering import Frame
 
     rng = np.random.default_rng(seed)
     mask = np.zeros((h, w), bool)
@@ -31,8 +31,8 @@ def _frame(h=12, w=16, bands=31, seed=0):
 def test_round_trips(tmp_path):
     from PIL import Image
 
-    from spectral_fit.exr import read_spectral_exr
-    from spectral_fit.outputs import read_channels_exr, write_frame
+    from spectral_fit.io import read_channels_exr, read_spectral_exr
+    from spectral_fit.rendering import write_frame
 
     f = _frame()
     wl = np.arange(400.0, 701.0, 10.0)
@@ -57,7 +57,7 @@ def test_round_trips(tmp_path):
 def test_composite_over_a_background_picture(tmp_path):
     from PIL import Image
 
-    from spectral_fit.outputs import write_frame
+    from spectral_fit.rendering import write_frame
 
     f = _frame()
     bg = np.random.default_rng(5).integers(0, 256, (12, 16, 3), dtype=np.uint8)
@@ -72,7 +72,8 @@ def test_composite_over_a_background_picture(tmp_path):
 def test_errors_name_the_file_or_field(tmp_path):
     from PIL import Image
 
-    from spectral_fit.outputs import read_channels_exr, write_frame, write_xyz_exr
+    from spectral_fit.io import read_channels_exr
+    from spectral_fit.rendering import write_frame, write_xyz_exr
 
     f = _frame()
     Image.fromarray(np.zeros((5, 5, 3), np.uint8)).save(tmp_path / "small.png")

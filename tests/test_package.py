@@ -13,7 +13,7 @@ from spectral_fit.cli import COMMANDS, main
 def test_import_is_light():
     """`import spectral_fit` must not start JAX, colour-science, OpenEXR or matplotlib."""
     code = (
-        "import sys, spectral_fit, spectral_fit.errors, spectral_fit.spectra;"
+        "import sys, spectral_fit, spectral_fit._runtime.errors, spectral_fit.color;"
         "heavy = [m for m in ('jax', 'colour', 'OpenEXR', 'matplotlib', 'equinox') "
         "if m in sys.modules]; print(heavy)"
     )
@@ -21,7 +21,7 @@ def test_import_is_light():
     assert out.stdout.strip() == "[]"
 
 
-@pytest.mark.parametrize("name", sorted(spectral_fit._EXPORTS))
+@pytest.mark.parametrize("name", spectral_fit.__all__)
 def test_every_public_name_resolves(name):
     assert getattr(spectral_fit, name) is not None
 
@@ -47,7 +47,7 @@ def _bench_case_names() -> list[str]:
 
 
 def test_bench_one_case_json_schema(capsys):
-    """One cheap benchmark case runs at its quick size and reports the DESIGN §7 schema (the
+    """One cheap benchmark case runs at its quick size and reports the bench JSON schema (the
     slow tier runs every case)."""
     assert "raster_paper" in _bench_case_names()
     assert main(["bench", "--quick", "--repeats", "2", "--json", "--cases", "raster_paper"]) == 0
@@ -61,7 +61,7 @@ def test_bench_one_case_json_schema(capsys):
 
 @pytest.mark.slow
 def test_bench_quick_json_schema(capsys):
-    """Every benchmark case runs at its quick size and reports the DESIGN §7 schema."""
+    """Every benchmark case runs at its quick size and reports the bench JSON schema."""
     assert main(["bench", "--quick", "--repeats", "2", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     cases = {k: v for k, v in result.items() if not k.startswith("_")}
@@ -71,7 +71,7 @@ def test_bench_quick_json_schema(capsys):
         assert figures["n"] == 2, name
         assert 0 < figures["min_ms"] <= figures["median_ms"] <= figures["max_ms"], name
         assert figures["compile_s"] > 0, name
-    # the live step on BENCHMARK.md's scene (the live target's scene) beside the video's own
+    # the live step on the benchmark scene (the live target's scene) beside the video's own
     bs = result["live_paper"]["benchmark_scene"]
     assert 0 < bs["min_ms"] <= bs["median_ms"] and bs["compile_s"] > 0
     assert bs["covered_pixels"] > 0 and not bs["overflow"]

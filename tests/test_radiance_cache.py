@@ -12,19 +12,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _fitting_util import TRUE, assert_recovered, spots, write_session, write_small_scene
+from helpers.fitting import TRUE, assert_recovered, spots, write_session
 
-from spectral_fit import fitting
-from spectral_fit import radiance_cache as rc
-from spectral_fit.environment import EnvironmentMap, shade, synthetic_environment
-from spectral_fit.reflectance import (
+from spectral_fit.fitting import _fit as fitting
+from spectral_fit.fitting import _radiance_cache as rc
+from spectral_fit.io import load_scene, load_session
+from spectral_fit.lighting import (
+    EnvironmentMap,
     fresnel_dielectric,
     gaussian_d,
     make_material,
+    shade,
+    synthetic_environment,
     vcavity_g,
 )
-from spectral_fit.scene import load_scene
-from spectral_fit.session import load_session
 
 WL = np.linspace(400.0, 700.0, 16)
 
@@ -50,7 +51,7 @@ def setup():
 
 def _brute_gloss(img, env, N, V, mu, n=1.5):
     """Σ over every texel of the unfiltered map of L F D G/(4 cosθr) Δω (the definition)."""
-    from spectral_fit.environment import texel_directions, texel_solid_angles
+    from spectral_fit.lighting import texel_directions, texel_solid_angles
 
     h, w, _ = img.shape
     d = texel_directions(h, w).reshape(-1, 3) @ np.asarray(env.rotation, np.float64).T
@@ -131,8 +132,8 @@ def test_interreflection_against_reference_readings():
     of the bundled session (Mitsuba reference, path depth 16) agrees within 3 %, while the
     same model without the neighbours' light is off by more than 20 % at the red sphere's
     spot facing the yellow one; object-colour spots within 1.5 %."""
-    from spectral_fit.colorimetry import radiance_to_xyz
-    from spectral_fit.report import DEMO_CONFIG, DEMO_SESSION
+    from spectral_fit.color import radiance_to_xyz
+    from spectral_fit.fitting import DEMO_CONFIG, DEMO_SESSION
 
     scene = load_scene(DEMO_CONFIG)
     session = load_session(DEMO_SESSION, scene=scene)
@@ -146,7 +147,7 @@ def test_interreflection_against_reference_readings():
             if p in truth[name]:
                 vals[o, k] = truth[name][p]
     v = jnp.asarray(vals, jnp.float32)
-    with_ir = np.asarray(fitting._predict_jit(pr, v, jnp.float32(1.0)), np.float64)
+    with_ir = np.asarray(eqx.filter_jit(fitting.predict)(pr, v, jnp.float32(1.0)), np.float64)
     ir = np.asarray(fitting.interreflection_term(pr, v), np.float64)
     cal = np.asarray(pr.calibration, np.float64)
     band = np.asarray(pr.band, np.float64)
@@ -164,11 +165,11 @@ def test_interreflection_against_reference_readings():
 
 
 @pytest.mark.slow
-def test_recovery_with_interreflection_own_model(tmp_path):
+def test_recovery_with_interreflection_own_model(tmp_path, small_scene_config):
     """Noiseless readings of the cached model WITH interreflection (two spheres 15 mm apart,
     spots facing each other included): the fit, whose Jacobian holds the interreflection
     term's derivative, recovers every parameter (float32: within 2e-3 relative)."""
-    cfg = write_small_scene(tmp_path)
+    cfg = small_scene_config
     cfg.write_text(cfg.read_text().replace('mode = "none"', 'mode = "gather"'))
     scene = load_scene(cfg)
     env = fitting.scene_environment(scene, compress_tol=3e-3)

@@ -1,11 +1,10 @@
 """Rasteriser tests against independent references: a float64 brute-force rasteriser
-(tests/raster_reference.py), analytic silhouettes and ray–surface intersections, finite
+(tests/helpers/raster_reference.py), analytic silhouettes and ray–surface intersections, finite
 differences (float64, in a subprocess) and compilation counts."""
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import textwrap
@@ -15,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _raster_util import (
+from helpers import ROOT, subprocess_env
+from helpers.raster import (
     MID,
     SMALL,
     camera,
@@ -25,31 +25,19 @@ from _raster_util import (
     facing,
     pixel_rays,
     rasterize_padded,
+    soup,
+    two_spheres,
 )
+from helpers.raster_reference import reference_raster
 from matplotlib.path import Path as MplPath
-from raster_reference import reference_raster
 from scipy.spatial import ConvexHull
 
-from spectral_fit import raster
-from spectral_fit.camera import perspective_camera, project
-from spectral_fit.errors import InputError
-from spectral_fit.mesh import concat_meshes, icosphere, rotate, translate, uv_sphere
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.geometry import _raster as raster
+from spectral_fit.geometry import perspective_camera, project
+from spectral_fit.io import concat_meshes, icosphere, rotate, translate, uv_sphere
 
 # ----------------------------------------------------------------------------- scenes
-
-
-def soup(seed, n_tri=48, *, behind=True):
-    """Random triangles of all sizes in eye space (some crossing the near plane, the eye plane
-    and the far plane), projected with the test camera: (clip (3n, 4), tris (n, 3))."""
-    rng = np.random.default_rng(seed)
-    cam = camera(SMALL, near=0.5, far=6.0)
-    centre = np.stack([rng.uniform(-2, 2, n_tri), rng.uniform(-1.5, 1.5, n_tri),
-                       rng.uniform(-7, -0.3 if behind else -1.0, n_tri)], -1)
-    size = np.exp(rng.uniform(np.log(0.02), np.log(4.0), n_tri))[:, None, None]
-    pts = centre[:, None, :] + size * rng.normal(size=(n_tri, 3, 3))
-    verts = pts.reshape(-1, 3)
-    tris = np.arange(3 * n_tri).reshape(n_tri, 3)
-    return clip_of(cam, verts), tris
 
 
 def assert_matches_reference(r, clip, tris, shape, cull="none"):
@@ -374,11 +362,10 @@ _FD_SCRIPT = textwrap.dedent("""
     import jax
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp, numpy as np
-    sys.path.insert(0, "tests")
-    from _raster_util import MID, camera
-    from spectral_fit import raster
-    from spectral_fit.camera import project
-    from spectral_fit.mesh import icosphere, translate
+    from helpers.raster import MID, camera
+    from spectral_fit.geometry import _raster as raster
+    from spectral_fit.geometry import project
+    from spectral_fit.io import icosphere, translate
 
     m = icosphere(0.4, 1).transformed(translate((0.05, -0.03, -1.3)))
     cam = camera(MID)
@@ -429,10 +416,8 @@ def test_interpolate_gradients_match_finite_differences_float64():
     """d/d(attributes) and d/d(vertex positions, through the camera) of interpolated
     attributes, against central differences in float64 (own process: the x64 switch is
     global)."""
-    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=here + os.pathsep + os.environ.get("PYTHONPATH", ""),
-               JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", _FD_SCRIPT], cwd=here, env=env,
+    env = subprocess_env(JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", _FD_SCRIPT], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -507,14 +492,8 @@ def test_compact_flags_matches_flatnonzero(n):
 # ----------------------------------------------------------------------------- buffers
 
 
-def _two_spheres(z):
-    s = uv_sphere(0.3, 12, 16)
-    return concat_meshes([s.transformed(translate((-0.35, 0.0, z))),
-                          s.transformed(translate((0.35, 0.1, z - 0.2)))])[0]
-
-
 def test_moving_objects_does_not_recompile():
-    mesh = _two_spheres(-2.0)
+    mesh = two_spheres(-2.0)
     cam = camera(MID)
     clip0 = clip_of(cam, mesh.vertices)
     raster.rasterize(clip0, mesh.triangles, MID)  # plans capacities with headroom, compiles
@@ -539,7 +518,7 @@ def test_moving_objects_does_not_recompile():
 
 
 def test_overflow_is_detected_reported_and_recovered():
-    mesh = _two_spheres(-4.0)
+    mesh = two_spheres(-4.0)
     cam = camera(MID)
     far_clip = clip_of(cam, mesh.vertices)
     near_clip = clip_of(cam, mesh.vertices, translate((0.0, 0.0, 3.0)))
@@ -560,7 +539,7 @@ def test_overflow_is_detected_reported_and_recovered():
 
 
 def test_batch_equals_single_views():
-    mesh = _two_spheres(-2.0)
+    mesh = two_spheres(-2.0)
     cams = [camera(MID), perspective_camera((0.3, 0.2, 0.5), (0.0, 0.0, -2.0),
                                             fov_y_deg=60.0, aspect=MID[1] / MID[0],
                                             near=0.01, far=100.0)]
@@ -645,7 +624,7 @@ def test_benchmark_scene_is_watertight_at_full_size():
     edge-on triangles at pixel coordinates in the hundreds): the front faces and the back
     faces of the closed spheres cover exactly the same pixels (a crack or a wrongly oriented
     sliver shows up as a difference), and so does the unculled frame."""
-    from spectral_fit.benchmarks.raster import scene_clip
+    from spectral_fit.bench.cases.raster import scene_clip
 
     clip, tris, shape = scene_clip(-0.275)
     masks = {cull: np.asarray(raster.rasterize(clip, tris, shape, cull=cull).tri_id) >= 0

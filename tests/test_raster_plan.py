@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _raster_util import MID, SMALL, camera, clip_of, rasterize_padded
-from test_raster import _two_spheres, soup
+from helpers.raster import MID, SMALL, camera, clip_of, rasterize_padded, soup, two_spheres
 
-from spectral_fit import raster
-from spectral_fit.errors import InputError
-from spectral_fit.mesh import translate
-from spectral_fit.renderer import plan_capacities
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.geometry import _raster as raster
+from spectral_fit.io import translate
+from spectral_fit.rendering import plan_capacities
 
 
 def _check(clip, tris, shape, cull="none"):
@@ -36,7 +35,7 @@ def test_plan_counts_equal_the_rasterisers_counts_on_soups(seed, cull):
 
 
 def test_plan_counts_near_plane_crossing_meshes():
-    mesh = _two_spheres(-2.0)
+    mesh = two_spheres(-2.0)
     cam = camera(MID, near=0.5)
     for z in (0.0, 1.3, 1.6):  # in front, cut by the near plane, around the eye
         clip = clip_of(cam, mesh.vertices, translate((0.0, 0.0, z)))
@@ -44,7 +43,7 @@ def test_plan_counts_near_plane_crossing_meshes():
 
 
 def test_plan_config_sizes_from_counts_and_renderer_shares_it():
-    mesh = _two_spheres(-2.0)
+    mesh = two_spheres(-2.0)
     clip = clip_of(camera(MID), mesh.vertices)
     counts = raster.plan_counts(clip, mesh.triangles, MID)
     cfg = raster.plan_config(clip, mesh.triangles, MID, headroom=1.5)
@@ -55,7 +54,7 @@ def test_plan_config_sizes_from_counts_and_renderer_shares_it():
     near = clip_of(camera(MID), mesh.vertices, translate((0.0, 0.0, 1.0)))
     both = raster.plan_config(np.stack([clip, near]), mesh.triangles, MID, headroom=1.0)
     c2 = raster.plan_counts(near, mesh.triangles, MID)
-    want = [raster._ladder(max(a, b) + 16) for a, b in zip(counts.windows, c2.windows,
+    want = [raster.capacity_ladder(max(a, b) + 16) for a, b in zip(counts.windows, c2.windows,
                                                            strict=True)]
     assert list(both.capacities) == want
     rcfg, pixels = plan_capacities(clip, mesh.triangles, MID, headroom=1.5)

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from _reference_util import (  # noqa: E402
+from helpers.reference import (  # noqa: E402
     fully_covered,
     pixel_subsamples,
     single_bounce_quadrature,
@@ -21,7 +21,7 @@ from _reference_util import (  # noqa: E402
     sphere_obj,
 )
 
-from spectral_fit.reference.backend import init_mitsuba  # noqa: E402
+from spectral_fit.validation.reference.backend import init_mitsuba  # noqa: E402
 
 mi, dr = init_mitsuba()
 JIT = mi.variant().startswith(("llvm", "cuda"))
@@ -32,7 +32,7 @@ def _env_lookup(texels: np.ndarray, rotation_y_deg: float):
     import jax
     import jax.numpy as jnp
 
-    from spectral_fit.environment import EnvironmentMap, GlossQuadrature, lookup
+    from spectral_fit.lighting import EnvironmentMap, GlossQuadrature, lookup
 
     env = EnvironmentMap.from_array(texels, rotation_y_deg=rotation_y_deg, compress_tol=0.0,
                                     quadrature=GlossQuadrature(levels=0, max_sources=0))
@@ -78,8 +78,9 @@ def test_white_furnace_gives_unit_radiance():
     assert np.abs(inner - 1.0).max() < (0.04 if JIT else 0.2)
 
 
-def test_gloss_furnace_matches_design_value():
-    """Gloss lobe alone, Beckmann m = 0.5, F = G = 1, V = N: 1 − exp(−1/m²) = 0.981684."""
+def test_gloss_furnace_matches_closed_form():
+    """Gloss lobe alone, Beckmann m = 0.5, F = G = 1, V = N: the closed form 1 − exp(−1/m²) =
+    0.981684 (Beckmann distribution integrated up to θh = 45°)."""
     img = np.asarray(mi.render(mi.load_dict(_sphere_scene(
         _bsdf(beta=1.0, mu=0.5, distribution="beckmann", unit_fg=True), fov=1.0, size=4,
         spp=4096 if JIT else 256))))
@@ -91,8 +92,8 @@ def test_gloss_furnace_matches_design_value():
 @pytest.mark.parametrize("rotation", [0.0, 180.0])
 def test_mirror_alone_is_fresnel_times_environment(rotation):
     """χ = 1 alone (delta lobe): radiance F(n, θr) · L(R), sub-pixel averaged, vs our lookup."""
-    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
-    from spectral_fit.reflectance import fresnel_dielectric
+    from spectral_fit.lighting import fresnel_dielectric
+    from spectral_fit.validation.reference.render import camera_rays, render_spectral, sphere_hits
 
     centre = (0.01, -0.005, -0.3)
     scene = small_scene(objects=[sphere_obj("m", centre, alpha=0.0, chi=1.0, n=1.5)],
@@ -133,7 +134,7 @@ def test_mirror_alone_is_fresnel_times_environment(rotation):
 def test_single_bounce_sphere_matches_quadrature(model):
     """Depth-2 render of one sphere (α = 1, β = 1, S coloured) vs brute-force quadrature of the
     environment integral at 20 pixels (normal and view from the ray–sphere hit): < 1 %."""
-    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+    from spectral_fit.validation.reference.render import camera_rays, render_spectral, sphere_hits
 
     dist, geom, mu = model
     centre = (0.004, 0.003, -0.3)
@@ -254,7 +255,7 @@ def test_sampling_consistent_with_eval_and_pdf(case):
 
 
 def fresnel_np(c: float, n: float) -> float:
-    from spectral_fit.reflectance import fresnel_dielectric
+    from spectral_fit.lighting import fresnel_dielectric
 
     return float(fresnel_dielectric(c, n))
 
@@ -265,8 +266,8 @@ def fresnel_np(c: float, n: float) -> float:
 def test_envmap_rows_reproduce_our_lookup():
     """Mitsuba's envmap fed 2H + 1 rows of our lookup (export.mitsuba_envmap_rows) returns our
     lookup, rotation included, at random directions (relative 1e-4)."""
-    from spectral_fit.environment import rotation_y
-    from spectral_fit.reference.export import mitsuba_envmap_rows
+    from spectral_fit.lighting import rotation_y
+    from spectral_fit.validation.reference.export import mitsuba_envmap_rows
 
     tex = smooth_environment(16, 32)
     tex[5, 7] = [40.0, 10.0, 1.0]  # a sharp texel: bilinear structure matters
@@ -300,7 +301,7 @@ def test_envmap_rows_reproduce_our_lookup():
 
 def test_camera_and_silhouettes_match_our_conventions():
     """Black spheres left and right of the axis against a unit background: covered pixels are
-    where our camera rays (DESIGN §3: row 0 on top, +x to the right) hit the spheres."""
+    where our camera rays (row 0 on top, +x to the right) hit the spheres."""
     objs = [sphere_obj("left", (-0.045, 0.02, -0.1), alpha=0.0),
             sphere_obj("right", (0.045, 0.0, -0.1), alpha=0.0, radius=0.03)]
     _check_silhouettes(small_scene(objects=objs, width=48, height=32, fov=90.0), spp=16)
@@ -309,7 +310,7 @@ def test_camera_and_silhouettes_match_our_conventions():
 def _check_silhouettes(scene, spp: int) -> None:
     """Mitsuba's render of black spheres against a unit background is 0 on the pixels whose
     four corners see a sphere through our camera rays and 1 where none does."""
-    from spectral_fit.reference.render import camera_rays, render_spectral, sphere_hits
+    from spectral_fit.validation.reference.render import camera_rays, render_spectral, sphere_hits
 
     r = render_spectral(scene, spp=spp, passes=1, depths=(2,), environment=1.0)
     img = r.mean(2)[..., 0]
@@ -341,10 +342,10 @@ def test_intrinsics_camera_rays_match_mitsuba_and_our_projection():
     """An intrinsics camera's sensor (fov from fy, principal point offsets): Mitsuba's rays
     through film points equal our camera rays, and our renderer's projection of points on those
     rays lands on the same pixel coordinates."""
-    from spectral_fit import camera
-    from spectral_fit.reference.export import scene_dict
-    from spectral_fit.reference.render import camera_rays
-    from spectral_fit.renderer import _projection
+    from spectral_fit.geometry import _camera as camera
+    from spectral_fit.rendering._renderer import _projection
+    from spectral_fit.validation.reference.export import scene_dict
+    from spectral_fit.validation.reference.render import camera_rays
 
     scene = _intrinsics_scene(objects=[sphere_obj("a", (0.0, 0.0, -0.3))],
                               position=(0.01, 0.02, 0.03), look_at=(0.2, -0.1, -1.0))
@@ -382,16 +383,11 @@ def test_intrinsics_silhouettes_match_our_camera_rays():
 
 def test_generator_smoke_run(tmp_path):
     """scripts/make_references.py at a tiny size: files written, loadable, consistent."""
-    import importlib.util
+    from helpers import load_script
 
-    from _reference_util import REPO
+    from spectral_fit.validation.reference import load_reference
 
-    from spectral_fit.reference import load_reference
-
-    spec = importlib.util.spec_from_file_location("make_references",
-                                                  REPO / "scripts" / "make_references.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("make_references")
     rc = mod.main(["--only", "benchmark", "--size", "288", "192", "--bands", "500", "520", "10",
                    "--spp", "2", "--passes", "2", "--out", str(tmp_path)])
     assert rc == 0
@@ -412,15 +408,15 @@ def test_simulated_spectroradiometer_session(tmp_path):
     import json
     import tomllib
 
-    from _reference_util import REPO
+    from helpers import ROOT
 
-    from spectral_fit.environment import EnvironmentMap, irradiance_exact
-    from spectral_fit.reference.export import environment_texels
-    from spectral_fit.reference.instrument import Spectroradiometer, simulate_readings
-    from spectral_fit.scene import load_scene
-    from spectral_fit.spectra import read_spectrum_csv
+    from spectral_fit.color import read_spectrum_csv
+    from spectral_fit.io import load_scene
+    from spectral_fit.lighting import EnvironmentMap, irradiance_exact
+    from spectral_fit.validation.reference.export import environment_texels
+    from spectral_fit.validation.reference.instrument import Spectroradiometer, simulate_readings
 
-    scene = load_scene(REPO / "configs" / "two_spheres.toml",
+    scene = load_scene(ROOT / "configs" / "two_spheres.toml",
                        lambda d: d["spectral"].update(start_nm=540, end_nm=560, step_nm=10))
     inst = Spectroradiometer(pixels=8, repeats=4)
     white = {"position": [0.0, 0.0, -0.275], "normal": [0.0, 0.0, 1.0], "reflectance": 0.99}
@@ -429,7 +425,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     man = tomllib.loads(m.read_text())
     assert man["session"]["format"] == 1 and len(man["readings"]) == 10
     assert (m.parent / man["session"]["scene"]).resolve() == (
-        REPO / "configs" / "two_spheres.toml").resolve()
+        ROOT / "configs" / "two_spheres.toml").resolve()
     truth = json.loads((m.parent / "truth.json").read_text())
     wl = np.asarray(truth["wavelengths_nm"])
     assert wl[0] == 540 and wl[-1] == 560 and np.allclose(np.diff(wl), 1.0)
@@ -445,7 +441,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
     env = EnvironmentMap.from_array(environment_texels(scene), diffuse="exact",
                                     rotation_y_deg=scene.environment.rotation_y_deg)
     e = np.asarray(irradiance_exact(env, np.array([0.0, 0.0, 1.0], np.float32)), np.float64)
-    from spectral_fit.reference.instrument import instrument_response
+    from spectral_fit.validation.reference.instrument import instrument_response
 
     expect = instrument_response(scene.wavelengths, 0.99 * e / math.pi, wl, 5.0)
     got = np.asarray(truth["white"]["mean"])
@@ -453,7 +449,7 @@ def test_simulated_spectroradiometer_session(tmp_path):
 
 
 def test_instrument_band_pass_closed_forms():
-    from spectral_fit.reference.instrument import instrument_response
+    from spectral_fit.validation.reference.instrument import instrument_response
 
     wl = np.arange(380.0, 781.0, 5.0)
     out_wl = np.arange(400.0, 760.0, 1.0)
@@ -468,9 +464,9 @@ def test_instrument_band_pass_closed_forms():
 
 
 def test_bad_input_is_a_clear_error(tmp_path):
-    from spectral_fit.errors import InputError
-    from spectral_fit.reference.export import scene_dict
-    from spectral_fit.reference.render import render_spectral
+    from spectral_fit._runtime.errors import InputError
+    from spectral_fit.validation.reference.export import scene_dict
+    from spectral_fit.validation.reference.render import render_spectral
 
     other = "scalar_rgb" if JIT else "llvm_ad_rgb"
     with pytest.raises(InputError, match="SPECTRAL_FIT_MI_VARIANT"):

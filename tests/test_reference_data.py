@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _reference_util import REPO
+from helpers import ANCHOR_ENV, ROOT
 
-from spectral_fit.colorimetry import xyz_weights
-from spectral_fit.errors import InputError
-from spectral_fit.reference import load_reference
-from spectral_fit.reference.render import sphere_patches
-from spectral_fit.scene import load_scene
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.color import xyz_weights
+from spectral_fit.io import load_scene
+from spectral_fit.validation.reference import load_reference
+from spectral_fit.validation.reference.render import sphere_patches
 
 NAMES = ["benchmark", "two_spheres"]
 
@@ -24,7 +24,7 @@ def ref(request):
 
 
 def test_shapes_and_geometry_match_the_config(ref):
-    scene = load_scene(REPO / ref.config)
+    scene = load_scene(ROOT / ref.config)
     assert np.allclose(ref.wavelengths, scene.wavelengths)
     assert ref.object_names == tuple(o.name for o in scene.objects)
     assert ref.metadata["frame"] == [scene.width, scene.height]
@@ -63,7 +63,7 @@ def test_interreflection_fraction_and_labels_are_consistent(ref):
     assert set(np.unique(ref.labels)) <= {"direct", "interreflection"}
     assert 3 <= ref.interreflection.sum() < ref.num_patches // 2
     # interreflection-dominated patches face the neighbour (normal towards its centre)
-    scene = load_scene(REPO / ref.config)
+    scene = load_scene(ROOT / ref.config)
     pos = np.array([o.position for o in scene.objects])
     other = pos[1 - ref.object_index]
     towards = np.sum(ref.normals * (other - ref.points), axis=1) > 0
@@ -101,13 +101,12 @@ def test_direct_light_matches_our_shading_where_the_neighbour_is_hidden():
     eq. (5) shading (exact irradiance, gloss quadrature) averaged over the 25 pixel centres."""
     import jax.numpy as jnp
 
-    from spectral_fit.environment import EnvironmentMap, shade_points
-    from spectral_fit.reference.export import environment_texels
-    from spectral_fit.reference.render import camera_rays, sphere_hits
-    from spectral_fit.reflectance import make_material
+    from spectral_fit.lighting import EnvironmentMap, make_material, shade_points
+    from spectral_fit.validation.reference.export import environment_texels
+    from spectral_fit.validation.reference.render import camera_rays, sphere_hits
 
     ref = load_reference("benchmark")
-    scene = load_scene(REPO / ref.config)
+    scene = load_scene(ROOT / ref.config)
     env = EnvironmentMap.from_array(environment_texels(scene), diffuse="exact",
                                     rotation_y_deg=scene.environment.rotation_y_deg)
     ys, xs = np.mgrid[0:5, 0:5] + 0.5
@@ -144,13 +143,12 @@ def test_environment_export_reads_spectral_and_rgb_maps(tmp_path):
     an RGB map lifted to the scene's bands; an object without reflectance gets the 0.5 default."""
     import OpenEXR
 
-    from spectral_fit.exr import read_spectral_exr
-    from spectral_fit.reference.export import environment_texels
-    from spectral_fit.scene import parse_scene
+    from spectral_fit.io import parse_scene, read_spectral_exr
+    from spectral_fit.validation.reference.export import environment_texels
 
-    scene = load_scene(REPO / "configs" / "benchmark.toml",
+    scene = load_scene(ROOT / "configs" / "benchmark.toml",
                        lambda d: d["environment"].update(scale=2.0))
-    wl, img = read_spectral_exr(REPO / "measurements" / "benchmark" / "anchor_environment.exr")
+    wl, img = read_spectral_exr(ANCHOR_ENV)
     assert np.allclose(environment_texels(scene), 2.0 * img)
     p = tmp_path / "rgb.exr"
     rgb = np.full((8, 16, 3), 0.5, np.float32)
@@ -169,13 +167,13 @@ def test_committed_sr3a_session_is_consistent_with_its_truth():
     import json
     import tomllib
 
-    from spectral_fit.spectra import read_spectrum_csv
+    from spectral_fit.color import read_spectrum_csv
 
-    folder = REPO / "measurements" / "reference" / "sr3a_two_spheres"
+    folder = ROOT / "measurements" / "reference" / "sr3a_two_spheres"
     man = tomllib.loads((folder / "session.toml").read_text())
     truth = json.loads((folder / "truth.json").read_text())
     assert (folder / man["session"]["scene"]).resolve() == (
-        REPO / "configs" / "two_spheres.toml").resolve()
+        ROOT / "configs" / "two_spheres.toml").resolve()
     assert man["session"]["format"] == 1 and man["session"]["units"] == "W.sr^-1.m^-2.nm^-1"
     wl = np.asarray(truth["wavelengths_nm"])
     assert wl[0] == 380 and wl[-1] == 780 and wl.size == 401

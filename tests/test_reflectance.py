@@ -1,4 +1,5 @@
-"""Reflection model: every DESIGN §5 reflectance oracle, reciprocity, validation, vmap."""
+"""Reflection model: the published reflectance oracles (sources in docs/conventions.md,
+'Reference values'), reciprocity, validation, vmap."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spectral_fit.errors import InputError
-from spectral_fit.reflectance import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import (
     Material,
     beckmann_d,
     brdf,
@@ -27,6 +28,8 @@ from spectral_fit.reflectance import (
     vcavity_g,
 )
 
+# Unpolarised Fresnel reflectance (Rs + Rp)/2 of a dielectric, n = 1.5, from Fresnel's equations
+# (closed form of Cook & Torrance 1982); checked below against the Snell-law form too.
 FRESNEL_15 = {0: 0.040000, 30: 0.041523, 45: 0.050240, 60: 0.089187, 70: 0.171043,
               80: 0.387704, 85: 0.612800, 89: 0.904185}
 
@@ -36,6 +39,7 @@ def _f64(x):
 
 
 def test_fresnel_table_and_brewster():
+    """Fresnel's equations; Brewster's angle arctan(n), where Rp = 0."""
     with jax.enable_x64(True):
         for deg, want in FRESNEL_15.items():
             got = float(fresnel_dielectric(math.cos(math.radians(deg)), 1.5))
@@ -94,6 +98,8 @@ def test_fresnel_gradient_in_n_finite_difference():
 
 
 def test_beckmann_values_and_normalisation():
+    """Beckmann distribution (Beckmann & Spizzichino 1963) in the normalised microfacet form of
+    Walter et al. 2007: D(0) = 1/(π m²)."""
     with jax.enable_x64(True):
         assert float(beckmann_d(1.0, 0.2)) == pytest.approx(7.957747, abs=1e-6)
         assert float(beckmann_d(math.cos(math.radians(10)), 0.2)) == pytest.approx(3.888802,
@@ -105,6 +111,9 @@ def test_beckmann_values_and_normalisation():
 
 
 def test_gaussian_normalisation_values_and_integral():
+    """K(μ) has no published table: the values are our quadrature (docs/conventions.md,
+    'Reference values'), checked here against an independent integral of D and the small-μ limit
+    1/(πμ²)."""
     with jax.enable_x64(True):
         for mu, want in ((0.1, 32.0438), (0.2, 8.17223), (0.3, 3.75412), (0.5, 1.49991)):
             assert float(gaussian_normalisation(mu)) == pytest.approx(want, abs=6e-5)
@@ -137,6 +146,7 @@ def _dirs(theta_v, theta_l, dphi):
 
 
 def test_vcavity_values():
+    """V-cavity G of Torrance & Sparrow 1967 in Blinn's 1977 closed form."""
     with jax.enable_x64(True):
         def g(tv, tl, dphi):
             n, v, lv, h = _dirs(tv, tl, dphi)
@@ -186,7 +196,7 @@ def test_helmholtz_reciprocity_and_gloss_formula():
         m = _mat()
         n, v, lv, h = _dirs(25, 40, 160)
         th = math.acos(n @ h)
-        K = 8.17223  # DESIGN §5, μ = 0.2
+        K = 8.17223  # K(μ = 0.2), by quadrature (docs/conventions.md, 'Reference values')
         D = K * math.exp(-((th / 0.2) ** 2))
         G = min(1, 2 * (n @ h) * (n @ v) / (v @ h), 2 * (n @ h) * (n @ lv) / (v @ h))
         c = v @ h

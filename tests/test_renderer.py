@@ -13,32 +13,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _rendering_util import CENTRES, RADIUS, SIZE, ray_directions, write_scene
+from helpers.rendering import CENTRES, RADIUS, SIZE, ray_directions, write_scene
 
-from spectral_fit.errors import InputError
-
-
-@pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    return tmp_path_factory.mktemp("render")
+from spectral_fit._runtime.errors import InputError
 
 
 @pytest.fixture(scope="module")
-def prep(folder):
-    from spectral_fit.renderer import prepare
+def prep(scene_folder):
+    from spectral_fit.rendering import prepare
 
-    return prepare(write_scene(folder, mode="none"))
+    return prepare(write_scene(scene_folder, mode="none"))
 
 
 @pytest.fixture(scope="module")
 def frame(prep):
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.rendering import render_frame
 
     return jax.block_until_ready(render_frame(prep))
 
 
 def _xyz_weights(prep):
-    from spectral_fit.colorimetry import xyz_weights
+    from spectral_fit.color import xyz_weights
 
     return xyz_weights(np.asarray(prep.wavelengths))
 
@@ -68,8 +63,8 @@ def test_display_stats_over_the_covered_slots_equal_to_display_on_the_image(prep
     route through the image), also with a quarter of the exposure (pixels overexposed)."""
     import dataclasses
 
-    from spectral_fit.display import to_display
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.color import to_display
+    from spectral_fit.rendering import render_frame
 
     p = dataclasses.replace(prep, exposure=prep.exposure * scale)
     f = frame if scale == 1.0 else render_frame(p)
@@ -86,7 +81,7 @@ def test_display_stats_over_the_covered_slots_equal_to_display_on_the_image(prep
 
 
 def test_background_is_the_environment_seen_by_the_camera(prep, frame):
-    from spectral_fit.environment import lookup
+    from spectral_fit.lighting import lookup
 
     h, w = prep.shape
     rows, cols = np.nonzero(~np.asarray(frame.mask))
@@ -104,8 +99,8 @@ def test_single_sphere_matches_shading_of_the_analytic_hit(prep):
     eq. (5) shading of the exact ray–sphere intersection (normal and view from the sphere, not
     from the mesh; irradiance by brute-force summation over the map's texels, not from the
     renderer's irradiance map)."""
-    from spectral_fit.environment import shade
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.lighting import shade
+    from spectral_fit.rendering import render_frame
 
     f = render_frame(prep, visible=jnp.array([False, True]))
     mask = np.asarray(f.mask)
@@ -155,8 +150,8 @@ def test_mirror_symmetric_scene_gives_a_mirror_symmetric_image(prep, frame):
 
 
 def test_new_poses_view_visibility_and_materials_do_not_recompile(prep, frame):
-    from spectral_fit.mesh import rotate_y, translate
-    from spectral_fit.renderer import TRACE_COUNT, render_frame
+    from spectral_fit.io import rotate_y, translate
+    from spectral_fit.rendering import TRACE_COUNT, render_frame
 
     before = TRACE_COUNT["render_frame"]
     model = np.asarray(prep.model).copy()
@@ -192,8 +187,8 @@ def test_gradients_match_finite_differences(prep):
     """d(loss)/d(parameter) for every material parameter of both objects (and one reflectance
     band each) against central differences. The loss weights XYZ of the covered pixels by a
     fixed random pattern, so errors cannot cancel."""
-    from spectral_fit.reflectance import Material
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.lighting import Material
+    from spectral_fit.rendering import render_frame
 
     refl = np.asarray(prep.materials.reflectance)
     mats = Material(alpha=jnp.array([0.9, 0.7]), beta=jnp.array([1.1, 0.8]),
@@ -235,7 +230,7 @@ def test_gradients_match_finite_differences(prep):
 def test_frame_without_background(prep, frame):
     """background=False: the same covered pixels, zeros elsewhere (the live composite's
     case: the video frame replaces the environment)."""
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.rendering import render_frame
 
     f = render_frame(prep, background=False)
     mask = np.asarray(frame.mask)
@@ -254,8 +249,8 @@ def test_chunked_xyz_shading_matches_the_band_shading(prep):
 
     import equinox as eqx
 
-    from spectral_fit.gbuffer import GBuffer
-    from spectral_fit.renderer import _as_stacked, _shade_fast, _shade_out
+    from spectral_fit.geometry import GBuffer
+    from spectral_fit.rendering._renderer import _as_stacked, _shade_fast, _shade_out
 
     cap, counts = 8192, (3000, 5000)
     p = dataclasses.replace(prep, pixel_capacity=(cap, cap))
@@ -290,8 +285,8 @@ def test_object_pixel_lists_match_covered_pixels_per_object():
     """The frame's per-object pixel lists (one prefix count per object, one scatter) equal
     raster.covered_pixels of each object's part of the raster, concatenated, on a random
     object image with three objects, one of them overflowing its capacity."""
-    from spectral_fit.raster import Raster, covered_pixels
-    from spectral_fit.renderer import _object_pixel_lists
+    from spectral_fit.geometry import Raster, covered_pixels
+    from spectral_fit.rendering._renderer import _object_pixel_lists
 
     rng = np.random.default_rng(11)
     h, w = 37, 53
@@ -311,10 +306,10 @@ def test_object_pixel_lists_match_covered_pixels_per_object():
     assert bool(pix.overflow) and [bool(q.overflow) for q in want] == [False, True, False]
 
 
-def test_bad_inputs_name_the_option(prep, folder):
-    from spectral_fit.renderer import prepare, render_frame
+def test_bad_inputs_name_the_option(prep, scene_folder):
+    from spectral_fit.rendering import prepare, render_frame
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     with pytest.raises(InputError, match="mode"):
         prepare(cfg, mode="sideways")
     with pytest.raises(InputError, match="size"):
@@ -336,15 +331,15 @@ def _interreflection_available() -> bool:
 
 
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+                    reason="the interreflection (gather/paper modes) is not in this tree")
 @pytest.mark.parametrize("mode", ["gather", pytest.param("paper", marks=pytest.mark.slow)])
-def test_interreflection_changes_only_pixels_that_see_the_other_object(folder, prep, frame,
+def test_interreflection_changes_only_pixels_that_see_the_other_object(scene_folder, prep, frame,
                                                                        mode):
     """A pixel on sphere i can receive light from sphere j only if j rises above i's tangent
     plane there: N·(c_j − p) > −R. Elsewhere interreflection must change nothing."""
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
-    p_ir = prepare(write_scene(folder, mode=mode))
+    p_ir = prepare(write_scene(scene_folder, mode=mode))
     f = render_frame(p_ir)
     mask = np.asarray(frame.mask)
     assert np.array_equal(mask, np.asarray(f.mask))
@@ -367,11 +362,11 @@ def test_interreflection_changes_only_pixels_that_see_the_other_object(folder, p
     assert not np.any(changed & ~sees), int(np.sum(changed & ~sees))
 
 
-def test_render_cli_smoke(folder, tmp_path):
+def test_render_cli_smoke(scene_folder, tmp_path):
     from spectral_fit.cli import main
-    from spectral_fit.outputs import read_channels_exr
+    from spectral_fit.io import read_channels_exr
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     png, xyz = tmp_path / "f.png", tmp_path / "f_xyz.exr"
     rc = main(["render", str(cfg), "-o", str(png), "--xyz-exr", str(xyz), "--size",
                f"{SIZE[0]}x{SIZE[1]}", "--mode", "none", "--mask", str(tmp_path / "m.png")])
@@ -380,10 +375,10 @@ def test_render_cli_smoke(folder, tmp_path):
     assert img.shape == (SIZE[1], SIZE[0], 3) and img[..., 1].min() > 0
 
 
-def test_render_cli_json(folder, tmp_path, capsys):
+def test_render_cli_json(scene_folder, tmp_path, capsys):
     from spectral_fit.cli import main
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     rc = main(["render", str(cfg), "-o", str(tmp_path / "f.png"), "--json"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
@@ -397,10 +392,10 @@ def test_render_cli_json(folder, tmp_path, capsys):
     (["--size", "0x10"], "--size"),
     (["--composite", "c.png"], "--background"),
 ])
-def test_render_cli_bad_input(folder, tmp_path, capsys, args, needle):
+def test_render_cli_bad_input(scene_folder, tmp_path, capsys, args, needle):
     from spectral_fit.cli import main
 
-    cfg = write_scene(folder, mode="none")
+    cfg = write_scene(scene_folder, mode="none")
     rc = main(["render", str(cfg), "-o", str(tmp_path / "f.png"), *args])
     err = capsys.readouterr().err
     assert rc == 2 and needle in err and "Traceback" not in err
@@ -421,7 +416,7 @@ def test_render_cli_missing_or_malformed_config(tmp_path, capsys):
 
 def _reference():
     try:
-        from spectral_fit.reference import load_reference
+        from spectral_fit.validation.reference import load_reference
 
         return load_reference("benchmark")
     except (ImportError, InputError) as exc:  # pragma: no cover - depends on the checkout
@@ -429,10 +424,11 @@ def _reference():
 
 
 def _patch_delta_e(ref, mode, *, spectral_mode=None, k=None, diffuse="map"):
-    from spectral_fit.colorimetry import radiance_to_xyz, xyz_weights
-    from spectral_fit.renderer import load_environment, prepare, render_frame
-    from spectral_fit.scene import load_scene
-    from spectral_fit.validation import ROOT, scene_white_xyz
+    from spectral_fit.color import radiance_to_xyz, xyz_weights
+    from spectral_fit.io import load_scene
+    from spectral_fit.rendering import load_environment, prepare, render_frame
+    from spectral_fit.validation import scene_white_xyz
+    from spectral_fit.validation._compare import ROOT
 
     scene = load_scene(ROOT / ref.config)
     wl = scene.wavelengths
@@ -472,7 +468,7 @@ def test_basis_k8_matches_bands_on_the_benchmark():
 
 @pytest.mark.slow
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
+                    reason="the interreflection (gather/paper modes) is not in this tree")
 def test_gather_mode_matches_the_path_traced_reference():
     """Gather mode vs Mitsuba depth 16: direct regions median ≤ 0.5, p90 ≤ 1.0;
     interreflection-dominated regions median ≤ 0.5, p90 ≤ 1.5 (ΔE00, 5×5 patch means)."""
@@ -487,15 +483,15 @@ def test_gather_mode_matches_the_path_traced_reference():
 
 
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
-def test_mirror_switch_is_exact_and_follows_chi(folder):
+                    reason="the interreflection (gather/paper modes) is not in this tree")
+def test_mirror_switch_is_exact_and_follows_chi(scene_folder):
     """Every χ a concrete 0: the frame is compiled without the mirror term, and equals the
     frame compiled with it; a χ that is not 0 compiles it in (its light reaches the other
     object through the interreflection); χ traced keeps it; mirror=False with χ != 0 is
     refused."""
-    from spectral_fit.renderer import mirror_needed, prepare, render_frame
+    from spectral_fit.rendering import mirror_needed, prepare, render_frame
 
-    p = prepare(write_scene(folder, mode="gather"))
+    p = prepare(write_scene(scene_folder, mode="gather"))
     assert not mirror_needed(p.materials)
     auto = render_frame(p)
     full = render_frame(p, mirror=True)
@@ -521,36 +517,39 @@ def test_mirror_switch_is_exact_and_follows_chi(folder):
 
 
 @pytest.mark.skipif(not _interreflection_available(),
-                    reason="spectral_fit.interreflection (gather/paper modes) not in this tree")
-def test_interreflection_overflow_falls_back_to_generic_capacities(folder):
+                    reason="the interreflection (gather/paper modes) is not in this tree")
+def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder):
     """Gather pass-1 capacities are planned per mesh (small); a pose that overflows them is
     reported, and render's regrow re-renders with the generic capacities (the frame then
     equals one rendered with those from the start)."""
     import dataclasses
 
-    from spectral_fit.renderer import _ir_generic_config, _regrow, prepare, render_frame
+    from spectral_fit.rendering import prepare, regrow, render_frame
+    from spectral_fit.rendering.interreflection import pass1_config
+    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
 
-    p = prepare(write_scene(folder, mode="gather"))
+    p = prepare(write_scene(scene_folder, mode="gather"))
     tris = max(tb - ta for ta, tb in p.ir_triangle_slices)
-    generic = _ir_generic_config("gather", p.ir_texture_size, tris)
+    # the renderer's generic gather capacities (test_interreflection checks they are these)
+    generic = pass1_config(tris, SUPERSAMPLE * 16)
     assert not bool(render_frame(p).stats["interreflection_overflow"])
     tiny = dataclasses.replace(p, ir_raster_config=p.ir_raster_config._replace(
         capacities=(16, 16, 16)))
     f = render_frame(tiny)
     assert bool(f.stats["interreflection_overflow"])
     with pytest.warns(RuntimeWarning, match="ir_raster_config"):
-        g = _regrow(tiny, f, None, False)
+        g = regrow(tiny, f, None, False)
     assert not bool(g.stats["interreflection_overflow"])
     ref = render_frame(dataclasses.replace(p, ir_raster_config=generic))
     np.testing.assert_allclose(np.asarray(g.xyz), np.asarray(ref.xyz), rtol=1e-6, atol=1e-7)
 
 
-def test_frame_stages_are_named_for_profilers(folder):
+def test_frame_stages_are_named_for_profilers(scene_folder):
     """The frame program's operations carry the stage names that docs/rendering.md lists for
     reading profiler traces (jax.named_scope: they appear in the HLO op names)."""
-    from spectral_fit import renderer
+    from spectral_fit.rendering import _renderer as renderer
 
-    p = renderer.prepare(write_scene(folder, mode="gather"))
+    p = renderer.prepare(write_scene(scene_folder, mode="gather"))
     args = renderer._check_frame_inputs(p, None, None, None, None)
     text = renderer._render_jit.lower(p, *args, False, True, False).as_text(debug_info=True)
     for stage in ("raster", "pixel_lists", "shading", "ir_pass1", "ir_sample_shading",
@@ -564,8 +563,8 @@ def test_camera_culls_back_faces_of_closed_meshes_without_changing_a_pixel(prep,
     faces (about half the windows planned); rasterising the same pose without culling (the
     capacities planned for it) gives the identical triangle ids, and so the frame's mask and
     object ids."""
-    from spectral_fit.raster import plan_config, rasterize
-    from spectral_fit.renderer import _to_world
+    from spectral_fit.geometry import plan_config, rasterize
+    from spectral_fit.rendering._renderer import _to_world
 
     assert prep.cull == "back"
     world = _to_world(prep.vertices, prep.vertex_object, prep.model)
@@ -604,7 +603,7 @@ def test_cli_render_refuses_output_names_of_another_format(tmp_path, capsys, opt
     """`spectral-fit render` refuses an output whose extension is not its format's (it wrote
     PNG bytes into frame.jpg) before anything is rendered, naming the option and the file."""
     from spectral_fit.cli import main
-    from spectral_fit.validation import ROOT
+    from spectral_fit.validation._compare import ROOT
 
     target = tmp_path / name
     args = ["render", str(ROOT / "configs" / "two_spheres.toml"), option, str(target)]

@@ -4,18 +4,17 @@ import copy
 import math
 import shutil
 import tomllib
-from pathlib import Path
 
 import colour
 import numpy as np
 import pytest
+from helpers import ROOT
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from spectral_fit.errors import InputError
-from spectral_fit.scene import load_scene, parse_scene
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.io import load_scene, parse_scene
 
-ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "configs" / "two_spheres.toml"
 
 
@@ -57,7 +56,7 @@ def test_benchmark_config_matches_benchmark_md():
 
 
 def test_model_matrix_against_hand_built():
-    from spectral_fit.scene import MaterialSpec, ObjectSpec
+    from spectral_fit.io import MaterialSpec, ObjectSpec
 
     m = MaterialSpec(reflectance=np.ones(3), reflectance_source="x")
     o = ObjectSpec(name="a", shape="uv_sphere", material=m, position=(1.0, 2.0, 3.0),
@@ -201,7 +200,7 @@ def test_environment_compression_reaches_the_prepared_map(tmp_path):
     measured map of nearly full spectral rank) sets how many principal spectra the prepared
     map keeps: 75 of 81 at the default 1e-4, 34 at 1e-3 (docs/lighting.md); the loader keeps
     the value."""
-    from spectral_fit.renderer import prepare
+    from spectral_fit.rendering import prepare
 
     text = CONFIG.read_text().replace('../measurements/', str(ROOT / "measurements") + "/")
     ranks = {}

@@ -10,17 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _fitting_util import SMALL_CONFIG, spots
+from helpers.fitting import SMALL_CONFIG, spots
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from spectral_fit.errors import InputError
-from spectral_fit.scene import load_scene
-from spectral_fit.session import (
-    estimate_noise,
-    load_session,
-    write_session,
-)
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.io import estimate_noise, load_scene, load_session, write_session
 
 WL = np.arange(400.0, 701.0, 20.0)
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from spectral_fit.errors import InputError
-from spectral_fit.spectra import (
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.color import (
     default_wavelengths,
     parse_spectrum_text,
     read_spectrum_csv,

@@ -1,4 +1,4 @@
-"""Cold-start caches (spectral_fit.startup): prepared scenes and compiled frame programs on
+"""Cold-start caches (spectral_fit.rendering): prepared scenes and compiled frame programs on
 disk, checked against the uncached functions (bit for bit), across fresh processes, and for
 invalidation when an input changes."""
 
@@ -15,18 +15,17 @@ from typing import Any
 import jax
 import numpy as np
 import pytest
+from helpers import ANCHOR_ENV, ROOT
+from helpers.rendering import scene_toml
 
-from spectral_fit import startup
-from spectral_fit.errors import InputError
-
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _rendering_util import ANCHOR_ENV, scene_toml  # noqa: E402
+from spectral_fit._runtime import process
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.rendering import _cache as startup
 
 
 def _small_env(path: Path, scale: float = 1.0) -> Path:
     """The benchmark map averaged down to 16 × 32 texels (cheap to prepare)."""
-    from spectral_fit.exr import read_spectral_exr, write_spectral_exr
+    from spectral_fit.io import read_spectral_exr, write_spectral_exr
 
     wl, img = read_spectral_exr(ANCHOR_ENV)
     h, w, c = img.shape
@@ -69,7 +68,7 @@ def _env(cache: Path) -> dict[str, str]:
 
 
 def test_prepare_cached_hits_and_matches_prepare(config, tmp_path):
-    from spectral_fit.renderer import prepare
+    from spectral_fit.rendering import prepare
 
     before = dict(startup.CACHE_STATS)
     said: list[str] = []
@@ -113,8 +112,8 @@ def test_prepare_cached_keys_a_scene_object_by_its_values(config, tmp_path):
     for bit; a moved object, another array value or a touched named file is another entry."""
     import dataclasses
 
-    from spectral_fit.renderer import prepare
-    from spectral_fit.scene import load_scene
+    from spectral_fit.io import load_scene
+    from spectral_fit.rendering import prepare
 
     scene = load_scene(config)
     moved = scene.replace(objects=(dataclasses.replace(
@@ -148,8 +147,7 @@ def test_prepare_cached_keys_a_scene_object_by_its_values(config, tmp_path):
 
 
 def test_prepare_cached_bypasses_what_it_cannot_key(config, tmp_path, monkeypatch):
-    from spectral_fit.exr import read_spectral_exr
-    from spectral_fit.scene import load_scene
+    from spectral_fit.io import load_scene, read_spectral_exr
 
     before = dict(startup.CACHE_STATS)
     # an option that is not a plain value: an environment given as an array
@@ -168,7 +166,7 @@ def test_prepare_cached_bypasses_what_it_cannot_key(config, tmp_path, monkeypatc
 def test_program_key_ignores_numpy_print_options():
     import jax.numpy as jnp
 
-    from spectral_fit.display import Display
+    from spectral_fit.color import Display
 
     d = Display(primaries_xy=np.array([[0.64, 0.33], [0.3, 0.6], [0.15, 0.06]]),
                 white_xy=np.array([0.3127, 0.329]))
@@ -186,7 +184,7 @@ _PROGRAM = """
 import json, sys
 import jax.numpy as jnp
 import numpy as np
-from spectral_fit import startup
+from spectral_fit.rendering import _cache as startup
 
 def fn(arr):
     (m,) = arr
@@ -248,7 +246,7 @@ def test_programs_with_unknown_kernels_are_not_loaded():
 _FRAME = """
 import sys
 import numpy as np
-from spectral_fit import startup
+from spectral_fit.rendering import _cache as startup
 prep = startup.prepare_cached(sys.argv[1], mode="none")
 f = startup.render_frame_cached(prep)
 np.save(sys.argv[2], np.asarray(f.xyz))
@@ -274,7 +272,7 @@ def _two_fresh_runs(source: str, config: Path, tmp_path: Path) -> list[Any]:
 def test_render_frame_cached_matches_render_frame(config, tmp_path):
     import jax.numpy as jnp
 
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.rendering import render_frame
 
     cache = tmp_path / "cache"
     prep = startup.prepare_cached(config, cache_dir=cache, mode="none")
@@ -324,7 +322,7 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
 _GATHER = """
 import sys
 import numpy as np
-from spectral_fit import startup
+from spectral_fit.rendering import _cache as startup
 prep = startup.prepare_cached(sys.argv[1], mode="gather")
 f = startup.render_frame_cached(prep)
 np.save(sys.argv[2], np.asarray(f.xyz))
@@ -336,7 +334,7 @@ def test_gather_frame_is_kept_as_two_programs(config, tmp_path):
     """A gather frame is stored as the senders' half and the rest (two entries, loaded side
     by side in a new process); the frame is the one-program frame to float rounding, and
     the loaded programs give the compiling process's frame bit for bit."""
-    from spectral_fit.renderer import prepare, render_frame
+    from spectral_fit.rendering import prepare, render_frame
 
     runs = _two_fresh_runs(_GATHER, config, tmp_path)
     fresh = tmp_path / "fresh"
@@ -368,7 +366,7 @@ def test_single_threaded_blas_sets_and_restores_openblas_threads():
     lib = ctypes.CDLL(libs[0])
     get = getattr(lib, "scipy_openblas_get_num_threads64_", None) or lib.openblas_get_num_threads
     before = get()
-    with startup.single_threaded_blas():
+    with process.single_threaded_blas():
         assert get() == 1
         np.testing.assert_allclose(x.T @ x, ref, rtol=1e-12)
     assert get() == before
@@ -377,7 +375,7 @@ def test_single_threaded_blas_sets_and_restores_openblas_threads():
 _ENABLE = """
 import json, os, sys
 import jax
-from spectral_fit import startup
+from spectral_fit.rendering import _cache as startup
 a = startup.enable_compilation_cache(sys.argv[1], min_compile_time_s=0.25)
 cfg = [jax.config.jax_compilation_cache_dir,
        jax.config.jax_persistent_cache_min_compile_time_secs]
@@ -467,7 +465,7 @@ def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monk
     executable) is compiled again instead of failing the frame."""
     import jax.experimental.serialize_executable as se
 
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.rendering import render_frame
 
     cache = tmp_path / "cache"
     prep = startup.prepare_cached(config, cache_dir=cache, mode="none")
@@ -489,8 +487,8 @@ def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monk
 
 _REUSE = r"""
 import ctypes, json, resource, sys
-from spectral_fit import startup
-applied = startup.retain_freed_memory() if sys.argv[1] == "on" else None
+from spectral_fit._runtime import process as process
+applied = process.retain_freed_memory() if sys.argv[1] == "on" else None
 libc = ctypes.CDLL(None)
 libc.malloc.restype = ctypes.c_void_p
 libc.malloc.argtypes = (ctypes.c_size_t,)
@@ -535,7 +533,7 @@ def test_retain_freed_memory_reuses_large_blocks():
 _LOAD = """
 import sys
 import numpy as np
-from spectral_fit import startup
+from spectral_fit.rendering import _cache as startup
 startup.enable_compilation_cache()
 prep = startup.prepare_cached(sys.argv[1], mode=sys.argv[3])
 f = startup.render_frame_cached(prep)
@@ -551,7 +549,7 @@ def test_programs_stored_by_a_busy_process_load_elsewhere(config, tmp_path, mode
     persistent cache is warm): XLA:CPU then lets a new program use kernels of those, and the
     stored executable lacked them ("Function ... not found"). They are compiled by a fresh
     child process instead."""
-    from spectral_fit.renderer import render_frame
+    from spectral_fit.rendering import render_frame
 
     cache = tmp_path / "cache"
     # a warm JAX persistent cache: small programs of an earlier process, loaded here
@@ -654,7 +652,7 @@ def test_cli_programs_stored_after_a_warm_jax_cache_are_reused(tmp_path):
 
 _FASTBINS = r"""
 import ctypes, gc, json
-from spectral_fit import startup
+from spectral_fit._runtime import process as process
 
 class MallInfo2(ctypes.Structure):
     _fields_ = [(k, ctypes.c_size_t) for k in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
@@ -686,8 +684,8 @@ def freed_small_blocks():
     return n
 
 before = freed_small_blocks()
-with startup._without_fastbins():
-    with startup._without_fastbins():  # nested (two loading threads): one restore, at the end
+with process.without_fastbins():
+    with process.without_fastbins():  # nested (two loading threads): one restore, at the end
         inside = freed_small_blocks()
     still = freed_small_blocks()
 after = freed_small_blocks()
@@ -720,6 +718,6 @@ def test_default_fastbin_limit(monkeypatch):
     import ctypes
 
     monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
-    assert startup._default_mxfast() == 64 * ctypes.sizeof(ctypes.c_size_t) // 4
+    assert process._default_mxfast() == 64 * ctypes.sizeof(ctypes.c_size_t) // 4
     monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2:glibc.malloc.mxfast=64")
-    assert startup._default_mxfast() == 64
+    assert process._default_mxfast() == 64

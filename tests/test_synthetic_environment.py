@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import colour
 import numpy as np
 import pytest
+from helpers import STUDIO_ROOM
 from PIL import Image
 
-from spectral_fit import synthetic_environment as se
 from spectral_fit.cli import main
-from spectral_fit.exr import read_spectral_exr, read_spectral_exr_ex
+from spectral_fit.io import read_spectral_exr, read_spectral_exr_ex
+from spectral_fit.lighting import _synthetic as se
 
-BUNDLED = Path(__file__).resolve().parents[1] / "measurements" / "environment" / "studio_room.exr"
 SHAPE = colour.SpectralShape(380, 780, 5)
 CMFS = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(SHAPE)
 WL = np.arange(380.0, 781.0, 5.0)
@@ -27,7 +26,8 @@ def luminance(spectrum) -> float:
 
 
 def direction(row, col, w, h):
-    """DESIGN §3, written out independently: u = φ/2π, v = θ/π, texel centres at k + 0.5."""
+    """Our equirectangular mapping, written out independently: u = φ/2π, v = θ/π, texel centres
+    at k + 0.5."""
     phi = 2 * np.pi * (col + 0.5) / w
     theta = np.pi * (row + 0.5) / h
     return np.array([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)])
@@ -127,8 +127,8 @@ def test_wall_radiance_independent(env):
 
 
 def test_bundled_file_matches_generator(env):
-    assert BUNDLED.stat().st_size < 5_000_000
-    r = read_spectral_exr_ex(BUNDLED)
+    assert STUDIO_ROOM.stat().st_size < 5_000_000
+    r = read_spectral_exr_ex(STUDIO_ROOM)
     assert r.kind == "emissive"
     assert r.attributes["emissiveUnits"] == "W.m^-2.sr^-1"
     wl, img = env
@@ -151,7 +151,7 @@ def test_make_env_cli(tmp_path, capsys):
 
 def test_view_cli_on_bundled_map(tmp_path, capsys):
     png = tmp_path / "env.png"
-    assert main(["view", str(BUNDLED), "-o", str(png), "--json"]) == 0
+    assert main(["view", str(STUDIO_ROOM), "-o", str(png), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["width"] == 256 and info["height"] == 128
     assert info["wavelength_range_nm"] == [380.0, 780.0]
@@ -159,7 +159,7 @@ def test_view_cli_on_bundled_map(tmp_path, capsys):
     im = Image.open(png)
     assert im.size == (256, 128) and im.mode == "RGB"
     # explicit exposure: 1e9 cd/m2 as display white leaves everything (<= 2e4 cd/m2) black
-    assert main(["view", str(BUNDLED), "-o", str(png), "--exposure", "1e9"]) == 0
+    assert main(["view", str(STUDIO_ROOM), "-o", str(png), "--exposure", "1e9"]) == 0
     assert np.asarray(Image.open(png)).max() <= 3
     capsys.readouterr()
     assert main(["view", str(tmp_path / "missing.exr"), "-o", str(png)]) == 2

@@ -8,8 +8,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from spectral_fit.errors import InputError
-from spectral_fit.upsampling import mallett2019_basis, read_rgb_environment, rgb_to_spectra
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.lighting import mallett2019_basis, read_rgb_environment, rgb_to_spectra
 
 WL = np.arange(380.0, 781.0, 5.0)
 SHAPE = colour.SpectralShape(380, 780, 5)

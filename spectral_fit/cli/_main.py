@@ -1,0 +1,64 @@
+"""Command-line interface: ``spectral-fit <command> ...``.
+
+Each subcommand lives in ``spectral_fit/cli/commands/<name>.py`` and defines ``HELP`` (one line),
+``add_arguments(parser)`` and ``run(args) -> int``. Command modules import heavy libraries
+inside ``run`` so that ``spectral-fit --help`` is quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from .._runtime.errors import SpectralFitError
+
+#: subcommand name -> module under spectral_fit.cli.commands
+COMMANDS: dict[str, str] = {
+    "demo": "demo",
+    "bench": "bench",
+    "make-env": "make_env",
+    "view": "view",
+    "render": "render",
+    "calibrate": "calibrate",
+    "validate": "validate",
+    "fit": "fit",
+    "live": "live",
+    "calibrate-colour": "calibrate_colour",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="spectral-fit",
+        description="Differentiable spectral renderer: fit plastic reflection models and render "
+        "mixed-reality frames.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module_name in COMMANDS.items():
+        module = importlib.import_module(f".commands.{module_name}", __package__)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``spectral-fit`` console script."""
+    if argv is None:  # run as a program (not called from Python): steady frame memory
+        from .._runtime.process import retain_freed_memory
+
+        retain_freed_memory()
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except SpectralFitError as exc:
+        print(f"spectral-fit {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"spectral-fit {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""``spectral-fit fit CONFIG SESSION -o OUTDIR``: fit materials to spectroradiometer readings."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+HELP = "fit alpha, beta, chi, mu, n (gamma) of the scene's objects to a measurement session"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="scene config (TOML)")
+    p.add_argument("session", help="measurement session folder or its session.toml")
+    p.add_argument("-o", "--output", required=True, help="output folder of the report")
+    p.add_argument("--json", action="store_true", help="print the result JSON on stdout")
+    p.add_argument("--starts", type=int, default=3, help="starting points (default 3)")
+    p.add_argument("--bootstrap", type=int, default=0,
+                   help="bootstrap resamples over readings (default 0: off)")
+    p.add_argument("--kinds", default="object,interreflection",
+                   help="reading kinds to fit (comma-separated; default both)")
+    p.add_argument("--spot-resolution", type=int, default=8,
+                   help="pixels across each measuring field (default 8)")
+    p.add_argument("--max-steps", type=int, default=50, help="iterations per start")
+    p.add_argument("--no-holdout", action="store_true",
+                   help="skip the hold-out prediction of interreflection readings")
+    p.add_argument("--aim-step-mm", type=float, default=0.5,
+                   help="aim shift for the aiming sensitivity (0: skip; default 0.5 mm)")
+    p.add_argument("--no-render", action="store_true", help="skip the render of the fit")
+    p.add_argument("--interreflection", choices=("auto", "none"), default="auto",
+                   help="auto: the scene config's interreflection mode; none: fit without "
+                   "the interreflection term")
+
+
+def _say(msg: str) -> None:
+    print(f"fit: {msg}", file=sys.stderr, flush=True)
+
+
+def enable_compilation_cache() -> str | None:
+    """Keep XLA's compiled programs between runs (compiling the fit's solver is most of its
+    first call): ``$SPECTRAL_FIT_JAX_CACHE`` or
+    ``~/.cache/spectral_fit/jax``; set the variable to an empty string to disable.
+    Applications (this CLI) opt in; the library never does."""
+    from ...rendering import enable_compilation_cache as enable
+
+    return enable(min_compile_time_s=1.0)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..._runtime.errors import InputError
+    from ...fitting import fit, write_report
+    from ...io import KINDS, load_scene, load_session
+
+    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    bad = [k for k in kinds if k not in KINDS]
+    if bad or not kinds:
+        raise InputError(f"unknown kind(s) {bad}; choose from {KINDS}", field="--kinds")
+    for name, v, lo in (("--starts", args.starts, 1), ("--spot-resolution",
+                        args.spot_resolution, 2), ("--max-steps", args.max_steps, 1),
+                        ("--bootstrap", args.bootstrap, 0)):
+        if v < lo:
+            raise InputError(f"must be >= {lo}, got {v}", field=name)
+    if not (args.aim_step_mm >= 0):
+        raise InputError(f"must be >= 0, got {args.aim_step_mm}", field="--aim-step-mm")
+    enable_compilation_cache()
+    scene = load_scene(args.config)
+    session = load_session(args.session, scene=scene)
+    _say(f"{len(session.readings)} readings of {sorted({r.object for r in session.readings})}, "
+         f"calibration {session.calibration}, noise {session.noise.source}")
+    res = fit(scene, session, progress=_say, starts=args.starts, bootstrap=args.bootstrap,
+              kinds=kinds, spot_resolution=args.spot_resolution, max_steps=args.max_steps,
+              holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3,
+              interreflection=args.interreflection)
+    summary = write_report(res, args.output, scene=scene, session=session,
+                           render=not args.no_render)
+    for w in res.warnings:
+        _say(f"warning: {w}")
+    _say(f"{res.status} after {res.iterations} iterations; chi2/dof {res.chi2_red:.3g}")
+    for obj, p in res.params.items():
+        se = res.stderr[obj]
+        _say(f"  {obj}: " + ", ".join(f"{k} {v:.4g} ± {se[k]:.2g}" for k, v in p.items()))
+    _say(f"report in {args.output}/ ({', '.join(summary['files'])})")
+    if args.json:
+        slim = {k: v for k, v in summary.items() if k != "spectra"}
+        print(json.dumps(slim, indent=2))
+    return 0 if res.status != "failed" else 1

@@ -1,0 +1,71 @@
+"""Cameras and lenses, the watertight rasteriser, cluster culling, and the pytrees passed between
+rasterising and shading.
+
+Public names are imported lazily from the private modules below on first use.
+"""
+
+from __future__ import annotations
+
+from .._runtime.lazy import lazy_exports
+
+#: public name -> private module of this package that defines it
+_EXPORTS: dict[str, str] = {
+    "CLUSTER_SIZE": "_culling",
+    "Camera": "_camera",
+    "GBuffer": "_gbuffer",
+    "MARGIN": "_culling",
+    "ObjectGeometry": "_gbuffer",
+    "PixelList": "_raster",
+    "PlanCounts": "_raster",
+    "Raster": "_raster",
+    "RasterConfig": "_raster",
+    "TILE_SIZES": "_raster",
+    "TriangleClusters": "_culling",
+    "build_clusters": "_culling",
+    "capacity_ladder": "_raster",
+    "clear_plans": "_raster",
+    "clip_to_pixel": "_raster",
+    "cluster_rows": "_culling",
+    "compact_flags": "_raster",
+    "count_clusters": "_culling",
+    "covered_pixels": "_raster",
+    "default_config": "_raster",
+    "distort_eye": "_lens",
+    "distort_normalized": "_lens",
+    "edge_error_px": "_lens",
+    "eye_position": "_camera",
+    "grown_clusters": "_culling",
+    "interpolate": "_raster",
+    "interpolate_pixels": "_raster",
+    "interreflection_camera": "_camera",
+    "intrinsics_matrix": "_camera",
+    "intrinsics_to_projection": "_camera",
+    "inverse_3x3": "_camera",
+    "inverse_4x4": "_camera",
+    "is_identity": "_lens",
+    "lens_parameters": "_lens",
+    "look_at": "_camera",
+    "opencv_pose_to_view": "_camera",
+    "opencv_to_opengl_axes": "_camera",
+    "perspective": "_camera",
+    "perspective_camera": "_camera",
+    "pixel_rays": "_lens",
+    "plan_config": "_raster",
+    "plan_counts": "_raster",
+    "project": "_camera",
+    "projection_to_intrinsics": "_camera",
+    "raster_jit": "_raster",
+    "rasterize": "_raster",
+    "rasterize_batch": "_raster",
+    "relative_transform": "_camera",
+    "scatter_pixels": "_raster",
+    "sized": "_culling",
+    "spatial_order": "_culling",
+    "undistort_normalized": "_lens",
+    "view_to_opencv_pose": "_camera",
+    "visible_clusters": "_culling",
+    "worst_direction_count": "_culling",
+}
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+__all__ = sorted(_EXPORTS)

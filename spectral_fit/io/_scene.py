@@ -1,0 +1,674 @@
+"""Scene configuration files (TOML) → validated :class:`Scene` descriptions.
+
+A scene config says what to render: frame size, camera, environment map, display, spectral mode,
+objects with their materials, and the interreflection mode. This module only reads and checks
+the file (data layer); turning a :class:`Scene` into meshes, cameras and JAX pytrees is the
+renderer's job. Relative paths in a config are relative to the config file's folder.
+
+Every error is an :class:`~spectral_fit._runtime.errors.InputError` naming the file and the key,
+e.g.
+``configs/two_spheres.toml: objects[1].material.mu: must be > 0, got -0.1``.
+
+Schema (all lengths in metres, angles in degrees; defaults in brackets)::
+
+    [frame]            width [720], height [480]
+    [camera]           fov_y_deg [90], near [0.01], far [1000],
+                       position [[0,0,0]], look_at [[0,0,-1]], up [[0,1,0]]
+                       intrinsics = {fx, fy, cx, cy}  (optional; replaces fov_y_deg, pixels)
+                       distortion = [k1, k2, p1, p2, k3]  (optional, OpenCV model; 4, 5
+                         or 8 numbers; the renderer draws through it: spectral_fit.geometry)
+                       blur_px [0], noise [0]  (live compositing: the video camera's blur,
+                       Gaussian σ in pixels, and noise, σ in 8-bit levels, given to the CG)
+    [environment]      file (spectral or RGB OpenEXR; required), scale [1.0],
+                       rotation_y_deg [0]  (180 for maps with −Z at the image centre),
+                       upsampling ["mallett2019"]  (RGB maps only),
+                       compress_tol [1e-4] (relative error per texel of the map's principal
+                       spectra, 0 = keep every band; 1e-3 makes frames under a noisy measured
+                       map faster at a small spectral cost: docs/lighting.md)
+    [display]          colourspace ["sRGB"] or characterisation = "patches.csv",
+                       exposure_luminance ["auto" or cd/m²], scene_white_xy (optional [x, y])
+    [spectral]         start_nm [380], end_nm [780], step_nm [5],
+                       mode ["bands" | "basis"], k [8]
+    [interreflection]  mode ["gather" | "paper" | "none"], bounces [1], texture_size [256]
+    [[objects]]        name (unique), shape ["uv_sphere" | "icosphere" | "mesh"],
+                       radius, stacks [100], slices [100], subdivisions [5], mesh (file),
+                       position [[0,0,0]], rotation_deg [[0,0,0]] (XYZ Euler), scale [1.0],
+                       marker (optional int id), marker_offset [[0,0,0]]
+      [objects.material] reflectance (number, CSV file, or "colourchecker:<set>/<patch>"),
+                       alpha [1], beta [1], chi [0], mu [0.1], n [1.5], gamma [1],
+                       distribution ["gaussian" | "beckmann"], geometry ["vcavity" | "smith"]
+    [markers]          (optional; live mixed reality, see spectral_fit/live/_markers.py)
+                       dictionary ["DICT_5X5_100"] (an OpenCV ArUco/AprilTag dictionary),
+                       size [0.08] (side of the black square, m), world (optional marker id
+                       whose frame is the world: marker plane = ground, +Y up), smoothing [0]
+                       (exponential pose smoothing in [0, 1)), hold_frames [0] (frames a lost
+                       marker's object stays at its last pose before it is masked out),
+                       refine ["edges" | "subpix" | "contour" | "apriltag" | "none"]
+    [camera_colour]    (optional; live compositing, from ``spectral-fit calibrate-colour``)
+                       matrix (3×3 rows: absolute XYZ → white-balanced linear frame RGB),
+                       white_balance [[1, 1, 1]] (per-channel gains after the matrix),
+                       tone ["srgb" | "gamma" | "linear"], gamma [2.2]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._runtime.errors import InputError
+
+__all__ = [
+    "Scene",
+    "CameraSpec",
+    "EnvironmentSpec",
+    "DisplaySpec",
+    "SpectralSpec",
+    "InterreflectionSpec",
+    "ObjectSpec",
+    "MaterialSpec",
+    "MarkerSpec",
+    "CameraColourSpec",
+    "MARKER_DICTIONARIES",
+    "load_scene",
+    "parse_scene",
+    "MAX_BLUR_PX",
+    "MAX_NOISE",
+]
+
+_MISSING = object()
+
+
+#: largest coordinate (m) of a camera or object position, look-at point, up vector or marker
+#: offset: far beyond any scene of this renderer, and products of two such stay finite in
+#: float32
+MAX_COORD_M = 1e6
+# bounds of [camera] blur_px (σ, pixels) and noise (σ, 8-bit levels)
+MAX_BLUR_PX = 20.0
+MAX_NOISE = 64.0
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSpec:
+    """Pinhole camera (OpenGL convention: looks down −Z of its frame, +Y up)."""
+
+    fov_y_deg: float = 90.0
+    near: float = 0.01
+    far: float = 1000.0
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    look_at: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    intrinsics: dict[str, float] | None = None  # fx, fy, cx, cy in pixels
+    distortion: tuple[float, ...] | None = None  # k1, k2, p1, p2, k3
+    blur_px: float = 0.0  # the video's blur (Gaussian σ, pixels), given to composited CG
+    noise: float = 0.0  # the video's noise (σ, 8-bit levels), given to composited CG
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvironmentSpec:
+    file: Path
+    scale: float = 1.0
+    rotation_y_deg: float = 0.0
+    upsampling: str = "mallett2019"
+    #: relative error per texel allowed when the prefiltered maps are kept in the map's own
+    #: principal spectra (:meth:`~spectral_fit.lighting.EnvironmentMap.from_array`)
+    compress_tol: float = 1e-4
+
+
+@dataclasses.dataclass(frozen=True)
+class DisplaySpec:
+    colourspace: str = "sRGB"
+    characterisation: Path | None = None
+    exposure_luminance: float | str = "auto"
+    scene_white_xy: tuple[float, float] | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SpectralSpec:
+    start_nm: float = 380.0
+    end_nm: float = 780.0
+    step_nm: float = 5.0
+    mode: str = "bands"
+    k: int = 8
+
+    def wavelengths(self) -> np.ndarray:
+        from ..color import wavelength_grid
+
+        return wavelength_grid(self.start_nm, self.end_nm, self.step_nm)
+
+
+@dataclasses.dataclass(frozen=True)
+class InterreflectionSpec:
+    mode: str = "gather"
+    bounces: int = 1
+    texture_size: int = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialSpec:
+    """Material parameters in our physical scaling (not the paper's)."""
+
+    reflectance: np.ndarray  # (L,) on the scene grid
+    reflectance_source: str
+    alpha: float = 1.0
+    beta: float = 1.0
+    chi: float = 0.0
+    mu: float = 0.1
+    n: float = 1.5
+    gamma: float = 1.0
+    distribution: str = "gaussian"
+    geometry: str = "vcavity"
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectSpec:
+    name: str
+    shape: str
+    material: MaterialSpec
+    radius: float = 0.0375
+    stacks: int = 100
+    slices: int = 100
+    subdivisions: int = 5
+    mesh: Path | None = None
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+    marker: int | None = None
+    marker_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def model_matrix(self) -> np.ndarray:
+        """4×4 world-from-object matrix: translate · Rz · Ry · Rx · scale (column vectors)."""
+        rx, ry, rz = (math.radians(a) for a in self.rotation_deg)
+
+        def rot(axis: int, a: float) -> np.ndarray:
+            c, s = math.cos(a), math.sin(a)
+            i, j = [(1, 2), (2, 0), (0, 1)][axis]
+            m = np.eye(3)
+            m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+            return m
+
+        m = np.eye(4)
+        m[:3, :3] = rot(2, rz) @ rot(1, ry) @ rot(0, rx) * self.scale
+        m[:3, 3] = self.position
+        return m
+
+    def make_mesh(self, *, world: bool = False) -> Any:
+        """The object's :class:`~spectral_fit.io.Mesh`: its UV sphere, icosphere or mesh
+        file in the object's own frame (metres), or moved into the world by
+        :meth:`model_matrix` (``world=True``)."""
+        from ._mesh import icosphere, load_mesh, uv_sphere
+
+        if self.shape == "uv_sphere":
+            m = uv_sphere(self.radius, self.stacks, self.slices)
+        elif self.shape == "icosphere":
+            m = icosphere(self.radius, self.subdivisions)
+        else:
+            m = load_mesh(self.mesh)
+        return m.transformed(self.model_matrix()) if world else m
+
+
+#: OpenCV's predefined marker dictionaries and how many ids each holds
+MARKER_DICTIONARIES: dict[str, int] = {
+    **{f"DICT_{b}X{b}_{n}": n for b in (4, 5, 6, 7) for n in (50, 100, 250, 1000)},
+    "DICT_ARUCO_ORIGINAL": 1024,
+    "DICT_APRILTAG_16h5": 30,
+    "DICT_APRILTAG_25h9": 35,
+    "DICT_APRILTAG_36h10": 2320,
+    "DICT_APRILTAG_36h11": 587,
+    "DICT_ARUCO_MIP_36h12": 250,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class MarkerSpec:
+    """Fiducial markers of a live session (the ``[markers]`` table).
+
+    Attributes:
+        dictionary: OpenCV dictionary name (a key of :data:`MARKER_DICTIONARIES`).
+        size: side of the marker's black square in metres (the paper's markers: 0.08).
+        world: id of the marker whose frame is the world frame (its plane is the ground,
+            world +Y its normal), or None: the world is the camera's frame.
+        smoothing: exponential smoothing weight of the previous pose, in [0, 1) (0 = none).
+        hold_frames: frames an object keeps its last pose after its marker is lost.
+        refine: corner refinement: "edges" (sub-pixel edge lines, unbiased under blur; the
+            default), or OpenCV's "subpix", "contour", "apriltag", "none".
+    """
+
+    dictionary: str = "DICT_5X5_100"
+    size: float = 0.08
+    world: int | None = None
+    smoothing: float = 0.0
+    hold_frames: int = 0
+    refine: str = "edges"
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraColourSpec:
+    """The video camera's colour model of a live session (the ``[camera_colour]`` table), a
+    3×3 fitted from a ColorChecker shot: linear frame RGB = diag(white_balance) · matrix · XYZ
+    (XYZ absolute, cd/m²), then the frame's tone curve (see :mod:`spectral_fit.live`).
+
+    Attributes:
+        matrix: 3×3 rows, absolute XYZ → white-balanced linear RGB (the scene's white maps to
+            equal channels).
+        white_balance: per-channel gains (exposure included).
+        tone: "srgb", "gamma" or "linear"; gamma: exponent of "gamma".
+    """
+
+    matrix: tuple[tuple[float, float, float], ...]
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    tone: str = "srgb"
+    gamma: float = 2.2
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """A validated scene description (see the module docstring for the file format)."""
+
+    path: Path | None
+    width: int
+    height: int
+    camera: CameraSpec
+    environment: EnvironmentSpec
+    display: DisplaySpec
+    spectral: SpectralSpec
+    interreflection: InterreflectionSpec
+    objects: tuple[ObjectSpec, ...]
+    markers: MarkerSpec | None = None
+    camera_colour: CameraColourSpec | None = None
+
+    @property
+    def wavelengths(self) -> np.ndarray:
+        return self.spectral.wavelengths()
+
+    def replace(self, **changes: Any) -> Scene:
+        return dataclasses.replace(self, **changes)
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+class _Reader:
+    """Typed access to one table of the config, with errors naming file and key."""
+
+    def __init__(self, table: Any, prefix: str, path: Path | None) -> None:
+        self.path = path
+        self.prefix = prefix
+        if not isinstance(table, dict):
+            raise InputError(f"must be a table, got {type(table).__name__}", path=path,
+                             field=prefix or "<root>")
+        self.table = table
+        self.used: set[str] = set()
+
+    def key(self, k: str) -> str:
+        return f"{self.prefix}.{k}" if self.prefix else k
+
+    def err(self, k: str, msg: str) -> InputError:
+        return InputError(msg, path=self.path, field=self.key(k))
+
+    def raw(self, k: str, default: Any = _MISSING) -> Any:
+        self.used.add(k)
+        if k not in self.table:
+            if default is _MISSING:
+                raise self.err(k, "required key is missing")
+            return default
+        return self.table[k]
+
+    def number(self, k: str, default: Any = _MISSING, *, lo: float | None = None,
+               hi: float | None = None, lo_open: bool = False) -> float:
+        v = self.raw(k, default)
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise self.err(k, f"must be a number, got {v!r}")
+        v = float(v)
+        if not math.isfinite(v):
+            raise self.err(k, f"must be finite, got {v}")
+        if lo is not None and (v <= lo if lo_open else v < lo):
+            raise self.err(k, f"must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+        if hi is not None and v > hi:
+            raise self.err(k, f"must be <= {hi:g}, got {v:g}")
+        return v
+
+    def integer(self, k: str, default: Any = _MISSING, *, lo: int | None = None,
+                hi: int | None = None) -> int:
+        v = self.raw(k, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.err(k, f"must be an integer, got {v!r}")
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise self.err(k, f"must be in [{lo}, {hi}], got {v}")
+        return int(v)
+
+    def choice(self, k: str, options: tuple[str, ...], default: Any = _MISSING) -> str:
+        v = self.raw(k, default)
+        if not isinstance(v, str) or v not in options:
+            raise self.err(k, f"must be one of {list(options)}, got {v!r}")
+        return v
+
+    def string(self, k: str, default: Any = _MISSING) -> str:
+        v = self.raw(k, default)
+        if not isinstance(v, str) or not v:
+            raise self.err(k, f"must be a non-empty string, got {v!r}")
+        return v
+
+    def vector(self, k: str, n: int, default: Any = _MISSING, *,
+               bound: float | None = None) -> tuple[float, ...]:
+        """``n`` finite numbers; ``bound``: each within ±bound."""
+        v = self.raw(k, default)
+        if (not isinstance(v, list | tuple) or len(v) != n
+                or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v)):
+            raise self.err(k, f"must be a list of {n} numbers, got {v!r}")
+        if not all(math.isfinite(float(x)) for x in v):
+            raise self.err(k, f"must be finite, got {v!r}")
+        if bound is not None and any(abs(float(x)) > bound for x in v):
+            raise self.err(k, f"each component must be within ±{bound:g} (metres: the "
+                              f"renderer computes in float32), got {v!r}")
+        return tuple(float(x) for x in v)
+
+    def file(self, k: str, default: Any = _MISSING, *, must_exist: bool = True) -> Path | None:
+        v = self.raw(k, default)
+        if v is None:
+            return None
+        if not isinstance(v, str) or not v or "\x00" in v:
+            raise self.err(k, f"must be a file path, got {v!r}")
+        base = self.path.parent if self.path is not None else Path.cwd()
+        p = (base / v).resolve() if not os.path.isabs(v) else Path(v)
+        if must_exist and not p.is_file():
+            raise self.err(k, f"file not found: {p}")
+        return p
+
+    def sub(self, k: str, *, required: bool = False) -> _Reader:
+        v = self.raw(k, _MISSING if required else {})
+        return _Reader(v, self.key(k), self.path)
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.table) - self.used)
+        if unknown:
+            raise self.err(unknown[0], f"unknown key (known: {sorted(self.used)})")
+
+
+def _reflectance(r: _Reader, wl: np.ndarray) -> tuple[np.ndarray, str]:
+    v = r.raw("reflectance", 0.5)
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        x = r.number("reflectance", v, lo=0.0, hi=1.0)
+        return np.full(wl.shape, x), f"constant {x:g}"
+    if isinstance(v, list):
+        vals = r.vector("reflectance", wl.size)
+        arr = np.asarray(vals)
+        if (arr < 0).any() or (arr > 1.5).any():
+            raise r.err("reflectance", "values must lie in [0, 1.5]")
+        return arr, "inline list"
+    if not isinstance(v, str) or not v:
+        raise r.err("reflectance", f"must be a number, a list, a CSV file or "
+                    f"'colourchecker:<set>/<patch>', got {v!r}")
+    if v.startswith("colourchecker:"):
+        import colour
+
+        name = v.split(":", 1)[1]
+        if "/" not in name:
+            raise r.err("reflectance", "use 'colourchecker:<set>/<patch>'")
+        cset, patch = name.split("/", 1)
+        if cset not in colour.SDS_COLOURCHECKERS:
+            raise r.err("reflectance", f"unknown ColorChecker set {cset!r}; known: "
+                        f"{sorted(colour.SDS_COLOURCHECKERS)}")
+        if patch not in colour.SDS_COLOURCHECKERS[cset]:
+            raise r.err("reflectance", f"unknown patch {patch!r} in {cset!r}")
+        sd = colour.SDS_COLOURCHECKERS[cset][patch]
+        from ..color import resample
+
+        return resample(sd.wavelengths, sd.values, wl, field=r.key("reflectance"),
+                        margin_nm=40.0), v
+    p = r.file("reflectance")
+    from ..color import read_spectrum_csv, resample
+
+    wl_in, values = read_spectrum_csv(p)  # type: ignore[arg-type]
+    if values.ndim != 1:
+        values = values.mean(axis=0)
+    refl = resample(wl_in, values, wl, path=p, field="reflectance")
+    if (refl > 1.5).any():
+        raise InputError("reflectance above 1.5: is this a percentage? use 0..1", path=p,
+                         field="reflectance")
+    return refl, str(p)
+
+
+def _material(r: _Reader, wl: np.ndarray) -> MaterialSpec:
+    refl, src = _reflectance(r, wl)
+    m = MaterialSpec(
+        reflectance=refl,
+        reflectance_source=src,
+        alpha=r.number("alpha", 1.0, lo=0.0),
+        beta=r.number("beta", 1.0, lo=0.0),
+        chi=r.number("chi", 0.0, lo=0.0),
+        mu=r.number("mu", 0.1, lo=0.0, lo_open=True, hi=1.5),
+        n=r.number("n", 1.5, lo=1.0, lo_open=True, hi=4.0),
+        gamma=r.number("gamma", 1.0, lo=0.0),
+        distribution=r.choice("distribution", ("gaussian", "beckmann"), "gaussian"),
+        geometry=r.choice("geometry", ("vcavity", "smith"), "vcavity"),
+    )
+    r.finish()
+    return m
+
+
+def _object(r: _Reader, wl: np.ndarray) -> ObjectSpec:
+    name = r.string("name")
+    shape = r.choice("shape", ("uv_sphere", "icosphere", "mesh"), "uv_sphere")
+    kw: dict[str, Any] = {}
+    if shape == "mesh":
+        kw["mesh"] = r.file("mesh")
+    else:
+        kw["radius"] = r.number("radius", 0.0375, lo=0.0, lo_open=True)
+    if shape == "uv_sphere":
+        kw["stacks"] = r.integer("stacks", 100, lo=3, hi=2000)
+        kw["slices"] = r.integer("slices", 100, lo=3, hi=2000)
+    if shape == "icosphere":
+        kw["subdivisions"] = r.integer("subdivisions", 5, lo=0, hi=8)
+    marker = r.raw("marker", None)
+    if marker is not None:
+        marker = r.integer("marker", lo=0, hi=100000)
+    obj = ObjectSpec(
+        name=name,
+        shape=shape,
+        material=_material(r.sub("material"), wl),
+        position=r.vector("position", 3, [0.0, 0.0, 0.0],  # type: ignore[arg-type]
+                          bound=MAX_COORD_M),
+        rotation_deg=r.vector("rotation_deg", 3, [0.0, 0.0, 0.0]),  # type: ignore[arg-type]
+        scale=r.number("scale", 1.0, lo=0.0, lo_open=True),
+        marker=marker,
+        marker_offset=r.vector("marker_offset", 3, [0.0, 0.0, 0.0],  # type: ignore[arg-type]
+                               bound=MAX_COORD_M),
+        **kw,
+    )
+    r.finish()
+    return obj
+
+
+def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = None) -> Scene:
+    """Validate a parsed config (a dict as from ``tomllib``) into a :class:`Scene`."""
+    p = None if path is None else Path(path)
+    root = _Reader(data, "", p)
+
+    fr = root.sub("frame")
+    width = fr.integer("width", 720, lo=1, hi=16384)
+    height = fr.integer("height", 480, lo=1, hi=16384)
+    fr.finish()
+
+    cr = root.sub("camera")
+    intr = cr.raw("intrinsics", None)
+    intrinsics = None
+    if intr is not None:
+        ir = cr.sub("intrinsics")
+        intrinsics = {k: ir.number(k, lo=0.0, lo_open=k in ("fx", "fy"))
+                      for k in ("fx", "fy", "cx", "cy")}
+        ir.finish()
+    dist = cr.raw("distortion", None)
+    distortion = None
+    if dist is not None:
+        if not isinstance(dist, list) or len(dist) not in (4, 5, 8):
+            raise cr.err("distortion", "must be a list of 4, 5 or 8 numbers (OpenCV order)")
+        distortion = cr.vector("distortion", len(dist))
+    camera = CameraSpec(
+        fov_y_deg=cr.number("fov_y_deg", 90.0, lo=1.0, hi=179.0),
+        near=cr.number("near", 0.01, lo=0.0, lo_open=True),
+        far=cr.number("far", 1000.0, lo=0.0, lo_open=True),
+        position=cr.vector("position", 3, [0.0, 0.0, 0.0],  # type: ignore[arg-type]
+                           bound=MAX_COORD_M),
+        look_at=cr.vector("look_at", 3, [0.0, 0.0, -1.0],  # type: ignore[arg-type]
+                          bound=MAX_COORD_M),
+        up=cr.vector("up", 3, [0.0, 1.0, 0.0],  # type: ignore[arg-type]
+                     bound=MAX_COORD_M),
+        intrinsics=intrinsics,
+        distortion=distortion,
+        blur_px=cr.number("blur_px", 0.0, lo=0.0, hi=MAX_BLUR_PX),
+        noise=cr.number("noise", 0.0, lo=0.0, hi=MAX_NOISE),
+    )
+    if camera.far <= camera.near:
+        raise cr.err("far", f"must be greater than near ({camera.near:g})")
+    fwd = np.subtract(camera.look_at, camera.position)
+    if np.linalg.norm(fwd) < 1e-12:
+        raise cr.err("look_at", "must differ from position")
+    if np.linalg.norm(np.cross(fwd, camera.up)) < 1e-9 * np.linalg.norm(fwd):
+        raise cr.err("up", "must not be parallel to the viewing direction")
+    cr.finish()
+
+    er = root.sub("environment", required=True)
+    environment = EnvironmentSpec(
+        file=er.file("file"),  # type: ignore[arg-type]
+        scale=er.number("scale", 1.0, lo=0.0, lo_open=True),
+        rotation_y_deg=er.number("rotation_y_deg", 0.0, lo=-360.0, hi=360.0),
+        upsampling=er.choice("upsampling", ("mallett2019", "jakob2019"), "mallett2019"),
+        compress_tol=er.number("compress_tol", 1e-4, lo=0.0, hi=0.1),
+    )
+    er.finish()
+
+    dr = root.sub("display")
+    exp = dr.raw("exposure_luminance", "auto")
+    if exp != "auto":
+        exp = dr.number("exposure_luminance", lo=0.0, lo_open=True)
+    swxy = dr.raw("scene_white_xy", None)
+    import colour  # validated against colour's registry of RGB colourspaces
+
+    cs = dr.string("colourspace", "sRGB")
+    if cs not in colour.RGB_COLOURSPACES:
+        raise dr.err("colourspace", f"unknown RGB colourspace {cs!r}")
+    display = DisplaySpec(
+        colourspace=cs,
+        characterisation=dr.file("characterisation", None),
+        exposure_luminance=exp,
+        scene_white_xy=None if swxy is None else dr.vector("scene_white_xy", 2),  # type: ignore[arg-type]
+    )
+    dr.finish()
+
+    sr = root.sub("spectral")
+    spectral = SpectralSpec(
+        start_nm=sr.number("start_nm", 380.0, lo=360.0, hi=830.0),
+        end_nm=sr.number("end_nm", 780.0, lo=360.0, hi=830.0),
+        step_nm=sr.number("step_nm", 5.0, lo=0.5, hi=100.0),
+        mode=sr.choice("mode", ("bands", "basis"), "bands"),
+        k=sr.integer("k", 8, lo=1, hi=64),
+    )
+    if spectral.end_nm <= spectral.start_nm:
+        raise sr.err("end_nm", f"must exceed start_nm ({spectral.start_nm:g})")
+    sr.finish()
+    wl = spectral.wavelengths()
+    if wl.size < 3:
+        raise sr.err("step_nm", "the grid must have at least 3 wavelengths")
+    if spectral.mode == "basis" and spectral.k > wl.size:
+        raise sr.err("k", f"must not exceed the number of wavelengths ({wl.size})")
+
+    ir_ = root.sub("interreflection")
+    inter = InterreflectionSpec(
+        mode=ir_.choice("mode", ("gather", "paper", "none"), "gather"),
+        bounces=ir_.integer("bounces", 1, lo=0, hi=16),
+        texture_size=ir_.integer("texture_size", 256, lo=8, hi=4096),
+    )
+    ir_.finish()
+
+    objs = root.raw("objects", [])
+    if not isinstance(objs, list) or not objs:
+        raise root.err("objects", "need at least one [[objects]] table")
+    objects = tuple(_object(_Reader(o, f"objects[{i}]", p), wl) for i, o in enumerate(objs))
+    names = [o.name for o in objects]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise root.err("objects", f"object names must be unique; repeated: {sorted(dup)}")
+    markers = _markers(root, objects) if "markers" in data else None
+    camera_colour = _camera_colour(root) if "camera_colour" in data else None
+    root.finish()
+    return Scene(path=p, width=width, height=height, camera=camera, environment=environment,
+                 display=display, spectral=spectral, interreflection=inter, objects=objects,
+                 markers=markers, camera_colour=camera_colour)
+
+
+def _camera_colour(root: _Reader) -> CameraColourSpec:
+    """The ``[camera_colour]`` table."""
+    cr = root.sub("camera_colour")
+    m = cr.raw("matrix")
+    if not isinstance(m, list) or len(m) != 3:
+        raise cr.err("matrix", f"must be 3 rows of 3 numbers, got {m!r}")
+    rows = []
+    for i, row in enumerate(m):
+        if (not isinstance(row, list) or len(row) != 3 or not all(
+                isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+                for x in row)):
+            raise cr.err("matrix", f"row {i} must be 3 finite numbers, got {row!r}")
+        rows.append(tuple(float(x) for x in row))
+    if abs(np.linalg.det(np.asarray(rows))) < 1e-12:
+        raise cr.err("matrix", "is singular")
+    wb = cr.vector("white_balance", 3, [1.0, 1.0, 1.0])
+    if min(wb) <= 0:
+        raise cr.err("white_balance", f"gains must be > 0, got {list(wb)}")
+    spec = CameraColourSpec(
+        matrix=tuple(rows), white_balance=wb,  # type: ignore[arg-type]
+        tone=cr.choice("tone", ("srgb", "gamma", "linear"), "srgb"),
+        gamma=cr.number("gamma", 2.2, lo=0.1, hi=10.0),
+    )
+    cr.finish()
+    return spec
+
+
+def _markers(root: _Reader, objects: tuple[ObjectSpec, ...]) -> MarkerSpec:
+    """The ``[markers]`` table; object marker ids must exist in the dictionary."""
+    mr = root.sub("markers")
+    dictionary = mr.choice("dictionary", tuple(MARKER_DICTIONARIES), "DICT_5X5_100")
+    n_ids = MARKER_DICTIONARIES[dictionary]
+    world = mr.raw("world", None)
+    if world is not None:
+        world = mr.integer("world", lo=0, hi=n_ids - 1)
+    spec = MarkerSpec(
+        dictionary=dictionary,
+        size=mr.number("size", 0.08, lo=0.0, lo_open=True, hi=10.0),
+        world=world,
+        smoothing=mr.number("smoothing", 0.0, lo=0.0, hi=0.99),
+        hold_frames=mr.integer("hold_frames", 0, lo=0, hi=10000),
+        refine=mr.choice("refine", ("edges", "subpix", "contour", "apriltag", "none"), "edges"),
+    )
+    mr.finish()
+    for i, o in enumerate(objects):
+        if o.marker is not None and o.marker >= n_ids:
+            raise root.err(f"objects[{i}].marker", f"id {o.marker} is not in {dictionary} "
+                           f"(ids 0..{n_ids - 1})")
+    return spec
+
+
+def load_scene(path: str | os.PathLike[str],
+               overrides: Callable[[dict[str, Any]], None] | None = None) -> Scene:
+    """Read and validate a TOML scene config (stable API ``load_scene``).
+
+    ``overrides``, if given, may edit the parsed dict before validation (used by the CLI's
+    ``--size``/``--mode`` options).
+    """
+    from .._runtime.fileio import read_text
+
+    p = Path(path)
+    text = read_text(p)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"TOML syntax error: {exc}", path=p) from None
+    if overrides is not None:
+        overrides(data)
+    return parse_scene(data, path=p)

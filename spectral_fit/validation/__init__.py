@@ -1,0 +1,20 @@
+"""Colour against path-traced references (ΔE00 per region) and the Mitsuba 3 reference renderer.
+
+Public names are imported lazily from the private modules below on first use.
+"""
+
+from __future__ import annotations
+
+from .._runtime.lazy import lazy_exports
+
+#: public name -> private module of this package that defines it
+_EXPORTS: dict[str, str] = {
+    "TARGETS": "_compare",
+    "delta_e_figure": "_compare",
+    "delta_e_patches": "_compare",
+    "scene_white_xyz": "_compare",
+    "validate": "_compare",
+}
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+__all__ = sorted(_EXPORTS)

@@ -1,0 +1,46 @@
+"""Saved benchmark results: their file names, and the README table made from them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from spectral_fit.cli.commands.bench import results_path, results_table
+
+META = {"date": "2026-12-05", "cpu": "AMD EPYC 9R14 Processor", "cores": 2, "backend": "cpu",
+        "devices": ["TFRT_CPU_0"]}
+
+
+def test_results_path_names_the_date_and_machine():
+    p = results_path(META)
+    assert p.parent.parts[-2:] == ("benchmarks", "results")
+    assert p.name == "2026-12-05-amd-epyc-9r14-processor-2c.json"
+    gpu = results_path({**META, "backend": "gpu", "devices": ["cuda:0 NVIDIA H100"]})
+    assert gpu.name == "2026-12-05-amd-epyc-9r14-processor-2c-cuda-0-nvidia-h100.json"
+
+
+def test_table_has_a_row_per_case_and_a_column_per_run():
+    a = {"_meta": META, "frame_paper": {"median_ms": 16.71, "compile_s": 15.2, "n": 20},
+         "cold_start_s": {"median_ms": 510.0, "compile_s": 22.4, "n": 3}}
+    b = {"_meta": {**META, "date": "2026-12-06"},
+         "frame_paper": {"median_ms": 17.0, "compile_s": 16.0, "n": 20}}
+    lines = results_table([a, b]).splitlines()
+    assert lines[0] == ("| case | 2026-12-05, AMD EPYC 9R14 Processor (2 cores, cpu) "
+                        "| 2026-12-06, AMD EPYC 9R14 Processor (2 cores, cpu) |")
+    assert lines[2] == "| `cold_start_s` | 510 ms (compile 22.4 s) | — |"
+    assert lines[3] == "| `frame_paper` | 16.7 ms (compile 15.2 s) | 17 ms (compile 16 s) |"
+    assert len(lines) == 4
+
+
+@pytest.mark.parametrize("content, field", [("{not json", "line 1"),
+                                            (json.dumps({"frame": {}}), "_meta")])
+def test_a_bad_results_file_is_a_one_line_error(tmp_path, content, field):
+    bad = tmp_path / "bad.json"
+    bad.write_text(content)
+    r = subprocess.run([sys.executable, "-m", "spectral_fit", "bench", "--table", str(bad)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert str(bad) in r.stderr and field in r.stderr and "Traceback" not in r.stderr
