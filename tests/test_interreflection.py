@@ -808,7 +808,7 @@ def test_batched_gather_pass1_equals_one_raster_per_pair(monkeypatch):
     give each pair (i, j), in pair_list's order, the samples of that pair's own raster (the
     per-pair loop, which meshes of different shapes still take). Three spheres of different
     radii at asymmetric places, so that a pair mixed up with another would show."""
-    import spectral_fit.interreflection as ir
+    from spectral_fit.rendering.interreflection import _transport as ir
 
     objs = sphere_objects(stacks=16, centres=[(-0.05, 0.0, -0.3), (0.04, 0.01, -0.28),
                                               (0.0, 0.07, -0.33)])

@@ -324,7 +324,7 @@ def test_bad_inputs_name_the_option(prep, scene_folder):
 
 def _interreflection_available() -> bool:
     try:
-        import spectral_fit.interreflection  # noqa: F401
+        import spectral_fit.rendering.interreflection  # noqa: F401
     except ImportError:
         return False
     return True
