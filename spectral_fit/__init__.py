@@ -8,8 +8,7 @@ does not start JAX until a JAX-based function is used.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from ._runtime.lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -138,17 +137,6 @@ _EXPORTS: dict[str, str] = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'spectral_fit' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_EXPORTS])
-
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = sorted(_EXPORTS)

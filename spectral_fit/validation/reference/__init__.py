@@ -23,8 +23,7 @@ Everything that needs Mitsuba imports it lazily (:func:`.backend.init_mitsuba`).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from ..._runtime.lazy import lazy_exports
 
 _EXPORTS = {
     "Reference": "data",
@@ -42,13 +41,4 @@ _EXPORTS = {
 }
 
 __all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(
-            f"module 'spectral_fit.validation.reference' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
