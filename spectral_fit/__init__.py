@@ -128,6 +128,10 @@ _EXPORTS: dict[str, str] = {
     "enable_compilation_cache": "rendering",
     "prepare_cached": "rendering",
     "render_frame_cached": "rendering",
+    # process settings for interactive sessions: XLA's freed frame memory kept for reuse, the
+    # CPU split into devices for frames in flight
+    "retain_freed_memory": "_runtime.process",
+    "split_cpu_devices": "_runtime.process",
     # frame program: covered pixels without background, output channels, pixel composite
     # (renderer, compositing)
     "PixelFrame": "rendering",
