@@ -11,6 +11,33 @@ from pathlib import Path
 import pytest
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    """With ``-n N`` (pytest-xdist) and no ``--dist`` given, distribute by ``loadgroup``: tests
+    go to whichever worker is free, as with xdist's default, except that the tests of an
+    ``xdist_group`` run on one worker. Modules whose tests share an expensive module fixture
+    (a compiled gather-mode scene, an OpenGL context) are grouped so that the fixture is built
+    once, not once per worker."""
+    if getattr(config.option, "numprocesses", None) and getattr(config.option, "dist",
+                                                                 None) == "no":
+        config.option.dist = "loadgroup"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _compilation_cache():
+    """JAX's persistent compilation cache on for the whole run, in the folder the product uses
+    (``spectral_fit.enable_compilation_cache``: ``$SPECTRAL_FIT_JAX_CACHE`` or
+    ``~/.cache/spectral_fit/jax``, a subfolder per library versions; an empty variable turns it
+    off). Many tests compile the same frame programs (the same scene, mode and frame size) in
+    separate processes: each worker loads what another one compiled, and so do the
+    ``spectral-fit`` commands that tests run in child processes (they use the same folder).
+    Programs that compile in under a second are not stored."""
+    from spectral_fit.rendering import enable_compilation_cache
+
+    enable_compilation_cache(min_compile_time_s=1.0)
+    yield
+
+
 @pytest.fixture(scope="session")
 def anchor_lighting():
     """The benchmark's anchor map as the lighting tests use it (``helpers.lighting.anchor_map``):

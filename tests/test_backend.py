@@ -63,6 +63,7 @@ def _with_layout(monkeypatch, accelerator: bool, fn):
     return out, len(calls)
 
 
+@pytest.mark.slow  # test_interreflection compares the two receiver layouts in the default tier
 def test_accelerator_layout_renders_the_cpu_layout_frame(prep, monkeypatch):
     """Also the gather's receivers two ways: the CPU layout puts the valid ones first and runs
     their per-receiver terms in chunks, skipping the empty slots' chunks

@@ -17,6 +17,10 @@ import sys
 import numpy as np
 import pytest
 
+# one worker runs this module's tests (see tests/conftest.py):
+# the OpenGL context and both frames are built once
+pytestmark = pytest.mark.xdist_group("gl_baseline")
+
 SIZE = (360, 240)
 
 

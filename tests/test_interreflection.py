@@ -567,6 +567,7 @@ def test_image_anchor_lookup_of_the_anchor_map(step):
     assert np.all(np.asarray(own)[~ok | anchor])
 
 
+@pytest.mark.slow  # two gather programs of a 360×240 image
 def test_gloss_subsampled_on_image_pixels():
     """Receivers that are the pixels of an image (``image_shape``): the gloss quadrature at
     every 2nd row and column, interpolated between, vs the quadrature at every pixel (the
@@ -639,8 +640,10 @@ def test_partition_is_the_stable_argsort():
         np.testing.assert_array_equal(np.asarray(rank)[ref], np.arange(n))
 
 
-@pytest.mark.parametrize(("k", "diffuse_at"), [(None, "samples"), (8, "samples"),
-                                               (None, "receivers")])
+@pytest.mark.parametrize(("k", "diffuse_at"), [
+    # the default tier keeps the K-coefficient case; each case compiles two gather programs
+    pytest.param(None, "samples", marks=pytest.mark.slow), (8, "samples"),
+    pytest.param(None, "receivers", marks=pytest.mark.slow)])
 def test_output_channels_match_the_mapped_result(k, diffuse_at):
     """``output=M`` (gather: the receivers' terms computed in the D output channels: the
     samples' net light reflected and mapped per pair before it is interpolated, the senders'
@@ -832,7 +835,8 @@ def test_batched_gather_pass1_equals_one_raster_per_pair(monkeypatch):
     assert np.abs(np.diff(np.asarray(slow.s_area), axis=0)).max() > 1e-6
 
 
-@pytest.mark.parametrize("diffuse_at", ["samples", "receivers"])
+@pytest.mark.parametrize("diffuse_at", [
+    "samples", pytest.param("receivers", marks=pytest.mark.slow)])
 def test_valid_first_receivers_match_the_one_pass_receivers(gather_geom, monkeypatch,
                                                             diffuse_at):
     """Many receivers on the CPU layout (``_receive_valid_first``: valid receivers first, their

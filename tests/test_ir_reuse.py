@@ -13,6 +13,10 @@ import jax.numpy as jnp
 
 from spectral_fit._runtime.errors import InputError
 
+# one worker runs this module's tests (see tests/conftest.py):
+# the gather scene's programs are compiled once
+pytestmark = pytest.mark.xdist_group("ir_reuse")
+
 
 def _views():
     from spectral_fit.geometry import look_at
@@ -63,6 +67,7 @@ def test_split_frame_equals_the_frame_that_computes_its_senders(prep):
     assert TRACE_COUNT["ir_senders"] == n0
 
 
+@pytest.mark.slow  # the split frame's test above runs the same senders' path in the default tier
 def test_render_frame_with_senders_equals_the_frame(prep):
     """render_frame(senders=...) (a turntable or camera path over objects that stay put)
     against render_frame alone, two camera views of one senders' state; without the

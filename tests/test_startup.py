@@ -542,7 +542,7 @@ print(startup.CACHE_STATS)
 """
 
 
-@pytest.mark.parametrize("mode", ["none", "gather"])
+@pytest.mark.parametrize("mode", ["none", pytest.param("gather", marks=pytest.mark.slow)])
 def test_programs_stored_by_a_busy_process_load_elsewhere(config, tmp_path, mode):
     """The programs a process stores run in a new process even when the storing process had
     compiled and loaded many programs before (this test session; or a process whose JAX
