@@ -22,8 +22,11 @@ from helpers.fitting import (
     write_small_scene,
 )
 
+from spectral_fit import fitting
 from spectral_fit._runtime.errors import InputError
-from spectral_fit.fitting import _fit as fitting
+from spectral_fit.fitting._params import _dp_dy, _starts
+from spectral_fit.fitting._solver import _residuals_jacobian
+from spectral_fit.fitting._spots import _spot_samples
 from spectral_fit.io import load_scene, load_session
 
 RES = 6  # spot resolution in these tests
@@ -150,7 +153,7 @@ def test_compact_solver_matches_optimistix(small):
         pr.measured.shape))
     pr = eqx.tree_at(lambda q: q.measured, pr, jnp.asarray(noisy, pr.values.dtype))
     y0 = fitting.y_start(pr, np.asarray(pr.values, np.float64), 1.0)
-    ys = jnp.asarray(fitting._starts(pr, y0, 2, 7), pr.values.dtype)
+    ys = jnp.asarray(_starts(pr, y0, 2, 7), pr.values.dtype)
     rw = jnp.ones((2, len(session.readings)), pr.values.dtype)
     out = {}
     for name in fitting.SOLVERS:
@@ -168,7 +171,7 @@ def test_compact_solver_matches_optimistix(small):
                                                                            strict=True)])
 
     def dp(y):
-        return np.array([fitting._dp_dy(float(v), k) for v, k in zip(y, kinds, strict=True)])
+        return np.array([_dp_dy(float(v), k) for v, k in zip(y, kinds, strict=True)])
 
     for i in range(2):
         jb = b["jacobian"][i] / dp(b["y"][i])  # physical parameters
@@ -177,7 +180,7 @@ def test_compact_solver_matches_optimistix(small):
     # the compact loop's Jacobian against central differences of the residuals
     y = jnp.asarray(a["y"][0], pr.values.dtype)
     w = jnp.ones((len(session.readings),), pr.values.dtype)
-    r, J, _ = fitting._residuals_jacobian(y, pr, w)
+    r, J, _ = _residuals_jacobian(y, pr, w)
     for j in (0, 3, 4):  # α, μ, n of the first object
         e = np.zeros(y.shape[0])
         e[j] = 1e-2
@@ -251,7 +254,7 @@ def test_ray_cast_matches_rasteriser(small):
     geoms = prep.geometries
     r = session.readings[2]
     res = 16
-    S = fitting._spot_samples(geoms, r.position[None], r.aim[None], np.array([6.0]), res)
+    S = _spot_samples(geoms, r.position[None], r.aim[None], np.array([6.0]), res)
     verts = np.concatenate([np.asarray(g.vertices) for g in geoms])
     tris, obj, base = [], [], 0
     for o, g in enumerate(geoms):
@@ -279,7 +282,7 @@ _X64 = textwrap.dedent("""
     warnings.simplefilter("ignore")
     from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
-    from spectral_fit.fitting import _fit as fitting
+    from spectral_fit import fitting
     from spectral_fit.io import load_scene
     from spectral_fit.io import load_session
     root = Path(sys.argv[1])
@@ -346,7 +349,7 @@ _SHARD = textwrap.dedent("""
     warnings.simplefilter("ignore")
     from helpers.fitting import TRUE, spots, write_session, write_small_scene
     from pathlib import Path
-    from spectral_fit.fitting import _fit as fitting
+    from spectral_fit import fitting
     from spectral_fit.io import load_scene
     from spectral_fit.io import load_session
     assert len(jax.devices()) == 2

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 from helpers.fitting import TRUE, assert_recovered, spots, write_session
 
-from spectral_fit.fitting import _fit as fitting
-from spectral_fit.fitting import _radiance_cache as rc
+from spectral_fit import fitting
 from spectral_fit.io import load_scene, load_session
 from spectral_fit.lighting import (
     EnvironmentMap,
@@ -44,8 +43,8 @@ def setup():
     keep = np.flatnonzero(np.sum(N * V, 1) > 0.26)[:24]
     N, V = N[keep], V[keep]
     P = N.shape[0]
-    cache = rc.build_radiance_cache(env, np.zeros((P, 3)), N, V, np.zeros(P, np.int64),
-                                    np.arange(P))
+    cache = fitting.build_radiance_cache(env, np.zeros((P, 3)), N, V, np.zeros(P, np.int64),
+                                         np.arange(P))
     return env, N, V, cache, img
 
 
@@ -77,8 +76,9 @@ def test_cached_radiance_matches_shade(setup):
     # the same bright-source rule as shade's exact gloss (product Gauss over each source
     # texel's bilinear footprint); the default 16 equal-weight points differ from it by up to
     # 1.6 % at single points of the narrowest lobe (a lamp's reflection)
-    gauss = rc.build_radiance_cache(env, np.zeros((P, 3)), N, V, np.zeros(P, np.int64),
-                                    np.arange(P), options=rc.CacheOptions(sources="gauss"))
+    gauss = fitting.build_radiance_cache(env, np.zeros((P, 3)), N, V, np.zeros(P, np.int64),
+                                         np.arange(P),
+                                         options=fitting.CacheOptions(sources="gauss"))
 
     @eqx.filter_jit
     def reference(m):
@@ -90,8 +90,8 @@ def test_cached_radiance_matches_shade(setup):
         ref = reference(make_material(alpha=0.9, beta=1.0, chi=0.05, mu=mu, n=1.5,
                                       reflectance=S))
         for c, worst in ((gauss, 1e-2 if mu <= 0.2 else 2e-2), (cache, 2e-2)):
-            got, _ = rc.cached_radiance(c, vals, jnp.asarray(S[None], jnp.float32),
-                                        jnp.zeros(P, jnp.int32), [("gaussian", "vcavity")])
+            got, _ = fitting.cached_radiance(c, vals, jnp.asarray(S[None], jnp.float32),
+                                             jnp.zeros(P, jnp.int32), [("gaussian", "vcavity")])
             rel = np.abs(np.asarray(got).sum(1) / np.asarray(ref).sum(1) - 1.0)
             assert np.median(rel) < 5e-3, (mu, np.median(rel))
             assert rel.max() < worst, (mu, rel.max())
@@ -103,8 +103,8 @@ def test_gloss_nodes_against_texel_sum(setup):
     env, N, V, cache, img = setup
     basis = np.asarray(env.spectral_basis, np.float64)
     for mu in (0.2, 0.35):
-        got = np.asarray(rc.gloss_from_nodes(cache.nodes, jnp.full(N.shape[0], mu),
-                                             jnp.full(N.shape[0], 1.5))) @ basis
+        got = np.asarray(fitting.gloss_from_nodes(cache.nodes, jnp.full(N.shape[0], mu),
+                                                  jnp.full(N.shape[0], 1.5))) @ basis
         ref = np.stack([_brute_gloss(img, env, N[i], V[i], mu) for i in range(N.shape[0])])
         rel = np.abs(got.sum(1) / ref.sum(1) - 1.0)
         assert np.median(rel) < 1.5e-2, (mu, np.median(rel), rel.max())
@@ -116,10 +116,10 @@ def test_gloss_jvp_matches_finite_differences(setup):
     _, N, _, cache, _ = setup
     P = N.shape[0]
     mu0, n0 = jnp.full(P, 0.12), jnp.full(P, 1.5)
-    f = jax.jit(lambda m, n: rc.gloss_from_nodes(cache.nodes, m, n))
+    f = jax.jit(lambda m, n: fitting.gloss_from_nodes(cache.nodes, m, n))
     for dm, dn, h in ((1.0, 0.0, 1e-3), (0.0, 1.0, 1e-2)):
         tm, tn = jnp.full(P, dm), jnp.full(P, dn)
-        _, jv = jax.jvp(lambda m, n: rc.gloss_from_nodes(cache.nodes, m, n), (mu0, n0),
+        _, jv = jax.jvp(lambda m, n: fitting.gloss_from_nodes(cache.nodes, m, n), (mu0, n0),
                         (tm, tn))
         fd = (f(mu0 + h * tm, n0 + h * tn) - f(mu0 - h * tm, n0 - h * tn)) / (2 * h)
         scale = np.abs(np.asarray(fd)).max()

@@ -1,0 +1,235 @@
+"""Building the :class:`~spectral_fit.fitting.RadianceCache` of field samples, outside
+``jit``: gloss nodes, exact visible irradiance, mirror radiance, and the interreflection
+probes on the neighbours with the hits that refer to them.
+
+Shapes: P field samples, B readings, Q probes, H gloss hits, C environment channels (bands),
+O objects; positions in metres.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._cache_geometry import _fibonacci_cap, _ray_spheres, _unit
+from ._env_sampling import _env_lookup, _texel_table
+from ._gloss_nodes import build_gloss_nodes
+from ._radiance_cache import CacheOptions, RadianceCache, Sphere, _concat_nodes
+
+__all__ = ["build_radiance_cache"]
+
+
+def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndarray,
+                        spheres: Sequence[Sphere], chunk: int = 64
+                        ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                          np.ndarray]]]:
+    """Exact texel-sum irradiance (P, C) of the environment visible from each point, and per
+    chunk the hidden texels: (point index, cos·Δω, hit sphere, hit point).
+
+    A texel direction is hidden by a sphere when it lies inside the sphere's silhouette cone
+    from the point (angle to the centre <= asin(radius/distance)); computed in float32."""
+    dirs, sa, tex = _texel_table(env)
+    d32 = dirs.astype(np.float32)
+    tex32 = tex.astype(np.float32)
+    P = X.shape[0]
+    E = np.zeros((P, tex.shape[1]))
+    hidden = []
+    for a in range(0, P, chunk):
+        sl = slice(a, min(P, a + chunk))
+        w = np.maximum(N[sl].astype(np.float32) @ d32.T, 0.0) * sa[None].astype(np.float32)
+        for si, s in enumerate(spheres):
+            rel = s.centre[None] - X[sl]
+            dist = np.linalg.norm(rel, axis=1)
+            use = (objects[sl] != s.object) & (dist > s.radius)
+            if not use.any():
+                continue
+            axis = rel / np.maximum(dist, 1e-300)[:, None]
+            cos_half = np.sqrt(np.maximum(1.0 - (s.radius / np.maximum(dist, 1e-300)) ** 2,
+                                          0.0))
+            inside = (axis.astype(np.float32) @ d32.T >= cos_half[:, None]) & use[:, None]
+            pi, ti = np.nonzero(inside & (w > 0.0))
+            if pi.size:
+                hw = w[pi, ti].astype(np.float64)
+                w[pi, ti] = 0.0
+                o = X[sl][pi]
+                oc = o - s.centre
+                bq = np.sum(oc * dirs[ti], -1)
+                t = -bq - np.sqrt(np.maximum(bq * bq - np.sum(oc * oc, -1) + s.radius ** 2,
+                                             0.0))
+                hidden.append((pi + a, hw, np.full(pi.size, si), o + t[:, None] * dirs[ti]))
+        E[sl] = w @ tex32
+    return E, hidden
+
+
+def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
+                         views: np.ndarray, objects: np.ndarray, groups: np.ndarray, *,
+                         average: np.ndarray | None = None, spheres: Sequence[Sphere] = (),
+                         options: CacheOptions | None = None, dtype: Any = jnp.float32
+                         ) -> RadianceCache:
+    """Precompute the :class:`RadianceCache` of P field samples (outside ``jit``).
+
+    Args:
+        env: :class:`~spectral_fit.lighting.EnvironmentMap` (bands).
+        positions, normals, views: (P, 3) world samples (invalid ones: any values).
+        objects: (P,) object per sample, −1 for none.
+        groups: (P,) reading of each sample (probes are made per reading and neighbour).
+        average: (B, P) field averaging weights (default: the mean of each group's samples).
+        spheres: the objects as spheres for occlusion and interreflection (empty: no
+            interreflection, no occlusion).
+    """
+    opts = options or CacheOptions()
+    X = np.asarray(positions, np.float64)
+    N = _unit(np.asarray(normals, np.float64))
+    V = _unit(np.asarray(views, np.float64))
+    obj = np.asarray(objects, np.int64)
+    grp = np.asarray(groups, np.int64)
+    valid = obj >= 0
+    P = X.shape[0]
+    C = env.texels.shape[-1]
+    nodes, hits = build_gloss_nodes(
+        env, X, N, V, objects=obj, spheres=spheres if spheres else (), theta0=opts.theta0,
+        ring_ratio=opts.ring_ratio, azimuths=opts.azimuths, prefilter=opts.prefilter,
+        horizon_ratio=opts.horizon_ratio, subsamples=opts.subsamples, sources=opts.sources,
+        dtype=dtype)
+    nv = np.sum(N * V, -1)
+    R = _unit(2.0 * nv[:, None] * N - V)
+    irr = np.zeros((P, C))
+    mir = np.zeros((P, C))
+    iv = np.flatnonzero(valid)
+    E, hidden = _visible_irradiance(env, X[iv], N[iv], obj[iv], spheres)
+    irr[iv] = E
+    mk = np.full(P, -1)
+    mt = np.full(P, np.inf)
+    if spheres:
+        mk[iv], mt[iv] = _ray_spheres(X[iv], R[iv], spheres, obj[iv])
+    mvis = valid & (mk < 0)
+    mir[mvis] = _env_lookup(env, R[mvis])
+    # probes: per reading and neighbour, directions from the spot centre over its silhouette
+    probe_dirs, probe_pts, probe_sph, probe_grp, probe_orig = [], [], [], [], []
+    if spheres:
+        for b in np.unique(grp[valid]):
+            sel = valid & (grp == b)
+            xb = X[sel].mean(axis=0)
+            ob = int(np.bincount(obj[sel]).argmax())
+            for si, s in enumerate(spheres):
+                if s.object == ob:
+                    continue
+                d = np.linalg.norm(s.centre - xb)
+                if d <= s.radius:
+                    continue
+                half = math.asin(s.radius / d) * 0.999
+                u = _fibonacci_cap((s.centre - xb) / d, half, opts.probes)
+                k, t = _ray_spheres(np.broadcast_to(xb, u.shape), u, [s], np.array(-1))
+                u, t = u[k >= 0], t[k >= 0]
+                probe_dirs.append(u)
+                probe_pts.append(xb + t[:, None] * u)
+                probe_sph.append(np.full(u.shape[0], si))
+                probe_grp.append(np.full(u.shape[0], b))
+                probe_orig.append(np.broadcast_to(xb, u.shape))
+    Q = int(sum(u.shape[0] for u in probe_dirs))
+    if Q:
+        pd = np.concatenate(probe_dirs)
+        pp = np.concatenate(probe_pts)
+        ps = np.concatenate(probe_sph)
+        pg = np.concatenate(probe_grp)
+        po = np.concatenate(probe_orig)
+        centre_of = {int(b): X[valid & (grp == b)].mean(axis=0) for b in np.unique(pg)}
+
+        def nearest(sample: np.ndarray, sph: np.ndarray, pts: np.ndarray) -> np.ndarray:
+            """Nearest probe (by direction from the spot centre) of each hit; −1 if none."""
+            out = np.full(sample.shape[0], -1)
+            for b in np.unique(grp[sample]):
+                for si in np.unique(sph):
+                    m = (grp[sample] == b) & (sph == si)
+                    cand = np.flatnonzero((pg == b) & (ps == si))
+                    if not m.any() or cand.size == 0:
+                        continue
+                    u = _unit(pts[m] - centre_of[int(b)])
+                    out[np.flatnonzero(m)] = cand[np.argmax(u @ pd[cand].T, axis=1)]
+            return out
+
+        # diffuse: hidden texels → probes
+        dpr = np.zeros((P, Q))
+        for pi, hw, hk, pts in hidden:
+            pi = iv[pi]
+            q = nearest(pi, hk, pts)
+            ok = q >= 0
+            np.add.at(dpr, (pi[ok], q[ok]), hw[ok])
+        # mirror
+        mprobe = np.full(P, -1)
+        mh = np.flatnonzero(valid & (mk >= 0))
+        if mh.size:
+            mprobe[mh] = nearest(mh, mk[mh], X[mh] + mt[mh, None] * R[mh])
+        # gloss hits
+        J, M = nodes.vh.shape[1], nodes.vh.shape[2]
+        hs = hits["node"] // (J * M)
+        hq = nearest(hs, hits["sphere"], hits["point"])
+        keep = hq >= 0
+        hn = hits["node"][keep]
+        hs, hq = hs[keep], hq[keep]
+        hnode = hn % (J * M)
+        # keep the probes something refers to
+        used = (dpr.sum(axis=0) > 0.0)
+        used[mprobe[mprobe >= 0]] = True
+        used[hq] = True
+        new = np.cumsum(used) - 1
+        Q = int(used.sum())
+        dpr = dpr[:, used]
+        mprobe = np.where(mprobe >= 0, new[np.maximum(mprobe, 0)], -1)
+        hq = new[hq]
+        pd, pp, ps, pg, po = pd[used], pp[used], ps[used], pg[used], po[used]
+        pobj = np.array([spheres[i].object for i in ps])
+        pc = np.stack([spheres[i].centre for i in ps]) if Q else np.zeros((0, 3))
+        pN = _unit(pp - pc)
+        pV = _unit(po - pp)
+        pnodes, _ = build_gloss_nodes(
+            env, pp, pN, pV, objects=pobj, spheres=spheres, theta0=opts.theta0,
+            ring_ratio=opts.ring_ratio, azimuths=opts.azimuths,
+            prefilter=opts.prefilter, horizon_ratio=opts.horizon_ratio, sources=opts.sources,
+            dtype=dtype)
+        pE, _ = _visible_irradiance(env, pp, pN, pobj, spheres)
+        pnv = np.sum(pN * pV, -1)
+        pR = _unit(2.0 * pnv[:, None] * pN - pV)
+        k, _ = _ray_spheres(pp, pR, spheres, pobj)
+        pM = np.zeros((Q, C))
+        pM[k < 0] = _env_lookup(env, pR[k < 0])
+    else:
+        pobj = np.zeros(0, np.int64)
+        pnodes, _ = build_gloss_nodes(env, np.zeros((0, 3)), np.zeros((0, 3)) + [0, 1, 0],
+                                      np.zeros((0, 3)) + [0, 1, 0], objects=pobj,
+                                      theta0=opts.theta0, ring_ratio=opts.ring_ratio,
+                                      azimuths=opts.azimuths, sources=opts.sources,
+                                      dtype=dtype)
+        pE = pM = np.zeros((0, C))
+        pg = np.zeros(0, np.int64)
+        dpr = np.zeros((P, 0))
+        mprobe = np.full(P, -1)
+        hs = hq = np.zeros(0, np.int64)
+        hnode = np.zeros(0, np.int64)
+    mprobe = np.where(mprobe >= 0, mprobe, Q)  # index Q: a zero row
+    if average is None:
+        nb = int(grp.max()) + 1 if grp.size else 0
+        average = np.zeros((nb, P))
+        for b in range(nb):
+            average[b, grp == b] = 1.0 / max(1, int(np.sum(grp == b)))
+    avg = np.asarray(average, np.float64) * (valid & (nv > 0.0))[None, :]
+    O = int(max([obj.max() + 1 if obj.size else 0] + [s.object + 1 for s in spheres]))
+    fdq = np.zeros((O, Q))
+    for o in range(O):
+        full = avg @ (dpr * (obj == o)[:, None])  # (B, Q)
+        fdq[o] = full[pg, np.arange(Q)] if Q else 0.0
+    h_avg = avg[grp[hs], hs] if hs.size else np.zeros(0)
+    f = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+    return RadianceCache(
+        nodes=_concat_nodes(nodes, pnodes), irradiance=f(irr), mirror=f(mir),
+        spectral_basis=f(np.asarray(env.spectral_basis, np.float64)),
+        probe_object=jnp.asarray(pobj, jnp.int32),
+        probe_irradiance=f(pE), probe_mirror=f(pM), mirror_probe=jnp.asarray(mprobe, jnp.int32),
+        diffuse_probe=f(dpr), hit_sample=jnp.asarray(hs, jnp.int32),
+        hit_probe=jnp.asarray(hq, jnp.int32), hit_node=jnp.asarray(hnode, jnp.int32),
+        average=f(avg), probe_group=jnp.asarray(pg, jnp.int32), probe_diffuse=f(fdq),
+        hit_average=f(h_avg))

@@ -1,0 +1,116 @@
+"""The fit's forward model and its weighted residuals, per reading b (mean over its field):
+
+    M_b(λ) = k(λ) · B ∘ mean_p∈field(b) [ α S(λ) E(λ, N_p)/π + β ∫ L F D G/(4 cosθr) dω
+                                      + χ F(n, θr) L(λ, R_p) + I_p(λ) ]
+
+(eq. 5 in our physical reading; I_p the light of the neighbours, eq. 6 in the gather
+reading, when the scene's interreflection mode is not "none" and every object is a
+sphere; every term is a weighted sum of cached radiances with weights from F, D, G, so
+the Jacobian is exact autodiff, interreflection included; B the instrument's band-pass,
+:func:`~spectral_fit.fitting.band_matrix`). With ``geometry = "SCI"`` reflectance,
+S = max(S_SCI − F(n, 8°), 0).
+
+Shapes: B readings, P samples, O objects, L bands; readings in W·sr⁻¹·m⁻²·nm⁻¹.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._params import _physical_from_p, physical_from_y
+from ._problem import FitProblem
+
+__all__ = [
+    "predict",
+    "residuals",
+    "interreflection_term",
+    "with_interreflection",
+]
+
+
+_SCI_ANGLE_DEG = 8.0  # d/8° spectrophotometers: specular component reflected at 8°
+
+
+def _reflectances(problem: FitProblem, values: jax.Array) -> jax.Array:
+    """(O, L) Lambert S(λ) of the objects for physical parameters ``values (O, 6)``: the
+    measured reflectance, minus the first-surface reflection F(n, 8°) where it is SCI."""
+    from ..lighting import fresnel_dielectric
+
+    cos8 = math.cos(math.radians(_SCI_ANGLE_DEG))
+    f8 = fresnel_dielectric(jnp.full_like(values[:, 4], cos8), values[:, 4])  # (O,)
+    s = problem.reflectance
+    return jnp.where(problem.sci[:, None] > 0, jnp.maximum(s - f8[:, None], 0.0), s)
+
+
+def sample_radiance(problem: FitProblem, values: jax.Array) -> jax.Array:
+    """(P, L) radiance of every sample under the UNIT-scale environment, eq. (5) (+ eq. 6's
+    interreflection when on), for physical parameters ``values (O, 6)``: a weighted sum of
+    the cached radiances (:func:`spectral_fit.fitting.cached_radiance`)."""
+    from ._cache_model import cached_radiance
+
+    g = problem.receivers
+    obj = jnp.maximum(g.object, 0)
+    S = _reflectances(problem, values)  # (O, L)
+    out, _ = cached_radiance(problem.cache, values, S, obj, problem.models,
+                             interreflection=problem.interreflection)
+    ok = g.valid & (problem.cache.sample_nodes.nv > 0.0)
+    return jnp.where(ok[:, None], out, 0.0)
+
+
+@eqx.filter_jit
+def interreflection_term(problem: FitProblem, values: jax.Array) -> jax.Array:
+    """(P, L) interreflection radiance (eq. 6 in the gather reading; unit environment
+    scale) at the samples for physical parameters ``values (O, 6)``; zeros when off."""
+    from ._cache_model import cached_radiance
+
+    g = problem.receivers
+    if not problem.interreflection:
+        return jnp.zeros_like(problem.irradiance)
+    obj = jnp.maximum(g.object, 0)
+    S = _reflectances(problem, values)
+    _, ir = cached_radiance(problem.cache, values, S, obj, problem.models)
+    return jnp.where(g.valid[:, None], ir, 0.0)
+
+
+def with_interreflection(problem: FitProblem, values: Any) -> FitProblem:
+    """The problem unchanged: the interreflection term is part of the forward model (kept for
+    callers written when it was a frozen term refreshed between solver rounds)."""
+    del values
+    return problem
+
+
+def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Array:
+    """Predicted mean readings (B, L), W·sr⁻¹·m⁻²·nm⁻¹, for physical parameters
+    ``values (O, 6)`` (columns α, β, χ, μ, n, γ) and the global environment scale: the field
+    means of eq. (5) (+ eq. 6) from the radiance cache, through the band-pass, times k(λ)."""
+    from ._cache_model import field_radiance
+
+    obj = jnp.maximum(problem.receivers.object, 0)
+    S = _reflectances(problem, values)
+    mean = field_radiance(problem.cache, values, S, obj, problem.models,
+                          interreflection=problem.interreflection)
+    mean = (mean + problem.background) @ problem.band.T
+    return problem.calibration * scale * mean
+
+
+def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
+    """Weighted residuals (B·L,) ((model − measured)/σ · √w_b) at unconstrained ``y``."""
+    vals, scale = physical_from_y(problem, y)
+    r = (predict(problem, vals, scale) - problem.measured) / problem.sigma
+    return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
+
+
+def _residuals_p(p: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
+    vals, scale = _physical_from_p(problem, p)
+    r = (predict(problem, vals, scale) - problem.measured) / problem.sigma
+    return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
+
+
+@eqx.filter_jit
+def _predict_jit(problem: FitProblem, values: jax.Array, scale: jax.Array) -> jax.Array:
+    return predict(problem, values, scale)

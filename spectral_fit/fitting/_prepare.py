@@ -1,0 +1,269 @@
+"""Preparation of a fit, outside ``jit``, once per session (:func:`prepare_fit`).
+
+Builds the scene's meshes and the environment map, rasterises every reading's measuring
+field from the instrument's pose (a square camera whose field of view is the field angle;
+pixels inside the inscribed disc), and stores a :class:`~spectral_fit.geometry.GBuffer` of
+the surface points seen, their material-independent radiance cache
+(:func:`~spectral_fit.fitting.build_radiance_cache`: exact visible irradiance,
+mirror-direction radiance, fixed gloss nodes with their radiance, and the interreflection
+probes on the neighbours), the environment radiance of pixels that miss every object, the
+environment calibration k(λ), the instrument's band-pass and the reading weights. The result
+is a :class:`~spectral_fit.fitting.FitProblem` pytree with its host-side companions.
+
+Shapes: B readings, P = B·R² samples, O objects, L bands (the session's wavelengths).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.errors import InputError
+from ..geometry import GBuffer, ObjectGeometry
+from ..io import PARAMETERS, Session
+from ._options import FitOptions
+from ._problem import FitProblem, Prepared
+from ._spots import _spot_samples, disc_pixels
+
+__all__ = [
+    "prepare_fit",
+    "scene_geometry",
+    "scene_environment",
+    "band_matrix",
+]
+
+
+def scene_geometry(scene: Any) -> list[ObjectGeometry]:
+    """World-space meshes of the scene's objects (config order), as :class:`ObjectGeometry`."""
+    out = []
+    for o in scene.objects:
+        mw = o.make_mesh(world=True)
+        out.append(ObjectGeometry(vertices=jnp.asarray(mw.vertices, jnp.float32),
+                                  normals=jnp.asarray(mw.normals, jnp.float32),
+                                  triangles=jnp.asarray(mw.triangles, jnp.int32),
+                                  centre=jnp.asarray(o.position, jnp.float32)))
+    return out
+
+
+def scene_environment(scene: Any, *, dtype: Any = jnp.float32, compress_tol: float = 1e-4
+                      ) -> Any:
+    """The scene's environment map on its wavelength grid (config scale and rotation applied)."""
+    from ..color import resample
+    from ..lighting import EnvironmentMap
+
+    spec = scene.environment
+    wl = scene.wavelengths
+    from ..io import read_spectral_exr
+
+    try:
+        wl_in, img = read_spectral_exr(spec.file)
+        img = resample(wl_in, np.asarray(img, np.float64), wl, path=spec.file,
+                       field="environment")
+    except InputError as exc:
+        if "spectral" not in str(exc).lower() and "channel" not in str(exc).lower():
+            raise
+        from ..lighting import read_rgb_environment
+
+        _, img = read_rgb_environment(spec.file, wl, method=spec.upsampling)
+    img = np.asarray(img, np.float64) * spec.scale
+    return EnvironmentMap.from_array(img, rotation_y_deg=spec.rotation_y_deg, dtype=dtype,
+                                     compress_tol=compress_tol, path=str(spec.file))
+
+
+def band_matrix(wavelengths: np.ndarray, bandwidth_nm: float) -> np.ndarray:
+    """(L, L) instrument band-pass on the scene grid: output band j = ∫ tri_j(λ) s(λ) dλ /
+    ∫ tri_j, with tri_j a triangle of FWHM ``bandwidth_nm`` centred on λ_j and s the
+    piecewise-linear spectrum through the samples (ends held); identity when the bandwidth is
+    0. A spectroradiometer reports band-pass-weighted radiance; narrow lines of the
+    environment (fluorescent tubes) are thereby smeared over neighbouring bands, and the model
+    is passed through the same response before it is compared with the readings."""
+    wl = np.asarray(wavelengths, np.float64)
+    if bandwidth_nm <= 0:
+        return np.eye(wl.size)
+    fine = np.arange(wl[0] - bandwidth_nm, wl[-1] + bandwidth_nm + 1e-9, 0.25)
+    H = np.stack([np.interp(fine, wl, e) for e in np.eye(wl.size)], -1)  # (F, L) hats
+    W = np.maximum(0.0, 1.0 - np.abs(fine[None, :] - wl[:, None]) / bandwidth_nm)
+    W /= W.sum(axis=1, keepdims=True)
+    return W @ H
+
+
+def _calibration(session: Session, env: Any, band: np.ndarray) -> np.ndarray:
+    from ..lighting import irradiance_exact
+
+    L = session.wavelengths.size
+    if session.calibration != "white":
+        return np.ones(L)
+    w = session.white
+    e = np.asarray(irradiance_exact(env, jnp.asarray(w.normal, env.texels.dtype)), np.float64)
+    e = band @ e
+    if np.any(e <= 0):
+        raise session.error("white_standard.normal", "the environment gives no irradiance on "
+                            "the white standard at some wavelengths (does the normal face away "
+                            "from every light?)")
+    return math.pi * w.mean / (w.reflectance * e)
+
+
+def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = None,
+                env: Any = None, geometries: list[ObjectGeometry] | None = None,
+                check: bool = True) -> Prepared:
+    """Rasterise the readings' fields and precompute everything parameter-independent.
+
+    Raises:
+        InputError: a spot misses its object (< 50 % of the field on it), a stated distance
+            disagrees with the geometry, or the session's objects are not the scene's.
+    """
+    from .._runtime.process import single_threaded_blas
+
+    # NumPy's OpenBLAS on one thread: on a loaded 2-core machine its busy-waiting second
+    # thread costs several times the CPU of one thread (docs/fitting.md, "Speed")
+    with single_threaded_blas():
+        return _prepare_fit(scene, session, options=options, env=env, geometries=geometries,
+                            check=check)
+
+
+def _prepare_fit(scene: Any, session: Session, *, options: FitOptions | None,
+                 env: Any, geometries: list[ObjectGeometry] | None, check: bool) -> Prepared:
+    opts = options or FitOptions()
+    t0 = time.perf_counter()
+    dtype = opts.dtype
+    names = tuple(o.name for o in scene.objects)
+    for r in session.readings:
+        if r.object not in names:
+            raise session.error(f"{r.field}.object", f"unknown object {r.object!r}; the scene "
+                                f"has {list(names)}")
+    if env is None:
+        env = scene_environment(scene, dtype=dtype, compress_tol=opts.compress_tol)
+    if geometries is None:
+        geometries = scene_geometry(scene)
+    readings = session.readings
+    if not readings:
+        raise InputError("no readings to fit", path=session.path, field="readings")
+    B = len(readings)
+    res = int(opts.spot_resolution)
+    if not 2 <= res <= 64:
+        raise InputError(f"must be in [2, 64], got {res}", field="spot_resolution")
+    S = _spot_samples(geometries, np.stack([r.position for r in readings]),
+                      np.stack([r.aim for r in readings]),
+                      np.array([r.field_angle_deg for r in readings]), res)
+    nd = S["obj"].shape[1]
+    warn: list[str] = []
+    coverage = np.zeros(B)
+    for b, r in enumerate(readings):
+        on = int(np.sum(S["obj"][b] == names.index(r.object)))
+        coverage[b] = on / nd
+        if not check:
+            continue
+        if coverage[b] < 0.5:
+            raise session.error(f"{r.field}.aim", f"the spot misses object {r.object!r}: only "
+                                f"{100 * coverage[b]:.0f} % of the {r.field_angle_deg:g}° field "
+                                "sees it")
+        if coverage[b] < 0.99:
+            warn.append(f"reading {r.id!r}: {100 * (1 - coverage[b]):.0f} % of the field "
+                        "is off the object (modelled)")
+        if r.distance_m is not None:
+            centre = np.argsort(np.sum(S["xy"] ** 2, axis=1))[:4]
+            ok = S["obj"][b][centre] >= 0
+            if ok.any():
+                d = float(np.mean(np.linalg.norm(S["pos"][b][centre][ok] - r.position, axis=1)))
+                if abs(d - r.distance_m) > 0.005 + 0.02 * r.distance_m:
+                    raise session.error(f"{r.field}.distance_m", f"stated {r.distance_m:g} m "
+                                        f"but the geometry puts the spot at {d:.4f} m from the "
+                                        "instrument")
+    P = B * nd
+    obj = S["obj"].reshape(P).astype(np.int32)
+    recv = GBuffer(position=jnp.asarray(S["pos"].reshape(P, 3), dtype),
+                   normal=jnp.asarray(S["nrm"].reshape(P, 3), dtype),
+                   view=jnp.asarray(S["view"].reshape(P, 3), dtype),
+                   object=jnp.asarray(obj), pixel=jnp.asarray(
+                       np.tile(disc_pixels(res).astype(np.int32), B)))
+    valid = obj >= 0
+    rays = S["ray"].reshape(P, 3)
+    L = session.wavelengths.size
+    bgp = np.zeros((P, L))
+    if (~valid).any():
+        from ._env_sampling import _env_lookup
+
+        bgp[~valid] = _env_lookup(env, rays[~valid])
+    avg = np.kron(np.eye(B), np.full((1, nd), 1.0 / nd))
+    bg = avg @ bgp
+    # material-independent radiance: irradiance, mirror direction, gloss nodes, neighbours
+    from ._cache_build import build_radiance_cache
+    from ._radiance_cache import CacheOptions
+
+    mode = scene.interreflection.mode if opts.interreflection == "auto" else "none"
+    spheres = _scene_spheres(scene) if mode != "none" else []
+    if mode != "none" and not spheres:
+        warn.append("interreflection needs every object to be a sphere (uv_sphere or "
+                    "icosphere); fitting without the interreflection term")
+    cache = build_radiance_cache(
+        env, S["pos"].reshape(P, 3), S["nrm"].reshape(P, 3), S["view"].reshape(P, 3), obj,
+        np.repeat(np.arange(B), nd), average=avg, spheres=spheres,
+        options=opts.cache or CacheOptions(), dtype=dtype)
+    # reflectances and parameters
+    O = len(names)
+    refl = np.zeros((O, session.wavelengths.size))
+    sci = np.zeros(O)
+    vals = np.zeros((O, 6))
+    models = []
+    for o, ob in enumerate(scene.objects):
+        m = ob.material
+        om = session.objects.get(ob.name)
+        refl[o] = m.reflectance if (om is None or om.reflectance is None) else om.reflectance
+        sci[o] = 1.0 if (om is not None and om.geometry == "SCI") else 0.0
+        for k, pname in enumerate(PARAMETERS):
+            vals[o, k] = float(getattr(m, pname))
+            if om is not None and pname in om.start:
+                vals[o, k] = om.start[pname]
+        models.append((m.distribution, m.geometry))
+    measured = np.stack([r.mean for r in readings])
+    nrep = np.array([r.repeats.shape[0] for r in readings], np.float64)
+    sigma = session.noise.sigma(measured) / np.sqrt(nrep)[:, None]
+    sigma = np.maximum(sigma, 1e-12)
+    band = band_matrix(session.wavelengths, session.bandwidth_nm)
+    calib = _calibration(session, env, band)
+    # what is free
+    measured_objs = {r.object for r in readings}
+    free = []
+    for o, name in enumerate(names):
+        if name not in measured_objs:
+            continue
+        om = session.objects.get(name)
+        fr = om.free if om is not None else ("alpha", "beta", "chi", "mu", "n")
+        for k, pname in enumerate(PARAMETERS):
+            if pname not in fr:
+                continue
+            if session.calibration == "global" and name == session.reference and pname == "alpha":
+                continue  # the gauge: scale and this alpha are degenerate
+            free.append((o, k))
+    problem = FitProblem(
+        env=env, receivers=recv, cache=cache, average=jnp.asarray(avg, dtype),
+        background=jnp.asarray(bg, dtype), reflectance=jnp.asarray(refl, dtype),
+        sci=jnp.asarray(sci, dtype), calibration=jnp.asarray(calib, dtype),
+        band=jnp.asarray(band, dtype),
+        measured=jnp.asarray(measured, dtype), sigma=jnp.asarray(sigma, dtype),
+        values=jnp.asarray(vals, dtype), free=tuple(free),
+        fit_scale=session.calibration == "global", models=tuple(models),
+        interreflection=bool(spheres))
+    for w in warn:
+        warnings.warn(w, RuntimeWarning, stacklevel=2)
+    return Prepared(problem=problem, session=session, objects=names, geometries=geometries,
+                    coverage=coverage, warnings=warn, seconds=time.perf_counter() - t0)
+
+
+def _scene_spheres(scene: Any) -> list[Any]:
+    """The scene's objects as spheres (world centre, radius × scale) for occlusion and
+    interreflection in the radiance cache; [] if any object is not a sphere."""
+    from ._radiance_cache import Sphere
+
+    out = []
+    for o, ob in enumerate(scene.objects):
+        if ob.shape not in ("uv_sphere", "icosphere"):
+            return []
+        out.append(Sphere(object=o, centre=np.asarray(ob.position, np.float64),
+                          radius=float(ob.radius) * float(ob.scale)))
+    return out
