@@ -48,7 +48,6 @@ _EXPORTS: dict[str, str] = {
     "solve_batch": "_solver",
     "to_physical": "_params",
     "to_unconstrained": "_params",
-    "with_interreflection": "_model",
     "write_report": "_report",
     "y_start": "_params",
 }

@@ -36,7 +36,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from ..io import PARAMETERS
-from ._model import _predict_jit, with_interreflection
+from ._model import _predict_jit
 from ._options import FitOptions, _fit_options
 from ._params import _SQUARED, _dp_dy, _starts, physical_from_y, y_start
 from ._prepare import prepare_fit
@@ -239,7 +239,6 @@ def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
     if dof <= 0:
         raise InputError(f"{F} unknowns but only {int(use.sum()) * L} data", path=session.path,
                          field="readings")
-    t_prep = time.perf_counter() - t0
     vals0 = np.asarray(problem.values, np.float64)
     scale0 = 1.0
     if problem.fit_scale:  # closed-form start for the scale from the diffuse term alone
@@ -380,7 +379,7 @@ def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
         bootstrap=boot, warnings=warn, readings=table, holdout=holdout, wavelengths=wl,
         measured=measured, fitted=fitted, sigma=sigma, calibration=calib * scale,
         calibration_mode=session.calibration,
-        timings={"prepare_s": prep.seconds if prepared is not None else t_prep,
+        timings={"prepare_s": prep.seconds,
                  "solve_s": t_solve, "uncertainty_s": t_unc, "bootstrap_s": t_boot,
                  "total_s": time.perf_counter() - t0},
         iterations=steps_best, values=vals)
@@ -478,8 +477,7 @@ def _aim_sensitivity(scene: Any, prep: Prepared, vals: np.ndarray, scale: float,
             de[:, d] = np.nan
             rel[:, d] = np.nan
             continue
-        pshift = with_interreflection(pp.problem, vals)
-        pred = np.asarray(_predict_jit(pshift, jnp.asarray(vals, dt),
+        pred = np.asarray(_predict_jit(pp.problem, jnp.asarray(vals, dt),
                                        jnp.asarray(scale, dt)), np.float64)
         lab = xyz_to_lab(radiance_to_xyz(pred, wl), xw)
         de[:, d] = delta_e00(lab0, lab)

@@ -22,14 +22,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._params import _physical_from_p, physical_from_y
+from ._params import physical_from_y
 from ._problem import FitProblem
 
 __all__ = [
     "predict",
     "residuals",
     "interreflection_term",
-    "with_interreflection",
 ]
 
 
@@ -47,21 +46,6 @@ def _reflectances(problem: FitProblem, values: jax.Array) -> jax.Array:
     return jnp.where(problem.sci[:, None] > 0, jnp.maximum(s - f8[:, None], 0.0), s)
 
 
-def sample_radiance(problem: FitProblem, values: jax.Array) -> jax.Array:
-    """(P, L) radiance of every sample under the UNIT-scale environment, eq. (5) (+ eq. 6's
-    interreflection when on), for physical parameters ``values (O, 6)``: a weighted sum of
-    the cached radiances (:func:`spectral_fit.fitting.cached_radiance`)."""
-    from ._cache_model import cached_radiance
-
-    g = problem.receivers
-    obj = jnp.maximum(g.object, 0)
-    S = _reflectances(problem, values)  # (O, L)
-    out, _ = cached_radiance(problem.cache, values, S, obj, problem.models,
-                             interreflection=problem.interreflection)
-    ok = g.valid & (problem.cache.sample_nodes.nv > 0.0)
-    return jnp.where(ok[:, None], out, 0.0)
-
-
 @eqx.filter_jit
 def interreflection_term(problem: FitProblem, values: jax.Array) -> jax.Array:
     """(P, L) interreflection radiance (eq. 6 in the gather reading; unit environment
@@ -75,13 +59,6 @@ def interreflection_term(problem: FitProblem, values: jax.Array) -> jax.Array:
     S = _reflectances(problem, values)
     _, ir = cached_radiance(problem.cache, values, S, obj, problem.models)
     return jnp.where(g.valid[:, None], ir, 0.0)
-
-
-def with_interreflection(problem: FitProblem, values: Any) -> FitProblem:
-    """The problem unchanged: the interreflection term is part of the forward model (kept for
-    callers written when it was a frozen term refreshed between solver rounds)."""
-    del values
-    return problem
 
 
 def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Array:
@@ -101,12 +78,6 @@ def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Arr
 def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
     """Weighted residuals (B·L,) ((model − measured)/σ · √w_b) at unconstrained ``y``."""
     vals, scale = physical_from_y(problem, y)
-    r = (predict(problem, vals, scale) - problem.measured) / problem.sigma
-    return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
-
-
-def _residuals_p(p: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
-    vals, scale = _physical_from_p(problem, p)
     r = (predict(problem, vals, scale) - problem.measured) / problem.sigma
     return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
 

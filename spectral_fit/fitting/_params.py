@@ -76,14 +76,6 @@ def physical_from_y(problem: FitProblem, y: jax.Array) -> tuple[jax.Array, jax.A
     return vals, scale
 
 
-def _physical_from_p(problem: FitProblem, p: jax.Array) -> tuple[jax.Array, jax.Array]:
-    vals = problem.values
-    for j, (o, k) in enumerate(problem.free):
-        vals = vals.at[o, k].set(p[j])
-    scale = p[-1] if problem.fit_scale else jnp.ones((), vals.dtype)
-    return vals, scale
-
-
 def _dp_dy(y: float, name: str) -> float:
     """Derivative of :func:`to_physical` at y."""
     if name in ("alpha", "beta", "mu", "scale", "n"):

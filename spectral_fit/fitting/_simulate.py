@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..io import PARAMETERS, Session
-from ._model import _predict_jit, with_interreflection
+from ._model import _predict_jit
 from ._options import FitOptions
 from ._prepare import prepare_fit
 
@@ -66,7 +66,6 @@ def simulate_readings(scene: Any, spots: Sequence[dict[str, Any]], *,
         for k, p in enumerate(PARAMETERS):
             if params and name in params and p in params[name]:
                 vals[o, k] = params[name][p]
-    pr = with_interreflection(pr, vals)
     if calibration is not None:
         pr = eqx.tree_at(lambda q: q.calibration, pr,
                          jnp.asarray(np.broadcast_to(calibration, wl.shape), pr.values.dtype))
