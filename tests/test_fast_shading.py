@@ -27,7 +27,7 @@ from spectral_fit.lighting import (
     rotation_y,
     sincos_poly,
 )
-from spectral_fit.lighting._environment import _wrap
+from spectral_fit.lighting._equirect import _wrap
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +124,7 @@ def _brute_moments(mu, theta_r, n=1.5, rows=1024):
 
 @pytest.mark.parametrize("mu", [0.1, 0.3])
 def test_lobe_moments_match_a_direct_sum_over_reflected_directions(mu):
-    from spectral_fit.lighting._environment import _interp_moments
+    from spectral_fit.lighting._split_sum import _interp_moments
 
     table = lobe_moment_table(mu, 1.5)
     for deg in (0.0, 30.0, 60.0, 75.0):

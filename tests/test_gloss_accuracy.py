@@ -19,7 +19,7 @@ from spectral_fit.lighting import (
     texel_directions,
     texel_solid_angles,
 )
-from spectral_fit.lighting._environment import _sphere_blur
+from spectral_fit.lighting._prefilter import _sphere_blur
 
 
 def test_sphere_blur_is_the_direct_spherical_gaussian_sum():

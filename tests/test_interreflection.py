@@ -604,7 +604,7 @@ def test_lobe_rings_at_equal_mass():
     in t) against it exactly, ∫ s e^{−2s²} ds = (1 − e^{−2 s_max²})/4, with 1 to 3 rings, for
     s_max set by the truncation and by the horizon (grazing views); 2 rings uniform in s
     (the other rule) miss that integral by 40 %."""
-    from spectral_fit.lighting._environment import _lobe_rings
+    from spectral_fit.lighting._lobe import _lobe_rings
 
     for nv, width in ((1.0, 0.1), (0.2, 0.1), (0.05, 0.6)):
         for radial in (1, 2, 3):

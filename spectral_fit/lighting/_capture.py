@@ -247,7 +247,7 @@ def compare_lifting(
     over 420–680 nm (where the camera's data constrain the spectrum); plus the camera
     response error of the camera-aware result and its projected fraction."""
     from ..color import delta_e00, xyz_to_lab, xyz_weights
-    from ._environment import texel_solid_angles
+    from ._equirect import texel_solid_angles
 
     wl = default_wavelengths() if wavelengths is None else validate_wavelengths(wavelengths)
     img = np.asarray(spectral_map, np.float64)

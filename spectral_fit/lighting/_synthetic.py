@@ -1,4 +1,6 @@
-"""A synthetic spectral environment map built from measured spectra that colour-science ships.
+"""Synthetic spectral environment maps: the bundled studio room, built from measured spectra that
+colour-science ships, and a simpler sky, floor and lamp map for tests, benchmarks and demos
+(:func:`synthetic_environment`).
 
 The bundled ``measurements/environment/studio_room.exr`` is made by :func:`make_environment`
 (``spectral-fit make-env -o PATH``). It is SYNTHETIC: a simple analytic room, not a capture, but
@@ -51,6 +53,9 @@ regular grid in (u, v).
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 
 from .._runtime.errors import InputError
@@ -73,7 +78,8 @@ __all__ = [
     "SKY_CCT",
     "SURFACES",
     "make_environment",
-    "texel_directions",
+    "subsample_directions",
+    "synthetic_environment",
 ]
 
 ROOM_MIN = np.array([-2.0, -1.2, -2.5])
@@ -106,7 +112,7 @@ SURFACES: dict[str, str] = {
 _SURF = list(SURFACES)
 
 
-def texel_directions(width: int, height: int, du: float = 0.5, dv: float = 0.5) -> np.ndarray:
+def subsample_directions(width: int, height: int, du: float = 0.5, dv: float = 0.5) -> np.ndarray:
     """Unit directions (H, W, 3) at (j + du)/W, (k + dv)/H (our equirectangular mapping)."""
     u = (np.arange(width) + du) / width
     v = (np.arange(height) + dv) / height
@@ -248,8 +254,62 @@ def make_environment(
     acc = np.zeros((height, width, basis.shape[0]))
     for a in range(n):
         for b in range(n):
-            d = texel_directions(width, height, (a + 0.5) / n, (b + 0.5) / n)
+            d = subsample_directions(width, height, (a + 0.5) / n, (b + 0.5) / n)
             acc += _weights(d)
     acc /= n * n
     image = np.maximum(acc @ basis, 0.0).astype(np.float32)
     return wl, image
+
+
+def synthetic_environment(
+    height: int = 64,
+    width: int = 128,
+    wavelengths: Any = None,
+    *,
+    lamp_radius_deg: float = 4.0,
+    lamp_direction: tuple[float, float, float] = (0.4, 0.8, -0.45),
+    lamp_luminance_ratio: float = 50.0,
+    supersample: int = 4,
+) -> np.ndarray:
+    """A realistic spectral environment (H, W, L) in W·sr⁻¹·m⁻²·nm⁻¹ (NumPy float64).
+
+    Sky above the horizon: CIE D65 with a brightness gradient (brighter at the horizon) and a
+    bluish zenith (CIE illuminant D-series 10000 K). Floor below: a grey-brown reflectance
+    (a CIE 2017 colour-evaluation sample) under D65 with a grey/red checker. A small warm lamp
+    disc (CIE illuminant A) of ``lamp_radius_deg``, ``lamp_luminance_ratio`` × the sky's mean
+    luminance. Texels are averaged over ``supersample``² subsamples (anti-aliased disc and
+    horizon).
+    """
+    import colour
+
+    from ..color import default_wavelengths, illuminant
+    from ._equirect import uv_to_direction
+
+    wl = default_wavelengths() if wavelengths is None else np.asarray(wavelengths, np.float64)
+    d65 = illuminant("D65", wl) / 100.0 * 0.02  # ~ 0.02 W/(sr m² nm) at 560 nm
+    cct = colour.temperature.CCT_to_xy_CIE_D(10000.0 * 1.4388 / 1.4380)
+    d10k = np.asarray(colour.sd_CIE_illuminant_D_series(cct)[wl], np.float64)
+    d10k = d10k / np.interp(560.0, wl, d10k) * 0.02
+    lamp = illuminant("A", wl)
+    lamp = lamp / np.interp(560.0, wl, lamp) * 0.02 * lamp_luminance_ratio
+    from ..color import reflectances_5nm
+
+    w5, refl = reflectances_5nm()
+    floor_a = np.interp(wl, w5, refl[20])
+    floor_b = np.interp(wl, w5, refl[2])
+
+    ss = supersample
+    v = (np.arange(height * ss) + 0.5) / (height * ss)
+    u = (np.arange(width * ss) + 0.5) / (width * ss)
+    d = uv_to_direction(u[None, :], v[:, None])
+    y = d[..., 1]
+    sky_w = np.clip(y, 0.0, 1.0)
+    sky = ((1.0 - sky_w)[..., None] * d65 * 1.3 + sky_w[..., None] * d10k * 0.8)
+    check = ((np.floor(u * 16)[None, :] + np.floor(v * 8)[:, None]) % 2)[..., None]
+    floor = (0.35 * d65) * (check * floor_a + (1.0 - check) * floor_b)
+    img = np.where((y > 0.0)[..., None], sky, floor)
+    ld = np.asarray(lamp_direction, np.float64)
+    ld = ld / np.linalg.norm(ld)
+    disc = (d @ ld) > math.cos(math.radians(lamp_radius_deg))
+    img = np.where(disc[..., None], lamp, img)
+    return img.reshape(height, ss, width, ss, -1).mean(axis=(1, 3))
