@@ -98,6 +98,7 @@ def _check(got: dict) -> None:
     assert min(got["covered"]) > 500  # the spheres are in the pictures (the test can fail)
 
 
+@pytest.mark.slow  # two CPU devices in a child process, each compiling the live step
 def test_two_devices_render_the_one_device_frames():
     """Without interreflection: frames alternate between the devices, two in flight, and
     equal the one-device session's frames exactly; no retrace after the first frames."""

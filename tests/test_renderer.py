@@ -518,6 +518,7 @@ def test_mirror_switch_is_exact_and_follows_chi(scene_folder):
 
 @pytest.mark.skipif(not _interreflection_available(),
                     reason="the interreflection (gather/paper modes) is not in this tree")
+@pytest.mark.slow  # three gather-mode frame programs (planned, tiny and generic capacities)
 def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder):
     """Gather pass-1 capacities are planned per mesh (small); a pose that overflows them is
     reported, and render's regrow re-renders with the generic capacities (the frame then
