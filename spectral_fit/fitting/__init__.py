@@ -15,6 +15,7 @@ _EXPORTS: dict[str, str] = {
     "DEMO_SESSION": "_report",
     "FitOptions": "_options",
     "FitProblem": "_problem",
+    "PreparedFit": "_problem",
     "FitResult": "_fit",
     "GlossNodes": "_radiance_cache",
     "PARAMETERS": "_params",

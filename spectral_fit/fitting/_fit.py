@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -35,12 +36,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.errors import InputError
-from ..io import PARAMETERS
+from ..io import PARAMETERS, Scene, Session
 from ._model import _predict_jit
 from ._options import FitOptions, _fit_options
 from ._params import _SQUARED, _dp_dy, _starts, physical_from_y, y_start
 from ._prepare import prepare_fit
-from ._problem import FitProblem, Prepared
+from ._problem import FitProblem, PreparedFit
 from ._solver import _PROGRESS, _solve_measured, make_solver, solve_batch
 
 __all__ = ["FitResult", "fit", "fit_many"]
@@ -153,7 +154,7 @@ def _colour_table(wl: np.ndarray, measured: np.ndarray, fitted: np.ndarray,
     return out
 
 
-def _reference_white(prep: Prepared, calib: np.ndarray, scale: float) -> np.ndarray:
+def _reference_white(prep: PreparedFit, calib: np.ndarray, scale: float) -> np.ndarray:
     """Radiance (L,) of the scene's white for CIELAB: the white standard's reading divided by
     its reflectance, else a perfect diffuser facing the first instrument."""
     from ..lighting import irradiance_exact
@@ -192,8 +193,9 @@ def _identifiability(labels: list[str], corr: np.ndarray, jtj: np.ndarray) -> li
     return out
 
 
-def fit(scene: Any, session: Any, *, options: FitOptions | None = None,
-        progress: Callable[[str], None] | None = None, prepared: Prepared | None = None,
+def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathLike[str], *,
+        options: FitOptions | None = None,
+        progress: Callable[[str], None] | None = None, prepared: PreparedFit | None = None,
         **kwargs: Any) -> FitResult:
     """Fit the reflection-model parameters of the measured objects (stable API ``fit``).
 
@@ -412,7 +414,7 @@ def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOpt
     return out
 
 
-def _holdout(problem: FitProblem, prep: Prepared, y: np.ndarray, use: np.ndarray,
+def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndarray,
              opts: FitOptions, solver: Any, white: np.ndarray) -> dict[str, Any]:
     s = prep.session
     obj_only = np.array([u if r.kind == "object" else 0.0 for u, r in
@@ -440,7 +442,7 @@ def _holdout(problem: FitProblem, prep: Prepared, y: np.ndarray, use: np.ndarray
     }
 
 
-def _aim_sensitivity(scene: Any, prep: Prepared, vals: np.ndarray, scale: float,
+def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: float,
                      opts: FitOptions, white: np.ndarray, fitted: np.ndarray
                      ) -> list[dict[str, Any]]:
     """ΔE00 and relative radiance change per mm of aiming error, per reading (finite
@@ -491,7 +493,7 @@ def _aim_sensitivity(scene: Any, prep: Prepared, vals: np.ndarray, scale: float,
             for b in range(len(s.readings))]
 
 
-def fit_many(prepared: Prepared, measured: Any, *, sigma: Any = None,
+def fit_many(prepared: PreparedFit, measured: Any, *, sigma: Any = None,
              options: FitOptions | None = None, devices: Sequence[Any] | None = None,
              **kwargs: Any) -> dict[str, Any]:
     """Fit K sets of readings of the same spots at once (``jax.vmap``), optionally sharded

@@ -25,9 +25,10 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from ..geometry import GBuffer, ObjectGeometry
-from ..io import PARAMETERS, Session
+from ..io import PARAMETERS, Scene, Session
+from ..lighting import EnvironmentMap
 from ._options import FitOptions
-from ._problem import FitProblem, Prepared
+from ._problem import FitProblem, PreparedFit
 from ._spots import _spot_samples, disc_pixels
 
 __all__ = [
@@ -38,7 +39,7 @@ __all__ = [
 ]
 
 
-def scene_geometry(scene: Any) -> list[ObjectGeometry]:
+def scene_geometry(scene: Scene) -> list[ObjectGeometry]:
     """World-space meshes of the scene's objects (config order), as :class:`ObjectGeometry`."""
     out = []
     for o in scene.objects:
@@ -50,11 +51,10 @@ def scene_geometry(scene: Any) -> list[ObjectGeometry]:
     return out
 
 
-def scene_environment(scene: Any, *, dtype: Any = jnp.float32, compress_tol: float = 1e-4
-                      ) -> Any:
+def scene_environment(scene: Scene, *, dtype: Any = jnp.float32, compress_tol: float = 1e-4
+                      ) -> EnvironmentMap:
     """The scene's environment map on its wavelength grid (config scale and rotation applied)."""
     from ..color import resample
-    from ..lighting import EnvironmentMap
 
     spec = scene.environment
     wl = scene.wavelengths
@@ -108,9 +108,9 @@ def _calibration(session: Session, env: Any, band: np.ndarray) -> np.ndarray:
     return math.pi * w.mean / (w.reflectance * e)
 
 
-def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = None,
+def prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None = None,
                 env: Any = None, geometries: list[ObjectGeometry] | None = None,
-                check: bool = True) -> Prepared:
+                check: bool = True) -> PreparedFit:
     """Rasterise the readings' fields and precompute everything parameter-independent.
 
     Raises:
@@ -126,8 +126,8 @@ def prepare_fit(scene: Any, session: Session, *, options: FitOptions | None = No
                             check=check)
 
 
-def _prepare_fit(scene: Any, session: Session, *, options: FitOptions | None,
-                 env: Any, geometries: list[ObjectGeometry] | None, check: bool) -> Prepared:
+def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
+                 env: Any, geometries: list[ObjectGeometry] | None, check: bool) -> PreparedFit:
     opts = options or FitOptions()
     t0 = time.perf_counter()
     dtype = opts.dtype
@@ -251,11 +251,11 @@ def _prepare_fit(scene: Any, session: Session, *, options: FitOptions | None,
         interreflection=bool(spheres))
     for w in warn:
         warnings.warn(w, RuntimeWarning, stacklevel=2)
-    return Prepared(problem=problem, session=session, objects=names, geometries=geometries,
+    return PreparedFit(problem=problem, session=session, objects=names, geometries=geometries,
                     coverage=coverage, warnings=warn, seconds=time.perf_counter() - t0)
 
 
-def _scene_spheres(scene: Any) -> list[Any]:
+def _scene_spheres(scene: Scene) -> list[Any]:
     """The scene's objects as spheres (world centre, radius × scale) for occlusion and
     interreflection in the radiance cache; [] if any object is not a sphere."""
     from ._radiance_cache import Sphere

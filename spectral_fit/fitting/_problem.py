@@ -1,5 +1,5 @@
 """The fit problem: everything the residuals need, precomputed once per session
-(:class:`FitProblem`, a pytree), and its host-side companions (:class:`Prepared`).
+(:class:`FitProblem`, a pytree), and its host-side companions (:class:`PreparedFit`).
 
 Shapes: B readings, P = B·R² samples (R² pixels per reading; empty slots have object −1),
 O objects, L bands; parameters (O, 6), columns ``PARAMETERS`` (α, β, χ, μ, n, γ).
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -17,8 +16,10 @@ import numpy as np
 
 from ..geometry import GBuffer, ObjectGeometry
 from ..io import PARAMETERS, Session
+from ..lighting import EnvironmentMap
+from ._radiance_cache import RadianceCache
 
-__all__ = ["FitProblem", "Prepared"]
+__all__ = ["FitProblem", "PreparedFit"]
 
 
 class FitProblem(eqx.Module):
@@ -28,9 +29,9 @@ class FitProblem(eqx.Module):
     O objects, L bands.
     """
 
-    env: Any  # EnvironmentMap (unit scale; the calibration multiplies)
+    env: EnvironmentMap  # unit scale; the calibration multiplies
     receivers: GBuffer  # (P) the surface points seen
-    cache: Any  # RadianceCache: everything material-independent of the samples
+    cache: RadianceCache  # everything material-independent of the samples
     average: jax.Array  # (B, P) field averaging weights (rows sum to 1)
     background: jax.Array  # (B, L) mean env radiance of field pixels that miss every object
     reflectance: jax.Array  # (O, L) S(λ) as measured (SCI or SCE)
@@ -66,7 +67,7 @@ class FitProblem(eqx.Module):
 
 
 @dataclasses.dataclass
-class Prepared:
+class PreparedFit:
     """Host-side companions of a :class:`FitProblem`."""
 
     problem: FitProblem

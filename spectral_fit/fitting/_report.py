@@ -33,7 +33,7 @@ import numpy as np
 
 from .._runtime.fileio import atomic_path, atomic_write_text
 from .._runtime.paths import REPO_ROOT
-from ..io import PARAMETERS
+from ..io import PARAMETERS, Scene, Session
 from ._fit import FitResult
 
 __all__ = ["write_report", "materials_json", "mitsuba_snippet", "run_demo_fit",
@@ -44,7 +44,7 @@ DEMO_CONFIG = ROOT / "configs" / "two_spheres.toml"
 DEMO_SESSION = ROOT / "measurements" / "sessions" / "two_spheres_demo"
 
 
-def materials_json(result: FitResult, scene: Any) -> dict[str, Any]:
+def materials_json(result: FitResult, scene: Scene) -> dict[str, Any]:
     """Fitted materials: parameters (our physical scaling and the paper's), standard
     errors, S(λ), the microfacet model."""
     from ..lighting import to_paper_params
@@ -66,7 +66,7 @@ def materials_json(result: FitResult, scene: Any) -> dict[str, Any]:
     return out
 
 
-def mitsuba_snippet(result: FitResult, scene: Any, reflectance: dict[str, Any] | None = None
+def mitsuba_snippet(result: FitResult, scene: Scene, reflectance: dict[str, Any] | None = None
                     ) -> str:
     """Mitsuba 3 XML: one ``spectral_fit_model`` BSDF per object (the reference renderer's
     plugin; register it with ``spectral_fit.validation.reference``). ``s0, s1, s2`` carry S(λ) at
@@ -149,7 +149,7 @@ def _residual_plot(result: FitResult, path: Path) -> None:
     _save(fig, path)
 
 
-def _render(scene: Any, result: FitResult, path: Path) -> str | None:
+def _render(scene: Scene, result: FitResult, path: Path) -> str | None:
     """Render the fitted scene when the frame renderer exists; returns a note otherwise."""
     try:
         from ..rendering import regrow
@@ -177,8 +177,8 @@ def _render(scene: Any, result: FitResult, path: Path) -> str | None:
         return f"render failed: {type(exc).__name__}: {exc}"
 
 
-def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: Any,
-                 session: Any = None, render: bool = True) -> dict[str, Any]:
+def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: Scene,
+                 session: Session | None = None, render: bool = True) -> dict[str, Any]:
     """Write the report files (see the module docstring); returns the JSON summary."""
     from ..color import chromaticity_diagram
 

@@ -13,7 +13,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..io import PARAMETERS, Session
+from ..io import PARAMETERS, Scene, Session
 from ._model import _predict_jit
 from ._options import FitOptions
 from ._prepare import prepare_fit
@@ -21,7 +21,7 @@ from ._prepare import prepare_fit
 __all__ = ["simulate_readings"]
 
 
-def simulate_readings(scene: Any, spots: Sequence[dict[str, Any]], *,
+def simulate_readings(scene: Scene, spots: Sequence[dict[str, Any]], *,
                       params: dict[str, dict[str, float]] | None = None,
                       calibration: Any = None, reflectance: dict[str, Any] | None = None,
                       options: FitOptions | None = None, env: Any = None) -> np.ndarray:
