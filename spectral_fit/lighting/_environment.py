@@ -42,7 +42,7 @@ from ._equirect import (
     texel_directions,
 )
 from ._fastmath import select_static, smootherstep
-from ._prefilter import _build_levels, _spectral_basis
+from ._prefilter import _build_levels, _spectral_basis, level_atlas
 from ._sh import sh_coefficients
 from ._sources import _extract_sources, _source_cells, _tent_gauss_subpoints, _tent_subpoints
 
@@ -155,9 +155,10 @@ class EnvironmentMap(eqx.Module):
             texel.
         source_flux: (S, r) excess radiance × solid angle / k of each source texel (per
             sub-point); residual + sources = the map exactly.
-        source_tent_dirs: (S, 16, 3) map-frame directions of 16 equal-weight points of each
-            source texel's footprint in the bilinear map (the tent over ±1 texel), used by
-            the radiance cache (None: ``source_dirs``).
+        source_tent_dirs: (S, T², 3) map-frame directions of T² equal-weight points
+            (T = ``tent_points``, 4 by default) of each source texel's footprint in the
+            bilinear map (the tent over ±1 texel), used by the radiance cache (None:
+            ``source_dirs``).
         source_fine_dirs, source_fine_weights: (S, P, 3) map-frame directions and (S, P)
             weights (summing to about 1 per source) of the product Gauss rule over each source
             texel's bilinear footprint (:func:`_tent_gauss_subpoints`), used by the ``"exact"``
@@ -293,16 +294,7 @@ class EnvironmentMap(eqx.Module):
         if not (compress_tol >= 0 and math.isfinite(compress_tol)):
             raise InputError(f"must be finite and >= 0, got {compress_tol!r}",
                              field="compress_tol")
-        flat, shapes, offsets = [], [], []
-        off = 0
-        for lev in levels:
-            h, w, c = lev.shape
-            poles = np.stack([lev[0].mean(axis=0), lev[-1].mean(axis=0)])
-            flat.append(np.concatenate([lev.reshape(h * w, c), poles]))
-            shapes.append((h, w))
-            offsets.append(off)
-            off += h * w + 2
-        atlas = np.concatenate(flat)
+        atlas, shapes, offsets = level_atlas(levels)
         fine_dirs, fine_w = _tent_gauss_subpoints(img.shape[0], img.shape[1], scells,
                                                   quad.tent_gauss)
         rdirs, rw = _tent_gauss_subpoints(img.shape[0], img.shape[1], scells, 1)

@@ -118,3 +118,19 @@ def _build_levels(img: np.ndarray, n_levels: int) -> tuple[list[np.ndarray], np.
         levels.append(_sphere_blur(cur, math.sqrt(max(sigma**2 - var, 0.0))))
         sigmas.append(sigma)
     return levels, np.asarray(sigmas)
+
+
+def level_atlas(levels) -> tuple[np.ndarray, list[tuple[int, int]], list[int]]:
+    """Levels (H_k, W_k, C) flattened into one atlas ``(sum(H_k·W_k + 2), C)``: each level's
+    texels (row-major) followed by its two pole means (the first and last rows' means), as the
+    lookups expect. Returns the atlas, the (H_k, W_k) per level and each level's offset."""
+    flat, shapes, offsets = [], [], []
+    off = 0
+    for lev in levels:
+        h, w, c = lev.shape
+        poles = np.stack([lev[0].mean(axis=0), lev[-1].mean(axis=0)])
+        flat.append(np.concatenate([lev.reshape(h * w, c), poles]))
+        shapes.append((h, w))
+        offsets.append(off)
+        off += h * w + 2
+    return np.concatenate(flat), shapes, offsets

@@ -25,7 +25,7 @@ from ._equirect import bilinear_taps, taps_sum, uv_of
 from ._fastmath import atan2_poly, sincos_poly, smootherstep
 from ._gloss import _source_gloss
 from ._lobe import _lobe_grid
-from ._prefilter import _downsample2, _sphere_blur_many
+from ._prefilter import _downsample2, _sphere_blur_many, level_atlas
 from ._sources import _extract_sources
 
 __all__ = [
@@ -214,17 +214,10 @@ class SplitSumMap(eqx.Module):
         for b, todo in jobs.items():
             blurred = _sphere_blur_many(pyramid[b][0], [sg for _, sg in todo])
             levels.update({k: lev for (k, _), lev in zip(todo, blurred, strict=True)})
-        flat, table = [], []
-        off = 0
-        for k in range(len(sigmas)):
-            lev = levels[k]
-            h, w, c = lev.shape
-            poles = np.stack([lev[0].mean(axis=0), lev[-1].mean(axis=0)])
-            flat.append(np.concatenate([lev.reshape(h * w, c), poles]))
-            table.append((off, h, w))
-            off += h * w + 2
+        atlas, shapes, offsets = level_atlas([levels[k] for k in range(len(sigmas))])
+        table = [(off, h, w) for off, (h, w) in zip(offsets, shapes, strict=True)]
         dtype = env.atlas.dtype
-        return cls(atlas=jnp.asarray(np.concatenate(flat), dtype),
+        return cls(atlas=jnp.asarray(atlas, dtype),
                    level_table=jnp.asarray(np.asarray(table, np.int32)),
                    level_sigma=jnp.asarray(sigmas, dtype), per_octave=per_octave)
 
