@@ -116,6 +116,7 @@ def test_spheres_land_on_analytic_silhouettes_and_never_recompile(session, table
     assert (STEP_TRACES["step"], TRACE_COUNT["render_frame"], session.recompiles) == traces
 
 
+@pytest.mark.slow  # the live step compiled for three buffer sizes, one in a background thread
 def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(session, tables):
     """A frame that fills its buffers past ``grow_ahead`` starts a background compile of larger
     ones; the next frame after it finished renders with them. No frame waits for a compile

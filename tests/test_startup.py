@@ -460,6 +460,7 @@ def test_caches_are_keyed_by_the_library_versions(config, tmp_path, monkeypatch)
         startup._environment_digest.cache_clear()
 
 
+@pytest.mark.slow  # the frame program compiled three times, twice in child processes
 def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monkeypatch):
     """A program loaded from disk that fails when run (e.g. a kernel missing from the stored
     executable) is compiled again instead of failing the frame."""
