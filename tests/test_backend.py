@@ -17,8 +17,10 @@ from spectral_fit._runtime.errors import InputError
 from spectral_fit.geometry import _raster as raster
 from spectral_fit.rendering import _renderer as renderer
 
-# the module (the package exports a function of the same name)
-interreflection = importlib.import_module("spectral_fit.rendering.interreflection._transport")
+# the interreflection's modules that look up the layout and the chunk sizes
+ir_atlas = importlib.import_module("spectral_fit.rendering.interreflection._atlas")
+ir_gather = importlib.import_module("spectral_fit.rendering.interreflection._gather")
+ir_gloss = importlib.import_module("spectral_fit.rendering.interreflection._gloss")
 
 
 def test_layout_variable(monkeypatch):
@@ -51,12 +53,13 @@ def _with_layout(monkeypatch, accelerator: bool, fn):
         return accelerator
 
     # small chunks: the CPU layout runs the gloss quadrature of these few receivers in a loop
-    monkeypatch.setattr(interreflection, "_GLOSS_MIN_CHUNK", 128)
+    monkeypatch.setattr(ir_gloss, "_GLOSS_MIN_CHUNK", 128)
     # and its per-receiver terms in chunks of valid receivers (_receive_valid_first)
-    monkeypatch.setattr(interreflection, "_RECEIVER_CHUNK", 256)
+    monkeypatch.setattr(ir_gather, "_RECEIVER_CHUNK", 256)
     monkeypatch.setattr(renderer, "on_accelerator", layout)
     monkeypatch.setattr(raster, "on_accelerator", layout)
-    monkeypatch.setattr(interreflection, "on_accelerator", layout)
+    for module in (ir_atlas, ir_gather, ir_gloss):
+        monkeypatch.setattr(module, "on_accelerator", layout)
     jax.clear_caches()
     out = jax.block_until_ready(fn())
     jax.clear_caches()
@@ -68,13 +71,13 @@ def test_accelerator_layout_renders_the_cpu_layout_frame(prep, monkeypatch):
     """Also the gather's receivers two ways: the CPU layout puts the valid ones first and runs
     their per-receiver terms in chunks, skipping the empty slots' chunks
     (``_receive_valid_first``); the accelerator layout runs all slots at once (``_receive``)."""
-    valid_first, calls = interreflection._receive_valid_first, []
+    valid_first, calls = ir_gather._receive_valid_first, []
 
     def counted(*a, **k):
         calls.append(1)
         return valid_first(*a, **k)
 
-    monkeypatch.setattr(interreflection, "_receive_valid_first", counted)
+    monkeypatch.setattr(ir_gather, "_receive_valid_first", counted)
     cpu, n_cpu = _with_layout(monkeypatch, False, lambda: renderer.render_frame(prep))
     assert len(calls) == 1
     acc, n_acc = _with_layout(monkeypatch, True, lambda: renderer.render_frame(prep))

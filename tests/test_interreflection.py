@@ -530,7 +530,7 @@ def test_image_anchor_lookup_of_the_anchor_map(step):
     an image size that no step divides); anchors and non-receivers evaluate themselves."""
     import importlib
 
-    ir = importlib.import_module("spectral_fit.rendering.interreflection._transport")
+    ir = importlib.import_module("spectral_fit.rendering.interreflection._schedule")
     h, w = 37, 53
     rng = np.random.default_rng(step)
     pix = rng.permutation(h * w)[: (h * w * 3) // 4].astype(np.int32)
@@ -629,7 +629,7 @@ def test_partition_is_the_stable_argsort():
     """The gloss quadrature's compaction of the active receivers (a stable partition by
     counting) vs numpy's stable argsort of the 0/1 keys, and its rank the inverse
     permutation."""
-    from spectral_fit.rendering.interreflection._transport import _partition
+    from spectral_fit.rendering.interreflection._schedule import _partition
 
     rng = np.random.default_rng(3)
     for n, frac in ((1, 0.5), (7, 0.0), (64, 1.0), (5000, 0.3)):
@@ -737,7 +737,7 @@ def test_generic_pass1_capacities_hold_for_coarse_and_fine_meshes(kind):
     from spectral_fit.io import icosphere, uv_sphere
     from spectral_fit.rendering._renderer import _ir_generic_config
     from spectral_fit.rendering.interreflection import pass1_config, prepare_interreflection
-    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
+    from spectral_fit.rendering.interreflection._pass1 import SUPERSAMPLE
 
     sph = icosphere(0.0375, 1) if kind == "ico" else uv_sphere(0.0375, 24, 24)
     t = len(sph.triangles)
@@ -811,7 +811,7 @@ def test_batched_gather_pass1_equals_one_raster_per_pair(monkeypatch):
     give each pair (i, j), in pair_list's order, the samples of that pair's own raster (the
     per-pair loop, which meshes of different shapes still take). Three spheres of different
     radii at asymmetric places, so that a pair mixed up with another would show."""
-    from spectral_fit.rendering.interreflection import _transport as ir
+    from spectral_fit.rendering.interreflection import _pass1 as ir
 
     objs = sphere_objects(stacks=16, centres=[(-0.05, 0.0, -0.3), (0.04, 0.01, -0.28),
                                               (0.0, 0.07, -0.33)])
@@ -845,7 +845,7 @@ def test_valid_first_receivers_match_the_one_pass_receivers(gather_geom, monkeyp
     between the valid ones, with a lamp (hidden sources), gloss and a mirror term, 2 bounces."""
     import importlib
 
-    module = importlib.import_module("spectral_fit.rendering.interreflection._transport")
+    module = importlib.import_module("spectral_fit.rendering.interreflection._gather")
     x0, n0 = facing_points(C0, C1, [0.0, 20.0, 40.0, 60.0])
     x1, n1 = facing_points(C1, C0, [10.0, 35.0])
     x, n = np.concatenate([x0, x1]), np.concatenate([n0, n1])

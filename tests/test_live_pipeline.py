@@ -358,7 +358,7 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
 
     from spectral_fit.live import LiveSession
     from spectral_fit.rendering.interreflection import pass1_config
-    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
+    from spectral_fit.rendering.interreflection._pass1 import SUPERSAMPLE
 
     both, _ = tables
     img, _, _ = small_frame(both, (0.0, 0.3, 0.25), seed=3)

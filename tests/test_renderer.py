@@ -527,7 +527,7 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder)
 
     from spectral_fit.rendering import prepare, regrow, render_frame
     from spectral_fit.rendering.interreflection import pass1_config
-    from spectral_fit.rendering.interreflection._transport import SUPERSAMPLE
+    from spectral_fit.rendering.interreflection._pass1 import SUPERSAMPLE
 
     p = prepare(write_scene(scene_folder, mode="gather"))
     tris = max(tb - ta for ta, tb in p.ir_triangle_slices)

@@ -262,7 +262,7 @@ def _ir_mesh(obj: Any, mesh: Any, mode: str) -> Any:
     the paper mode (eq. 6's textures, rasterised at texture_size in perspective) keep
     ``mesh``."""
     from ..io import icosphere, uv_sphere
-    from .interreflection._transport import GATHER_SIZE, SUPERSAMPLE
+    from .interreflection._pass1 import GATHER_SIZE, SUPERSAMPLE
 
     if mode != "gather":
         return mesh
@@ -454,10 +454,10 @@ def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
 
 def _ir_generic_config(mode: str, texture_size: int, triangles: int) -> Any:
     """The generic window capacities of a pass-1 raster of ``triangles`` triangles
-    (:func:`~spectral_fit.rendering.interreflection._transport.pass1_config`) on the pass-1 frame:
+    (:func:`~spectral_fit.rendering.interreflection._pass1.pass1_config`) on the pass-1 frame:
     64² for
     gather (4× supersampled 16² samples), ``texture_size``² for paper."""
-    from .interreflection._transport import SUPERSAMPLE, pass1_config
+    from .interreflection._pass1 import SUPERSAMPLE, pass1_config
 
     return pass1_config(triangles, texture_size if mode == "paper" else SUPERSAMPLE * 16)
 
@@ -470,7 +470,7 @@ def _ir_raster_config(mode: str, texture_size: int, triangles: int,
     they cannot be grown there; an overflow is flagged and :func:`render` / the live session
     then fall back to :func:`_ir_generic_config`). Gather: planned per sender mesh for any
     pose (``meshes``: (vertices in the object's frame, triangles);
-    :func:`~spectral_fit.rendering.interreflection._transport.plan_gather_pass1`: 1.5× the most
+    :func:`~spectral_fit.rendering.interreflection._pass1.plan_gather_pass1`: 1.5× the most
     that 24 views (six
     axes, four rolls each) need;
     the generic sizes give the 4×4 windows 80× what the benchmark spheres use, a cost paid
@@ -479,7 +479,7 @@ def _ir_raster_config(mode: str, texture_size: int, triangles: int,
     if mode == "none":
         return None
     if mode == "gather" and meshes:
-        from .interreflection._transport import plan_gather_pass1
+        from .interreflection._pass1 import plan_gather_pass1
 
         planned: dict[bytes, Any] = {}
         for v, t in meshes:  # identical meshes (the paper's two spheres) planned once
@@ -996,7 +996,7 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
 def _ir_pass1(prep: Prepared, geoms: list[ObjectGeometry]) -> Any:
     """The interreflection's pass 1 (geometry only) of the objects, with ``prep``'s mode,
     texture size and planned raster capacities."""
-    from .interreflection._transport import prepare_interreflection
+    from .interreflection._pass1 import prepare_interreflection
 
     with jax.named_scope("ir_pass1"):
         return prepare_interreflection(geoms, mode=prep.ir_mode,
@@ -1280,7 +1280,7 @@ def _ir_geometries(prep: Prepared, model: jax.Array, visible: jax.Array
 
 def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax.Array,
                   mirror: bool = True) -> Any:
-    from .interreflection._transport import gather_senders
+    from .interreflection._gather import gather_senders
 
     TRACE_COUNT["ir_senders"] += 1
     mats = _as_stacked(materials, prep.num_objects)
@@ -1392,7 +1392,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                                       prep.split_map, prep.split_settings) @ to_out
     # (in the output channels: the receivers' side of the gather works in those)
     if senders is not None:
-        from .interreflection._transport import gather_receivers
+        from .interreflection._gather import gather_receivers
 
         ir = gather_receivers(senders, mats, prep.env, gb, image_shape=prep.shape,
                               output=None if spectral else to_out)

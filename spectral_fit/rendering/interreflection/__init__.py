@@ -9,17 +9,17 @@ from ..._runtime.lazy import lazy_exports
 
 #: public name -> private module of this package that defines it
 _EXPORTS: dict[str, str] = {
-    "GatherSenders": "_transport",
-    "IRGeometry": "_transport",
-    "MODES": "_transport",
-    "gather_receivers": "_transport",
-    "gather_senders": "_transport",
+    "GatherSenders": "_gather",
+    "IRGeometry": "_pass1",
+    "MODES": "_options",
+    "gather_receivers": "_gather",
+    "gather_senders": "_gather",
     "interreflection": "_transport",
     "interreflection_from": "_transport",
-    "pair_list": "_transport",
-    "pass1_config": "_transport",
-    "plan_gather_pass1": "_transport",
-    "prepare_interreflection": "_transport",
+    "pair_list": "_pass1",
+    "pass1_config": "_pass1",
+    "plan_gather_pass1": "_pass1",
+    "prepare_interreflection": "_pass1",
 }
 
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

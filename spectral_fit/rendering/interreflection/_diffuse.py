@@ -1,0 +1,414 @@
+"""The gather mode's diffuse transfer: the light the neighbours' samples send to a receiver
+through point-to-patch form factors, less the environment they hide.
+
+The senders' samples (:class:`_Senders`, per pair (P, M, ...), M = g²) carry a
+view-independent radiance (C) and a view-dependent one tabulated towards a 3 × 3 grid of
+directions spanning the receiver's bounding sphere (gloss (9, r) in the map's principal
+channels, mirror (9, C)). The form factor F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²))
+(:func:`_form_factor_block`) weights them into Σ_y F L_y(→x) (:func:`_transfer`); the net
+light subtracts (Σ_y F) times the cosine-weighted environment over the neighbours' cones and
+the bright sources they hide (:func:`_diffuse_net`). It is evaluated at the samples
+themselves (:func:`_sample_diffuse_net`, interpolated to receivers by
+:func:`_interpolate_net`) or at every receiver (:func:`_direct_diffuse`).
+
+Every per-point quantity is computed batched and by components (no per-point vmapped
+gathers, no arctan2/arccos per lookup, unrolled tap sums: XLA:CPU runs those as slow loops,
+see docs/rendering.md), and everything that comes from the environment alone (the senders'
+gloss, the hidden environment) stays in the map's r principal channels
+(``env.spectral_basis``) until it has been summed. Positions m, radiance in the
+environment's unit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..._runtime.backend import materialise
+from ...lighting import EnvironmentMap, atan2_poly, dot3, irradiance, taps_sum
+from ._pass1 import _MIN_COS, IRGeometry, _normalize, pair_list
+from ._shading import _env_blur, _Shading, _source_terms, _specular, _times_reflectance
+
+__all__: list[str] = []
+
+#: receivers per chunk of the diffuse gather (receivers are sorted by object first)
+_CHUNK = 512
+
+#: the neighbour's view-dependent radiance is tabulated per sample towards a 3 × 3 grid of
+#: directions spanning the receiver's bounding sphere (gnomonic coordinates in −1, 0, 1 × tanθc)
+_VIEW_GRID = (-1.0, 0.0, 1.0)
+
+
+def _view_frames(geom: IRGeometry) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Per sample (P, M): the unit axis a towards the receiver's centre, a tangent frame e1, e2,
+    and T = tanθc of the receiver's bounding sphere seen from the sample."""
+    to_c = geom.centre_i[:, None, :] - geom.s_pos
+    dist = jnp.sqrt(jnp.maximum(jnp.sum(to_c * to_c, -1), 1e-30))
+    a = to_c / dist[..., None]
+    s = geom.frame[:, None, 0, :]
+    e1 = _normalize(s - jnp.sum(s * a, -1, keepdims=True) * a)
+    e2 = jnp.cross(a, e1)
+    sin_c = jnp.clip(geom.radius_i[:, None] / dist, 0.05, 0.95)
+    return a, e1, e2, sin_c / jnp.sqrt(1.0 - sin_c * sin_c)
+
+
+def _sample_specular(geom: IRGeometry, sh: _Shading, frames: tuple[jax.Array, ...]
+                     ) -> tuple[jax.Array, jax.Array | None]:
+    """Each sample's view-dependent radiance towards the 3 × 3 view grid: gloss (P, M, 9, r)
+    in the map's r channels and mirror (P, M, 9, C) (or None)."""
+    a, e1, e2, tan_c = frames
+    p_count, m_count = geom.s_area.shape
+    senders = np.asarray([j for _, j in geom.pairs], np.int32)
+    views = []
+    for gu in _VIEW_GRID:
+        for gv in _VIEW_GRID:
+            views.append(_normalize(a + tan_c[..., None] * (gu * e1 + gv * e2)))
+    v = jnp.stack(views, 2)  # (P, M, 9, 3)
+    nrm = jnp.broadcast_to(geom.s_nrm[:, :, None], v.shape)
+    # views below a rim sample's horizon: evaluated just above it
+    v = _normalize(v + jnp.maximum(0.0, _MIN_COS - jnp.sum(v * nrm, -1, keepdims=True)) * nrm)
+    obj = jnp.broadcast_to(jnp.asarray(senders)[:, None, None], v.shape[:3])
+    g, m = _specular(sh, obj.reshape(-1), nrm.reshape(-1, 3), v.reshape(-1, 3))
+    shape = (p_count, m_count, len(_VIEW_GRID) ** 2)
+    live = (geom.s_area > 0)[..., None, None]
+    g = jnp.where(live, g.reshape(*shape, -1), 0.0)
+    if m is not None:
+        m = jnp.where(live, m.reshape(*shape, -1), 0.0)
+    return g, m
+
+
+def _tents(x: jax.Array) -> list[jax.Array]:
+    """Linear interpolation weights of x ∈ [−1, 1] on the nodes −1, 0, 1."""
+    x = jnp.clip(x, -1.0, 1.0)
+    return [jnp.maximum(-x, 0.0), 1.0 - jnp.abs(x), jnp.maximum(x, 0.0)]
+
+
+class _Senders(eqx.Module):
+    """The senders' samples as seen by the gather: per pair (P, M, ...) position, normal, area,
+    view frames (axis, e1, e2, tanθc), view-independent radiance (C) and view-dependent gloss
+    (9 view directions, r channels) and mirror (9, C, or None)."""
+
+    pos: jax.Array
+    nrm: jax.Array
+    area: jax.Array
+    frames: tuple[jax.Array, ...]
+    lum: jax.Array
+    spec: jax.Array
+    mirror: jax.Array | None
+
+
+def _form_factor_block(x: jax.Array, nx: jax.Array, snd: tuple[jax.Array, ...]
+                       ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Point-to-patch form factors F (..., R, S) = cos_x cos_y A/(π √(r⁴ + (A/π)²)) between
+    receivers (x, nx (..., R, 3)) and sender samples ``snd`` = (pos, nrm, area, axis, e1, e2,
+    tanθc) (..., S, ...), and the view-grid tents (u, v: 3 each) of the direction y → x in each
+    sample's view frame. Computed by components (elementwise, fused)."""
+    ypos, ynrm, yarea, fa, fe1, fe2, ftan = snd
+    d = [ypos[..., None, :, c] - x[..., :, None, c] for c in range(3)]  # y − x
+    r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    cx = sum(nx[..., :, None, c] * d[c] for c in range(3))
+    cy = -sum(ynrm[..., None, :, c] * d[c] for c in range(3))
+    a = yarea[..., None, :] / math.pi
+    w = jnp.maximum(cx, 0.0) * jnp.maximum(cy, 0.0) * a / jnp.maximum(
+        r2 * jnp.sqrt(r2 * r2 + a * a), 1e-30)
+    # view-dependent part: gnomonic coordinates of the direction y → x in y's view frame
+    along = -sum(fa[..., None, :, c] * d[c] for c in range(3))
+    den = jnp.maximum(along, 1e-9) * ftan[..., None, :]
+    tu = _tents(-sum(fe1[..., None, :, c] * d[c] for c in range(3)) / den)
+    tv = _tents(-sum(fe2[..., None, :, c] * d[c] for c in range(3)) / den)
+    return w, tu, tv
+
+
+def _transfer(w: jax.Array, tu: list[jax.Array], tv: list[jax.Array], lum: jax.Array,
+              spec: jax.Array, mirror: jax.Array | None, basis: jax.Array
+              ) -> tuple[jax.Array, jax.Array]:
+    """Σ_y F L_y(→x) (..., R, C) and Σ_y F (..., R): the senders' view-independent radiance
+    ``lum`` (..., S, C) plus their view-dependent part (``spec`` (..., S, 9, r), ``mirror``
+    (..., S, 9, C)) interpolated on the view grid, weighted by the form factors ``w``."""
+    ein = "...rs,...sc->...rc"
+    lsum = jnp.einsum(ein, w, lum)
+    ws = jnp.concatenate([w * tu[iu] * tv[iv] for iu in range(3) for iv in range(3)], -1)
+    sp = jnp.swapaxes(spec, -3, -2).reshape(*spec.shape[:-3], -1, spec.shape[-1])
+    lsum = lsum + jnp.einsum(ein, ws, sp) @ basis
+    if mirror is not None:
+        mp = jnp.swapaxes(mirror, -3, -2).reshape(*mirror.shape[:-3], -1, mirror.shape[-1])
+        lsum = lsum + jnp.einsum(ein, ws, mp)
+    return lsum, jnp.sum(w, -1)
+
+
+#: cone quadrature of the environment a neighbour hides: rings (uniform in solid angle) ×
+#: azimuths
+_CONE_NODES = (2, 6)
+
+
+def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
+                 o: jax.Array) -> jax.Array:
+    """Cosine-weighted mean environment radiance (N, r) (map channels) over the cones of the
+    receivers' neighbours' bounding spheres (above the receiver's horizon): the radiance the
+    neighbours hide, per unit of their form factor. Nodes: ``_CONE_NODES`` rings × azimuths
+    uniform in solid angle, the map prefiltered to the node spacing."""
+    k_per = geom.n_objects - 1
+    nr, na = _CONE_NODES
+    ur = (np.arange(nr) + 0.5) / nr
+    ph = 2.0 * np.pi * (np.arange(na) + 0.5 * (np.arange(nr)[:, None] % 2)) / na  # (nr, na)
+    num = jnp.zeros((pos.shape[0], env.atlas.shape[-1]), pos.dtype)
+    den = jnp.zeros((pos.shape[0],), pos.dtype)
+    for k in range(k_per):
+        pair = o * k_per + k
+        oc = geom.centre_j[pair] - pos
+        d = jnp.sqrt(jnp.maximum(jnp.sum(oc * oc, -1), 1e-30))
+        a = oc / d[:, None]
+        sin_c = jnp.clip(geom.radius_j[pair] / d, 1e-3, 0.999)
+        cos_c = jnp.sqrt(1.0 - sin_c * sin_c)
+        t1 = _normalize(jnp.cross(a, jnp.where(jnp.abs(a[:, 1:2]) < 0.9,
+                                               jnp.array([0.0, 1.0, 0.0]),
+                                               jnp.array([1.0, 0.0, 0.0]))))
+        t2 = jnp.cross(a, t1)
+        u = 1.0 - (1.0 - cos_c)[:, None] * jnp.asarray(ur, pos.dtype)[None]  # (N, nr)
+        s = jnp.sqrt(jnp.maximum(1.0 - u * u, 0.0))
+        cp = jnp.asarray(np.cos(ph), pos.dtype)
+        sp = jnp.asarray(np.sin(ph), pos.dtype)
+        dirs = (u[..., None, None] * a[:, None, None]
+                + s[..., None, None] * (cp[None, ..., None] * t1[:, None, None]
+                                        + sp[None, ..., None] * t2[:, None, None]))
+        dirs = dirs.reshape(pos.shape[0], -1, 3)
+        w = jnp.maximum(dot3(dirs, nrm[:, None]), 0.0) * (1.0 - cos_c)[:, None]
+        spacing = atan2_poly(sin_c, cos_c) / (2.0 * nr)
+        # the lookups computed once and summed node by node: a reduction over the nodes
+        # fused the lookups' taps into every channel's sum
+        lv = materialise(_env_blur(env, dirs, jnp.broadcast_to(spacing[:, None], w.shape)),
+                         cut=True)
+        num = num + sum(w[:, q, None] * lv[:, q] for q in range(w.shape[1]))
+        den = den + jnp.sum(w, -1)
+    return num / jnp.maximum(den, 1e-30)[:, None]
+
+
+def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: jax.Array
+                    ) -> jax.Array | None:
+    """(N, S·k) 1 where a bright-source sub-point's direction hits a neighbour's bounding
+    sphere seen from ``pos`` (None without sources)."""
+    src = _source_terms(env)
+    if src is None:
+        return None
+    sdir = src[0]
+    occ = jnp.zeros((pos.shape[0], sdir.shape[0]), pos.dtype)
+    for k in range(geom.n_objects - 1):
+        pair = o * (geom.n_objects - 1) + k
+        oc = geom.centre_j[pair] - pos
+        tp = oc @ sdir.T
+        miss2 = jnp.sum(oc * oc, -1)[:, None] - tp * tp
+        occ = jnp.maximum(occ, ((tp > 0.0) & (miss2 < geom.radius_j[pair][:, None] ** 2)
+                                ).astype(pos.dtype))
+    return occ
+
+
+def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, fsum: jax.Array,
+                 pos: jax.Array, nrm: jax.Array, o: jax.Array) -> jax.Array:
+    """The light the neighbours add at receivers, before the receiver's α S/π (N, C):
+    Σ_y F L_y(→x) − (Σ_y F) ⟨L_env⟩_hidden − (1/π) Σ hidden sources flux max(0, N·d_s)."""
+    hm = _hidden_mean(geom, env, pos, nrm, o)
+    net = lsum - fsum[:, None] * (hm @ env.spectral_basis)
+    occ = _hidden_sources(geom, env, pos, o)
+    if occ is not None:
+        sdir, sflux = _source_terms(env)
+        cosn = jnp.maximum(nrm @ sdir.T, 0.0)
+        net = net - ((occ * cosn) @ sflux) @ env.spectral_basis / math.pi
+    return net
+
+
+def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap) -> jax.Array:
+    """:func:`_diffuse_net` (P, M, C) at every sample, gathered from all samples of the
+    sample's own object's neighbours (dense, batched over pairs: P × M × (n − 1)M form
+    factors)."""
+    n_obj = geom.n_objects
+    k_per = n_obj - 1
+    p_count, m_count = geom.s_area.shape
+    recv = np.asarray([j for _, j in geom.pairs], np.int32)  # the samples' own object
+    src = (recv[:, None] * k_per + np.arange(k_per)[None, :])  # (P, k_per) sender pairs
+
+    def senders(x: jax.Array) -> jax.Array:
+        s = x[src]  # (P, k_per, M, ...)
+        return s.reshape(p_count, k_per * m_count, *x.shape[2:])
+
+    origin = jnp.mean(geom.centre_j, axis=0)
+    blk = (senders(snd.pos - origin), senders(snd.nrm), senders(snd.area),
+           *(senders(f) for f in snd.frames))
+    w, tu, tv = _form_factor_block(geom.s_pos - origin, geom.s_nrm, blk)
+    lsum, fsum = _transfer(w, tu, tv, senders(snd.lum), senders(snd.spec),
+                           None if snd.mirror is None else senders(snd.mirror),
+                           env.spectral_basis)
+    obj = jnp.asarray(np.repeat(recv, m_count), jnp.int32)
+    net = _diffuse_net(geom, env, lsum.reshape(-1, lsum.shape[-1]), fsum.reshape(-1),
+                       geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3), obj)
+    return net.reshape(p_count, m_count, -1)
+
+
+def _reverse_pairs(n: int) -> np.ndarray:
+    """Index of pair (j, i) for every pair p = (i, j) (storage order of :func:`pair_list`)."""
+    index = {pq: k for k, pq in enumerate(pair_list(n))}
+    return np.asarray([index[(j, i)] for i, j in pair_list(n)], np.int32)
+
+
+def _sphere_form_factor(pos: jax.Array, nrm: jax.Array, centre: jax.Array, radius: jax.Array
+                        ) -> jax.Array:
+    """Form factor (...) from a differential area (pos, unit nrm (..., 3)) to a sphere
+    (centre (..., 3), radius (...)): sin²α cosθ while the sphere is wholly above the tangent
+    plane (sinα = r/d, θ the centre's angle from the normal), and the C¹ horizon-clipped
+    approximation sin²α (cosθ + sinα)²/(4 sinα) while it straddles it."""
+    oc = centre - pos
+    d2 = jnp.maximum(dot3(oc, oc), 1e-30)
+    sin2 = jnp.minimum(radius * radius / d2, 1.0)
+    sin_a = jnp.sqrt(sin2)
+    cos_t = dot3(nrm, oc) * jax.lax.rsqrt(d2)
+    part = (cos_t + sin_a) ** 2 / (4.0 * jnp.maximum(sin_a, 1e-12))
+    return sin2 * jnp.where(cos_t >= sin_a, cos_t, jnp.where(cos_t > -sin_a, part, 0.0))
+
+
+def _net_tables(geom: IRGeometry, net: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The two tables :func:`_interpolate_net` interpolates, from the samples' diffuse net
+    light ``net`` (P, M, C): net × coverage (P·(g + 2)², C) and coverage × the form factor of
+    the neighbour's bounding sphere (P·(g + 2)², 1), each pair's g × g grid with a border of
+    zeros (made once per frame, not per chunk of receivers)."""
+    g = geom.gather_size
+    p_count = net.shape[0]
+    # pair q = (j, i) holds samples on i; the sphere they look at is j's (centre_i[q])
+    ff_s = _sphere_form_factor(geom.s_pos, geom.s_nrm, geom.centre_i[:, None],
+                               geom.radius_i[:, None])
+    cov = geom.s_cov * (geom.s_area > 0)
+
+    # Σ w cov F_s (net_s/F_s) / Σ w cov F_s
+    def table(x: jax.Array) -> jax.Array:
+        x = x.reshape(p_count, g, g, x.shape[-1])
+        return jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, x.shape[-1])
+
+    # two tables, each tap sum consumed whole (slicing one (N, C + 1) tap sum made XLA gather
+    # every tap of every channel into memory first)
+    return table(net * cov[..., None]), table((cov * ff_s)[..., None])
+
+
+def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nrm: jax.Array,
+                     obj: jax.Array, tables: tuple[jax.Array, jax.Array] | None = None
+                     ) -> jax.Array:
+    """The samples' diffuse net light (P, M, C) at receivers on the samples' objects (N, C)
+    (``tables``: :func:`_net_tables` of ``net``, when made already).
+
+    For each neighbour j of the receiver's object i, the receiver is projected orthographically
+    along j → i onto the g × g samples of i that face j (pair (j, i)); there the ratio of the
+    net light to the form factor F_j of j's bounding sphere (:func:`_sphere_form_factor`, the
+    geometric part, which varies fast next to j) is interpolated bilinearly, weighted by
+    coverage × F_j (so each sample stands for its covered part and samples that barely see j
+    count little), and multiplied by F_j at the receiver. Receivers facing several neighbours
+    blend their grids with weights ∝ N·(c_j − c_i)⁺ (each grid holds the light from all
+    neighbours)."""
+    g = geom.gather_size
+    k_per = geom.n_objects - 1
+    tex, tex_w = _net_tables(geom, net) if tables is None else tables
+    c = tex.shape[-1]
+    rev = jnp.asarray(_reverse_pairs(geom.n_objects))
+    o = jnp.maximum(obj, 0)
+    acc = jnp.zeros((pos.shape[0], c), tex.dtype)
+    wsum = jnp.zeros((pos.shape[0],), tex.dtype)
+    for k in range(k_per):
+        q = rev[o * k_per + k]  # pair (j, i): samples on i facing j
+        fr = geom.frame[q]
+        rel = pos - geom.centre_j[q]
+        ext = geom.extent[q]
+        tx = (dot3(rel, fr[:, 0]) / ext + 1.0) * 0.5 * g + 0.5  # +1 border −0.5 centres
+        ty = (1.0 - dot3(rel, fr[:, 1]) / ext) * 0.5 * g + 0.5
+        x0f, y0f = jnp.floor(tx), jnp.floor(ty)
+        fx, fy = tx - x0f, ty - y0f
+        x0 = jnp.clip(x0f.astype(jnp.int32), 0, g + 1)
+        y0 = jnp.clip(y0f.astype(jnp.int32), 0, g + 1)
+        x1 = jnp.minimum(x0 + 1, g + 1)
+        y1 = jnp.minimum(y0 + 1, g + 1)
+        base = q * (g + 2) ** 2
+        row = g + 2
+        idx = jnp.stack([base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
+                         base + y1 * row + x1], -1)
+        w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
+        ff = _sphere_form_factor(pos, nrm, geom.centre_i[q], geom.radius_i[q])
+        lum = taps_sum(tex, idx, w) * (ff / jnp.maximum(taps_sum(tex_w, idx, w)[:, 0],
+                                                         1e-30))[:, None]
+        # the grid holds the hemisphere of i facing j (its axis is −fr[:, 2] = c_i − c_j)
+        face = jnp.maximum(dot3(nrm, fr[:, 2]), 0.0)
+        acc = acc + face[:, None] * lum
+        wsum = wsum + face
+    return acc / jnp.maximum(wsum, 1e-30)[:, None]
+
+
+def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> jax.Array:
+    """(N,) bool: some neighbour's bounding sphere rises above the receiver's tangent plane."""
+    k_per = geom.n_objects - 1
+    sees = jnp.zeros(obj.shape, bool)
+    for k in range(k_per):
+        pair = jnp.maximum(obj, 0) * k_per + k
+        sees = sees | (dot3(nrm, geom.centre_j[pair] - pos) > -geom.radius_j[pair])
+    return sees & (obj >= 0)
+
+
+def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: jax.Array,
+                    nrm: jax.Array, obj: jax.Array) -> jax.Array:
+    """:func:`_diffuse_net` (N, C) at arbitrary receivers, each gathering from all samples of
+    its object's neighbours (receivers sorted by object, chunks of ``_CHUNK``; chunks of
+    receivers that see no neighbour are skipped). The reference for the interpolated
+    :func:`_interpolate_net`, and ``diffuse_at="receivers"``."""
+    n_obj = geom.n_objects
+    k_per = n_obj - 1
+    p_count, m_count = geom.s_area.shape
+    km = k_per * m_count
+    origin = jnp.mean(geom.centre_j, axis=0)
+
+    def per_obj(x: jax.Array) -> jax.Array:
+        return x.reshape(n_obj, km, *x.shape[2:])
+
+    blocks = (per_obj(snd.pos - origin), per_obj(snd.nrm), per_obj(snd.area),
+              *(per_obj(f) for f in snd.frames))
+    lum, spec = per_obj(snd.lum), per_obj(snd.spec)
+    mirror = None if snd.mirror is None else per_obj(snd.mirror)
+    n = pos.shape[0]
+    key = jnp.where(_sees(geom, pos, nrm, obj), obj, n_obj)
+    order = jnp.argsort(key)
+    nc = -(-n // _CHUNK)
+    pad = nc * _CHUNK - n
+    xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
+    ns = jnp.concatenate([nrm[order], jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], nrm.dtype),
+                                                       (pad, 3))]).reshape(nc, _CHUNK, 3)
+    ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
+    c = env.channels
+
+    def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
+        w, tu, tv = _form_factor_block(x0, nx, tuple(b[o] for b in blocks))
+        w = jnp.where(sel[:, None], w, 0.0)
+        lsum, fsum = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else
+                               mirror[o], env.spectral_basis)
+        net = _diffuse_net(geom, env, lsum, fsum, x0 + origin, nx,
+                           jnp.full(x0.shape[:1], o, jnp.int32))
+        return jnp.where(sel[:, None], net, 0.0)
+
+    def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
+        x0, nx, kk = args
+        acc = jnp.zeros((_CHUNK, c), lum.dtype)
+        for o in range(n_obj):
+            sel = kk == o
+            acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
+                                     lambda s: jnp.zeros((_CHUNK, c), lum.dtype), sel)
+        return acc
+
+    res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, c)[:n]
+    return jnp.zeros((n, c), lum.dtype).at[order].set(res)
+
+
+def _sample_diffuse(geom: IRGeometry, sh: _Shading) -> jax.Array:
+    """(P, M, C) view-independent radiance α_j S_j E_irr(n_y)/π of each sample."""
+    p_count, m_count = geom.s_area.shape
+    senders = [j for _, j in geom.pairs]
+    e = jax.vmap(lambda nn: irradiance(sh.env, nn))(geom.s_nrm.reshape(-1, 3))
+    e = e.reshape(p_count, m_count, -1)
+    sid = jnp.asarray(senders, jnp.int32)
+    refl = sh.mats["reflectance"][sid][:, None, :]
+    return (sh.mats["alpha"][sid] / math.pi)[:, None, None] * _times_reflectance(sh.env, refl,
+                                                                                   e)

@@ -1,0 +1,287 @@
+"""The gather mode assembled, in two halves.
+
+The senders' half (:func:`gather_senders`, a :class:`GatherSenders` pytree) depends on the
+objects' poses, the materials and the environment, not on the camera: the samples' shading,
+their mip atlases, the sample-to-sample diffuse transfer and the ``bounces`` (Jacobi
+iteration of the exchange, the samples receiving from the other objects' samples). The
+receivers' half (:func:`gather_receivers`) turns it into the radiance (N, C), or (N, D) in an
+``output`` map's channels, to add at any receivers: the diffuse term (α S ⊙ the net light)
+plus the lobe gloss and mirror; on the CPU layout with many receiver slots the valid ones are
+put first and the empty slots' chunks skipped (:func:`_receive_valid_first`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..._runtime.backend import on_accelerator, prefix_chunks
+from ..._runtime.errors import InputError
+from ...geometry import GBuffer
+from ...lighting import EnvironmentMap, Material, dot3, taps_sum
+from ._atlas import _build_mips
+from ._diffuse import (
+    _direct_diffuse,
+    _interpolate_net,
+    _net_tables,
+    _sample_diffuse,
+    _sample_diffuse_net,
+    _sample_specular,
+    _sees,
+    _Senders,
+    _view_frames,
+)
+from ._gloss import _hidden_source_gloss, _lobe_gather, _lobe_quadrature, _lobe_reach
+from ._options import (
+    _check_diffuse_at,
+    _check_image_shape,
+    _check_int,
+    _check_materials,
+    _check_receivers,
+)
+from ._pass1 import IRGeometry
+from ._schedule import GLOSS_STEP, _image_anchors, _partition, _pixel_slots
+from ._shading import _Shading, _shading, _times_reflectance
+
+__all__ = ["GatherSenders", "gather_senders", "gather_receivers"]
+
+
+def _reflect_diffuse(sh: _Shading, net: jax.Array, obj: jax.Array) -> jax.Array:
+    """α S(λ) ⊙ net (N, C) per receiver object ``obj`` (N,), in ``sh``'s output channels."""
+    o = jnp.maximum(obj, 0)
+    mats = sh.mats
+    return sh.to_output(mats["alpha"][o][:, None]
+                        * _times_reflectance(sh.env, mats["reflectance"][o], net))
+
+
+def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
+             diffuse: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
+             obj: jax.Array, *,
+             grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
+    """Interreflection (N, D) at receivers (pos, nrm, view (N, 3), obj (N,)) in ``sh``'s output
+    channels, given their diffuse term ``diffuse`` (N, D) (α S ⊙ the net light they receive,
+    :func:`_reflect_diffuse`) and the senders' mip ``atlas`` (in the output channels)."""
+    # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
+    out = diffuse + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid)
+    out, ok = _less_hidden_sources(geom, sh, out, pos, nrm, view, obj)
+    return jnp.where(ok[:, None], out, 0.0)
+
+
+def _less_hidden_sources(geom: IRGeometry, sh: _Shading, out: jax.Array, pos: jax.Array,
+                         nrm: jax.Array, view: jax.Array, obj: jax.Array
+                         ) -> tuple[jax.Array, jax.Array]:
+    """``out`` (N, D) less the environment's gloss that the neighbours hide
+    (:func:`_hidden_source_gloss`), and (N,) whether each receiver gets interreflection at
+    all (it sees a neighbour and faces its view)."""
+    hsrc = _hidden_source_gloss(sh, geom, obj, pos, nrm, view)
+    if hsrc is not None:
+        out = out - hsrc
+    return out, _sees(geom, pos, nrm, obj) & (dot3(nrm, view) > 0.0)
+
+
+class GatherSenders(eqx.Module):
+    """The camera-independent half of the gather interreflection of one scene state
+    (:func:`gather_senders`): pass-1 geometry, the senders' samples with their radiance after
+    all the bounces, their mip atlases and the diffuse net light at the samples. A pytree of
+    arrays; :func:`gather_receivers` turns it into the light at any receivers. It depends on
+    the objects' poses, the materials and the environment, not on the camera.
+
+    Attributes:
+        geometry: :class:`IRGeometry` (gather mode).
+        senders: the senders' samples as the last gather saw them.
+        atlas: (radiance (P, A, C), normal·coverage and coverage (P, A, 4)) mip atlases.
+        net: (P, M, C) diffuse net light at the samples, or None (``diffuse_at`` =
+            "receivers" with one bounce).
+    """
+
+    geometry: IRGeometry
+    senders: _Senders
+    atlas: tuple[jax.Array, jax.Array]
+    net: jax.Array | None
+
+
+def gather_senders(geometry: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                   *, bounces: int = 1, diffuse_at: str = "samples") -> GatherSenders:
+    """The senders' side of :func:`interreflection_from` in gather mode (pass-1 shading, mip
+    atlases, the sample-to-sample transfer and the bounces): everything that does not depend
+    on the receivers, so a caller whose objects and materials did not change (a camera
+    moving around static objects) computes it once and calls :func:`gather_receivers` per
+    frame. ``gather_receivers(gather_senders(g, m, e), m, e, r)`` equals
+    ``interreflection_from(g, m, e, r)`` exactly."""
+    if geometry.mode != "gather":
+        raise InputError(f"needs a gather-mode geometry, got {geometry.mode!r}", field="mode")
+    _check_materials(geometry.n_objects, materials, env)
+    bounces = _check_int(bounces, "bounces", 1, 64)
+    _check_diffuse_at(diffuse_at)
+    return _gather_senders(geometry, materials, env, bounces, diffuse_at)
+
+
+def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                    bounces: int, diffuse_at: str) -> GatherSenders:
+    pairs = geom.pairs
+    senders = [j for _, j in pairs]
+    p_count, m_count = geom.s_area.shape
+    sh = _shading(materials, env)
+    live = geom.s_area > 0
+    frames = _view_frames(geom)
+    with jax.named_scope("ir_sample_shading"):
+        spec, mirror = _sample_specular(geom, sh, frames)
+        l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh), 0.0)
+    cov = geom.s_cov[..., None]
+
+    def senders_with(lum: jax.Array) -> tuple[_Senders, jax.Array]:
+        snd = _Senders(pos=geom.s_pos, nrm=geom.s_nrm, area=geom.s_area, frames=frames,
+                       lum=lum, spec=spec, mirror=mirror)
+        with jax.named_scope("ir_atlas"):
+            atlas = (_build_mips(lum * cov, geom.gather_size),
+                     _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1),
+                                 geom.gather_size))
+        return snd, atlas
+
+    lum = l0
+    snd, atlas = senders_with(lum)
+    s_obj = jnp.where(live.reshape(-1), jnp.asarray(np.repeat(senders, m_count), jnp.int32),
+                      -1)
+    s_pos, s_nrm = geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3)
+    net = None
+    for b in range(bounces):
+        if diffuse_at == "samples" or b < bounces - 1:
+            with jax.named_scope("ir_sample_transfer"):
+                net = _sample_diffuse_net(geom, snd, env)
+        if b == bounces - 1:
+            break
+        with jax.named_scope("ir_sample_bounce"):
+            extra = _receive(geom, sh, atlas,
+                             _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj),
+                             s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj)
+        lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
+        snd, atlas = senders_with(lum)
+    return GatherSenders(geometry=geom, senders=snd, atlas=atlas,
+                         net=net if diffuse_at == "samples" else None)
+
+
+def gather_receivers(state: GatherSenders, materials: Sequence[Material], env: EnvironmentMap,
+                     receivers: GBuffer, *, image_shape: tuple[int, int] | None = None,
+                     gloss_step: int = GLOSS_STEP, output: Any = None) -> jax.Array:
+    """The receivers' side of the gather interreflection: radiance (N, C) (or (N, D) with
+    ``output``) to add at ``receivers``, from :func:`gather_senders`'s state of the same
+    objects, ``materials`` and ``env`` (options as :func:`interreflection_from`; the
+    diffuse transfer is evaluated where the state was made for)."""
+    geom = state.geometry
+    _check_materials(geom.n_objects, materials, env)
+    _check_receivers(receivers)
+    gloss_step = _check_int(gloss_step, "gloss_step", 1, 64)
+    image_shape = _check_image_shape(image_shape)
+    diffuse_at = "samples" if state.net is not None else "receivers"
+    return _gather_receivers(state, materials, env, receivers, diffuse_at, image_shape,
+                             gloss_step, output)
+
+
+def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
+                      env: EnvironmentMap, receivers: GBuffer, diffuse_at: str,
+                      image_shape: tuple[int, int] | None, gloss_step: int,
+                      output: jax.Array | None) -> jax.Array:
+    geom, snd, atlas, net = state.geometry, state.senders, state.atlas, state.net
+    senders = [j for _, j in geom.pairs]
+    sh = _shading(materials, env)
+    pos, nrm, obj = receivers.position, receivers.normal, receivers.object
+    # the receivers' terms in the output channels: the diffuse net light of each pair's
+    # samples reflected by their object (α S ⊙ net, then the output map) before it is
+    # interpolated, the senders' atlas mapped before it is gathered from (all linear)
+    sh = dataclasses.replace(sh, output=None if output is None else jnp.asarray(output,
+                                                                              jnp.float32))
+    if output is not None:
+        atlas = (atlas[0] @ sh.output, atlas[1])
+    grid = None if image_shape is None or gloss_step < 2 else (receivers.pixel, image_shape,
+                                                                gloss_step)
+    tables = None
+    with jax.named_scope("ir_receiver_diffuse"):
+        if diffuse_at == "samples":
+            refl = sh.diffuse_matrices()[jnp.asarray(senders, jnp.int32)]  # (P, C, D)
+            tables = _net_tables(geom, jnp.einsum("pmc,pcd->pmd", net, refl))
+            diffuse = None
+        else:
+            diffuse = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, pos, nrm, obj),
+                                       obj)
+    if not on_accelerator() and pos.shape[0] > _RECEIVER_CHUNK:
+        return _receive_valid_first(geom, sh, atlas, tables, diffuse, pos, nrm,
+                                    receivers.view, obj, grid)
+    if diffuse is None:
+        with jax.named_scope("ir_receiver_diffuse"):
+            diffuse = _interpolate_net(geom, net, pos, nrm, obj, tables=tables)
+    with jax.named_scope("ir_receiver_gloss"):
+        return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid)
+
+
+#: CPU layout: receivers per chunk of the per-receiver terms of :func:`_receive_valid_first`
+_RECEIVER_CHUNK = 4096
+
+
+def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
+                         tables: tuple[jax.Array, jax.Array] | None,
+                         diffuse: jax.Array | None, pos: jax.Array, nrm: jax.Array,
+                         view: jax.Array, obj: jax.Array,
+                         grid: tuple[jax.Array, tuple[int, int], int] | None) -> jax.Array:
+    """:func:`_receive` (N, D) for many receivers on the CPU layout, at a cost that follows
+    the number of valid receivers (obj >= 0) rather than N: a renderer's receivers are
+    fixed-capacity slot lists, of which the covered pixels fill ~55–60 % (the capacities'
+    headroom). The valid receivers are put first (a stable partition), their per-receiver
+    terms (the interpolated diffuse net light, ``tables`` from :func:`_net_tables`, or the
+    given ``diffuse`` (N, D); the hidden sources; the lobe's reach; the image anchors) run in
+    chunks of ``_RECEIVER_CHUNK`` with the chunks past them skipped, the lobe quadrature runs
+    on the active ones as in :func:`_lobe_gather`, and the result goes back to the slots'
+    order. Equal to :func:`_receive` (the same arithmetic per receiver)."""
+    valid = obj >= 0
+    rank, order = _partition(valid)
+    count = jnp.sum(valid.astype(jnp.int32))
+    pos, nrm, view, obj = pos[order], nrm[order], view[order], obj[order]
+    if diffuse is not None:
+        diffuse = diffuse[order]
+    step = 0
+    at = None
+    pixel = jnp.full(obj.shape, -1, jnp.int32)
+    if grid is not None:
+        pixel, shape, step = grid[0][order], grid[1], grid[2]
+        refl_all = 2.0 * dot3(nrm, view)[:, None] * nrm - view
+        at = (_pixel_slots(pixel, obj, shape), pos, refl_all, obj)
+    mu = sh.mats["mu"]
+
+    def terms(x: jax.Array, nn: jax.Array, vv: jax.Array, ob: jax.Array, px: jax.Array,
+              *dif: jax.Array) -> tuple[jax.Array, ...]:
+        with jax.named_scope("ir_receiver_diffuse"):
+            base = dif[0] if dif else _interpolate_net(geom, None, x, nn, ob, tables=tables)
+        with jax.named_scope("ir_receiver_gloss"):
+            base, ok = _less_hidden_sources(geom, sh, base, x, nn, vv, ob)
+            active, gap, refl = _lobe_reach(geom, sh, x, nn, vv, ob)
+            if at is None:
+                return base, ok, active
+            own, a_idx, a_w = _image_anchors(px, ob, shape, step, x, refl, gap,
+                                             math.sqrt(2.0) * mu[jnp.maximum(ob, 0)], at=at)
+            return base, ok, active & own, own, a_idx, a_w
+
+    extra = [] if diffuse is None else [diffuse]
+    out = prefix_chunks(terms, count, [pos, nrm, view, obj, pixel, *extra],
+                        size=_RECEIVER_CHUNK)
+    base, ok, active = out[:3]
+    with jax.named_scope("ir_receiver_gloss"):
+        res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active)
+        if at is not None:
+            own, a_idx, a_w = out[3:]
+            res = jnp.where(own[:, None], res, taps_sum(res, a_idx, a_w))
+        return jnp.where(ok[:, None], base + res, 0.0)[rank]
+
+
+def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
+                 receivers: GBuffer, bounces: int, diffuse_at: str = "samples",
+                 image_shape: tuple[int, int] | None = None, gloss_step: int = 1,
+                 output: jax.Array | None = None) -> jax.Array:
+    state = _gather_senders(geom, materials, env, bounces, diffuse_at)
+    return _gather_receivers(state, materials, env, receivers, diffuse_at, image_shape,
+                             gloss_step, output)

@@ -1,0 +1,306 @@
+"""The gather mode's gloss and mirror interreflection at receivers: the receiver's own lobe.
+
+β A(x) Σ_q w_q h_q [L_j(y_q → x) − L_env(ω_q)] over a quadrature ω_q of the receiver's lobe
+D F G (V·H)/(N·V) (:func:`_lobe_nodes`), each node ray intersected with the neighbour's
+bounding sphere (soft hit h_q) and the neighbour's radiance at the hit read from its mip
+atlas plus :func:`_specular` towards x (:func:`_neighbour_along`); the mirror χ F(θr) times
+the same along R; less the bright sources' gloss that the neighbours hide
+(:func:`_hidden_source_gloss`). Only receivers whose lobe can reach a neighbour
+(:func:`_lobe_reach`) run the quadrature, in chunks with the active ones first
+(:func:`_lobe_quadrature`); receivers that are pixels of an image may take it from anchors
+(:func:`_lobe_gather`). Shapes (N, C) per receiver, in the shading context's output
+channels; computed batched and by components as the diffuse transfer (see ``_diffuse``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from ..._runtime.backend import materialise, materialise_each, on_accelerator
+from ...lighting import (
+    atan2_poly,
+    dot3,
+    fresnel_dielectric,
+    lobe_factor,
+    sincos_poly,
+    smootherstep,
+    taps_sum,
+    visible_nodes,
+)
+from ._atlas import _mip_taps
+from ._diffuse import _hidden_sources
+from ._pass1 import IRGeometry, _normalize
+from ._schedule import _image_anchors, _partition
+from ._shading import (
+    _albedo_at,
+    _env_blur,
+    _gloss_weights,
+    _Shading,
+    _source_terms,
+    _specular,
+)
+
+__all__: list[str] = []
+
+#: footprint of a lookup: texel side = this × the lobe footprint std
+_FOOTPRINT = 2.5
+
+#: receiver's gloss lobe quadrature against the neighbour (radial × azimuthal nodes)
+_LOBE_NODES = (2, 4)
+#: its rings at equal shares of the lobe's radial mass (:func:`environment._lobe_rings`): with
+#: 2 rings uniform in θh/μ the outer one carried e^−12 of the weight
+_LOBE_RADIAL_RULE = "mass"
+#: soft edge of a lobe node's hit on the neighbour's bounding sphere, as a fraction of the
+#: lobe's angular std √2 μ (times the distance), capped at ``_EDGE_CAP`` × the neighbour's
+#: radius (so a tiny or far neighbour's soft edge shrinks with it: no leak)
+_EDGE = 0.35
+_EDGE_CAP = 0.5
+
+
+def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, *,
+                distribution: str, geometry: str) -> tuple[jax.Array, jax.Array]:
+    """Reflected directions (Q, 3) and normalised weights (Q,) of a quadrature of the
+    receiver's gloss lobe D F G (V·H)/(N·V) dω_H over its visible part (one receiver)."""
+    nv = jnp.clip(jnp.dot(nrm, view), 0.0, 1.0)
+    h, w, ch = visible_nodes(nrm, view, mu, jnp.zeros_like(mu), nv, distribution=distribution,
+                              radial=_LOBE_NODES[0], azimuthal=_LOBE_NODES[1],
+                              radial_rule=_LOBE_RADIAL_RULE)
+    g, light = lobe_factor(nrm, view, h, ch, mu, eta, geometry=geometry, fresnel=True)
+    f = w * g
+    return light, f / jnp.maximum(jnp.sum(f), 1e-30)
+
+
+def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+                     pair: jax.Array, sender: jax.Array, pos: jax.Array, dirs: jax.Array,
+                     wts: jax.Array, edge: jax.Array, sigma_env: jax.Array) -> jax.Array:
+    """Σ_q wts_q h_q [L_j(y_q → x) − L_env(ω_q)] (N, C): the net radiance that the sender of
+    ``pair`` (N,) adds along the rays (pos (N, 3), dirs (N, Q, 3)), weighted by ``wts``
+    (N, Q). h: soft hit on its bounding sphere (edge half-width ``edge`` (N,) radians times the
+    distance, at most ``_EDGE_CAP`` × its radius). The sender's radiance is the view-independent
+    part from the sample mip atlas (with its normal) plus :func:`_specular` towards the
+    receiver point; the environment it hides is prefiltered to ``sigma_env`` (N,)."""
+    n, nq = dirs.shape[:2]
+    g = geom.gather_size
+    cj = geom.centre_j[pair]  # (N, 3)
+    rj = geom.radius_j[pair][:, None]
+    oc = cj - pos
+    tp = dot3(oc[:, None], dirs)
+    b2 = jnp.maximum(dot3(oc, oc)[:, None] - tp * tp, 1e-14)  # (floors keep gradients finite)
+    b = jnp.sqrt(b2)
+    half = jnp.maximum(jnp.minimum(edge[:, None] * tp, _EDGE_CAP * rj), 1e-6)
+    hit = smootherstep(0.5 + (rj - b) / (2.0 * half)) * (tp > 0.0)
+    t = jnp.maximum(tp - jnp.sqrt(jnp.maximum(rj * rj - b2, 1e-14)), 0.0)
+    y = pos[:, None] + t[..., None] * dirs
+    rel = _normalize(y - cj[:, None]) * rj[..., None]  # on the bounding sphere (rim if missed)
+    fr = geom.frame[pair]  # (N, 3, 3)
+    ext = geom.extent[pair][:, None]
+    tx = (dot3(rel, fr[:, None, 0]) / ext + 1.0) * 0.5 * g
+    ty = (1.0 - dot3(rel, fr[:, None, 1]) / ext) * 0.5 * g
+    texel = 2.0 * ext / g
+    level = 0.5 * jnp.log2(1.0 + (half / texel) ** 2)  # ≈ log2 of the footprint, smooth
+    # computed once (XLA would otherwise recompute them inside every consumer)
+    tx, ty, level, hit, *rel = materialise_each(tx, ty, level, hit, rel[..., 0], rel[..., 1],
+                                                rel[..., 2])
+    rel = jnp.stack(rel, -1)
+    idx, w = _mip_taps(jnp.broadcast_to(pair[:, None], tx.shape), tx, ty, level, g)
+    # two atlases, each tap sum consumed whole by one contraction: XLA:CPU then fuses the
+    # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all
+    # (N, Q, 8, C + 4) taps, many times slower)
+    lum_atlas, geo_atlas = atlas
+    geo = materialise(taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
+    cov = geo[..., 3]
+    # the samples' normal where the atlas has coverage, the bounding sphere's elsewhere
+    ny = _normalize(geo[..., :3] + (1.0 - jnp.clip(cov, 0.0, 1.0))[..., None] * rel
+                    / rj[..., None])
+    spec, mirror = _specular(sh, jnp.broadcast_to(sender[:, None], (n, nq)).reshape(-1),
+                             ny.reshape(-1, 3), -dirs.reshape(-1, 3))
+    hidden = _env_blur(sh.env, dirs, jnp.broadcast_to(sigma_env[:, None], (n, nq)))
+    wq = wts * hit
+    wc = wq * cov
+    ein = "nq,nqc->nc"
+    out = jnp.einsum(ein, wq, taps_sum(lum_atlas, idx, w))  # L·cov
+    out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1) - hidden) @ sh.basis
+    if mirror is not None:
+        out = out + sh.to_output(jnp.einsum(ein, wc, mirror.reshape(n, nq, -1)))
+    return out
+
+
+def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: jax.Array,
+                         nrm: jax.Array, view: jax.Array) -> jax.Array | None:
+    """β Σ_s F D G/(4cosθr) Φ_s (N, C) over the bright sources hidden by a neighbour's bounding
+    sphere (the part of the receiver's environment gloss that the neighbour blocks)."""
+    o = jnp.maximum(obj, 0)
+    occ = _hidden_sources(geom, sh.env, pos, o)
+    if occ is None:
+        return None
+    sdir, sflux = _source_terms(sh.env)
+    mats = sh.mats
+    out = jnp.zeros((pos.shape[0], sflux.shape[-1]), pos.dtype)
+    for k, m in enumerate(sh.materials):
+        w = _gloss_weights(nrm[:, None], view[:, None], sdir[None], mats["mu"][o][:, None],
+                           mats["n"][o][:, None], m.distribution, m.geometry)
+        out = jnp.where((o == k)[:, None], (occ * w) @ sflux, out)
+    return mats["beta"][o][:, None] * (out @ sh.basis)
+
+
+#: the gloss quadrature runs over the receivers in this many equal chunks (the active ones
+#: sorted first; chunks without an active receiver are skipped), each at least
+#: ``_GLOSS_MIN_CHUNK`` receivers (or all of them): one traced copy of the quadrature (compile
+#: time), at most one partly active chunk of wasted work, and few enough iterations that the
+#: loop's per-iteration overhead does not count (small chunks of 128 receivers cost more CPU
+#: on the benchmark frame)
+_GLOSS_CHUNKS = 64
+_GLOSS_MIN_CHUNK = 1024
+#: with the accelerator layout (:mod:`spectral_fit._runtime.backend`) the receivers run in chunks of
+#: up to this many, all of them when fewer (no sort, loop or conditional)
+_GLOSS_ACCEL_CHUNK = 65536
+#: a receiver's lobe is evaluated against a neighbour when its mirror direction is within the
+#: neighbour's angular radius plus this many lobe widths μ (+ 0.05 rad): the lobe's reflected
+#: directions have an angular std of about √2 μ, so beyond that the lobe keeps < e^-6 of its
+#: weight (7 widths changed no receiver of the benchmark frame by more than 1e-7 of the peak)
+_LOBE_REACH = 5.0
+
+
+def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+                 pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
+                 grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
+    """Gloss and mirror interreflection (N, C): β A(x) Σ_q w_q (neighbour − hidden environment)
+    over the receiver's lobe nodes, χ F(θr) (…) along R. Receivers whose lobe cannot reach a
+    neighbour are sorted last, into chunks (``_GLOSS_CHUNKS``) that are skipped; with the
+    accelerator layout (:mod:`spectral_fit._runtime.backend`) all receivers run at once.
+
+    ``grid`` = (pixel (N,), image shape (H, W), step): the receivers are pixels of one image;
+    the quadrature runs at every ``step``-th row and column only (:func:`_image_anchors`) and
+    the pixels between are interpolated bilinearly (the gloss interreflection is a blurred
+    image of the neighbour: smooth at the pixel scale)."""
+    active, gap, refl = _lobe_reach(geom, sh, pos, nrm, view, obj)
+    if grid is None:
+        return _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active)
+    own, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl, gap,
+                                     math.sqrt(2.0) * sh.mats["mu"][jnp.maximum(obj, 0)])
+    res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active & own)
+    return jnp.where(own[:, None], res, taps_sum(res, a_idx, a_w))
+
+
+def _lobe_reach(geom: IRGeometry, sh: _Shading, pos: jax.Array, nrm: jax.Array,
+                view: jax.Array, obj: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Which receivers' gloss lobes can reach a neighbour (their mirror direction within the
+    neighbour's angular radius plus ``_LOBE_REACH`` lobe widths; N·V > 0): ``active`` (N,)
+    bool, the distance ``gap`` (N,) to the nearest neighbour's bounding sphere, and the mirror
+    directions ``refl`` (N, 3)."""
+    k_per = geom.n_objects - 1
+    mats = sh.mats
+    o_all = jnp.maximum(obj, 0)
+    nv_all = dot3(nrm, view)
+    refl_all = 2.0 * nv_all[:, None] * nrm - view
+    reach = jnp.zeros(obj.shape, bool)
+    gap = jnp.full(obj.shape, jnp.inf, pos.dtype)
+    for k in range(k_per):
+        pair = o_all * k_per + k
+        oc = geom.centre_j[pair] - pos
+        d2 = jnp.maximum(dot3(oc, oc), 1e-30)
+        gap = jnp.minimum(gap, jnp.maximum(jnp.sqrt(d2) - geom.radius_j[pair], 1e-6))
+        # angle(R, c_j − x) < asin(r_j/d) + reach, by cosines (no arccos per receiver)
+        lim = jnp.minimum(atan2_poly(geom.radius_j[pair],
+                                      jnp.sqrt(jnp.maximum(d2 - geom.radius_j[pair] ** 2,
+                                                           1e-30)))
+                          + _LOBE_REACH * mats["mu"][o_all] + 0.05, math.pi)
+        reach = reach | (dot3(oc, refl_all) > sincos_poly(lim)[1] * jnp.sqrt(d2))
+    return (obj >= 0) & (nv_all > 0.0) & reach, gap, refl_all
+
+
+def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+                     pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
+                     active: jax.Array) -> jax.Array:
+    """The gloss and mirror interreflection (N, C) of :func:`_lobe_gather` at the ``active``
+    (N,) receivers (zero at the others), by the lobe quadrature in chunks, the active
+    receivers first and the chunks past them skipped (one chunk of all with the accelerator
+    layout)."""
+    k_per = geom.n_objects - 1
+    c = sh.channels
+    mats = sh.mats
+    materials = sh.materials
+    n = pos.shape[0]
+    if on_accelerator():
+        size = max(1, min(n, _GLOSS_ACCEL_CHUNK))
+    else:
+        size = max(1, min(n, max(_GLOSS_MIN_CHUNK, -(-n // _GLOSS_CHUNKS))))
+    nc = -(-n // size)
+    pad = nc * size - n
+
+    senders = jnp.asarray([j for _, j in geom.pairs], jnp.int32)
+    same = len({(m.distribution, m.geometry) for m in materials}) == 1
+
+    def run(args: tuple[jax.Array, ...]) -> jax.Array:
+        x, nn, vv, ob, act = args
+        o = jnp.maximum(ob, 0)
+        mu, eta = mats["mu"][o], mats["n"][o]
+        beta, chi = mats["beta"][o], mats["chi"][o]
+        nv = dot3(nn, vv)
+        if same:
+            m0 = materials[0]
+            dirs, wts = jax.vmap(lambda a, b, m_, e_: _lobe_nodes(
+                a, b, m_, e_, distribution=m0.distribution, geometry=m0.geometry))(
+                    nn, vv, mu, eta)
+        else:
+            dirs = wts = None
+            for k, m in enumerate(materials):
+                d_k, w_k = jax.vmap(lambda a, b, m_, e_, m=m: _lobe_nodes(
+                    a, b, m_, e_, distribution=m.distribution, geometry=m.geometry))(
+                        nn, vv, mu, eta)
+                sel = o == k
+                dirs = d_k if dirs is None else jnp.where(sel[:, None, None], d_k, dirs)
+                wts = w_k if wts is None else jnp.where(sel[:, None], w_k, wts)
+        # computed once (XLA would otherwise recompute the nodes inside every consumer)
+        dw = materialise(jnp.concatenate([dirs, wts[..., None]], -1))
+        dirs, wts = dw[..., :3], dw[..., 3]
+        albedo = _albedo_at(sh.albedo, ob, nv)
+        lobe_sigma = math.sqrt(2.0) * mu
+        acc = jnp.zeros((x.shape[0], c), x.dtype)
+        for k in range(k_per):
+            pair = o * k_per + k
+            along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x, dirs, wts,
+                                     _EDGE * lobe_sigma, 0.5 * lobe_sigma)
+            acc = acc + (beta * albedo)[:, None] * along
+            if sh.mirror:
+                rdir = 2.0 * nv[:, None] * nn - vv
+                m_along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x,
+                                           rdir[:, None], jnp.ones_like(mu)[:, None],
+                                           jnp.full_like(mu, 0.02), jnp.zeros_like(mu))
+                fres = fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), eta)
+                acc = acc + (chi * fres)[:, None] * m_along
+        return jnp.where(act[:, None], acc, 0.0)
+
+    zz = jnp.asarray((0.0, 0.0, 1.0), nrm.dtype)
+    if nc == 1:  # one chunk (accelerator layout, or few receivers): no sort, loop or cond
+        res = run((pos, jnp.where(active[:, None], nrm, zz), jnp.where(active[:, None], view, zz),
+                   obj, active))
+    else:
+        # the active receivers first, each part in index order (a stable partition, found
+        # by counting: a sort of the N keys cost more than the whole rest of the bookkeeping)
+        rank, order = _partition(active)
+        count = jnp.sum(active.astype(jnp.int32))
+        slots = jnp.concatenate([order, jnp.full((pad,), n, jnp.int32)]).reshape(nc, size)
+
+        def do(sl: jax.Array) -> jax.Array:
+            # the chunk's receivers are gathered here: skipped chunks gather nothing
+            ix = jnp.minimum(sl, n - 1)
+            act = active[ix] & (sl < n)
+            return run((pos[ix], jnp.where(act[:, None], nrm[ix], zz),
+                        jnp.where(act[:, None], view[ix], zz), obj[ix], act))
+
+        def step(_: None, a: tuple[jax.Array, jax.Array]) -> tuple[None, jax.Array]:
+            i, sl = a
+            # chunks past the active receivers are skipped; each iteration passes only its
+            # own (size, C) result (a carried (N, C) buffer was copied through every
+            # conditional, a large cost over the 64 iterations)
+            return None, jax.lax.cond(i * size < count, do,
+                                      lambda _: jnp.zeros((size, c), pos.dtype), sl)
+
+        _, ys = jax.lax.scan(step, None, (jnp.arange(nc, dtype=jnp.int32), slots))
+        # back to the receivers' order: receiver i's result is row rank[i] (a gather)
+        res = materialise(ys.reshape(nc * size, c)[rank], cut=True)
+    return res
