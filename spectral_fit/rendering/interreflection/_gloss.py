@@ -45,9 +45,6 @@ from ._shading import (
 
 __all__: list[str] = []
 
-#: footprint of a lookup: texel side = this × the lobe footprint std
-_FOOTPRINT = 2.5
-
 #: receiver's gloss lobe quadrature against the neighbour (radial × azimuthal nodes)
 _LOBE_NODES = (2, 4)
 #: its rings at equal shares of the lobe's radial mass (:func:`environment._lobe_rings`): with
