@@ -14,7 +14,8 @@ from helpers.rendering import write_scene
 
 from spectral_fit._runtime import backend
 from spectral_fit._runtime.errors import InputError
-from spectral_fit.geometry import _raster as raster
+from spectral_fit.geometry import _prefix as prefix
+from spectral_fit.geometry import _raster_setup as raster_setup
 from spectral_fit.rendering import _renderer as renderer
 
 # the module (the package exports a function of the same name)
@@ -55,7 +56,8 @@ def _with_layout(monkeypatch, accelerator: bool, fn):
     # and its per-receiver terms in chunks of valid receivers (_receive_valid_first)
     monkeypatch.setattr(interreflection, "_RECEIVER_CHUNK", 256)
     monkeypatch.setattr(renderer, "on_accelerator", layout)
-    monkeypatch.setattr(raster, "on_accelerator", layout)
+    monkeypatch.setattr(raster_setup, "on_accelerator", layout)
+    monkeypatch.setattr(prefix, "on_accelerator", layout)
     monkeypatch.setattr(interreflection, "on_accelerator", layout)
     jax.clear_caches()
     out = jax.block_until_ready(fn())
