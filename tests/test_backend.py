@@ -14,7 +14,8 @@ from helpers.rendering import write_scene
 
 from spectral_fit._runtime import backend
 from spectral_fit._runtime.errors import InputError
-from spectral_fit.geometry import _raster as raster
+from spectral_fit.geometry import _prefix as prefix
+from spectral_fit.geometry import _raster_setup as raster_setup
 from spectral_fit.rendering import _renderer as renderer
 
 # the interreflection's modules that look up the layout and the chunk sizes
@@ -57,7 +58,8 @@ def _with_layout(monkeypatch, accelerator: bool, fn):
     # and its per-receiver terms in chunks of valid receivers (_receive_valid_first)
     monkeypatch.setattr(ir_gather, "_RECEIVER_CHUNK", 256)
     monkeypatch.setattr(renderer, "on_accelerator", layout)
-    monkeypatch.setattr(raster, "on_accelerator", layout)
+    monkeypatch.setattr(raster_setup, "on_accelerator", layout)
+    monkeypatch.setattr(prefix, "on_accelerator", layout)
     for module in (ir_atlas, ir_gather, ir_gloss):
         monkeypatch.setattr(module, "on_accelerator", layout)
     jax.clear_caches()

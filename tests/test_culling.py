@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from spectral_fit import geometry as raster
 from spectral_fit.geometry import (
     CLUSTER_SIZE,
     MARGIN,
@@ -25,7 +26,6 @@ from spectral_fit.geometry import (
     visible_clusters,
     worst_direction_count,
 )
-from spectral_fit.geometry import _raster as raster
 from spectral_fit.io import Mesh, concat_meshes, icosphere, is_closed_outward, uv_sphere
 
 SHAPE = (48, 64)

@@ -109,7 +109,7 @@ def test_max_displacement_is_the_largest_vertex_displacement():
     """The bounding-box corner bound against the displacement of every vertex of a mesh,
     brute force, for random rigid motions and a scaled one."""
     from spectral_fit.io import rotate, uv_sphere
-    from spectral_fit.live._session import _max_displacement
+    from spectral_fit.live._senders_reuse import _max_displacement
 
     sph = uv_sphere(0.03, 16, 16)
     v = np.c_[sph.vertices, np.ones(len(sph.vertices))]

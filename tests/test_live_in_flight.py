@@ -130,7 +130,7 @@ def test_live_command_checks_cpu_devices(tmp_path, capsys):
 def test_devices_argument_is_checked():
     import jax
 
-    from spectral_fit.live._session import _frame_devices
+    from spectral_fit.live._devices import _frame_devices
 
     assert _frame_devices(None) == tuple(jax.devices())
     assert _frame_devices(jax.devices()[0]) == (jax.devices()[0],)

@@ -169,14 +169,15 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     renders on with its own buffers, the same picture, nothing re-planned or recompiled."""
     import threading
 
-    from spectral_fit.live import _session as live
+    from spectral_fit.live import LiveSession, live_step
+    from spectral_fit.live import _grow_ahead as grow
 
     both, _ = tables
     img = small_frame(both, (0.0, 0.3, 0.25), seed=20)[0]
     # 0.35: grown buffers unlike those the other tests compile (their programs stay theirs)
-    s = live.LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=0.35)
+    s = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=0.35)
     entered, release = threading.Event(), threading.Event()
-    step = live.live_step
+    step = live_step
 
     def held(*a, **k):  # the background compile's step waits until the test lets it go
         if threading.current_thread().name == "spectral_fit-grow-ahead":
@@ -184,7 +185,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
             assert release.wait(120)
         return step(*a, **k)
 
-    monkeypatch.setattr(live, "live_step", held)
+    monkeypatch.setattr(grow, "live_step", held)
     first = s.process(img)  # fills the buffers past 0.35: a compile of grown ones starts
     caps = (s.prep.pixel_capacity, s.prep.raster_config)
     assert entered.wait(120) and s.growing
@@ -195,7 +196,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     release.set()
     stopper.join(120)
     assert not stopper.is_alive() and not s.growing
-    monkeypatch.setattr(live, "live_step", step)
+    monkeypatch.setattr(grow, "live_step", step)
     s.grow_ahead = None  # no new compile: the next frame shows what the session kept
     again = s.process(img)
     assert s.replans_ahead == 0 and s.recompiles == 0

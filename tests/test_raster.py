@@ -32,8 +32,8 @@ from helpers.raster_reference import reference_raster
 from matplotlib.path import Path as MplPath
 from scipy.spatial import ConvexHull
 
+from spectral_fit import geometry as raster
 from spectral_fit._runtime.errors import InputError
-from spectral_fit.geometry import _raster as raster
 from spectral_fit.geometry import perspective_camera, project
 from spectral_fit.io import concat_meshes, icosphere, rotate, translate, uv_sphere
 
@@ -363,7 +363,7 @@ _FD_SCRIPT = textwrap.dedent("""
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp, numpy as np
     from helpers.raster import MID, camera
-    from spectral_fit.geometry import _raster as raster
+    from spectral_fit import geometry as raster
     from spectral_fit.geometry import project
     from spectral_fit.io import icosphere, translate
 

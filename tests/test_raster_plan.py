@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from helpers.raster import MID, SMALL, camera, clip_of, rasterize_padded, soup, two_spheres
 
+from spectral_fit import geometry as raster
 from spectral_fit._runtime.errors import InputError
-from spectral_fit.geometry import _raster as raster
 from spectral_fit.io import translate
 from spectral_fit.rendering import plan_capacities
 

@@ -224,7 +224,7 @@ def visible_clusters(clusters: TriangleClusters, model: jax.Array, view: jax.Arr
         cluster C in slots past ``count``), count the kept clusters (int32; more than the
         capacity means the list overflowed and clusters past it are missing).
     """
-    from ._raster import compact_flags
+    from ._pixels import compact_flags
 
     if cull not in ("back", "front"):
         raise ValueError(f"cull must be 'back' or 'front', got {cull!r}")
@@ -303,7 +303,7 @@ def sized(clusters: TriangleClusters, needed: float, *, at_least: int = 0) -> Tr
     """``clusters`` with a kept list of the capacity-ladder value ≥ ``needed``
     (:func:`spectral_fit.geometry` ladder), at least ``at_least``, at most all C clusters; the
     same object when that is its capacity already."""
-    from ._raster import capacity_ladder
+    from ._raster_plan import capacity_ladder
 
     cap = min(clusters.num_clusters, max(int(at_least), capacity_ladder(needed)))
     return clusters if cap == clusters.capacity else dataclasses.replace(clusters, capacity=cap)

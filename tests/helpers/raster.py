@@ -8,8 +8,8 @@ import contextlib
 import jax
 import numpy as np
 
-from spectral_fit.geometry import _raster as raster
-from spectral_fit.geometry import perspective_camera, project
+from spectral_fit import geometry as raster
+from spectral_fit.geometry import _raster_setup, perspective_camera, project
 from spectral_fit.io import concat_meshes, translate, uv_sphere
 
 SMALL = (32, 64)  # (H, W) of the frames compared with the brute-force reference
@@ -118,10 +118,10 @@ def count_compilations():
 
 @jax.jit
 def _coverage_counts_jit(clip, tris, valid_mask, h_iota, w_iota):
-    data = raster._triangle_setup(clip, tris, (h_iota.shape[0], w_iota.shape[0]), "none")
+    data = _raster_setup._triangle_setup(clip, tris, (h_iota.shape[0], w_iota.shape[0]), "none")
     px = w_iota[None, :] + 0.5
     py = h_iota[:, None] + 0.5
-    inside, _ = raster._cover(data, px, py)  # (T, H, W)
+    inside, _ = _raster_setup._cover(data, px, py)  # (T, H, W)
     inside &= (data[:, 15] > 0)[:, None, None] & valid_mask[:, None, None]
     return inside
 

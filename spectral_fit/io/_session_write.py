@@ -1,0 +1,148 @@
+"""Writing a measurement session folder in the documented format (``docs/measurements.md``):
+the TOML manifest and one CSV spectrum file per reading, repeat, dark reading and reflectance
+(wavelength in nm, then one value column per spectrum, with a ``# unit:`` line).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["write_session"]
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    if isinstance(v, float | np.floating):
+        return repr(float(v))
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, list | tuple | np.ndarray):
+        return "[" + ", ".join(_toml_value(x) for x in list(np.asarray(v).tolist()
+                                                          if isinstance(v, np.ndarray) else v)
+                               ) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _spectrum_text(wl: np.ndarray, values: np.ndarray, unit: str, comment: str = "") -> str:
+    values = np.atleast_2d(np.asarray(values, np.float64))
+    head = [f"# {line}" for line in comment.splitlines() if line] + [f"# unit: {unit}"]
+    cols = ["wavelength_nm"] + (["value"] if values.shape[0] == 1 else
+                                [f"value_{k + 1}" for k in range(values.shape[0])])
+    rows = [",".join(cols)]
+    for j, w in enumerate(wl):
+        rows.append(",".join([f"{w:g}"] + [f"{v:.12g}" for v in values[:, j]]))
+    return "\n".join(head + rows) + "\n"
+
+
+def write_session(
+    folder: str | os.PathLike[str],
+    *,
+    scene: str,
+    wavelengths: Any,
+    readings: list[dict[str, Any]],
+    instrument: dict[str, Any] | None = None,
+    white: dict[str, Any] | None = None,
+    dark: Any = None,
+    objects: dict[str, dict[str, Any]] | None = None,
+    calibration: dict[str, Any] | None = None,
+    noise: dict[str, float] | None = None,
+    notes: str = "",
+    units: str = "W.sr^-1.m^-2.nm^-1",
+) -> Path:
+    """Write a session folder in the documented format (``docs/measurements.md``).
+
+    Args:
+        scene: the scene config's path as written into the manifest (relative to ``folder``).
+        wavelengths: (L,) grid of every spectrum given here.
+        readings: dicts with ``id``, ``object``, ``aim`` (3,), ``spectra`` (M, L) radiance (one
+            file per repeat), and optional ``kind``, ``position``, ``field_angle_deg``,
+            ``distance_m``.
+        instrument: optional ``position`` and ``field_angle_deg`` defaults.
+        white: optional ``reflectance`` (number or (L,)), ``position``, ``normal``,
+            ``spectra`` (M, L).
+        dark: optional (M, L) dark readings.
+        objects: optional per object ``reflectance`` (L,), ``geometry``, ``free``, ``start``.
+
+    Returns:
+        the manifest's path. Files are written atomically.
+    """
+    from .._runtime.fileio import atomic_write_text
+
+    root = Path(folder)
+    wl = np.asarray(wavelengths, np.float64)
+    out = ["# Spectroradiometer session (format: docs/measurements.md)", "", "[session]",
+           "format = 1", f"scene = {_toml_value(scene)}", f"units = {_toml_value(units)}"]
+    if notes:
+        out.append(f"notes = {_toml_value(notes)}")
+    if instrument:
+        out += ["", "[instrument]"] + [f"{k} = {_toml_value(v)}" for k, v in instrument.items()]
+    if calibration:
+        out += ["", "[calibration]"] + [f"{k} = {_toml_value(v)}"
+                                        for k, v in calibration.items()]
+    if noise:
+        out += ["", "[noise]"] + [f"{k} = {_toml_value(v)}" for k, v in noise.items()]
+    if dark is not None:
+        d = np.atleast_2d(dark)
+        names = []
+        for k, row in enumerate(d):
+            name = f"dark/dark_{k + 1}.csv"
+            atomic_write_text(root / name, _spectrum_text(wl, row, units, "dark reading"))
+            names.append(name)
+        out += ["", "[dark]", f"readings = {_toml_value(names)}"]
+    if white:
+        out += ["", "[white_standard]"]
+        refl = white["reflectance"]
+        if np.ndim(refl) == 0:
+            out.append(f"reflectance = {_toml_value(float(refl))}")
+        else:
+            atomic_write_text(root / "white" / "reflectance.csv",
+                              _spectrum_text(wl, refl, "1", "white standard reflectance"))
+            out.append('reflectance = "white/reflectance.csv"')
+        out.append(f"position = {_toml_value(list(map(float, white['position'])))}")
+        out.append(f"normal = {_toml_value(list(map(float, white['normal'])))}")
+        names = []
+        for k, row in enumerate(np.atleast_2d(white["spectra"])):
+            name = f"white/white_{k + 1}.csv"
+            atomic_write_text(root / name, _spectrum_text(wl, row, units, "white standard"))
+            names.append(name)
+        out.append(f"readings = {_toml_value(names)}")
+    for name, spec in (objects or {}).items():
+        out += ["", f"[objects.{name}]"]
+        for k, v in spec.items():
+            if k == "reflectance":
+                fn = f"reflectance/{name}.csv"
+                atomic_write_text(root / fn, _spectrum_text(
+                    wl, v, "1", f"{name}: spectrophotometer reflectance "
+                    f"({spec.get('geometry', 'SCE')})"))
+                out.append(f'reflectance = "{fn}"')
+            else:
+                out.append(f"{k} = {_toml_value(v)}")
+    for r in readings:
+        out += ["", "[[readings]]"]
+        files = []
+        for k, row in enumerate(np.atleast_2d(r["spectra"])):
+            fn = f"readings/{r['id']}_{k + 1}.csv"
+            atomic_write_text(root / fn, _spectrum_text(wl, row, units, f"reading {r['id']}"))
+            files.append(fn)
+        for k in ("id", "object", "kind"):
+            if k in r:
+                out.append(f"{k} = {_toml_value(r[k])}")
+        out.append(f"files = {_toml_value(files)}")
+        for k in ("aim", "position"):
+            if k in r:
+                out.append(f"{k} = {_toml_value([float(x) for x in r[k]])}")
+        for k in ("field_angle_deg", "distance_m"):
+            if k in r:
+                out.append(f"{k} = {_toml_value(float(r[k]))}")
+    manifest = root / "session.toml"
+    atomic_write_text(manifest, "\n".join(out) + "\n")
+    return manifest

@@ -1,0 +1,54 @@
+"""The live step program: one jitted step that renders the covered pixels of the traced poses
+(shaded straight into the video camera's linear RGB), encodes them and writes them into the
+(H, W, 3) uint8 background frame, with the buffer statistics the session re-plans from.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import numpy as np
+
+from .._runtime.dispatch import array_jit
+from ._compositing import CameraModel, composite_pixels
+
+__all__ = ["STEP_TRACES", "camera_output_matrix", "live_step"]
+
+#: number of times the live step has been traced (compiled), for tests and reports
+STEP_TRACES = {"step": 0}
+
+
+def camera_output_matrix(prep: Any, camera: CameraModel) -> np.ndarray:
+    """(C, 3) map from ``prep``'s radiance channels to the video camera's linear RGB: through
+    the camera's spectral sensitivities (a model with them) or through XYZ and its 3 × 3
+    (for :func:`~spectral_fit.rendering.with_output`)."""
+    if camera.has_spectral:
+        return np.asarray(prep.to_spectrum) @ np.asarray(camera.spectral_weights)
+    return np.asarray(prep.to_xyz) @ np.asarray(camera.xyz_matrix).T
+
+
+def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
+               visible: jax.Array, background: jax.Array, camera: CameraModel,
+               mirror: bool = True, senders: Any = None
+               ) -> tuple[jax.Array, dict[str, jax.Array]]:
+    from ..rendering import render_pixels
+
+    STEP_TRACES["step"] += 1
+    # only the covered pixels are shaded (in the camera's linear RGB: prep's output matrix),
+    # encoded and written into the video frame: no environment background, no full-frame
+    # display encoding, no decoding of the video
+    px = render_pixels(prep, materials, model=model, view=view, visible=visible,
+                       mirror=mirror, senders=senders)
+    out = composite_pixels(background, px.values, px.index, px.valid, camera)
+    stats = {"covered_pixels": px.stats["covered_pixels"],
+             "overflow": px.stats["pixel_overflow"] | px.stats["raster_overflow"],
+             "interreflection_overflow": px.stats["interreflection_overflow"],
+             "object_counts": px.stats["object_counts"],
+             "raster_needed": px.stats["raster_needed"],
+             "clusters_needed": px.stats["clusters_needed"],
+             "object_id": px.object_id}
+    return out, stats
+
+
+live_step = array_jit(_step_impl)
