@@ -22,6 +22,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from ._manifest import _line_of
 from ._noise import NoiseModel
+from ._scene import Scene
 
 __all__ = [
     "PARAMETERS",
@@ -114,7 +115,7 @@ class Session:
 
     path: Path  # the manifest
     scene_path: Path | None
-    scene: Any  # spectral_fit.io.Scene
+    scene: Scene | None  # the scene the session's objects name
     wavelengths: np.ndarray
     units: str
     instrument: str

@@ -27,6 +27,7 @@ from .._runtime.errors import InputError
 from .._runtime.fileio import read_text
 from ._manifest import _Ctx, _toml_lines
 from ._noise import NoiseModel, estimate_noise
+from ._scene import Scene
 from ._session import (
     CALIBRATION_MODES,
     DEFAULT_FREE,
@@ -42,7 +43,7 @@ from ._spectrum_files import RADIANCE_UNITS, _read_spectra, _reflectance_value
 __all__ = ["load_session", "parse_session"]
 
 
-def load_session(path: str | os.PathLike[str], *, scene: Any = None) -> Session:
+def load_session(path: str | os.PathLike[str], *, scene: Scene | None = None) -> Session:
     """Read and validate a measurement session (stable API ``load_session``).
 
     Args:
@@ -71,7 +72,7 @@ def load_session(path: str | os.PathLike[str], *, scene: Any = None) -> Session:
 
 
 def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: str = "",
-                  scene: Any = None) -> Session:
+                  scene: Scene | None = None) -> Session:
     """Validate a parsed manifest (a dict as from ``tomllib``); see :func:`load_session`."""
     p = Path(path)
     base = p.parent

@@ -9,12 +9,15 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
 
 from .._runtime.errors import InputError
+
+if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
+    from ..rendering import Prepared
 
 __all__ = ["FrameTimings", "FramesInFlight", "RunStats", "pipeline_pays"]
 
@@ -98,7 +101,7 @@ class _Pending:
     out: Any
     stats: dict[str, Any]
     times: tuple[float, float, float]
-    prep: Any = None  # the session's prepared scene when it was dispatched
+    prep: Prepared | None = None  # the session's prepared scene when it was dispatched
 
 
 class FramesInFlight:

@@ -6,11 +6,14 @@ scene changed; otherwise the frame reuses it (copied to another device once).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ._devices import put_on_device
+
+if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
+    from ..rendering import Prepared
 
 __all__ = ["SendersReuse"]
 
@@ -54,7 +57,7 @@ class SendersReuse:
         return self._senders[dev]
 
 
-def _object_corners(prep: Any) -> np.ndarray:
+def _object_corners(prep: Prepared) -> np.ndarray:
     """(O, 8, 4) homogeneous corners of each object's bounding box in its own frame."""
     v = np.asarray(prep.vertices, np.float64)
     out = []

@@ -40,7 +40,7 @@ import dataclasses
 import functools
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -55,6 +55,9 @@ from ._grow_ahead import GrowAhead, _pixel_slots
 from ._scene_camera import scene_camera_model, scene_intrinsics
 from ._senders_reuse import SendersReuse, _object_corners
 from ._step import camera_output_matrix, live_step
+
+if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
+    from ..rendering import Prepared
 
 __all__ = ["LiveSession"]
 
@@ -363,7 +366,7 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
                      self._senders_for(poses, inputs, dev))
 
 
-def _planned_clusters(prep: Any, poses: Any, headroom: float) -> Any:
+def _planned_clusters(prep: Prepared, poses: Any, headroom: float) -> Any:
     """``prep.clusters`` with its kept list grown to ``headroom`` × the clusters kept at
     ``poses`` (never shrunk; the same object when unchanged, None without clusters)."""
     from ..geometry import count_clusters, sized

@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
@@ -13,13 +13,17 @@ import numpy as np
 from .._runtime.dispatch import array_jit
 from ._compositing import CameraModel, composite_pixels
 
+if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
+    from ..lighting import Material
+    from ..rendering import Prepared
+
 __all__ = ["STEP_TRACES", "camera_output_matrix", "live_step"]
 
 #: number of times the live step has been traced (compiled), for tests and reports
 STEP_TRACES = {"step": 0}
 
 
-def camera_output_matrix(prep: Any, camera: CameraModel) -> np.ndarray:
+def camera_output_matrix(prep: Prepared, camera: CameraModel) -> np.ndarray:
     """(C, 3) map from ``prep``'s radiance channels to the video camera's linear RGB: through
     the camera's spectral sensitivities (a model with them) or through XYZ and its 3 × 3
     (for :func:`~spectral_fit.rendering.with_output`)."""
@@ -28,7 +32,7 @@ def camera_output_matrix(prep: Any, camera: CameraModel) -> np.ndarray:
     return np.asarray(prep.to_xyz) @ np.asarray(camera.xyz_matrix).T
 
 
-def _step_impl(prep: Any, materials: Any, model: jax.Array, view: jax.Array,
+def _step_impl(prep: Prepared, materials: Material, model: jax.Array, view: jax.Array,
                visible: jax.Array, background: jax.Array, camera: CameraModel,
                mirror: bool = True, senders: Any = None
                ) -> tuple[jax.Array, dict[str, jax.Array]]:

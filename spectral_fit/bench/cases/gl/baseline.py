@@ -35,12 +35,15 @@ import functools
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ...._runtime.errors import InputError, SpectralFitError
 from . import shaders
+
+if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
+    from ....rendering import Prepared
 
 __all__ = ["GLUnavailable", "BaselineInputs", "baseline_inputs", "create_context", "GLBaseline",
            "MAX_SENDERS"]
@@ -207,7 +210,7 @@ def _pairs(n: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(n) for j in range(n) if j != i]
 
 
-def baseline_inputs(prep: Any) -> BaselineInputs:
+def baseline_inputs(prep: Prepared) -> BaselineInputs:
     """The baseline's inputs from a prepared scene (:func:`~spectral_fit.rendering.prepare`,
     spectral bands, quality "fast", irradiance map): the same precomputed environment,
     materials, meshes, cameras and display as the JAX frame of that ``prep``.
