@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 from helpers.rendering import write_scene
 
+from spectral_fit import rendering
 from spectral_fit._runtime import backend
 from spectral_fit._runtime.errors import InputError
 from spectral_fit.geometry import _prefix as prefix
 from spectral_fit.geometry import _raster_setup as raster_setup
-from spectral_fit.rendering import _renderer as renderer
+from spectral_fit.rendering import _shading as shading
 
 # the interreflection's modules that look up the layout and the chunk sizes
 ir_atlas = importlib.import_module("spectral_fit.rendering.interreflection._atlas")
@@ -41,7 +42,7 @@ def test_layout_variable(monkeypatch):
 @pytest.fixture(scope="module")
 def prep(scene_folder):
     # gather interreflection, two colours, a mirror term: every layout-dependent path runs
-    return renderer.prepare(write_scene(scene_folder, mode="gather", same_colour=False,
+    return rendering.prepare(write_scene(scene_folder, mode="gather", same_colour=False,
                                         chi=0.3))
 
 
@@ -57,7 +58,7 @@ def _with_layout(monkeypatch, accelerator: bool, fn):
     monkeypatch.setattr(ir_gloss, "_GLOSS_MIN_CHUNK", 128)
     # and its per-receiver terms in chunks of valid receivers (_receive_valid_first)
     monkeypatch.setattr(ir_gather, "_RECEIVER_CHUNK", 256)
-    monkeypatch.setattr(renderer, "on_accelerator", layout)
+    monkeypatch.setattr(shading, "on_accelerator", layout)
     monkeypatch.setattr(raster_setup, "on_accelerator", layout)
     monkeypatch.setattr(prefix, "on_accelerator", layout)
     for module in (ir_atlas, ir_gather, ir_gloss):
@@ -80,9 +81,9 @@ def test_accelerator_layout_renders_the_cpu_layout_frame(prep, monkeypatch):
         return valid_first(*a, **k)
 
     monkeypatch.setattr(ir_gather, "_receive_valid_first", counted)
-    cpu, n_cpu = _with_layout(monkeypatch, False, lambda: renderer.render_frame(prep))
+    cpu, n_cpu = _with_layout(monkeypatch, False, lambda: rendering.render_frame(prep))
     assert len(calls) == 1
-    acc, n_acc = _with_layout(monkeypatch, True, lambda: renderer.render_frame(prep))
+    acc, n_acc = _with_layout(monkeypatch, True, lambda: rendering.render_frame(prep))
     assert len(calls) == 1
     assert n_cpu > 0 and n_acc > 0  # both traced, each with its layout
     assert sum(prep.pixel_capacity) >= 2 * 128  # the CPU layout's gloss ran in chunks
@@ -102,7 +103,7 @@ def test_accelerator_layout_gradients_match_the_cpu_layout(prep, monkeypatch):
                       jnp.float32)
 
     def grad():
-        return jax.grad(lambda m: jnp.sum(renderer.render_frame(prep, m).xyz * wgt))(mats)
+        return jax.grad(lambda m: jnp.sum(rendering.render_frame(prep, m).xyz * wgt))(mats)
 
     g_cpu, _ = _with_layout(monkeypatch, False, grad)
     g_acc, _ = _with_layout(monkeypatch, True, grad)
@@ -115,9 +116,9 @@ def test_accelerator_layout_gradients_match_the_cpu_layout(prep, monkeypatch):
 def test_default_visibility_is_concrete_when_first_made_inside_a_trace():
     """The cached all-visible default of render_frame/render_pixels (called inside a caller's
     jit by the live step) must be an array, not the tracer of the first trace."""
-    renderer.all_visible.cache_clear()
-    inside = jax.jit(lambda: renderer.all_visible(3) & True)()
-    outside = renderer.all_visible(3)
+    rendering.all_visible.cache_clear()
+    inside = jax.jit(lambda: rendering.all_visible(3) & True)()
+    outside = rendering.all_visible(3)
     assert not isinstance(outside, jax.core.Tracer)
     np.testing.assert_array_equal(np.asarray(outside), [True, True, True])
     np.testing.assert_array_equal(np.asarray(inside), np.asarray(outside))

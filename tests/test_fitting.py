@@ -460,7 +460,7 @@ def test_bundled_session_recovery_targets():
 
 def test_report_render_is_the_fitted_scene_rendered(tmp_path, monkeypatch):
     """The report's render.png: the config's scene prepared once (kept on disk) and its
-    frame program run with the fitted parameters, the same picture as ``renderer.render``
+    frame program run with the fitted parameters, the same picture as ``rendering.render``
     of the scene with the fitted parameters written into its materials; a second report
     of the same scene loads the prepared scene instead of preparing it."""
     import dataclasses
@@ -474,7 +474,7 @@ def test_report_render_is_the_fitted_scene_rendered(tmp_path, monkeypatch):
     from spectral_fit.fitting import _report as report
     from spectral_fit.io import PARAMETERS
     from spectral_fit.rendering import _cache as startup
-    from spectral_fit.rendering import _renderer as renderer
+    from spectral_fit.rendering import render
 
     monkeypatch.setenv("SPECTRAL_FIT_CACHE", str(tmp_path / "cache"))
     env = symmetric_environment(tmp_path / "env.exr")
@@ -490,8 +490,8 @@ def test_report_render_is_the_fitted_scene_rendered(tmp_path, monkeypatch):
         dataclasses.replace(o, material=dataclasses.replace(
             o.material, **{k: params[o.name][k] for k in PARAMETERS}))
         for o in scene.objects))
-    save_png(tmp_path / "b.png", np.asarray(renderer.render(fitted).rgb))
-    save_png(tmp_path / "c.png", np.asarray(renderer.render(scene).rgb))
+    save_png(tmp_path / "b.png", np.asarray(render(fitted).rgb))
+    save_png(tmp_path / "c.png", np.asarray(render(scene).rgb))
     a, b, c = (np.asarray(Image.open(tmp_path / f"{x}.png")).astype(int) for x in "abc")
     assert np.abs(a - b).max() <= 1  # float rounding of two programs at most
     assert np.abs(a - c).max() > 20  # the fitted parameters, not the config's

@@ -735,7 +735,7 @@ def test_generic_pass1_capacities_hold_for_coarse_and_fine_meshes(kind):
     triangles: many 16×16 windows each) and of a finer UV sphere needs along random
     directions (the rasteriser's own overflow flag), and the renderer's fallback is it."""
     from spectral_fit.io import icosphere, uv_sphere
-    from spectral_fit.rendering._renderer import _ir_generic_config
+    from spectral_fit.rendering._capacities import _ir_generic_config
     from spectral_fit.rendering.interreflection import pass1_config, prepare_interreflection
     from spectral_fit.rendering.interreflection._pass1 import SUPERSAMPLE
 
@@ -757,7 +757,7 @@ def test_generic_pass1_capacities_hold_for_coarse_and_fine_meshes(kind):
 
 def test_pass1_sphere_tessellated_for_its_raster():
     """Gather mode's pass 1 rasterises an analytic sphere tessellated for its 64² raster
-    (renderer._ir_mesh: the paper's 100 × 100 UV sphere → 64 slices × 32 stacks, 19,800 →
+    (rendering._prepare._ir_mesh: the paper's 100 × 100 UV sphere → 64 slices × 32 stacks, 19,800 →
     3,968 triangles): in random poses its samples agree with the full mesh's to well below
     a pass-1 texel (coverage of every sample within one of its 16 supersamples, positions
     within 0.6 % of r, normals within 0.3°, the sender's summed area within 2.5 %: the
@@ -767,7 +767,7 @@ def test_pass1_sphere_tessellated_for_its_raster():
     from types import SimpleNamespace
 
     from spectral_fit.io import uv_sphere
-    from spectral_fit.rendering._renderer import _ir_mesh
+    from spectral_fit.rendering._prepare import _ir_mesh
     from spectral_fit.rendering.interreflection import plan_gather_pass1, prepare_interreflection
 
     full = uv_sphere(R, 100, 100)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("spectral_fit.rendering._renderer")
+pytest.importorskip("spectral_fit.rendering._frame")
 
 import jax.numpy as jnp
 

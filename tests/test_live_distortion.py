@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.rendering._renderer")
+pytest.importorskip("spectral_fit.rendering._frame")
 
 from helpers.live import K, scene_dict, table
 

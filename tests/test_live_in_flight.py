@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.rendering._renderer")
+pytest.importorskip("spectral_fit.rendering._frame")
 
 from helpers import ROOT, subprocess_env
 

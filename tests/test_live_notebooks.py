@@ -10,7 +10,7 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipywidgets")
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.rendering._renderer")
+pytest.importorskip("spectral_fit.rendering._frame")
 
 
 def _run(name: str) -> nbformat.NotebookNode:

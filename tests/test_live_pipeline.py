@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cv2")
-pytest.importorskip("spectral_fit.rendering._renderer")
+pytest.importorskip("spectral_fit.rendering._frame")
 
 from helpers.live import DIST, KS, SMALL_SIZE, K, scene_dict, small_frame, small_scene
 from skimage import data

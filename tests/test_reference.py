@@ -343,7 +343,7 @@ def test_intrinsics_camera_rays_match_mitsuba_and_our_projection():
     through film points equal our camera rays, and our renderer's projection of points on those
     rays lands on the same pixel coordinates."""
     from spectral_fit.geometry import _camera as camera
-    from spectral_fit.rendering._renderer import _projection
+    from spectral_fit.rendering._camera import _projection
     from spectral_fit.validation.reference.export import scene_dict
     from spectral_fit.validation.reference.render import camera_rays
 

@@ -250,7 +250,8 @@ def test_chunked_xyz_shading_matches_the_band_shading(prep):
     import equinox as eqx
 
     from spectral_fit.geometry import GBuffer
-    from spectral_fit.rendering._renderer import _as_stacked, _shade_fast, _shade_out
+    from spectral_fit.rendering._materials import _as_stacked
+    from spectral_fit.rendering._shading import _shade_fast, _shade_out
 
     cap, counts = 8192, (3000, 5000)
     p = dataclasses.replace(prep, pixel_capacity=(cap, cap))
@@ -286,7 +287,7 @@ def test_object_pixel_lists_match_covered_pixels_per_object():
     raster.covered_pixels of each object's part of the raster, concatenated, on a random
     object image with three objects, one of them overflowing its capacity."""
     from spectral_fit.geometry import Raster, covered_pixels
-    from spectral_fit.rendering._renderer import _object_pixel_lists
+    from spectral_fit.rendering._pixels import _object_pixel_lists
 
     rng = np.random.default_rng(11)
     h, w = 37, 53
@@ -548,11 +549,13 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder)
 def test_frame_stages_are_named_for_profilers(scene_folder):
     """The frame program's operations carry the stage names that docs/rendering.md lists for
     reading profiler traces (jax.named_scope: they appear in the HLO op names)."""
-    from spectral_fit.rendering import _renderer as renderer
+    from spectral_fit.rendering import prepare
+    from spectral_fit.rendering._frame import _render_jit
+    from spectral_fit.rendering._inputs import _check_frame_inputs
 
-    p = renderer.prepare(write_scene(scene_folder, mode="gather"))
-    args = renderer._check_frame_inputs(p, None, None, None, None)
-    text = renderer._render_jit.lower(p, *args, False, True, False).as_text(debug_info=True)
+    p = prepare(write_scene(scene_folder, mode="gather"))
+    args = _check_frame_inputs(p, None, None, None, None)
+    text = _render_jit.lower(p, *args, False, True, False).as_text(debug_info=True)
     for stage in ("raster", "pixel_lists", "shading", "ir_pass1", "ir_sample_shading",
                   "ir_atlas", "ir_sample_transfer", "ir_receiver_diffuse", "ir_receiver_gloss",
                   "background", "display"):
@@ -565,7 +568,7 @@ def test_camera_culls_back_faces_of_closed_meshes_without_changing_a_pixel(prep,
     capacities planned for it) gives the identical triangle ids, and so the frame's mask and
     object ids."""
     from spectral_fit.geometry import plan_config, rasterize
-    from spectral_fit.rendering._renderer import _to_world
+    from spectral_fit.rendering._camera import _to_world
 
     assert prep.cull == "back"
     world = _to_world(prep.vertices, prep.vertex_object, prep.model)

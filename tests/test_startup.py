@@ -18,9 +18,10 @@ import pytest
 from helpers import ANCHOR_ENV, ROOT
 from helpers.rendering import scene_toml
 
+from spectral_fit import rendering
 from spectral_fit._runtime import process
 from spectral_fit._runtime.errors import InputError
-from spectral_fit.rendering import _cache as startup
+from spectral_fit.rendering import _executables, _keys, _program_cache
 
 
 def _small_env(path: Path, scale: float = 1.0) -> Path:
@@ -39,7 +40,7 @@ def _fresh_programs(monkeypatch):
     """Each test starts without this process's in-memory programs: with several tests of one
     config on one worker, a later test's first ``render_frame_cached`` was otherwise a memory
     hit of an earlier test's program (its cache folder never consulted, its miss counts off)."""
-    monkeypatch.setattr(startup, "_PROGRAMS", {})
+    monkeypatch.setattr(_program_cache, "_PROGRAMS", {})
 
 
 @pytest.fixture(scope="module")
@@ -70,19 +71,19 @@ def _env(cache: Path) -> dict[str, str]:
 def test_prepare_cached_hits_and_matches_prepare(config, tmp_path):
     from spectral_fit.rendering import prepare
 
-    before = dict(startup.CACHE_STATS)
+    before = dict(rendering.CACHE_STATS)
     said: list[str] = []
-    a = startup.prepare_cached(config, cache_dir=tmp_path, mode="none", progress=said.append)
+    a = rendering.prepare_cached(config, cache_dir=tmp_path, mode="none", progress=said.append)
     assert len(said) == 1 and "preparing the scene" in said[0]  # a miss says so
-    b = startup.prepare_cached(config, cache_dir=tmp_path, mode="none", progress=said.append)
+    b = rendering.prepare_cached(config, cache_dir=tmp_path, mode="none", progress=said.append)
     assert len(said) == 1  # a hit is quick and quiet
-    assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 1
-    assert startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
+    assert rendering.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 1
+    assert rendering.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
     ref = prepare(config, mode="none")
     assert _leaves_equal(a, ref) and _leaves_equal(b, ref)
     # another option value is another entry
-    startup.prepare_cached(config, cache_dir=tmp_path, mode="none", size=(20, 16))
-    assert startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 2
+    rendering.prepare_cached(config, cache_dir=tmp_path, mode="none", size=(20, 16))
+    assert rendering.CACHE_STATS["prepared_miss"] - before["prepared_miss"] == 2
     assert len(list((tmp_path / "prepared").glob("*.pkl"))) == 2
 
 
@@ -91,18 +92,18 @@ def test_prepare_cached_invalidated_by_a_named_file(tmp_path):
     cfg = tmp_path / "scene.toml"
     cfg.write_text(scene_toml(env, stacks=6, width=24, height=16))
     cache = tmp_path / "cache"
-    a = startup.prepare_cached(cfg, cache_dir=cache, mode="none")
+    a = rendering.prepare_cached(cfg, cache_dir=cache, mode="none")
     _small_env(env, scale=2.0)  # same path and size, new content and modification time
-    misses = startup.CACHE_STATS["prepared_miss"]
-    b = startup.prepare_cached(cfg, cache_dir=cache, mode="none")
-    assert startup.CACHE_STATS["prepared_miss"] == misses + 1
+    misses = rendering.CACHE_STATS["prepared_miss"]
+    b = rendering.prepare_cached(cfg, cache_dir=cache, mode="none")
+    assert rendering.CACHE_STATS["prepared_miss"] == misses + 1
     np.testing.assert_allclose(np.asarray(b.env.texels), 2.0 * np.asarray(a.env.texels),
                                rtol=1e-6)
     # a damaged entry is recomputed, not loaded
     for p in (cache / "prepared").glob("*.pkl"):
         p.write_bytes(b"not a pickle")
-    c = startup.prepare_cached(cfg, cache_dir=cache, mode="none")
-    assert startup.CACHE_STATS["prepared_miss"] == misses + 2
+    c = rendering.prepare_cached(cfg, cache_dir=cache, mode="none")
+    assert rendering.CACHE_STATS["prepared_miss"] == misses + 2
     assert _leaves_equal(b, c)
 
 
@@ -118,17 +119,17 @@ def test_prepare_cached_keys_a_scene_object_by_its_values(config, tmp_path):
     scene = load_scene(config)
     moved = scene.replace(objects=(dataclasses.replace(
         scene.objects[0], position=(0.01, 0.0, -0.3)), *scene.objects[1:]))
-    before = dict(startup.CACHE_STATS)
+    before = dict(rendering.CACHE_STATS)
 
     def cached(sc: Any) -> Any:
-        return startup.prepare_cached(sc, cache_dir=tmp_path, mode="none")
+        return rendering.prepare_cached(sc, cache_dir=tmp_path, mode="none")
 
     def misses() -> int:
-        return startup.CACHE_STATS["prepared_miss"] - before["prepared_miss"]
+        return rendering.CACHE_STATS["prepared_miss"] - before["prepared_miss"]
 
     a = cached(moved)
     b = cached(dataclasses.replace(moved))  # an equal scene, another object
-    assert misses() == 1 and startup.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
+    assert misses() == 1 and rendering.CACHE_STATS["prepared_hit"] - before["prepared_hit"] == 1
     assert _leaves_equal(a, prepare(moved, mode="none")) and _leaves_equal(a, b)
     assert not _leaves_equal(a, cached(scene))  # the object where the config has it
     assert misses() == 2
@@ -149,17 +150,17 @@ def test_prepare_cached_keys_a_scene_object_by_its_values(config, tmp_path):
 def test_prepare_cached_bypasses_what_it_cannot_key(config, tmp_path, monkeypatch):
     from spectral_fit.io import load_scene, read_spectral_exr
 
-    before = dict(startup.CACHE_STATS)
+    before = dict(rendering.CACHE_STATS)
     # an option that is not a plain value: an environment given as an array
     texels = read_spectral_exr(load_scene(config).environment.file)[1]
-    startup.prepare_cached(config, cache_dir=tmp_path, mode="none", environment=texels)
+    rendering.prepare_cached(config, cache_dir=tmp_path, mode="none", environment=texels)
     monkeypatch.setenv("SPECTRAL_FIT_CACHE", "")
-    assert startup.cache_root() is None
-    startup.prepare_cached(config, mode="none")
-    assert startup.CACHE_STATS == before
+    assert rendering.cache_root() is None
+    rendering.prepare_cached(config, mode="none")
+    assert rendering.CACHE_STATS == before
     assert not (tmp_path / "prepared").exists()
     with pytest.raises(InputError) as e:
-        startup.prepare_cached(config, cache_dir=tmp_path, mode="bogus")
+        rendering.prepare_cached(config, cache_dir=tmp_path, mode="bogus")
     assert e.value.field == "mode"
 
 
@@ -172,30 +173,30 @@ def test_program_key_ignores_numpy_print_options():
                 white_xy=np.array([0.3127, 0.329]))
     tree = (d, jnp.ones(3))
     leaves, td = jax.tree_util.tree_flatten(tree)
-    k0 = startup._program_key(td, leaves, False, None)
+    k0 = _keys._program_key(td, leaves, False, None)
     with np.printoptions(legacy="1.13", precision=3):
-        assert startup._program_key(td, leaves, False, None) == k0
-    assert startup._program_key(td, leaves, True, None) != k0
-    assert startup._program_key(td, leaves, False, None, background=False) != k0
-    assert startup._program_key(td, [jnp.ones(4)], False, None) != k0
+        assert _keys._program_key(td, leaves, False, None) == k0
+    assert _keys._program_key(td, leaves, True, None) != k0
+    assert _keys._program_key(td, leaves, False, None, background=False) != k0
+    assert _keys._program_key(td, [jnp.ones(4)], False, None) != k0
 
 
 _PROGRAM = """
 import json, sys
 import jax.numpy as jnp
 import numpy as np
-from spectral_fit.rendering import _cache as startup
+from spectral_fit.rendering import _executables, _program_cache
 
 def fn(arr):
     (m,) = arr
     return {"inv": jnp.linalg.inv(m), "sum": jnp.sum(m)}
 
 m = jnp.asarray(np.array([[4.0, 1.0, 0.5], [0.0, 3.0, 1.0], [1.0, 0.0, 2.0]], np.float32))
-folder = startup._programs_folder(sys.argv[1])
-c = startup._load_entry(folder, "k")
+folder = _program_cache._programs_folder(sys.argv[1])
+c = _executables._load_entry(folder, "k")
 stats = {"program_hit": int(c is not None), "program_miss": int(c is None)}
 if c is None:
-    c = startup._compile("k", fn, [m], None, folder)
+    c = _executables._compile("k", fn, [m], None, folder)
 out = c([m])
 print(json.dumps({"inv": np.asarray(out["inv"]).tolist(), "stats": stats}))
 """
@@ -237,20 +238,20 @@ def test_program_loads_in_a_fresh_process(tmp_path):
 
 
 def test_programs_with_unknown_kernels_are_not_loaded():
-    assert startup._prepare_custom_calls([]) is True
-    assert startup._prepare_custom_calls(["lapack_sgetrf_ffi"]) is True
-    assert startup._prepare_custom_calls(["lapack_sgetrf_ffi", "ducc_fft"]) is False
-    assert startup._prepare_custom_calls(None) is False
+    assert _executables._prepare_custom_calls([]) is True
+    assert _executables._prepare_custom_calls(["lapack_sgetrf_ffi"]) is True
+    assert _executables._prepare_custom_calls(["lapack_sgetrf_ffi", "ducc_fft"]) is False
+    assert _executables._prepare_custom_calls(None) is False
 
 
 _FRAME = """
 import sys
 import numpy as np
-from spectral_fit.rendering import _cache as startup
-prep = startup.prepare_cached(sys.argv[1], mode="none")
-f = startup.render_frame_cached(prep)
+from spectral_fit import rendering
+prep = rendering.prepare_cached(sys.argv[1], mode="none")
+f = rendering.render_frame_cached(prep)
 np.save(sys.argv[2], np.asarray(f.xyz))
-print(startup.CACHE_STATS)
+print(rendering.CACHE_STATS)
 """
 
 
@@ -275,12 +276,12 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     from spectral_fit.rendering import render_frame
 
     cache = tmp_path / "cache"
-    prep = startup.prepare_cached(config, cache_dir=cache, mode="none")
+    prep = rendering.prepare_cached(config, cache_dir=cache, mode="none")
     ref = render_frame(prep)
-    misses = startup.CACHE_STATS["program_miss"]
+    misses = rendering.CACHE_STATS["program_miss"]
     said: list[str] = []
-    got = startup.render_frame_cached(prep, cache_dir=cache, progress=said.append)
-    assert startup.CACHE_STATS["program_miss"] == misses + 1
+    got = rendering.render_frame_cached(prep, cache_dir=cache, progress=said.append)
+    assert rendering.CACHE_STATS["program_miss"] == misses + 1
     assert len(said) == 1 and said[0].startswith("compiling the frame program"), said
     assert int(ref.stats["covered_pixels"]) > 20
     for name in ("xyz", "rgb", "linear_rgb", "mask", "object_id"):
@@ -290,20 +291,20 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     # a new pose reuses the program (no retrace, no recompile) and matches render_frame
     model = np.asarray(prep.model).copy()
     model[0, 0, 3] += 0.01
-    mem = startup.CACHE_STATS["program_memory_hit"]
-    got2 = startup.render_frame_cached(prep, model=model, cache_dir=cache, progress=said.append)
+    mem = rendering.CACHE_STATS["program_memory_hit"]
+    got2 = rendering.render_frame_cached(prep, model=model, cache_dir=cache, progress=said.append)
     ref2 = render_frame(prep, model=jnp.asarray(model))
-    assert startup.CACHE_STATS["program_memory_hit"] == mem + 1 and len(said) == 1
+    assert rendering.CACHE_STATS["program_memory_hit"] == mem + 1 and len(said) == 1
     assert np.array_equal(np.asarray(got2.xyz), np.asarray(ref2.xyz))
     assert not np.array_equal(np.asarray(got2.xyz), np.asarray(got.xyz))
     with pytest.raises(InputError) as e:
-        startup.render_frame_cached(prep, model=model[:1], cache_dir=cache)
+        rendering.render_frame_cached(prep, model=model[:1], cache_dir=cache)
     assert e.value.field == "model"
     # another cache folder is consulted (and filled), not served from this one's program
     other = tmp_path / "other"
-    misses = startup.CACHE_STATS["program_miss"]
-    got3 = startup.render_frame_cached(prep, model=model, cache_dir=other)
-    assert startup.CACHE_STATS["program_miss"] == misses + 1
+    misses = rendering.CACHE_STATS["program_miss"]
+    got3 = rendering.render_frame_cached(prep, model=model, cache_dir=other)
+    assert rendering.CACHE_STATS["program_miss"] == misses + 1
     assert list((other / "programs").glob("*.pkl"))
     assert np.array_equal(np.asarray(got3.xyz), np.asarray(ref2.xyz))
     # a fresh process stores both entries, and the next fresh process finds them on disk and
@@ -322,11 +323,11 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
 _GATHER = """
 import sys
 import numpy as np
-from spectral_fit.rendering import _cache as startup
-prep = startup.prepare_cached(sys.argv[1], mode="gather")
-f = startup.render_frame_cached(prep)
+from spectral_fit import rendering
+prep = rendering.prepare_cached(sys.argv[1], mode="gather")
+f = rendering.render_frame_cached(prep)
 np.save(sys.argv[2], np.asarray(f.xyz))
-print(startup.CACHE_STATS, prep.ir_mode)
+print(rendering.CACHE_STATS, prep.ir_mode)
 """
 
 
@@ -350,7 +351,7 @@ def test_gather_frame_is_kept_as_two_programs(config, tmp_path):
     # the interreflection (the senders' half) matters in this frame: the test can tell
     none = prepare(config, mode="none")
     assert np.abs(np.asarray(render_frame(none).xyz) - ref).max() > 1e-3 * np.abs(ref).max()
-    assert startup._split_program(prep) and not startup._split_program(none)
+    assert _program_cache._split_program(prep) and not _program_cache._split_program(none)
 
 
 def test_single_threaded_blas_sets_and_restores_openblas_threads():
@@ -375,14 +376,14 @@ def test_single_threaded_blas_sets_and_restores_openblas_threads():
 _ENABLE = """
 import json, os, sys
 import jax
-from spectral_fit.rendering import _cache as startup
-a = startup.enable_compilation_cache(sys.argv[1], min_compile_time_s=0.25)
+from spectral_fit import rendering
+a = rendering.enable_compilation_cache(sys.argv[1], min_compile_time_s=0.25)
 cfg = [jax.config.jax_compilation_cache_dir,
        jax.config.jax_persistent_cache_min_compile_time_secs]
 os.environ["SPECTRAL_FIT_JAX_CACHE"] = ""
-b = startup.enable_compilation_cache()
-c = startup.enable_compilation_cache(os.path.join(sys.argv[2], "sub"))
-print(json.dumps({"a": a, "cfg": cfg, "b": b, "c": c, "tag": startup.library_versions_tag()}))
+b = rendering.enable_compilation_cache()
+c = rendering.enable_compilation_cache(os.path.join(sys.argv[2], "sub"))
+print(json.dumps({"a": a, "cfg": cfg, "b": b, "c": c, "tag": rendering.library_versions_tag()}))
 """
 
 
@@ -419,45 +420,45 @@ def test_caches_are_keyed_by_the_library_versions(config, tmp_path, monkeypatch)
 
     cache = tmp_path / "cache"
     real_version, real_dists = md.version, md.distributions
-    base = startup.library_versions()
+    base = rendering.library_versions()
     assert base["jax"] == jax.__version__ and base["jaxlib"] == jax.lib.__version__
     assert base["python"] == sys.version.split()[0]
 
     def stats() -> tuple[int, int]:
-        return startup.CACHE_STATS["prepared_hit"], startup.CACHE_STATS["prepared_miss"]
+        return rendering.CACHE_STATS["prepared_hit"], rendering.CACHE_STATS["prepared_miss"]
 
     def prepare_counts() -> tuple[int, int]:
-        startup._environment_digest.cache_clear()
+        _keys._environment_digest.cache_clear()
         h0, m0 = stats()
-        startup.prepare_cached(config, cache_dir=cache, mode="none")
+        rendering.prepare_cached(config, cache_dir=cache, mode="none")
         h1, m1 = stats()
         return h1 - h0, m1 - m0
 
     try:
         prepare_counts()  # stored (or already there)
         assert prepare_counts() == (1, 0)  # same versions: a hit
-        tags = {startup.library_versions_tag()}
+        tags = {rendering.library_versions_tag()}
 
         monkeypatch.setattr(md, "version",
                             lambda d: "0.0.1" if d == "jaxlib" else real_version(d))
-        assert startup.library_versions()["jaxlib"] == "0.0.1"
+        assert rendering.library_versions()["jaxlib"] == "0.0.1"
         assert prepare_counts() == (0, 1)  # another jaxlib: a miss, prepared again
         assert prepare_counts() == (1, 0)
-        tags.add(startup.library_versions_tag())
+        tags.add(rendering.library_versions_tag())
 
         monkeypatch.setattr(md, "distributions", lambda: [
             *real_dists(), _Dist("jax-cuda12-plugin", "0.0.1"), _Dist("jax_cuda12_pjrt", "0.0.1")])
-        v = startup.library_versions()
+        v = rendering.library_versions()
         assert v["jax-cuda12-plugin"] == "0.0.1" and v["jax-cuda12-pjrt"] == "0.0.1"
         assert prepare_counts() == (0, 1)  # a plugin installed: a miss
-        tags.add(startup.library_versions_tag())
+        tags.add(rendering.library_versions_tag())
         assert len(tags) == 3
 
         monkeypatch.setattr(md, "version", real_version)
         monkeypatch.setattr(md, "distributions", real_dists)
         assert prepare_counts() == (1, 0)  # back to the real set: its entry is still there
     finally:
-        startup._environment_digest.cache_clear()
+        _keys._environment_digest.cache_clear()
 
 
 @pytest.mark.slow  # the frame program compiled three times, twice in child processes
@@ -469,9 +470,9 @@ def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monk
     from spectral_fit.rendering import render_frame
 
     cache = tmp_path / "cache"
-    prep = startup.prepare_cached(config, cache_dir=cache, mode="none")
-    startup.render_frame_cached(prep, cache_dir=cache, background=False)  # stores the program
-    startup._PROGRAMS.clear()
+    prep = rendering.prepare_cached(config, cache_dir=cache, mode="none")
+    rendering.render_frame_cached(prep, cache_dir=cache, background=False)  # stores the program
+    _program_cache._PROGRAMS.clear()
 
     def broken(*args, **kwargs):
         def run(arrays):
@@ -479,9 +480,9 @@ def test_stored_program_that_cannot_run_is_compiled_again(config, tmp_path, monk
         return run
 
     monkeypatch.setattr(se, "deserialize_and_load", broken)
-    misses = startup.CACHE_STATS["program_miss"]
-    got = startup.render_frame_cached(prep, cache_dir=cache, background=False)
-    assert startup.CACHE_STATS["program_miss"] == misses + 1
+    misses = rendering.CACHE_STATS["program_miss"]
+    got = rendering.render_frame_cached(prep, cache_dir=cache, background=False)
+    assert rendering.CACHE_STATS["program_miss"] == misses + 1
     ref = render_frame(prep, background=False)
     assert np.array_equal(np.asarray(got.xyz), np.asarray(ref.xyz))
 
@@ -534,12 +535,12 @@ def test_retain_freed_memory_reuses_large_blocks():
 _LOAD = """
 import sys
 import numpy as np
-from spectral_fit.rendering import _cache as startup
-startup.enable_compilation_cache()
-prep = startup.prepare_cached(sys.argv[1], mode=sys.argv[3])
-f = startup.render_frame_cached(prep)
+from spectral_fit import rendering
+rendering.enable_compilation_cache()
+prep = rendering.prepare_cached(sys.argv[1], mode=sys.argv[3])
+f = rendering.render_frame_cached(prep)
 np.save(sys.argv[2], np.asarray(f.xyz))
-print(startup.CACHE_STATS)
+print(rendering.CACHE_STATS)
 """
 
 
@@ -558,12 +559,12 @@ def test_programs_stored_by_a_busy_process_load_elsewhere(config, tmp_path, mode
     script.write_text(textwrap.dedent(_LOAD))
     env = _env(cache)
     env["SPECTRAL_FIT_JAX_CACHE"] = str(cache / "jax")
-    prep = startup.prepare_cached(config, cache_dir=cache, mode=mode)
+    prep = rendering.prepare_cached(config, cache_dir=cache, mode=mode)
     ref = np.asarray(render_frame(prep).xyz)
-    misses = startup.CACHE_STATS["program_miss"]
-    got = startup.render_frame_cached(prep, cache_dir=cache)  # compiled by a child, stored
+    misses = rendering.CACHE_STATS["program_miss"]
+    got = rendering.render_frame_cached(prep, cache_dir=cache)  # compiled by a child, stored
     parts = 2 if mode == "gather" else 1
-    assert startup.CACHE_STATS["program_miss"] == misses + parts
+    assert rendering.CACHE_STATS["program_miss"] == misses + parts
     assert len(list((cache / "programs").glob("*.pkl"))) == parts
     assert not list((cache / "programs").glob(".job-*"))  # the child's input is removed
     for i in range(2):

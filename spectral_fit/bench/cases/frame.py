@@ -123,25 +123,25 @@ def cpu():  # this process and its finished children (render_frame_cached's comp
 t0, c0 = time.perf_counter(), cpu()
 import jax
 from spectral_fit._runtime import process as process
-from spectral_fit.rendering import _cache as startup
-from spectral_fit.rendering import prepare, render_frame
+from spectral_fit.rendering import (CACHE_STATS, enable_compilation_cache, prepare,
+                                    prepare_cached, render_frame, render_frame_cached)
 t1, c1 = time.perf_counter(), cpu()
 process.retain_freed_memory()  # as the spectral-fit command does for every subcommand
-startup.enable_compilation_cache(sys.argv[3])
+enable_compilation_cache(sys.argv[3])
 size = None if sys.argv[2] == "full" else (180, 120)
 if sys.argv[4] == "cached":
-    prep = startup.prepare_cached(sys.argv[1], size=size)
+    prep = prepare_cached(sys.argv[1], size=size)
 else:
     prep = prepare(sys.argv[1], size=size)
 t2, c2 = time.perf_counter(), cpu()
 if sys.argv[4] == "cached":
-    jax.block_until_ready(startup.render_frame_cached(prep).rgb)
+    jax.block_until_ready(render_frame_cached(prep).rgb)
 else:
     jax.block_until_ready(render_frame(prep).rgb)
 t3, c3 = time.perf_counter(), cpu()
 print(json.dumps({"import_s": t1 - t0, "prepare_s": t2 - t1, "first_frame_s": t3 - t2,
                   "total_s": t3 - t0, "import_cpu_s": c1 - c0, "prepare_cpu_s": c2 - c1,
-                  "first_frame_cpu_s": c3 - c2, "caches": startup.CACHE_STATS}))
+                  "first_frame_cpu_s": c3 - c2, "caches": CACHE_STATS}))
 """
 
 

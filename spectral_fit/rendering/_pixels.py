@@ -1,0 +1,196 @@
+"""Steps 1–3 of a frame (traced): vertices → world → clip (hidden objects collapse to a point),
+the raster of the clusters that may face the eye, one covered-pixel list per object, the
+G-buffer, and the shading and interreflection of the covered pixels in the output channels, as
+a :class:`~spectral_fit.rendering.PixelFrame`; :func:`render_pixels` for callers that put the
+pixels somewhere themselves (the live composite).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from .._runtime.backend import materialise
+from ..geometry import GBuffer, eye_position
+from ._camera import _normals_to_world, _to_world, camera_clip
+from ._inputs import _check_frame_inputs, _check_senders
+from ._ir_stage import _interreflection, _ir_geometries
+from ._materials import _as_stacked, _mirror_flag, _without_mirror
+from ._prepared import TRACE_COUNT, PixelFrame, Prepared
+from ._shading import _shade_out, _shade_samples
+
+__all__ = [
+    "render_pixels",
+]
+
+
+def _object_pixel_lists(tri_id: jax.Array, obj_img: jax.Array, capacities: tuple[int, ...]
+                        ) -> tuple[Any, list[jax.Array]]:
+    """The covered pixels of each object compacted into its own list of ``capacities[o]``
+    slots (row-major order), the lists one after the other: the
+    :func:`~spectral_fit.geometry.covered_pixels` of each object's part of the raster, by
+    :func:`~spectral_fit.geometry.compact_flags` per object (no prefix sum or scatter over the
+    frame: XLA:CPU runs those as serial loops). ``tri_id``, ``obj_img`` (H, W) int32
+    (−1 = none). Returns the :class:`~spectral_fit.geometry.PixelList` (count = all objects'
+    covered pixels, overflow = any object's list overflowed) and the per-object covered
+    counts (may exceed capacity)."""
+    from ..geometry import PixelList, compact_flags
+
+    h, w = tri_id.shape
+    flat = tri_id.reshape(-1)
+    obj = obj_img.reshape(-1)
+    parts, lives, counts = [], [], []
+    for o, cap in enumerate(capacities):
+        index, count = compact_flags(obj == o, cap)
+        parts.append(index)
+        lives.append(jnp.arange(cap, dtype=jnp.int32) < count)
+        counts.append(count)
+    index = jnp.concatenate(parts)
+    tri = jnp.where(jnp.concatenate(lives), flat[index], -1)
+    overflow = jnp.any(jnp.stack([c > cap for c, cap in zip(counts, capacities, strict=True)]))
+    return PixelList(index, tri, sum(counts), overflow, (h, w)), counts
+
+
+def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Array,
+                 visible: jax.Array, spectral: bool, mirror: bool = True,
+                 senders: Any = None) -> PixelFrame:
+    """Steps 1–3 of the frame (traced): geometry, raster, covered pixels, G-buffer, shading
+    and interreflection of the covered pixels, in the output channels (see
+    :class:`PixelFrame`). ``mirror`` False (static): every χ taken as 0, the mirror term left
+    out (see :func:`mirror_needed`). ``senders``: the gather interreflection's senders' half
+    (:func:`render_senders`) instead of computing it here."""
+    from ..geometry import interpolate_pixels, rasterize
+
+    TRACE_COUNT["render_frame"] += 1
+    h, w = prep.shape
+    n_obj = prep.num_objects
+    mats = _as_stacked(materials, n_obj)
+    if not mirror:
+        mats = _without_mirror(mats)
+    model = jnp.asarray(model, jnp.float32)
+    view = jnp.asarray(view, jnp.float32)
+    visible = jnp.asarray(visible, bool)
+
+    # 1. geometry in the world; hidden objects collapse onto their centre (draw nothing)
+    world_full = _to_world(prep.vertices, prep.vertex_object, model)
+    centres = model[:, :3, 3]
+    vis_v = visible[prep.vertex_object]
+    world = jnp.where(vis_v[:, None], world_full, centres[prep.vertex_object])
+    wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
+    clip = camera_clip(prep.projection, view, prep.lens, world)
+
+    # 2. rasterise (the triangles of the clusters that may face the eye), compact covered
+    # pixels, G-buffer; triangle ids below are rows of that list
+    with jax.named_scope("raster"):
+        tris, tri_object, clusters_needed, clusters_over = _frame_triangles(
+            prep, model, view, visible)
+        ras = rasterize(clip, tris, (h, w), cull=prep.cull,
+                        config=prep.raster_config, check=False)
+    # covered pixels, one fixed-capacity list per object (each object is shaded with its own
+    # material, whose per-material precomputations then run once per object)
+    with jax.named_scope("pixel_lists"):
+        obj_img = jnp.where(ras.tri_id >= 0, tri_object[jnp.maximum(ras.tri_id, 0)], -1)
+        pix, counts = _object_pixel_lists(ras.tri_id, obj_img, prep.pixel_capacity)
+    attrs = jnp.concatenate([world, wnorm], axis=1)
+    vals = interpolate_pixels(attrs, pix, tris, clip)
+    pos = vals[:, :3]
+    nrm = vals[:, 3:]
+    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
+    eye = eye_position(view)
+    vdir = eye - pos
+    vdir = vdir / jnp.maximum(jnp.linalg.norm(vdir, axis=-1, keepdims=True), 1e-12)
+    # silhouette pixels whose interpolated (smooth) normal turns away from the eye: bend the
+    # normal towards V until N·V = 0.01, instead of shading them black
+    nv = jnp.sum(nrm * vdir, axis=-1, keepdims=True)
+    bent = nrm + jnp.maximum(0.01 - nv, 0.0) * vdir
+    nrm = bent / jnp.maximum(jnp.linalg.norm(bent, axis=-1, keepdims=True), 1e-12)
+    # empty slots: a harmless configuration (N = V = +Z), so no NaN enters any gradient
+    zdir = jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    nrm = jnp.where(pix.valid[:, None], nrm, zdir)
+    vdir = jnp.where(pix.valid[:, None], vdir, zdir)
+    obj = jnp.where(pix.valid, tri_object[jnp.maximum(pix.tri_id, 0)], -1)
+    gb = GBuffer(position=pos, normal=nrm, view=vdir, object=obj,
+                 pixel=jnp.where(pix.valid, pix.index, -1))
+
+    # 3. shading + interreflection, in the output channels (XYZ, or all channels for the
+    # spectral output): no (N, C) array unless the spectra are asked for
+    if spectral:
+        to_out = jnp.eye(prep.channels, dtype=jnp.float32)
+        hm, wm, c = prep.env.texels.shape
+        mirror_table = jnp.concatenate([prep.env.texels.reshape(hm * wm, c), prep.env.poles])
+    else:
+        to_out = prep.to_xyz
+        mirror_table = prep.env_xyz
+    with jax.named_scope("shading"):
+        if prep.quality == "fast":
+            radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table)
+        else:
+            radiance = _shade_samples(mats, prep.env, gb, prep.batch_size,
+                                      prep.irradiance_lut, prep.quality, prep.pixel_capacity,
+                                      prep.split_map, prep.split_settings) @ to_out
+    # (in the output channels: the receivers' side of the gather works in those)
+    if senders is not None:
+        from .interreflection._gather import gather_receivers
+
+        ir = gather_receivers(senders, mats, prep.env, gb, image_shape=prep.shape,
+                              output=None if spectral else to_out)
+        ir_overflow = jnp.asarray(senders.geometry.overflow, bool)
+    else:
+        geoms = _ir_geometries(prep, model, visible)
+        ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
+    if ir is not None:
+        radiance = radiance + ir
+    # materialised: otherwise the interreflection's tail (its chunks' results put back in
+    # slot order, the anchors' interpolation) was fused into each consumer's every channel
+    # (the live composite's tone curve, the frame's scatter) and computed again there
+    radiance = materialise(jnp.where(pix.valid[:, None], radiance, 0.0), cut=True)
+    stats = {
+        "covered_pixels": pix.count,
+        "pixel_overflow": pix.overflow,
+        "raster_overflow": ras.overflow | clusters_over,
+        "interreflection_overflow": ir_overflow,
+        "object_counts": jnp.stack([jnp.asarray(c, jnp.int32) for c in counts]),
+        "raster_needed": ras.needed,
+        "clusters_needed": clusters_needed,
+    }
+    return PixelFrame(values=radiance, index=pix.index, valid=pix.valid,
+                      mask=ras.tri_id >= 0, object_id=obj_img, stats=stats)
+
+
+def _frame_triangles(prep: Prepared, model: jax.Array, view: jax.Array, visible: jax.Array
+                     ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """The camera raster's triangle list: (T', 3) vertex indices, (T',) object of each row,
+    the clusters kept (int32) and whether their list overflowed (bool). With
+    ``prep.clusters`` the rows of the clusters that may face the eye
+    (:func:`~spectral_fit.geometry.visible_clusters`; the raster is bit-identical to one of all
+    triangles), else ``prep.triangles`` (the count is then 0)."""
+    from ..geometry import cluster_rows, visible_clusters
+
+    cl = prep.clusters
+    if cl is None:
+        return prep.triangles, prep.tri_object, jnp.int32(0), jnp.asarray(False)
+    index, count = visible_clusters(cl, model, view, prep.projection, visible, cull=prep.cull)
+    tris, obj = cluster_rows(cl, index)
+    return tris, obj, count, count > cl.capacity
+
+
+def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
+                  view: Any = None, visible: Any = None, spectral: bool = False,
+                  mirror: bool | None = None, senders: Any = None) -> PixelFrame:
+    """The covered pixels of one frame, shaded (with interreflection), without background,
+    image scatter or display encoding: for callers that put the pixels somewhere else (the
+    live composite writes them straight into the video frame). Same inputs as
+    :func:`render_frame`; meant to be called inside the caller's own ``jit``. Returns a
+    :class:`PixelFrame`; its values are in ``prep.to_xyz``'s output space (:func:`with_output`)
+    or, with ``spectral``, in the C radiance channels. ``mirror``: as for
+    :func:`render_frame`; inside a caller's ``jit`` the materials are traced, so the default
+    keeps the mirror term: pass :func:`mirror_needed` of the concrete materials from outside.
+    ``senders``: :func:`render_senders` of the same ``prep``, materials, mirror switch and
+    object state (``model``, ``visible``: the caller keeps them consistent), used instead of
+    the frame's own pass 1 (gather mode only)."""
+    mats, model, view, visible = _check_frame_inputs(prep, materials, model, view, visible)
+    _check_senders(prep, senders)
+    return _pixels_impl(prep, mats, model, view, visible, spectral,
+                        _mirror_flag(mats, mirror), senders)
