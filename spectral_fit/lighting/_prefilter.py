@@ -48,6 +48,17 @@ def _spectral_basis(x: np.ndarray, tol: float) -> np.ndarray:
     return vt[:r]
 
 
+def _row_angles(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """sin θ (H,) of the texel rows and the great-circle angle (H_out, H_in, W) between the
+    centre of a texel in row i and the texels of row j, by azimuth difference (radians)."""
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2.0 * np.pi * np.arange(w) / w
+    ct, st = np.cos(theta), np.sin(theta)
+    cosg = (ct[:, None, None] * ct[None, :, None]
+            + st[:, None, None] * st[None, :, None] * np.cos(phi)[None, None, :])
+    return st, np.arccos(np.clip(cosg, -1.0, 1.0))
+
+
 def _sphere_blur(img: np.ndarray, sigma: float) -> np.ndarray:
     """Isotropic Gaussian blur of an (H, W, C) equirectangular map on the sphere: every output
     texel is the solid-angle-weighted mean of all texels with weights exp(−γ²/2σ²), γ the great
@@ -57,12 +68,7 @@ def _sphere_blur(img: np.ndarray, sigma: float) -> np.ndarray:
     if sigma <= 0:
         return img
     h, w, c = img.shape
-    theta = np.pi * (np.arange(h) + 0.5) / h
-    phi = 2.0 * np.pi * np.arange(w) / w
-    ct, st = np.cos(theta), np.sin(theta)
-    cosg = (ct[:, None, None] * ct[None, :, None]
-            + st[:, None, None] * st[None, :, None] * np.cos(phi)[None, None, :])
-    gamma = np.arccos(np.clip(cosg, -1.0, 1.0))
+    st, gamma = _row_angles(h, w)
     k = np.exp(-0.5 * (gamma / sigma) ** 2) * st[None, :, None]  # (H_out, H_in, W)
     norm = k.sum(axis=(1, 2))  # (H_out,)
     kf = np.fft.rfft(k, axis=2)  # (H, H, W/2+1)
@@ -77,12 +83,8 @@ def _sphere_blur_many(img: np.ndarray, sigmas: list[float]) -> list[np.ndarray]:
     """:func:`_sphere_blur` of one map at several stds, sharing the great-circle angles
     between texel rows and the map's FFT (same result as separate calls)."""
     h, w, c = img.shape
-    theta = np.pi * (np.arange(h) + 0.5) / h
-    phi = 2.0 * np.pi * np.arange(w) / w
-    ct, st = np.cos(theta), np.sin(theta)
-    cosg = (ct[:, None, None] * ct[None, :, None]
-            + st[:, None, None] * st[None, :, None] * np.cos(phi)[None, None, :])
-    gamma2 = np.arccos(np.clip(cosg, -1.0, 1.0)) ** 2
+    st, gamma = _row_angles(h, w)
+    gamma2 = gamma ** 2
     ff = np.fft.rfft(img, axis=1).transpose(1, 0, 2)  # (W/2+1, H, C)
     out = []
     for sigma in sigmas:
