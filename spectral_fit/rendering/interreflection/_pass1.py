@@ -309,6 +309,20 @@ def prepare_interreflection(
     if not 0.0 < capacity_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], got {capacity_fraction!r}",
                          field="capacity_fraction")
+    objects = tuple(objects)
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(objects)):
+        # called outside a traced function: one compiled program, not an op-by-op dispatch
+        # of every step of the rasters (same arithmetic as inside a caller's jit)
+        return _pass1_jit(objects, mode=mode, texture_size=texture_size,
+                          gather_size=gather_size, capacity_fraction=capacity_fraction,
+                          raster_config=raster_config)
+    return _pass1(objects, mode, texture_size, gather_size, capacity_fraction, raster_config)
+
+
+def _pass1(objects: tuple[ObjectGeometry, ...], mode: str, texture_size: int,
+           gather_size: int, capacity_fraction: float, raster_config: Any) -> IRGeometry:
+    """:func:`prepare_interreflection` after its checks."""
+    n = len(objects)
     radii = [_bounding_radius(o) for o in objects]
     pairs = pair_list(n)
     # (paper mode keeps one raster per pair: batched, its raster's conditionals become
@@ -366,6 +380,12 @@ def prepare_interreflection(
         overflow=overflow, n_objects=n, mode=mode, texture_size=texture_size,
         gather_size=gather_size,
     )
+
+
+@eqx.filter_jit
+def _pass1_jit(objects: tuple[ObjectGeometry, ...], *, mode: str, texture_size: int,
+               gather_size: int, capacity_fraction: float, raster_config: Any) -> IRGeometry:
+    return _pass1(objects, mode, texture_size, gather_size, capacity_fraction, raster_config)
 
 
 def _same_shapes(objects: Sequence[ObjectGeometry]) -> bool:
