@@ -17,14 +17,15 @@ import sys
 import numpy as np
 import pytest
 
-# one worker runs this module's tests (see tests/conftest.py):
-# the OpenGL context and both frames are built once
+# one worker runs this module's tests (see tests/conftest.py), and the frames are a session
+# fixture: the OpenGL context and both frames are built once per run, even when the worker runs
+# other modules' tests between this module's
 pytestmark = pytest.mark.xdist_group("gl_baseline")
 
 SIZE = (360, 240)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def frames(tmp_path_factory):
     pytest.importorskip("moderngl", reason="moderngl not installed (pip install "
                         "'spectral_fit[gl]')")

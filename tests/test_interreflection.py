@@ -641,8 +641,11 @@ def test_partition_is_the_stable_argsort():
 
 
 @pytest.mark.parametrize(("k", "diffuse_at"), [
-    # the default tier keeps the K-coefficient case; each case compiles two gather programs
-    pytest.param(None, "samples", marks=pytest.mark.slow), (8, "samples"),
+    # each case compiles two gather programs (slow tier); every default-tier gather frame
+    # computes its receivers' terms in the output channels (XYZ), compared with the band
+    # shading by test_renderer's frame tests
+    pytest.param(None, "samples", marks=pytest.mark.slow),
+    pytest.param(8, "samples", marks=pytest.mark.slow),
     pytest.param(None, "receivers", marks=pytest.mark.slow)])
 def test_output_channels_match_the_mapped_result(k, diffuse_at):
     """``output=M`` (gather: the receivers' terms computed in the D output channels: the
@@ -842,7 +845,11 @@ def test_valid_first_receivers_match_the_one_pass_receivers(gather_geom, monkeyp
     """Many receivers on the CPU layout (``_receive_valid_first``: valid receivers first, their
     per-receiver terms in chunks, the chunks past them skipped, the result back in slot order)
     give the one-pass receivers' result (``_receive``) slot for slot, empty slots spread
-    between the valid ones, with a lamp (hidden sources), gloss and a mirror term, 2 bounces."""
+    between the valid ones, with a lamp (hidden sources), gloss and a mirror term, 2 bounces.
+    The chunked run computes its receivers' terms in D = 3 output channels (``output=M``), the
+    one-pass run in the C radiance channels, mapped by M afterwards (both are linear): one
+    comparison of two programs checks the layout and the output channels (each alone:
+    the slow tier's ``test_output_channels_match_the_mapped_result``)."""
     import importlib
 
     module = importlib.import_module("spectral_fit.rendering.interreflection._gather")
@@ -863,13 +870,19 @@ def test_valid_first_receivers_match_the_one_pass_receivers(gather_geom, monkeyp
         return valid_first(*a, **k)
 
     monkeypatch.setattr(module, "_receive_valid_first", counted)
+    m = jnp.asarray(np.random.default_rng(5).uniform(-0.2, 1.0, (env.channels, 3)),
+                    jnp.float32)
     out = []
-    for chunk in (8, 10**9):  # 18 valid receivers: 3 of 6 chunks run; then one pass
+    for chunk, output in ((8, m), (10**9, None)):  # 18 valid: 3 of 6 chunks run; one pass
         monkeypatch.setattr(module, "_RECEIVER_CHUNK", chunk)
-        out.append(np.asarray(jax.jit(lambda g, m, e, r: interreflection_from(
-            g, m, e, r, bounces=2, diffuse_at=diffuse_at))(gather_geom, mats, env, rec)))
+        out.append(np.asarray(jax.jit(lambda g, mt, e, r, o: interreflection_from(
+            g, mt, e, r, bounces=2, diffuse_at=diffuse_at, output=o))(gather_geom, mats, env,
+                                                                     rec, output)))
     assert len(calls) == 1
-    got, ref = out
+    got, ref = out[0], out[1] @ np.asarray(m)
+    assert got.shape == (48, 3)
+    with pytest.raises(InputError, match="output"):
+        interreflection_from(gather_geom, mats, env, rec, output=m[:-1])
     valid = np.asarray(rec.object) >= 0
     assert np.abs(ref[valid]).max() > 1e-3 and not np.any(got[~valid])
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5 * np.abs(ref).max())

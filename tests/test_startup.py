@@ -331,6 +331,9 @@ print(rendering.CACHE_STATS, prep.ir_mode)
 """
 
 
+@pytest.mark.slow  # two fresh processes compiling a gather frame's two programs; the
+# default tier stores and loads a frame program across processes (none mode) and
+# checks the split frame in-process (test_ir_reuse)
 def test_gather_frame_is_kept_as_two_programs(config, tmp_path):
     """A gather frame is stored as the senders' half and the rest (two entries, loaded side
     by side in a new process); the frame is the one-program frame to float rounding, and
