@@ -22,7 +22,7 @@ class SendersReuse:
     """The senders' half reuse of :class:`~spectral_fit.live.LiveSession` (its ``prep``,
     ``ir_reuse_mm``, ``devices`` and senders' state are set by the session's constructor)."""
 
-    def _reuses_senders(self, p: Any) -> bool:
+    def _reuses_senders(self, p: Prepared) -> bool:
         """Whether frames take the senders' half from :func:`render_senders` (else the step
         computes it, or there is none)."""
         ir = p.interreflection
