@@ -86,10 +86,10 @@ def test_accelerator_layout_renders_the_cpu_layout_frame(prep, monkeypatch):
     acc, n_acc = _with_layout(monkeypatch, True, lambda: rendering.render_frame(prep))
     assert len(calls) == 1
     assert n_cpu > 0 and n_acc > 0  # both traced, each with its layout
-    assert sum(prep.pixel_capacity) >= 2 * 128  # the CPU layout's gloss ran in chunks
+    assert sum(prep.buffers.pixel_capacity) >= 2 * 128  # the CPU layout's gloss ran in chunks
     # valid receivers in several chunks, and at least one chunk of empty slots skipped
     count = int(cpu.stats["covered_pixels"])
-    assert count > 256 and sum(prep.pixel_capacity) >= count + 256
+    assert count > 256 and sum(prep.buffers.pixel_capacity) >= count + 256
     a, b = np.asarray(cpu.xyz), np.asarray(acc.xyz)
     mask = np.asarray(cpu.mask)
     assert mask.sum() > 200 and np.array_equal(mask, np.asarray(acc.mask))
@@ -99,7 +99,7 @@ def test_accelerator_layout_renders_the_cpu_layout_frame(prep, monkeypatch):
 @pytest.mark.slow
 def test_accelerator_layout_gradients_match_the_cpu_layout(prep, monkeypatch):
     mats = prep.materials
-    wgt = jnp.asarray(np.random.default_rng(5).uniform(0.5, 1.5, prep.shape + (3,)),
+    wgt = jnp.asarray(np.random.default_rng(5).uniform(0.5, 1.5, prep.camera.shape + (3,)),
                       jnp.float32)
 
     def grad():

@@ -245,9 +245,10 @@ def test_frames_with_and_without_clusters_are_identical():
     from spectral_fit.rendering import prepare, render_frame
 
     prep = prepare(benchmark_scene(z=-0.275), mode="none", size=(96, 64))
-    assert prep.clusters is not None and prep.cull == "back"
-    assert prep.clusters.capacity < prep.clusters.num_clusters
-    plain = dataclasses.replace(prep, clusters=None)
+    cl = prep.buffers.clusters
+    assert cl is not None and prep.camera.cull == "back"
+    assert cl.capacity < cl.num_clusters
+    plain = prep.with_buffers(clusters=None)
     model = np.asarray(prep.model).copy()
     model[0, :3, 3] += (0.01, 0.005, 0.0)
     for kw in ({}, {"model": model}, {"visible": np.array([True, False])}):

@@ -149,9 +149,10 @@ def test_compact_solver_matches_optimistix(small):
     scene, session, prep, env, clean = small
     pr = prep.problem
     rng = np.random.default_rng(3)
-    noisy = np.asarray(pr.measured, np.float64) * (1.0 + 0.01 * rng.standard_normal(
-        pr.measured.shape))
-    pr = eqx.tree_at(lambda q: q.measured, pr, jnp.asarray(noisy, pr.values.dtype))
+    measured = pr.readings.measured
+    noisy = np.asarray(measured, np.float64) * (1.0 + 0.01 * rng.standard_normal(
+        measured.shape))
+    pr = eqx.tree_at(lambda q: q.readings.measured, pr, jnp.asarray(noisy, pr.values.dtype))
     y0 = fitting.y_start(pr, np.asarray(pr.values, np.float64), 1.0)
     ys = jnp.asarray(_starts(pr, y0, 2, 7), pr.values.dtype)
     rw = jnp.ones((2, len(session.readings)), pr.values.dtype)
@@ -321,7 +322,7 @@ def test_stderr_matches_spread(small):
     every parameter determined to better than 10 %."""
     scene, session, prep, env, clean = small
     rng = np.random.default_rng(7)
-    sigma = np.asarray(prep.problem.sigma, np.float64)
+    sigma = np.asarray(prep.problem.readings.sigma, np.float64)
     K = 24
     meas = clean[None] + sigma[None] * rng.standard_normal((K,) + clean.shape)
     out = fitting.fit_many(prep, meas, rtol=1e-6, atol=1e-7, max_steps=150)

@@ -51,7 +51,8 @@ def frames(tmp_path_factory):
     out["gl_none"], out["gl_object_none"] = gl.render_xyz(False)
     out["gl_rgb8"] = gl.render(True)
     f = render_frame(prep)
-    f0 = render_frame(dataclasses.replace(prep, ir_mode="none"))
+    f0 = render_frame(dataclasses.replace(prep, interreflection=dataclasses.replace(
+        prep.interreflection, mode="none")))
     out["jax_paper"], out["jax_none"] = np.asarray(f.xyz), np.asarray(f0.xyz)
     out["jax_rgb"] = np.asarray(f.rgb)
     out["jax_object"] = np.asarray(f.object_id)

@@ -52,15 +52,16 @@ def test_split_frame_equals_the_frame_that_computes_its_senders(prep):
         peak = float(jnp.abs(a).max())
         assert float(jnp.abs(a - b).max()) <= 1e-6 * peak
     # the neighbour 1 km away: the interreflection is a visible part of those pixels
-    far = pixels(prep, prep.model.at[1, 1, 3].add(-1e3), prep.view, None)
-    a = pixels(prep, prep.model, prep.view, None)
+    view = prep.camera.view
+    far = pixels(prep, prep.model.at[1, 1, 3].add(-1e3), view, None)
+    a = pixels(prep, prep.model, view, None)
     assert float(jnp.abs(a - far).max()) > 1e-3 * float(jnp.abs(a).max())
     # another object state: the senders of that state, same compiled programs
     model = prep.model.at[1, 0, 3].add(0.01)
     s2 = render_senders(prep, model=model, mirror=False)
-    a = pixels(prep, model, prep.view, None)
-    b = pixels(prep, model, prep.view, s2)
-    c = pixels(prep, model, prep.view, senders)  # stale senders: differs
+    a = pixels(prep, model, view, None)
+    b = pixels(prep, model, view, s2)
+    c = pixels(prep, model, view, senders)  # stale senders: differs
     peak = float(jnp.abs(a).max())
     assert float(jnp.abs(a - b).max()) <= 1e-6 * peak
     assert float(jnp.abs(a - c).max()) > 1e-4 * peak
@@ -100,7 +101,8 @@ def test_senders_need_gather_mode():
         render_frame(p, senders=object())
     import dataclasses
 
-    p0 = dataclasses.replace(p, ir_mode="gather", ir_bounces=0)  # bounces = 0: nothing to send
+    p0 = dataclasses.replace(p, interreflection=dataclasses.replace(
+        p.interreflection, mode="gather", bounces=0))  # bounces = 0: nothing to send
     with pytest.raises(InputError, match="0 bounces"):
         render_senders(p0)
 

@@ -187,10 +187,11 @@ def test_background_is_the_environment_along_each_pixels_ray(frames):
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
     xy = cv2.undistortPoints(pix, K, DIST5, criteria=crit).reshape(-1, 2)
     eye = np.concatenate([xy, np.ones((len(xy), 1))], -1) * GL
-    world = eye @ np.asarray(prep.view, np.float64)[:3, :3]  # eye → world: Rᵀ
+    world = eye @ np.asarray(prep.camera.view, np.float64)[:3, :3]  # eye → world: Rᵀ
     world /= np.linalg.norm(world, axis=-1, keepdims=True)
-    want = np.asarray(jax.vmap(lambda d: lookup(prep.env, d))(jnp.asarray(world, jnp.float32))
-                      @ prep.to_xyz).reshape(*SIZE, 3)
+    env = prep.lighting.env
+    want = np.asarray(jax.vmap(lambda d: lookup(env, d))(jnp.asarray(world, jnp.float32))
+                      @ prep.colour.to_xyz).reshape(*SIZE, 3)
     got = np.asarray(frame.xyz)
     bg = ~np.asarray(frame.mask)
     err = np.abs(got - want)[bg] / np.abs(want[bg]).max()
@@ -204,9 +205,9 @@ def test_a_lens_without_distortion_renders_the_pinhole_frame():
     from spectral_fit.rendering import prepare, render_frame
 
     zero = prepare(_scene([0.0, 0.0, 0.0, 0.0, 0.0]), mode="none")
-    assert zero.lens is None and zero.pixel_rays is None  # the pinhole program itself
+    assert zero.camera.lens is None and zero.camera.pixel_rays is None  # the pinhole program itself
     tiny = prepare(_scene([1e-9, 0.0, 0.0, 0.0]), mode="none")
-    assert tiny.lens is not None
+    assert tiny.camera.lens is not None
     a, b = render_frame(zero), render_frame(tiny)
     assert np.array_equal(np.asarray(a.mask), np.asarray(b.mask))
     assert np.abs(np.asarray(a.rgb) - np.asarray(b.rgb)).max() < 1e-4
@@ -230,7 +231,7 @@ def test_fov_camera_is_distorted_too():
     dist = np.array([-0.02, 0.0, 0.0, 0.0])
     at = (0.2, 0.1, -0.2)  # normalised (1, 0.5): the lens moves it by ~2 px
     prep = prepare(_scene(dist, intrinsics=False, sphere_at=at), mode="none")
-    k = np.asarray(projection_to_intrinsics(prep.projection, SIZE[1], SIZE[0]), np.float64)
+    k = np.asarray(projection_to_intrinsics(prep.camera.projection, SIZE[1], SIZE[0]), np.float64)
     want = _silhouette(dist, k, at)
     mask = np.asarray(render_frame(prep).mask)
     assert np.linalg.norm(_centroid(mask) - _centroid(want)) < 0.25

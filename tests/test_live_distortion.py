@@ -139,7 +139,7 @@ def test_rendering_through_the_lens_keeps_the_raw_frame(shot):
     img, r, t = shot
     (pin, _), (raw, raw_d) = _sphere_masks(r, t, 7)
     sess = LiveSession(_scene(DIST), size=SIZE, lens="distort")
-    assert sess.prep.lens is not None
+    assert sess.prep.camera.lens is not None
     out = sess.process(img)
     assert sess.last_poses.visible.tolist() == [True, True]
     oid = np.asarray(sess.last_object_id)

@@ -57,8 +57,7 @@ _TWO = textwrap.dedent("""
     retraced = STEP_TRACES["step"] != traced
     # buffers too small for both frames in flight: the first to finish re-plans (one
     # recompilation), the second is rendered again with that plan, not re-planned again
-    import dataclasses
-    two.prep = dataclasses.replace(two.prep, pixel_capacity=(64,) * two.prep.num_objects)
+    two.prep = two.prep.with_buffers(pixel_capacity=(64,) * two.prep.num_objects)
     before = two.recompiles
     pend = [two.submit(f) for f in frames[2:4]]
     grown = [two.finish(p) for p in pend]

@@ -128,13 +128,13 @@ def test_buffers_grow_ahead_in_the_background_without_a_blocking_recompile(sessi
     ref = session.process(img)  # (its step traced before the count, when run alone)
     s = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, grow_ahead=0.3)
     first = s.process(img)  # the plan on these poses: 30-60 % of the buffers in use
-    caps = (s.prep.pixel_capacity, s.prep.raster_config)
+    caps = (s.prep.buffers.pixel_capacity, s.prep.buffers.raster_config)
     traces = STEP_TRACES["step"]
     s.join_background()
     assert STEP_TRACES["step"] == traces + 1  # the grown step, traced once, off the frames
     second = s.process(img)
     assert s.replans_ahead == 1 and s.recompiles == 0
-    new = (s.prep.pixel_capacity, s.prep.raster_config)
+    new = (s.prep.buffers.pixel_capacity, s.prep.buffers.raster_config)
     assert all(b >= a for a, b in zip(caps[0], new[0], strict=True))
     assert all(b >= a for a, b in zip([*caps[1].capacities, caps[1].block_capacity],
                                       [*new[1].capacities, new[1].block_capacity],
@@ -187,7 +187,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
 
     monkeypatch.setattr(grow, "live_step", held)
     first = s.process(img)  # fills the buffers past 0.35: a compile of grown ones starts
-    caps = (s.prep.pixel_capacity, s.prep.raster_config)
+    caps = (s.prep.buffers.pixel_capacity, s.prep.buffers.raster_config)
     assert entered.wait(120) and s.growing
     stopper = threading.Thread(target=s.stop_background)
     stopper.start()
@@ -200,7 +200,7 @@ def test_a_stopped_background_compile_leaves_the_buffers_as_they_are(tables, mon
     s.grow_ahead = None  # no new compile: the next frame shows what the session kept
     again = s.process(img)
     assert s.replans_ahead == 0 and s.recompiles == 0
-    assert (s.prep.pixel_capacity, s.prep.raster_config) == caps
+    assert (s.prep.buffers.pixel_capacity, s.prep.buffers.raster_config) == caps
     np.testing.assert_array_equal(again, first)
     s.stop_background()  # nothing under way: returns at once
 
@@ -355,8 +355,6 @@ def test_lost_marker_object_leaves_no_interreflection():
 def test_interreflection_overflow_falls_back_in_the_live_session(tables):
     """A frame whose pass-1 rasters overflow their planned capacities is re-rendered with the
     generic ones (one recompilation), and equals the frame of a session that never overflowed."""
-    import dataclasses
-
     from spectral_fit.live import LiveSession
     from spectral_fit.rendering.interreflection import pass1_config
     from spectral_fit.rendering.interreflection._pass1 import SUPERSAMPLE
@@ -366,11 +364,12 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
     ok = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, mode="gather")
     want = ok.process(img)
     s = LiveSession(small_scene(hold_frames=0), size=SMALL_SIZE, mode="gather")
-    s.prep = dataclasses.replace(s.prep, ir_raster_config=s.prep.ir_raster_config._replace(
+    s.prep = s.prep.with_buffers(ir_raster_config=s.prep.buffers.ir_raster_config._replace(
         capacities=(16, 16, 16)))
     got = s.process(img)
-    tris = max(tb - ta for ta, tb in s.prep.ir_triangle_slices)
-    assert s.prep.ir_raster_config.capacities == pass1_config(  # the generic gather capacities
+    tris = max(tb - ta for ta, tb in s.prep.ir_mesh.triangle_slices)
+    # the generic gather capacities
+    assert s.prep.buffers.ir_raster_config.capacities == pass1_config(
         tris, SUPERSAMPLE * 16).capacities
     assert s.recompiles == 1 and ok.recompiles == 0
     assert np.abs(got.astype(int) - want.astype(int)).max() <= 1

@@ -149,12 +149,12 @@ def test_interreflection_against_reference_readings():
     v = jnp.asarray(vals, jnp.float32)
     with_ir = np.asarray(eqx.filter_jit(fitting.predict)(pr, v, jnp.float32(1.0)), np.float64)
     ir = np.asarray(fitting.interreflection_term(pr, v), np.float64)
-    cal = np.asarray(pr.calibration, np.float64)
-    band = np.asarray(pr.band, np.float64)
-    without = with_ir - cal * ((np.asarray(pr.average) @ ir) @ band.T)
+    cal = np.asarray(pr.instrument.calibration, np.float64)
+    band = np.asarray(pr.instrument.band, np.float64)
+    without = with_ir - cal * ((np.asarray(pr.readings.average) @ ir) @ band.T)
     wl = session.wavelengths
     lum = lambda x: radiance_to_xyz(x, wl)[..., 1]  # noqa: E731
-    meas = np.asarray(pr.measured, np.float64)
+    meas = np.asarray(pr.readings.measured, np.float64)
     ratio = lum(with_ir) / lum(meas)
     ratio0 = lum(without) / lum(meas)
     ids = [r.id for r in session.readings]

@@ -35,7 +35,7 @@ def frame(prep):
 def _xyz_weights(prep):
     from spectral_fit.color import xyz_weights
 
-    return xyz_weights(np.asarray(prep.wavelengths))
+    return xyz_weights(np.asarray(prep.colour.wavelengths))
 
 
 def test_frame_fields(prep, frame):
@@ -66,10 +66,12 @@ def test_display_stats_over_the_covered_slots_equal_to_display_on_the_image(prep
     from spectral_fit.color import to_display
     from spectral_fit.rendering import render_frame
 
-    p = dataclasses.replace(prep, exposure=prep.exposure * scale)
+    p = dataclasses.replace(prep, colour=dataclasses.replace(
+        prep.colour, exposure=prep.colour.exposure * scale))
     f = frame if scale == 1.0 else render_frame(p)
-    ref = to_display(np.asarray(f.xyz, np.float64), exposure_luminance=float(p.exposure),
-                     display=p.display, scene_white_xy=p.scene_white_xy,
+    col = p.colour
+    ref = to_display(np.asarray(f.xyz, np.float64), exposure_luminance=float(col.exposure),
+                     display=col.display, scene_white_xy=col.scene_white_xy,
                      mask=np.asarray(f.mask))
     covered = int(np.asarray(f.mask).sum())  # a Python int: pytest.approx refuses array tolerances
     for k in ("out_of_gamut_fraction", "below_zero_fraction", "overexposed_fraction"):
@@ -83,12 +85,12 @@ def test_display_stats_over_the_covered_slots_equal_to_display_on_the_image(prep
 def test_background_is_the_environment_seen_by_the_camera(prep, frame):
     from spectral_fit.lighting import lookup
 
-    h, w = prep.shape
+    cam, env = prep.camera, prep.lighting.env
     rows, cols = np.nonzero(~np.asarray(frame.mask))
     pick = np.random.default_rng(1).choice(rows.size, 200, replace=False)
     rows, cols = rows[pick], cols[pick]
-    _, d = ray_directions(prep.projection, prep.view, rows, cols, (h, w))
-    bands = np.asarray(jax.vmap(lambda x: lookup(prep.env, x))(jnp.asarray(d, jnp.float32)))
+    _, d = ray_directions(cam.projection, cam.view, rows, cols, cam.shape)
+    bands = np.asarray(jax.vmap(lambda x: lookup(env, x))(jnp.asarray(d, jnp.float32)))
     want = bands @ _xyz_weights(prep)
     got = np.asarray(frame.xyz)[rows, cols]
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-6 * want.max())
@@ -106,9 +108,9 @@ def test_single_sphere_matches_shading_of_the_analytic_hit(prep):
     mask = np.asarray(f.mask)
     oid = np.asarray(f.object_id)
     assert not np.any(oid == 0) and np.all(oid[mask] == 1)
-    h, w = prep.shape
+    cam = prep.camera
     rows, cols = np.nonzero(mask)
-    eye, d = ray_directions(prep.projection, prep.view, rows, cols, (h, w))
+    eye, d = ray_directions(cam.projection, cam.view, rows, cols, cam.shape)
     c = np.asarray(CENTRES[1])
     oc = eye - c
     b = d @ oc
@@ -122,7 +124,7 @@ def test_single_sphere_matches_shading_of_the_analytic_hit(prep):
     assert keep.sum() > 100
     mat = jax.tree.map(lambda x: x[1], prep.materials)
     # brute force: irradiance by the texel sum over the whole map at each exact normal
-    env = eqx_replace(prep.env, diffuse="exact")
+    env = eqx_replace(prep.lighting.env, diffuse="exact")
     rad = jax.vmap(lambda nn, vv: shade(mat, env, nn, vv))(
         jnp.asarray(n[keep], jnp.float32), jnp.asarray(v[keep], jnp.float32))
     want = np.asarray(rad) @ _xyz_weights(prep)
@@ -157,7 +159,7 @@ def test_new_poses_view_visibility_and_materials_do_not_recompile(prep, frame):
     model = np.asarray(prep.model).copy()
     model[:, 0, 3] += 0.01  # both spheres 1 cm to the right
     moved = render_frame(prep, model=model)
-    view = np.asarray(prep.view) @ translate((0.0, 0.0, 0.02)) @ rotate_y(0.05)
+    view = np.asarray(prep.camera.view) @ translate((0.0, 0.0, 0.02)) @ rotate_y(0.05)
     turned = render_frame(prep, view=view.astype(np.float32))
     hidden = render_frame(prep, visible=np.array([True, False]))
     mats = prep.materials
@@ -217,7 +219,7 @@ def test_gradients_match_finite_differences(prep):
 
             fd = (at(x0 + h) - at(x0 - h)) / (2 * h)
             ad = float(np.asarray(getattr(g, name))[idx])
-            if name == "gamma" and prep.ir_mode == "none":
+            if name == "gamma" and prep.interreflection.mode == "none":
                 assert ad == 0.0 and abs(fd) < 1e-6  # γ weighs the interreflection only
                 continue
             # μ and n enter through the environment's "render" gloss quadrature (node layout,
@@ -245,8 +247,6 @@ def test_chunked_xyz_shading_matches_the_band_shading(prep):
     count skipped) equals the per-band shading of all slots at once (the C-channel split-sum
     path) converted to XYZ afterwards, on random normals and views; with 8,192 slots per
     object (chunks of 2,048) and 3,000 / 5,000 covered, the last chunks are skipped (zeros)."""
-    import dataclasses
-
     import equinox as eqx
 
     from spectral_fit.geometry import GBuffer
@@ -254,7 +254,7 @@ def test_chunked_xyz_shading_matches_the_band_shading(prep):
     from spectral_fit.rendering._shading import _shade_fast, _shade_out
 
     cap, counts = 8192, (3000, 5000)
-    p = dataclasses.replace(prep, pixel_capacity=(cap, cap))
+    p = prep.with_buffers(pixel_capacity=(cap, cap))
     rng = np.random.default_rng(5)
     nrm = rng.normal(size=(2 * cap, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -268,9 +268,10 @@ def test_chunked_xyz_shading_matches_the_band_shading(prep):
 
     @eqx.filter_jit
     def both(p, mats, gb):
-        new = _shade_out(p, mats, gb, [jnp.int32(c) for c in counts], p.to_xyz, p.env_xyz)
-        old = _shade_fast(mats, p.env, gb, p.irradiance_lut, p.pixel_capacity, p.split_map,
-                          p.split_settings) @ p.to_xyz
+        lit, col = p.lighting, p.colour
+        new = _shade_out(p, mats, gb, [jnp.int32(c) for c in counts], col.to_xyz, col.env_xyz)
+        old = _shade_fast(mats, lit.env, gb, lit.irradiance_lut, p.buffers.pixel_capacity,
+                          lit.split_map, lit.split_settings) @ col.to_xyz
         return new, old
 
     new, old = (np.asarray(x) for x in both(p, mats, gb))
@@ -346,7 +347,8 @@ def test_interreflection_changes_only_pixels_that_see_the_other_object(scene_fol
     assert np.array_equal(mask, np.asarray(f.mask))
     diff = np.abs(np.asarray(f.xyz) - np.asarray(frame.xyz)).max(-1)
     rows, cols = np.nonzero(mask)
-    eye, d = ray_directions(prep.projection, prep.view, rows, cols, prep.shape)
+    cam = prep.camera
+    eye, d = ray_directions(cam.projection, cam.view, rows, cols, cam.shape)
     oid = np.asarray(frame.object_id)[rows, cols]
     c_self = np.asarray(CENTRES)[oid]
     c_other = np.asarray(CENTRES)[1 - oid]
@@ -438,7 +440,7 @@ def _patch_delta_e(ref, mode, *, spectral_mode=None, k=None, diffuse="map"):
     xyz = radiance_to_xyz(ref.patch_means(np.asarray(f.spectral, np.float64)), wl)
     env = load_environment(scene, wl)
     white = scene_white_xyz(env @ xyz_weights(wl), scene.environment.rotation_y_deg,
-                            np.asarray(p.view)[2, :3])
+                            np.asarray(p.camera.view)[2, :3])
     return xyz, white
 
 
@@ -524,25 +526,23 @@ def test_interreflection_overflow_falls_back_to_generic_capacities(scene_folder)
     """Gather pass-1 capacities are planned per mesh (small); a pose that overflows them is
     reported, and render's regrow re-renders with the generic capacities (the frame then
     equals one rendered with those from the start)."""
-    import dataclasses
-
     from spectral_fit.rendering import prepare, regrow, render_frame
     from spectral_fit.rendering.interreflection import pass1_config
     from spectral_fit.rendering.interreflection._pass1 import SUPERSAMPLE
 
     p = prepare(write_scene(scene_folder, mode="gather"))
-    tris = max(tb - ta for ta, tb in p.ir_triangle_slices)
+    tris = max(tb - ta for ta, tb in p.ir_mesh.triangle_slices)
     # the renderer's generic gather capacities (test_interreflection checks they are these)
     generic = pass1_config(tris, SUPERSAMPLE * 16)
     assert not bool(render_frame(p).stats["interreflection_overflow"])
-    tiny = dataclasses.replace(p, ir_raster_config=p.ir_raster_config._replace(
+    tiny = p.with_buffers(ir_raster_config=p.buffers.ir_raster_config._replace(
         capacities=(16, 16, 16)))
     f = render_frame(tiny)
     assert bool(f.stats["interreflection_overflow"])
     with pytest.warns(RuntimeWarning, match="ir_raster_config"):
         g = regrow(tiny, f, None, False)
     assert not bool(g.stats["interreflection_overflow"])
-    ref = render_frame(dataclasses.replace(p, ir_raster_config=generic))
+    ref = render_frame(p.with_buffers(ir_raster_config=generic))
     np.testing.assert_allclose(np.asarray(g.xyz), np.asarray(ref.xyz), rtol=1e-6, atol=1e-7)
 
 
@@ -570,19 +570,20 @@ def test_camera_culls_back_faces_of_closed_meshes_without_changing_a_pixel(prep,
     from spectral_fit.geometry import plan_config, rasterize
     from spectral_fit.rendering._camera import _to_world
 
-    assert prep.cull == "back"
-    world = _to_world(prep.vertices, prep.vertex_object, prep.model)
-    vp = prep.projection @ prep.view
+    cam, mesh = prep.camera, prep.mesh
+    assert cam.cull == "back"
+    world = _to_world(mesh.vertices, mesh.vertex_object, prep.model)
+    vp = cam.projection @ cam.view
     clip = np.asarray(world @ vp[:, :3].T + vp[:, 3])
-    tris = np.asarray(prep.triangles)
-    full = plan_config(clip, tris, prep.shape, cull="none")
-    assert sum(prep.raster_config.capacities) < 0.75 * sum(full.capacities)
-    r_none = rasterize(clip, tris, prep.shape, cull="none", config=full)
-    r_back = rasterize(clip, tris, prep.shape, cull="back", config=prep.raster_config)
+    tris = np.asarray(mesh.triangles)
+    full = plan_config(clip, tris, cam.shape, cull="none")
+    assert sum(prep.buffers.raster_config.capacities) < 0.75 * sum(full.capacities)
+    r_none = rasterize(clip, tris, cam.shape, cull="none", config=full)
+    r_back = rasterize(clip, tris, cam.shape, cull="back", config=prep.buffers.raster_config)
     ids = np.asarray(r_none.tri_id)
     assert (ids >= 0).sum() > 100
     np.testing.assert_array_equal(np.asarray(r_back.tri_id), ids)
-    obj = np.where(ids >= 0, np.asarray(prep.tri_object)[np.maximum(ids, 0)], -1)
+    obj = np.where(ids >= 0, np.asarray(mesh.tri_object)[np.maximum(ids, 0)], -1)
     np.testing.assert_array_equal(np.asarray(frame.object_id), obj)
 
 

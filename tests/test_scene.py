@@ -212,5 +212,5 @@ def test_environment_compression_reaches_the_prepared_map(tmp_path):
         scene = load_scene(p)
         assert scene.environment.compress_tol == (1e-4 if tol is None else tol)
         prep = prepare(scene, size=(48, 32), mode="none")
-        ranks[tol] = prep.env.spectral_basis.shape[0]
+        ranks[tol] = prep.lighting.env.spectral_basis.shape[0]
     assert ranks == {None: 75, 1e-3: 34}

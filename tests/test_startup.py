@@ -97,7 +97,8 @@ def test_prepare_cached_invalidated_by_a_named_file(tmp_path):
     misses = rendering.CACHE_STATS["prepared_miss"]
     b = rendering.prepare_cached(cfg, cache_dir=cache, mode="none")
     assert rendering.CACHE_STATS["prepared_miss"] == misses + 1
-    np.testing.assert_allclose(np.asarray(b.env.texels), 2.0 * np.asarray(a.env.texels),
+    np.testing.assert_allclose(np.asarray(b.lighting.env.texels),
+                               2.0 * np.asarray(a.lighting.env.texels),
                                rtol=1e-6)
     # a damaged entry is recomputed, not loaded
     for p in (cache / "prepared").glob("*.pkl"):
@@ -327,7 +328,7 @@ from spectral_fit import rendering
 prep = rendering.prepare_cached(sys.argv[1], mode="gather")
 f = rendering.render_frame_cached(prep)
 np.save(sys.argv[2], np.asarray(f.xyz))
-print(rendering.CACHE_STATS, prep.ir_mode)
+print(rendering.CACHE_STATS, prep.interreflection.mode)
 """
 
 

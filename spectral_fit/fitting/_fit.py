@@ -326,9 +326,9 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     t_unc = time.perf_counter() - t2
     fitted = out["predicted"][best].astype(np.float64)
     # colour table ---------------------------------------------------------------------------
-    measured = np.asarray(problem.measured, np.float64)
-    sigma = np.asarray(problem.sigma, np.float64)
-    calib = np.asarray(problem.calibration, np.float64)
+    measured = np.asarray(problem.readings.measured, np.float64)
+    sigma = np.asarray(problem.readings.sigma, np.float64)
+    calib = np.asarray(problem.instrument.calibration, np.float64)
     wl = session.wavelengths
     white = _reference_white(prep, calib, scale)
     table = _colour_table(wl, measured, fitted, white)
@@ -426,7 +426,7 @@ def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndar
     yh = np.asarray(o["y"])[0]
     vals, scale = physical_from_y(problem, jnp.asarray(yh, dt))
     pred = np.asarray(o["predicted"][0], np.float64)
-    meas = np.asarray(problem.measured, np.float64)
+    meas = np.asarray(problem.readings.measured, np.float64)
     table = _colour_table(s.wavelengths, meas, pred, white)
     held = [{"id": r.id, "object": r.object, **table[b]} for b, r in enumerate(s.readings)
             if r.kind != "object" and use[b] > 0]
@@ -516,13 +516,14 @@ def fit_many(prepared: PreparedFit, measured: Any, *, sigma: Any = None,
     dt = problem.values.dtype
     meas = np.asarray(measured, np.float64)
     K = meas.shape[0]
-    if meas.ndim != 3 or meas.shape[1:] != tuple(problem.measured.shape):
-        raise InputError(f"expected (K, {problem.measured.shape[0]}, "
-                         f"{problem.measured.shape[1]}), got {meas.shape}", field="measured")
+    shape = tuple(problem.readings.measured.shape)
+    if meas.ndim != 3 or meas.shape[1:] != shape:
+        raise InputError(f"expected (K, {shape[0]}, {shape[1]}), got {meas.shape}",
+                         field="measured")
     if not np.all(np.isfinite(meas)):
         raise InputError("NaN or infinite readings", field="measured")
-    sig = np.broadcast_to(np.asarray(problem.sigma if sigma is None else sigma, np.float64),
-                          meas.shape)
+    sig = np.broadcast_to(np.asarray(problem.readings.sigma if sigma is None else sigma,
+                                     np.float64), meas.shape)
     use = np.array([r.kind in opts.kinds for r in prepared.session.readings], np.float64)
     y0 = y_start(problem, np.asarray(problem.values, np.float64), 1.0)
     devs = list(devices) if devices is not None else jax.devices()

@@ -42,8 +42,8 @@ def _reflectances(problem: FitProblem, values: jax.Array) -> jax.Array:
 
     cos8 = math.cos(math.radians(_SCI_ANGLE_DEG))
     f8 = fresnel_dielectric(jnp.full_like(values[:, 4], cos8), values[:, 4])  # (O,)
-    s = problem.reflectance
-    return jnp.where(problem.sci[:, None] > 0, jnp.maximum(s - f8[:, None], 0.0), s)
+    s = problem.surfaces.reflectance
+    return jnp.where(problem.surfaces.sci[:, None] > 0, jnp.maximum(s - f8[:, None], 0.0), s)
 
 
 @eqx.filter_jit
@@ -57,7 +57,7 @@ def interreflection_term(problem: FitProblem, values: jax.Array) -> jax.Array:
         return jnp.zeros_like(problem.irradiance)
     obj = jnp.maximum(g.object, 0)
     S = _reflectances(problem, values)
-    _, ir = cached_radiance(problem.cache, values, S, obj, problem.models)
+    _, ir = cached_radiance(problem.cache, values, S, obj, problem.surfaces.models)
     return jnp.where(g.valid[:, None], ir, 0.0)
 
 
@@ -69,16 +69,16 @@ def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Arr
 
     obj = jnp.maximum(problem.receivers.object, 0)
     S = _reflectances(problem, values)
-    mean = field_radiance(problem.cache, values, S, obj, problem.models,
+    mean = field_radiance(problem.cache, values, S, obj, problem.surfaces.models,
                           interreflection=problem.interreflection)
-    mean = (mean + problem.background) @ problem.band.T
-    return problem.calibration * scale * mean
+    mean = (mean + problem.readings.background) @ problem.instrument.band.T
+    return problem.instrument.calibration * scale * mean
 
 
 def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
     """Weighted residuals (B·L,) ((model − measured)/σ · √w_b) at unconstrained ``y``."""
     vals, scale = physical_from_y(problem, y)
-    r = (predict(problem, vals, scale) - problem.measured) / problem.sigma
+    r = (predict(problem, vals, scale) - problem.readings.measured) / problem.readings.sigma
     return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
 
 

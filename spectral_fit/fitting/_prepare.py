@@ -28,7 +28,7 @@ from ..geometry import GBuffer, ObjectGeometry
 from ..io import PARAMETERS, Scene, Session
 from ..lighting import EnvironmentMap
 from ._options import FitOptions
-from ._problem import FitProblem, PreparedFit
+from ._problem import FitInstrument, FitProblem, FitReadings, FitSurfaces, PreparedFit
 from ._spots import _spot_samples, disc_pixels
 
 __all__ = [
@@ -241,14 +241,16 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
                 continue  # the gauge: scale and this alpha are degenerate
             free.append((o, k))
     problem = FitProblem(
-        env=env, receivers=recv, cache=cache, average=jnp.asarray(avg, dtype),
-        background=jnp.asarray(bg, dtype), reflectance=jnp.asarray(refl, dtype),
-        sci=jnp.asarray(sci, dtype), calibration=jnp.asarray(calib, dtype),
-        band=jnp.asarray(band, dtype),
-        measured=jnp.asarray(measured, dtype), sigma=jnp.asarray(sigma, dtype),
+        env=env, receivers=recv, cache=cache,
+        readings=FitReadings(average=jnp.asarray(avg, dtype), background=jnp.asarray(bg, dtype),
+                             measured=jnp.asarray(measured, dtype),
+                             sigma=jnp.asarray(sigma, dtype)),
+        instrument=FitInstrument(calibration=jnp.asarray(calib, dtype),
+                                 band=jnp.asarray(band, dtype)),
+        surfaces=FitSurfaces(reflectance=jnp.asarray(refl, dtype), sci=jnp.asarray(sci, dtype),
+                             models=tuple(models)),
         values=jnp.asarray(vals, dtype), free=tuple(free),
-        fit_scale=session.calibration == "global", models=tuple(models),
-        interreflection=bool(spheres))
+        fit_scale=session.calibration == "global", interreflection=bool(spheres))
     for w in warn:
         warnings.warn(w, RuntimeWarning, stacklevel=2)
     return PreparedFit(problem=problem, session=session, objects=names, geometries=geometries,

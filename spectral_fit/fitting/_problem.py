@@ -19,7 +19,52 @@ from ..io import PARAMETERS, Session
 from ..lighting import EnvironmentMap
 from ._radiance_cache import RadianceCache
 
-__all__ = ["FitProblem", "PreparedFit"]
+__all__ = ["FitProblem", "FitReadings", "FitInstrument", "FitSurfaces", "PreparedFit"]
+
+
+class FitReadings(eqx.Module):
+    """The readings the model is compared with, and what each one's field averages.
+
+    Attributes:
+        average: (B, P) field averaging weights of the samples (rows sum to 1).
+        background: (B, L) mean environment radiance (unit-scale map, W·sr⁻¹·m⁻²·nm⁻¹) of
+            the field pixels that miss every object.
+        measured: (B, L) mean reading (W·sr⁻¹·m⁻²·nm⁻¹).
+        sigma: (B, L) standard error of the mean reading (W·sr⁻¹·m⁻²·nm⁻¹).
+    """
+
+    average: jax.Array
+    background: jax.Array
+    measured: jax.Array
+    sigma: jax.Array
+
+
+class FitInstrument(eqx.Module):
+    """What lies between the modelled radiance and a reading.
+
+    Attributes:
+        calibration: (L,) environment calibration k(λ) (dimensionless; ones without a white
+            standard): the model is k(λ) times the radiance under the unit-scale map.
+        band: (L, L) the spectroradiometer's band-pass (identity: none; see
+            :func:`~spectral_fit.fitting.band_matrix`).
+    """
+
+    calibration: jax.Array
+    band: jax.Array
+
+
+class FitSurfaces(eqx.Module):
+    """The objects' surfaces as far as they are not fitted.
+
+    Attributes:
+        reflectance: (O, L) reflectance S(λ) as measured (SCI or SCE), in [0, 1].
+        sci: (O,) 1.0 where the reflectance is SCI (specular included), else 0.0.
+        models: static (distribution, geometry) of each object's reflection model.
+    """
+
+    reflectance: jax.Array
+    sci: jax.Array
+    models: tuple[tuple[str, str], ...] = eqx.field(static=True)
 
 
 class FitProblem(eqx.Module):
@@ -27,23 +72,32 @@ class FitProblem(eqx.Module):
 
     Shapes: B readings, P = B·R² samples (R² pixels per reading; empty slots have object −1),
     O objects, L bands.
+
+    Attributes:
+        env: the :class:`~spectral_fit.lighting.EnvironmentMap` at unit scale (the
+            calibration multiplies).
+        receivers: (P) :class:`~spectral_fit.geometry.GBuffer` of the surface points seen.
+        cache: :class:`~spectral_fit.fitting.RadianceCache`, everything material-independent
+            of the samples.
+        readings: :class:`FitReadings` (field weights, background, means, their errors).
+        instrument: :class:`FitInstrument` (calibration k(λ), band-pass).
+        surfaces: :class:`FitSurfaces` (reflectances, SCI flags, reflection models).
+        values: (O, 6) physical parameters, columns ``PARAMETERS`` (start values; fixed ones
+            stay).
+        free: static (object, parameter) pairs that are fitted.
+        fit_scale: static, whether a global scale is fitted too.
+        interreflection: static, whether the model adds the interreflection term.
     """
 
-    env: EnvironmentMap  # unit scale; the calibration multiplies
-    receivers: GBuffer  # (P) the surface points seen
-    cache: RadianceCache  # everything material-independent of the samples
-    average: jax.Array  # (B, P) field averaging weights (rows sum to 1)
-    background: jax.Array  # (B, L) mean env radiance of field pixels that miss every object
-    reflectance: jax.Array  # (O, L) S(λ) as measured (SCI or SCE)
-    sci: jax.Array  # (O,) 1.0 where the reflectance is SCI
-    calibration: jax.Array  # (L,) k(λ)
-    band: jax.Array  # (L, L) instrument band-pass (identity: none)
-    measured: jax.Array  # (B, L) mean reading
-    sigma: jax.Array  # (B, L) standard error of the mean reading
-    values: jax.Array  # (O, 6) physical parameters (start values; fixed ones stay)
-    free: tuple[tuple[int, int], ...] = eqx.field(static=True)  # (object, parameter) pairs
+    env: EnvironmentMap
+    receivers: GBuffer
+    cache: RadianceCache
+    readings: FitReadings
+    instrument: FitInstrument
+    surfaces: FitSurfaces
+    values: jax.Array
+    free: tuple[tuple[int, int], ...] = eqx.field(static=True)
     fit_scale: bool = eqx.field(static=True)
-    models: tuple[tuple[str, str], ...] = eqx.field(static=True)  # (distribution, geometry)/obj
     interreflection: bool = eqx.field(static=True, default=False)
 
     @property

@@ -67,7 +67,7 @@ def simulate_readings(scene: Scene, spots: Sequence[dict[str, Any]], *,
             if params and name in params and p in params[name]:
                 vals[o, k] = params[name][p]
     if calibration is not None:
-        pr = eqx.tree_at(lambda q: q.calibration, pr,
+        pr = eqx.tree_at(lambda q: q.instrument.calibration, pr,
                          jnp.asarray(np.broadcast_to(calibration, wl.shape), pr.values.dtype))
     return np.asarray(_predict_jit(pr, jnp.asarray(vals, pr.values.dtype),
                                    jnp.ones((), pr.values.dtype)), np.float64)

@@ -93,7 +93,7 @@ def _residuals_aux(y: jax.Array, problem: FitProblem, reading_weights: jax.Array
                    ) -> tuple[jax.Array, jax.Array]:
     vals, scale = physical_from_y(problem, y)
     pred = predict(problem, vals, scale)
-    r = (pred - problem.measured) / problem.sigma
+    r = (pred - problem.readings.measured) / problem.readings.sigma
     return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1), pred
 
 
@@ -107,8 +107,8 @@ def _residuals_jacobian(y: jax.Array, problem: FitProblem, reading_weights: jax.
         return p, p
 
     jp, pred = jax.jacfwd(model, has_aux=True)(y)  # (B, L, F), (B, L)
-    sw = jnp.sqrt(reading_weights)[:, None] / problem.sigma
-    r = ((pred - problem.measured) * sw).reshape(-1)
+    sw = jnp.sqrt(reading_weights)[:, None] / problem.readings.sigma
+    r = ((pred - problem.readings.measured) * sw).reshape(-1)
     return r, (jp * sw[..., None]).reshape(r.shape[0], y.shape[0]), pred
 
 
@@ -119,8 +119,9 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
     dt = y0.dtype
     F = y0.shape[0]
     tau = 1e-4  # the damping after a rejection is at least τ max (JᵀJ)_ii
-    B, L = problem.measured.shape  # residuals (B·L,), Jacobian (B·L, F), predictions (B, L)
-    rdt = problem.measured.dtype
+    # residuals (B·L,), Jacobian (B·L, F), predictions (B, L)
+    B, L = problem.readings.measured.shape
+    rdt = problem.readings.measured.dtype
     r0, j0, p0 = (jnp.zeros((B * L,), rdt), jnp.zeros((B * L, F), rdt), jnp.zeros((B, L), rdt))
 
     def cond(s: dict[str, jax.Array]) -> jax.Array:
@@ -222,7 +223,8 @@ def _solve_measured(problem: FitProblem, y0: jax.Array, rw: jax.Array, measured:
     """Like :func:`solve_batch` but each batch entry has its own readings (K, B, L) and σ."""
     def one(y0_: jax.Array, w: jax.Array, meas: jax.Array, sig: jax.Array
             ) -> dict[str, jax.Array]:
-        pr = eqx.tree_at(lambda q: (q.measured, q.sigma), problem, (meas, sig))
+        pr = eqx.tree_at(lambda q: (q.readings.measured, q.readings.sigma), problem,
+                         (meas, sig))
         out = _solve_one(pr, y0_, w, solver, max_steps)
         del out["predicted"]
         return out

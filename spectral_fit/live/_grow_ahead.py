@@ -6,10 +6,9 @@ session switches to them at the first frame after they are compiled, so no frame
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +16,9 @@ import numpy as np
 
 from ._devices import put_on_device
 from ._step import live_step
+
+if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
+    from ..rendering import Prepared
 
 __all__ = ["GrowAhead"]
 
@@ -26,25 +28,25 @@ class GrowAhead:
     ``prep``, ``grow_ahead``, ``headroom``, ``devices`` and growth state are set by the
     session's constructor)."""
 
-    def _grown_plan(self, stats: dict[str, Any]) -> Any:
+    def _grown_plan(self, stats: dict[str, Any]) -> Prepared | None:
         """``self.prep`` with every buffer that this frame filled past ``grow_ahead`` grown
         to ``headroom`` × its use, and at least to where that use is below ``grow_ahead``
         (on the capacity ladders); None when none is that full."""
         from ..geometry import grown_clusters
 
         p, f = self.prep, self.grow_ahead
+        buf = p.buffers
         hr = max(self.headroom, 1.0 / f)
         counts = np.asarray(stats["object_counts"]).tolist()
-        cfg = p.raster_config.grown(np.asarray(stats["raster_needed"]), hr, full=f)
-        h, w = p.shape
+        cfg = buf.raster_config.grown(np.asarray(stats["raster_needed"]), hr, full=f)
+        h, w = p.camera.shape
         new_pix = tuple(max(c, _pixel_slots(hr * n, h * w)) if n > f * c else c
-                        for c, n in zip(p.pixel_capacity, counts, strict=True))
-        clusters = grown_clusters(p.clusters, int(stats["clusters_needed"]), hr, full=f)
-        if (cfg == p.raster_config and new_pix == tuple(p.pixel_capacity)
-                and clusters is p.clusters):
+                        for c, n in zip(buf.pixel_capacity, counts, strict=True))
+        clusters = grown_clusters(buf.clusters, int(stats["clusters_needed"]), hr, full=f)
+        if (cfg == buf.raster_config and new_pix == tuple(buf.pixel_capacity)
+                and clusters is buf.clusters):
             return None
-        return dataclasses.replace(p, raster_config=cfg, pixel_capacity=new_pix,
-                                   clusters=clusters)
+        return p.with_buffers(raster_config=cfg, pixel_capacity=new_pix, clusters=clusters)
 
     def _maybe_grow(self, stats: dict[str, Any], poses: Any, background: Any) -> None:
         """Start the background compile of grown buffers when this frame (rendered with the

@@ -22,11 +22,12 @@ class SendersReuse:
     """The senders' half reuse of :class:`~spectral_fit.live.LiveSession` (its ``prep``,
     ``ir_reuse_mm``, ``devices`` and senders' state are set by the session's constructor)."""
 
-    def _reuses_senders(self, p: Any) -> bool:
+    def _reuses_senders(self, p: Prepared) -> bool:
         """Whether frames take the senders' half from :func:`render_senders` (else the step
         computes it, or there is none)."""
-        return not (self.ir_reuse_mm is None or p.ir_mode != "gather" or p.num_objects < 2
-                    or p.ir_bounces < 1)
+        ir = p.interreflection
+        return not (self.ir_reuse_mm is None or ir.mode != "gather" or p.num_objects < 2
+                    or ir.bounces < 1)
 
     def _senders_for(self, poses: Any, inputs: Any, dev: Any = None) -> Any:
         """The gather interreflection's senders' half for these poses, on device ``dev``:
@@ -59,9 +60,9 @@ class SendersReuse:
 
 def _object_corners(prep: Prepared) -> np.ndarray:
     """(O, 8, 4) homogeneous corners of each object's bounding box in its own frame."""
-    v = np.asarray(prep.vertices, np.float64)
+    v = np.asarray(prep.mesh.vertices, np.float64)
     out = []
-    for a, b in prep.object_slices:
+    for a, b in prep.mesh.object_slices:
         lo, hi = v[a:b].min(axis=0), v[a:b].max(axis=0)
         c = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                       for z in (lo[2], hi[2])])

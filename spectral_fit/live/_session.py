@@ -16,8 +16,8 @@ kept as they are instead and the CG is rendered through the lens (:mod:`spectral
 Marker poses come from the raw frame with the distortion model.
 
 Colour: the renderer's radiance channels go straight to the camera's linear RGB: the
-:class:`~spectral_fit.rendering.Prepared` matrix ``to_xyz`` (channels → XYZ) is replaced by
-channels → camera RGB (``to_spectrum @ camera.spectral_weights``), so the camera's spectral
+:class:`~spectral_fit.rendering.Prepared` matrix ``colour.to_xyz`` (channels → XYZ) is replaced
+by channels → camera RGB (``to_spectrum @ camera.spectral_weights``), so the camera's spectral
 sensitivities act on the full spectra at no extra cost (``Frame.xyz`` then holds camera linear
 RGB). A camera model fitted from a ColorChecker shot (XYZ → RGB 3×3; the config's
 ``[camera_colour]``, see :func:`scene_camera_model`) uses ``to_xyz @ M.T`` instead. The
@@ -57,6 +57,7 @@ from ._senders_reuse import SendersReuse, _object_corners
 from ._step import camera_output_matrix, live_step
 
 if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
+    from ..geometry import TriangleClusters
     from ..rendering import Prepared
 
 __all__ = ["LiveSession"]
@@ -249,36 +250,35 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         p = self.prep
         ir_cfg = ir_fallback(p) if interreflection else None
         if ir_cfg is not None:
-            p = self.prep = dataclasses.replace(p, ir_raster_config=ir_cfg)
-        v = np.asarray(p.vertices, np.float64)
-        m = np.asarray(poses.model, np.float64)[np.asarray(p.vertex_object)]
+            p = self.prep = p.with_buffers(ir_raster_config=ir_cfg)
+        mesh, cam, buf = p.mesh, p.camera, p.buffers
+        v = np.asarray(mesh.vertices, np.float64)
+        m = np.asarray(poses.model, np.float64)[np.asarray(mesh.vertex_object)]
         world = np.einsum("vij,vj->vi", m[:, :3, :3], v) + m[:, :3, 3]
-        clip = camera_clip(np.asarray(p.projection, np.float64),
+        clip = camera_clip(np.asarray(cam.projection, np.float64),
                             np.asarray(poses.view, np.float64),
-                            None if p.lens is None else np.asarray(p.lens, np.float64), world,
-                            np)
-        cfg, _ = plan_capacities(clip, np.asarray(p.triangles), p.shape, headroom=headroom,
-                                 cull=p.cull)
-        old = p.raster_config
+                            None if cam.lens is None else np.asarray(cam.lens, np.float64),
+                            world, np)
+        tris = np.asarray(mesh.triangles)
+        cfg, _ = plan_capacities(clip, tris, cam.shape, headroom=headroom, cull=cam.cull)
+        old = buf.raster_config
         cfg = RasterConfig(old.tile_sizes, tuple(max(a, b, _MIN_WINDOWS) for a, b in zip(
             cfg.capacities, old.capacities, strict=True)),
             max(cfg.block_capacity, old.block_capacity))
-        h, w = p.shape
-        tris = np.asarray(p.triangles)
+        h, w = cam.shape
         caps = []
-        for (ta, tb), c in zip(p.triangle_slices, p.pixel_capacity, strict=True):
-            _, bound = plan_capacities(clip, tris[ta:tb], p.shape, headroom=headroom,
-                                       cull=p.cull)
+        for (ta, tb), c in zip(mesh.triangle_slices, buf.pixel_capacity, strict=True):
+            _, bound = plan_capacities(clip, tris[ta:tb], cam.shape, headroom=headroom,
+                                       cull=cam.cull)
             caps.append(max(c, _pixel_slots(headroom * bound, h * w)))
         cap = tuple(caps)
         clusters = _planned_clusters(p, poses, headroom)
-        if cfg == old and cap == p.pixel_capacity and clusters is p.clusters:
+        if cfg == old and cap == buf.pixel_capacity and clusters is buf.clusters:
             return ir_cfg is not None
-        self.prep = dataclasses.replace(p, raster_config=cfg, pixel_capacity=cap,
-                                        clusters=clusters)
+        self.prep = p.with_buffers(raster_config=cfg, pixel_capacity=cap, clusters=clusters)
         return True
 
-    def _prepare(self, headroom: float) -> Any:
+    def _prepare(self, headroom: float) -> Prepared:
         from ..rendering import prepare_cached, with_output
 
         h, w = self.size
@@ -315,7 +315,7 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         inputs = (put(poses.model), put(poses.view), put(poses.visible))
         return self._dispatch(poses, inputs, bg, plan=False)
 
-    def _placed(self, dev: Any) -> tuple[Any, CameraModel]:
+    def _placed(self, dev: Any) -> tuple[Prepared, CameraModel]:
         """The prepared scene and camera model on device ``dev`` (copied once per prepared
         scene; with one device the session's own, uncommitted)."""
         if len(self.devices) == 1:
@@ -366,16 +366,17 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
                      self._senders_for(poses, inputs, dev))
 
 
-def _planned_clusters(prep: Prepared, poses: Any, headroom: float) -> Any:
-    """``prep.clusters`` with its kept list grown to ``headroom`` × the clusters kept at
-    ``poses`` (never shrunk; the same object when unchanged, None without clusters)."""
+def _planned_clusters(prep: Prepared, poses: Any, headroom: float
+                      ) -> TriangleClusters | None:
+    """``prep.buffers.clusters`` with its kept list grown to ``headroom`` × the clusters kept
+    at ``poses`` (never shrunk; the same object when unchanged, None without clusters)."""
     from ..geometry import count_clusters, sized
 
-    cl = prep.clusters
+    cl = prep.buffers.clusters
     if cl is None:
         return None
     n = count_clusters(cl, np.asarray(poses.model), np.asarray(poses.view),
-                       np.asarray(prep.projection), cull=prep.cull)
+                       np.asarray(prep.camera.projection), cull=prep.camera.cull)
     return sized(cl, headroom * n + 4, at_least=cl.capacity)
 
 

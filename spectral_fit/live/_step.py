@@ -28,8 +28,8 @@ def camera_output_matrix(prep: Prepared, camera: CameraModel) -> np.ndarray:
     the camera's spectral sensitivities (a model with them) or through XYZ and its 3 × 3
     (for :func:`~spectral_fit.rendering.with_output`)."""
     if camera.has_spectral:
-        return np.asarray(prep.to_spectrum) @ np.asarray(camera.spectral_weights)
-    return np.asarray(prep.to_xyz) @ np.asarray(camera.xyz_matrix).T
+        return np.asarray(prep.colour.to_spectrum) @ np.asarray(camera.spectral_weights)
+    return np.asarray(prep.colour.to_xyz) @ np.asarray(camera.xyz_matrix).T
 
 
 def _step_impl(prep: Prepared, materials: Material, model: jax.Array, view: jax.Array,

@@ -17,23 +17,24 @@ from ._prepared import Prepared
 
 def _background(prep: Prepared, flat: jax.Array, view: jax.Array) -> jax.Array:
     """The environment seen through each pixel centre: bilinear lookups (H·W, C') of a table
-    laid out as the map's texels + 2 pole rows (e.g. ``prep.env_xyz``). Per pixel the map-frame
-    ray direction is an affine function of the pixel coordinates (one 3 × 3 matrix for the
-    frame: inverse projection, camera rotation and map rotation), evaluated by components
-    (:func:`_pinhole_ray_components`, not normalised); (u, v) as
+    laid out as the map's texels + 2 pole rows (e.g. ``prep.colour.env_xyz``). Per pixel the
+    map-frame ray direction is an affine function of the pixel coordinates (one 3 × 3 matrix
+    for the frame: inverse projection, camera rotation and map rotation), evaluated by
+    components (:func:`_pinhole_ray_components`, not normalised); (u, v) as
     :func:`~spectral_fit.lighting.fast_direction_to_uv`'s; the lookup from the table laid
     out with a pole row above and below and a wrapped column
     (:func:`~spectral_fit.lighting.padded_bilinear`, bit-identical to the general one).
-    Through a lens (``prep.pixel_rays``) each pixel's ray is looked up instead (rotated into
-    the map frame)."""
+    Through a lens (``prep.camera.pixel_rays``) each pixel's ray is looked up instead
+    (rotated into the map frame)."""
     from ..lighting import fast_direction_to_uv, padded_bilinear, padded_table, uv_of
 
-    env = prep.env
+    env = prep.lighting.env
+    rays = prep.camera.pixel_rays
     hm, wm = env.texels.shape[:2]
-    if prep.pixel_rays is not None:  # through the lens: the pixel centres' own rays
+    if rays is not None:  # through the lens: the pixel centres' own rays
         # eye → world is view[:3, :3]ᵀ (a rotation), then the map's rotation
         m = view[:3, :3] @ env.rotation
-        r = [prep.pixel_rays[:, i] for i in range(3)]
+        r = [rays[:, i] for i in range(3)]
         dmap = jnp.stack([r[0] * m[0, j] + r[1] * m[1, j] + r[2] * m[2, j] for j in range(3)],
                          axis=-1)
         u, v = materialise_each(*fast_direction_to_uv(dmap))
@@ -55,8 +56,8 @@ def _pinhole_ray_components(prep: Prepared, view: jax.Array, rot: jax.Array
     OpenGL pinhole, intrinsics included): one 3 × 3 map from (x, y, 1) to the direction. The
     components are evaluated inside the (u, v) kernel (no (H, W, 3) stack and normalisation
     written out first, which is slower; display RGB within 9e-6)."""
-    h, w = prep.shape
-    inv = inverse_4x4(prep.projection @ view)
+    h, w = prep.camera.shape
+    inv = inverse_4x4(prep.camera.projection @ view)
     eye = eye_position(view)
     wrow = inv[3]
     cols = [inv[:3, 0], inv[:3, 1], inv[:3, 2] + inv[:3, 3]]

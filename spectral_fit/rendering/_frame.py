@@ -73,36 +73,37 @@ def _render_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                  mirror: bool = True, senders: Any = None) -> Frame:
     from ..color import display_linear, encode, gamut_fractions
 
-    h, w = prep.shape
+    h, w = prep.camera.shape
+    col = prep.colour
     px = _pixels_impl(prep, materials, model, view, visible, spectral, mirror, senders)
     # 4. background and XYZ
     if background:
         with jax.named_scope("background"):
-            bg_xyz = _background(prep, prep.env_xyz, view).reshape(h, w, 3)
+            bg_xyz = _background(prep, col.env_xyz, view).reshape(h, w, 3)
     else:
         bg_xyz = jnp.zeros((h, w, 3), jnp.float32)
     spec = None
     if spectral:
-        xyz_px = px.values @ prep.to_xyz
+        xyz_px = px.values @ col.to_xyz
         xyz = _scatter(xyz_px, px, bg_xyz)
         if background:
-            env = prep.env
+            env = prep.lighting.env
             hm, wm, c = env.texels.shape
             flat = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
-            bg = (_background(prep, flat, view) @ prep.to_spectrum).reshape(h, w, -1)
+            bg = (_background(prep, flat, view) @ col.to_spectrum).reshape(h, w, -1)
         else:
-            bg = jnp.zeros((h, w, prep.to_spectrum.shape[1]), jnp.float32)
-        spec = _scatter(px.values @ prep.to_spectrum, px, bg)
+            bg = jnp.zeros((h, w, col.to_spectrum.shape[1]), jnp.float32)
+        spec = _scatter(px.values @ col.to_spectrum, px, bg)
     else:
         xyz_px = px.values
         xyz = _scatter(xyz_px, px, bg_xyz)
 
     # 5. display
     with jax.named_scope("display"):
-        kw = dict(exposure_luminance=prep.exposure, display=prep.display,
-                  scene_white_xy=prep.scene_white_xy)
+        kw = dict(exposure_luminance=col.exposure, display=col.display,
+                  scene_white_xy=col.scene_white_xy)
         linear = display_linear(xyz, **kw)
-        rgb = encode(linear, prep.display)
+        rgb = encode(linear, col.display)
         # the gamut fractions over the covered pixels' slots (N ≪ H·W) rather than the masked
         # image: four frame-wide reductions cost a noticeable share of the frame
         fractions = gamut_fractions(display_linear(xyz_px, **kw), px.valid)
@@ -172,9 +173,10 @@ def with_output(prep: Prepared, matrix: Any) -> Prepared:
     if m.shape != (prep.channels, 3) or not np.all(np.isfinite(m)):
         raise InputError(f"expected a finite ({prep.channels}, 3) matrix, got {m.shape}",
                          field="matrix")
-    env = prep.env
+    env = prep.lighting.env
     hm, wm, c = env.texels.shape
     flat = np.concatenate([np.asarray(env.texels, np.float64).reshape(hm * wm, c),
                            np.asarray(env.poles, np.float64)])
-    return dataclasses.replace(prep, to_xyz=jnp.asarray(m, jnp.float32),
-                               env_xyz=jnp.asarray(flat @ m, jnp.float32))
+    colour = dataclasses.replace(prep.colour, to_xyz=jnp.asarray(m, jnp.float32),
+                                 env_xyz=jnp.asarray(flat @ m, jnp.float32))
+    return dataclasses.replace(prep, colour=colour)

@@ -35,7 +35,7 @@ def _check_frame_inputs(prep: Prepared, materials: Any, model: Any, view: Any, v
                         ) -> tuple[Any, jax.Array, jax.Array, jax.Array]:
     mats = prep.materials if materials is None else materials
     model = prep.model if model is None else model
-    view = prep.view if view is None else view
+    view = prep.camera.view if view is None else view
     visible = all_visible(prep.num_objects) if visible is None else visible
     if not isinstance(model, jax.core.Tracer):
         m = np.shape(model)
@@ -63,6 +63,7 @@ def _as_dtype(x: Any, dtype: Any) -> jax.Array:
 
 
 def _check_senders(prep: Prepared, senders: Any) -> None:
-    if senders is not None and prep.ir_mode != "gather":
-        raise InputError(f"senders given but the interreflection mode is {prep.ir_mode!r}",
+    if senders is not None and prep.interreflection.mode != "gather":
+        raise InputError("senders given but the interreflection mode is "
+                         f"{prep.interreflection.mode!r}",
                          field="senders")

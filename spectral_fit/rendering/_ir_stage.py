@@ -35,24 +35,25 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
     """Interreflection radiance (N, D) to add, in the output channels of ``to_out`` (C, D)
     (the C channels when ``to_out`` is None; None when off), and the pass-1 overflow flag."""
     no = jnp.zeros((), bool)
-    if prep.ir_mode == "none" or len(geoms) < 2:
+    ir, lit = prep.interreflection, prep.lighting
+    if ir.mode == "none" or len(geoms) < 2:
         return None, no
     try:
         from .interreflection._transport import interreflection_from
     except ImportError:
-        if prep.ir_mode not in _IR_WARNED:
-            _IR_WARNED.add(prep.ir_mode)
-            warnings.warn(f"interreflection mode {prep.ir_mode!r} is not available in this "
+        if ir.mode not in _IR_WARNED:
+            _IR_WARNED.add(ir.mode)
+            warnings.warn(f"interreflection mode {ir.mode!r} is not available in this "
                           "installation (spectral_fit.rendering.interreflection missing); "
                           "rendering without interreflection", RuntimeWarning, stacklevel=4)
         return None, no
     geom = _ir_pass1(prep, geoms)
     # paper mode's pass-1 textures shaded as the frame is: by the split sum in quality "fast"
-    split = ((prep.split_map, prep.split_settings)
-             if prep.ir_mode == "paper" and prep.split_map is not None else None)
-    extra = interreflection_from(geom, mats, prep.env, gb, mode=prep.ir_mode,
-                                 bounces=prep.ir_bounces, image_shape=prep.shape,
-                                 output=to_out, split_sum=split)
+    split = ((lit.split_map, lit.split_settings)
+             if ir.mode == "paper" and lit.split_map is not None else None)
+    extra = interreflection_from(geom, mats, lit.env, gb, mode=ir.mode, bounces=ir.bounces,
+                                 image_shape=prep.camera.shape, output=to_out,
+                                 split_sum=split)
     return extra, jnp.asarray(geom.overflow, bool)
 
 
@@ -62,9 +63,9 @@ def _ir_pass1(prep: Prepared, geoms: list[ObjectGeometry]) -> Any:
     from .interreflection._pass1 import prepare_interreflection
 
     with jax.named_scope("ir_pass1"):
-        return prepare_interreflection(geoms, mode=prep.ir_mode,
-                                       texture_size=prep.ir_texture_size,
-                                       raster_config=prep.ir_raster_config)
+        return prepare_interreflection(geoms, mode=prep.interreflection.mode,
+                                       texture_size=prep.interreflection.texture_size,
+                                       raster_config=prep.buffers.ir_raster_config)
 
 
 def _ir_geometries(prep: Prepared, model: jax.Array, visible: jax.Array
@@ -74,13 +75,14 @@ def _ir_geometries(prep: Prepared, model: jax.Array, visible: jax.Array
     scene: its light and shadow on the others are ~1e-9 of a neighbour's."""
     centres = model[:, :3, 3]
     away = jnp.where(visible, 0.0, 1e3)[:, None] * jnp.array([0.0, -1.0, 0.0], jnp.float32)
-    world_ir = (_to_world(prep.ir_vertices, prep.ir_vertex_object, model)
-                + away[prep.ir_vertex_object])
-    wnorm = _normals_to_world(prep.ir_normals, prep.ir_vertex_object, model)
+    mesh = prep.ir_mesh
+    world_ir = (_to_world(mesh.vertices, mesh.vertex_object, model)
+                + away[mesh.vertex_object])
+    wnorm = _normals_to_world(mesh.normals, mesh.vertex_object, model)
     return [ObjectGeometry(vertices=world_ir[a:b], normals=wnorm[a:b],
-                           triangles=prep.ir_triangles[ta:tb] - a, centre=centres[i] + away[i])
-            for i, ((a, b), (ta, tb)) in enumerate(zip(prep.ir_object_slices,
-                                                       prep.ir_triangle_slices, strict=True))]
+                           triangles=mesh.triangles[ta:tb] - a, centre=centres[i] + away[i])
+            for i, ((a, b), (ta, tb)) in enumerate(zip(mesh.object_slices,
+                                                       mesh.triangle_slices, strict=True))]
 
 
 def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax.Array,
@@ -94,7 +96,7 @@ def _senders_impl(prep: Prepared, materials: Any, model: jax.Array, visible: jax
     model = jnp.asarray(model, jnp.float32)
     visible = jnp.asarray(visible, bool)
     geom = _ir_pass1(prep, _ir_geometries(prep, model, visible))
-    return gather_senders(geom, mats, prep.env, bounces=prep.ir_bounces)
+    return gather_senders(geom, mats, prep.lighting.env, bounces=prep.interreflection.bounces)
 
 
 _senders_jit = array_jit(_senders_impl)
@@ -110,9 +112,10 @@ def render_senders(prep: Prepared, materials: Any = None, *, model: Any = None,
     same object state: the result equals the frame that computes it itself. Its
     ``geometry.overflow`` is the pass-1 overflow flag. ``mirror``: as for
     :func:`render_frame`, and the same for the frames that use it."""
-    if prep.ir_mode != "gather" or prep.num_objects < 2 or prep.ir_bounces < 1:
+    ir = prep.interreflection
+    if ir.mode != "gather" or prep.num_objects < 2 or ir.bounces < 1:
         raise InputError("needs a gather-mode interreflection of at least two objects and "
-                         f"one bounce, got mode {prep.ir_mode!r} with {prep.num_objects} "
-                         f"objects and {prep.ir_bounces} bounces", field="interreflection.mode")
+                         f"one bounce, got mode {ir.mode!r} with {prep.num_objects} "
+                         f"objects and {ir.bounces} bounces", field="interreflection.mode")
     mats, model, _, visible = _check_frame_inputs(prep, materials, model, None, visible)
     return _senders_jit(prep, mats, model, visible, _mirror_flag(mats, mirror))

@@ -64,7 +64,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     from ..geometry import interpolate_pixels, rasterize
 
     TRACE_COUNT["render_frame"] += 1
-    h, w = prep.shape
+    h, w = prep.camera.shape
     n_obj = prep.num_objects
     mats = _as_stacked(materials, n_obj)
     if not mirror:
@@ -74,25 +74,27 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     visible = jnp.asarray(visible, bool)
 
     # 1. geometry in the world; hidden objects collapse onto their centre (draw nothing)
-    world_full = _to_world(prep.vertices, prep.vertex_object, model)
+    mesh = prep.mesh
+    world_full = _to_world(mesh.vertices, mesh.vertex_object, model)
     centres = model[:, :3, 3]
-    vis_v = visible[prep.vertex_object]
-    world = jnp.where(vis_v[:, None], world_full, centres[prep.vertex_object])
-    wnorm = _normals_to_world(prep.normals, prep.vertex_object, model)
-    clip = camera_clip(prep.projection, view, prep.lens, world)
+    vis_v = visible[mesh.vertex_object]
+    world = jnp.where(vis_v[:, None], world_full, centres[mesh.vertex_object])
+    wnorm = _normals_to_world(mesh.normals, mesh.vertex_object, model)
+    clip = camera_clip(prep.camera.projection, view, prep.camera.lens, world)
 
     # 2. rasterise (the triangles of the clusters that may face the eye), compact covered
     # pixels, G-buffer; triangle ids below are rows of that list
     with jax.named_scope("raster"):
         tris, tri_object, clusters_needed, clusters_over = _frame_triangles(
             prep, model, view, visible)
-        ras = rasterize(clip, tris, (h, w), cull=prep.cull,
-                        config=prep.raster_config, check=False)
+        ras = rasterize(clip, tris, (h, w), cull=prep.camera.cull,
+                        config=prep.buffers.raster_config, check=False)
     # covered pixels, one fixed-capacity list per object (each object is shaded with its own
     # material, whose per-material precomputations then run once per object)
     with jax.named_scope("pixel_lists"):
         obj_img = jnp.where(ras.tri_id >= 0, tri_object[jnp.maximum(ras.tri_id, 0)], -1)
-        pix, counts = _object_pixel_lists(ras.tri_id, obj_img, prep.pixel_capacity)
+        pix, counts = _object_pixel_lists(ras.tri_id, obj_img,
+                                           prep.buffers.pixel_capacity)
     attrs = jnp.concatenate([world, wnorm], axis=1)
     vals = interpolate_pixels(attrs, pix, tris, clip)
     pos = vals[:, :3]
@@ -118,23 +120,26 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     # spectral output): no (N, C) array unless the spectra are asked for
     if spectral:
         to_out = jnp.eye(prep.channels, dtype=jnp.float32)
-        hm, wm, c = prep.env.texels.shape
-        mirror_table = jnp.concatenate([prep.env.texels.reshape(hm * wm, c), prep.env.poles])
+        env = prep.lighting.env
+        hm, wm, c = env.texels.shape
+        mirror_table = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
     else:
-        to_out = prep.to_xyz
-        mirror_table = prep.env_xyz
+        to_out = prep.colour.to_xyz
+        mirror_table = prep.colour.env_xyz
     with jax.named_scope("shading"):
-        if prep.quality == "fast":
+        lit = prep.lighting
+        if lit.quality == "fast":
             radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table)
         else:
-            radiance = _shade_samples(mats, prep.env, gb, prep.batch_size,
-                                      prep.irradiance_lut, prep.quality, prep.pixel_capacity,
-                                      prep.split_map, prep.split_settings) @ to_out
+            radiance = _shade_samples(mats, lit.env, gb, lit.batch_size, lit.irradiance_lut,
+                                      lit.quality, prep.buffers.pixel_capacity,
+                                      lit.split_map, lit.split_settings) @ to_out
     # (in the output channels: the receivers' side of the gather works in those)
     if senders is not None:
         from .interreflection._gather import gather_receivers
 
-        ir = gather_receivers(senders, mats, prep.env, gb, image_shape=prep.shape,
+        ir = gather_receivers(senders, mats, prep.lighting.env, gb,
+                              image_shape=prep.camera.shape,
                               output=None if spectral else to_out)
         ir_overflow = jnp.asarray(senders.geometry.overflow, bool)
     else:
@@ -163,15 +168,16 @@ def _frame_triangles(prep: Prepared, model: jax.Array, view: jax.Array, visible:
                      ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """The camera raster's triangle list: (T', 3) vertex indices, (T',) object of each row,
     the clusters kept (int32) and whether their list overflowed (bool). With
-    ``prep.clusters`` the rows of the clusters that may face the eye
+    ``prep.buffers.clusters`` the rows of the clusters that may face the eye
     (:func:`~spectral_fit.geometry.visible_clusters`; the raster is bit-identical to one of all
-    triangles), else ``prep.triangles`` (the count is then 0)."""
+    triangles), else ``prep.mesh.triangles`` (the count is then 0)."""
     from ..geometry import cluster_rows, visible_clusters
 
-    cl = prep.clusters
+    cl = prep.buffers.clusters
     if cl is None:
-        return prep.triangles, prep.tri_object, jnp.int32(0), jnp.asarray(False)
-    index, count = visible_clusters(cl, model, view, prep.projection, visible, cull=prep.cull)
+        return prep.mesh.triangles, prep.mesh.tri_object, jnp.int32(0), jnp.asarray(False)
+    index, count = visible_clusters(cl, model, view, prep.camera.projection, visible,
+                                    cull=prep.camera.cull)
     tris, obj = cluster_rows(cl, index)
     return tris, obj, count, count > cl.capacity
 
@@ -183,8 +189,8 @@ def render_pixels(prep: Prepared, materials: Any = None, *, model: Any = None,
     image scatter or display encoding: for callers that put the pixels somewhere else (the
     live composite writes them straight into the video frame). Same inputs as
     :func:`render_frame`; meant to be called inside the caller's own ``jit``. Returns a
-    :class:`PixelFrame`; its values are in ``prep.to_xyz``'s output space (:func:`with_output`)
-    or, with ``spectral``, in the C radiance channels. ``mirror``: as for
+    :class:`PixelFrame`; its values are in ``prep.colour.to_xyz``'s output space
+    (:func:`with_output`) or, with ``spectral``, in the C radiance channels. ``mirror``: as for
     :func:`render_frame`; inside a caller's ``jit`` the materials are traced, so the default
     keeps the mirror term: pass :func:`mirror_needed` of the concrete materials from outside.
     ``senders``: :func:`render_senders` of the same ``prep``, materials, mirror switch and

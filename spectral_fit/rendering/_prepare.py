@@ -26,7 +26,15 @@ from ._camera import _check_lens_tessellation, _lens, _look_at_jit, _projection,
 from ._capacities import _ir_raster_config, _plan_clusters, plan_capacities
 from ._environment import irradiance_table, load_environment
 from ._materials import _stack, scene_materials
-from ._prepared import Prepared
+from ._prepared import (
+    Prepared,
+    PreparedBuffers,
+    PreparedCamera,
+    PreparedColour,
+    PreparedInterreflection,
+    PreparedLighting,
+    SceneMeshes,
+)
 
 if TYPE_CHECKING:  # for annotations (imported where they are used)
     from ..io import Scene
@@ -205,10 +213,11 @@ def prepare(
 
     cull = ("back" if all(is_closed_outward(m.vertices, m.triangles) for m in meshes)
             else "none")
-    if all(a is b for a, b in zip(ir_meshes, meshes, strict=True)):
-        ir_v, ir_n, ir_t, ir_o, ir_vsl, ir_tsl = vertices, normals, triangles, vobj_a, vsl, tsl
+    ir_same = all(a is b for a, b in zip(ir_meshes, meshes, strict=True))
+    if ir_same:
+        ir_v, ir_t, ir_vsl, ir_tsl = vertices, triangles, vsl, tsl
     else:
-        ir_v, ir_n, ir_t, ir_o, _, ir_vsl, ir_tsl = _concat_meshes(ir_meshes)
+        ir_v, ir_n, ir_t, ir_o, ir_to, ir_vsl, ir_tsl = _concat_meshes(ir_meshes)
 
     cam = scene.camera
     view = np.asarray(_look_at_jit(np.asarray(cam.position, np.float32),
@@ -307,29 +316,37 @@ def prepare(
                                paper_tris, [(ir_v[a:b], ir_t[ta:tb] - a) for (a, b),
                                             (ta, tb) in zip(ir_vsl, ir_tsl, strict=True)])
 
-    return Prepared(
+    mesh = SceneMeshes(
         vertices=jnp.asarray(vertices), normals=jnp.asarray(normals),
         triangles=jnp.asarray(triangles), vertex_object=jnp.asarray(vobj_a),
-        tri_object=jnp.asarray(tobj_a), model=jnp.asarray(model),
-        view=jnp.asarray(view), projection=jnp.asarray(proj), env=env,
-        env_xyz=jnp.asarray(env_xyz, jnp.float32), to_xyz=jnp.asarray(to_xyz, jnp.float32),
-        to_spectrum=jnp.asarray(to_spectrum, jnp.float32),
-        exposure=jnp.asarray(exposure, jnp.float32), materials=mats,
-        irradiance_lut=None if lut is None else jnp.asarray(lut, jnp.float32), shape=shape,
-        wavelengths=tuple(float(x) for x in wl), spectral_mode=smode,
-        k=kk if smode == "basis" else int(wl.size), ir_mode=ir_mode, ir_bounces=nb,
-        ir_texture_size=ts, raster_config=cfg, ir_raster_config=ir_cfg,
-        pixel_capacity=cap,
-        object_slices=tuple(vsl), triangle_slices=tuple(tsl),
-        names=tuple(o.name for o in scene.objects), display=display,
-        scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy),
-        batch_size=int(batch_size), quality=quality, split_map=split_map,
-        split_settings=split_settings if quality == "fast" else None,
-        ir_vertices=jnp.asarray(ir_v, jnp.float32), ir_normals=jnp.asarray(ir_n, jnp.float32),
-        ir_triangles=jnp.asarray(ir_t, jnp.int32), ir_vertex_object=jnp.asarray(ir_o, jnp.int32),
-        ir_object_slices=tuple(ir_vsl), ir_triangle_slices=tuple(ir_tsl), cull=cull,
-        lens=None if lens is None else jnp.asarray(lens, jnp.float32),
-        pixel_rays=None if rays is None else jnp.asarray(rays), clusters=clusters,
+        tri_object=jnp.asarray(tobj_a), object_slices=tuple(vsl), triangle_slices=tuple(tsl))
+    ir_mesh = mesh if ir_same else SceneMeshes(
+        vertices=jnp.asarray(ir_v, jnp.float32), normals=jnp.asarray(ir_n, jnp.float32),
+        triangles=jnp.asarray(ir_t, jnp.int32), vertex_object=jnp.asarray(ir_o, jnp.int32),
+        tri_object=jnp.asarray(ir_to, jnp.int32), object_slices=tuple(ir_vsl),
+        triangle_slices=tuple(ir_tsl))
+    return Prepared(
+        mesh=mesh, ir_mesh=ir_mesh, model=jnp.asarray(model), materials=mats,
+        camera=PreparedCamera(
+            view=jnp.asarray(view), projection=jnp.asarray(proj),
+            lens=None if lens is None else jnp.asarray(lens, jnp.float32),
+            pixel_rays=None if rays is None else jnp.asarray(rays), shape=shape, cull=cull),
+        lighting=PreparedLighting(
+            env=env, irradiance_lut=None if lut is None else jnp.asarray(lut, jnp.float32),
+            split_map=split_map, quality=quality,
+            split_settings=split_settings if quality == "fast" else None,
+            batch_size=int(batch_size)),
+        colour=PreparedColour(
+            to_xyz=jnp.asarray(to_xyz, jnp.float32), env_xyz=jnp.asarray(env_xyz, jnp.float32),
+            to_spectrum=jnp.asarray(to_spectrum, jnp.float32),
+            exposure=jnp.asarray(exposure, jnp.float32),
+            wavelengths=tuple(float(x) for x in wl), spectral_mode=smode,
+            k=kk if smode == "basis" else int(wl.size), display=display,
+            scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy)),
+        buffers=PreparedBuffers(clusters=clusters, raster_config=cfg, ir_raster_config=ir_cfg,
+                                pixel_capacity=cap),
+        interreflection=PreparedInterreflection(mode=ir_mode, bounces=nb, texture_size=ts),
+        names=tuple(o.name for o in scene.objects),
     )
 
 

@@ -1,8 +1,9 @@
 """The prepared-scene cache: :func:`prepare_cached` is :func:`~spectral_fit.rendering.prepare` of
 a config file or a :class:`~spectral_fit.io.Scene` with its result stored on disk
 (``$SPECTRAL_FIT_CACHE/prepared``, default ``~/.cache/spectral_fit/prepared``), keyed by the
-config's bytes and the files it names (or the scene's values), the options and the
-environment (``_keys``); a hit is unpickled, identical to what ``prepare`` returned.
+config's bytes and the files it names (or the scene's values), the options, the environment
+(``_keys``) and the layout of :class:`~spectral_fit.rendering.Prepared`; a hit is unpickled,
+identical to what ``prepare`` returned.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ def prepare_cached(scene: Scene | str | os.PathLike[str], *,
         InputError: as ``prepare`` (bad configs and options are never cached).
     """
     from ._prepare import prepare
+    from ._prepared import PREPARED_LAYOUT
 
     root = Path(cache_dir) if cache_dir is not None else cache_root()
     texts = {k: _plain_repr(v) for k, v in options.items()}
@@ -63,7 +65,7 @@ def prepare_cached(scene: Scene | str | os.PathLike[str], *,
     if digest is None or any(t is None for t in texts.values()):
         say(_PREPARING)
         return prepare(scene, **options)
-    text = "\n".join([_environment_digest(), digest,
+    text = "\n".join([_environment_digest(), f"layout={PREPARED_LAYOUT}", digest,
                       *(f"{k}={texts[k]}" for k in sorted(texts))])
     key = hashlib.sha256(text.encode()).hexdigest()[:40]
     folder = root / "prepared"

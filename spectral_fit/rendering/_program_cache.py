@@ -233,7 +233,8 @@ def _split_program(prep: Prepared) -> bool:
     benchmark frame are about equal. ``SPECTRAL_FIT_SPLIT_PROGRAMS=0`` keeps one program."""
     if os.environ.get("SPECTRAL_FIT_SPLIT_PROGRAMS", "1") in ("0", ""):
         return False
-    return prep.ir_mode == "gather" and prep.num_objects >= 2 and prep.ir_bounces >= 1
+    ir = prep.interreflection
+    return ir.mode == "gather" and prep.num_objects >= 2 and ir.bounces >= 1
 
 
 def _part_key(key: str, part: str) -> str:

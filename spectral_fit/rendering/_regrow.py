@@ -21,6 +21,7 @@ from ._prepare import prepare
 from ._prepared import Frame, Prepared
 
 if TYPE_CHECKING:  # for annotations (imported where they are used)
+    from ..geometry import RasterConfig
     from ..io import Scene
 
 __all__ = [
@@ -48,53 +49,49 @@ def regrow(prep: Prepared, frame: Frame, materials: Any, spectral: bool) -> Fram
         ir_cfg = ir_fallback(prep) if bool(frame.stats["interreflection_overflow"]) else None
         if not (pix_over or ras_over or ir_cfg is not None):
             return frame
+        buf, cam, mesh = prep.buffers, prep.camera, prep.mesh
         changes: dict[str, Any] = {}
         if ir_cfg is not None:
             changes["ir_raster_config"] = ir_cfg
         if pix_over:
-            h, w = prep.shape
+            h, w = cam.shape
             counts = np.bincount(np.asarray(frame.object_id).reshape(-1) + 1,
                                  minlength=prep.num_objects + 1)[1:]
             changes["pixel_capacity"] = tuple(
                 max(c, min(h * w, capacity_ladder(1.5 * int(n) + 64, 64)))
-                for c, n in zip(prep.pixel_capacity, counts, strict=True))
-        if ras_over and prep.clusters is not None:
+                for c, n in zip(buf.pixel_capacity, counts, strict=True))
+        if ras_over and buf.clusters is not None:
             from ..geometry import count_clusters, grown_clusters
 
-            grown = grown_clusters(prep.clusters, count_clusters(
-                prep.clusters, prep.model, prep.view, prep.projection, cull=prep.cull), 1.5)
-            if grown is not prep.clusters:
+            grown = grown_clusters(buf.clusters, count_clusters(
+                buf.clusters, prep.model, cam.view, cam.projection, cull=cam.cull), 1.5)
+            if grown is not buf.clusters:
                 changes["clusters"] = grown
         if ras_over:
             from ..geometry import rasterize
 
-            world = _to_world(prep.vertices, prep.vertex_object, prep.model)
-            r = rasterize(camera_clip(prep.projection, prep.view, prep.lens, world),
-                          prep.triangles, prep.shape,
-                          cull=prep.cull, config=prep.raster_config, check=False)
-            changes["raster_config"] = prep.raster_config.grown(np.asarray(r.needed), 1.5)
+            world = _to_world(mesh.vertices, mesh.vertex_object, prep.model)
+            r = rasterize(camera_clip(cam.projection, cam.view, cam.lens, world),
+                          mesh.triangles, cam.shape,
+                          cull=cam.cull, config=buf.raster_config, check=False)
+            changes["raster_config"] = buf.raster_config.grown(np.asarray(r.needed), 1.5)
         warnings.warn(f"render: buffers grown ({sorted(changes)}); recompiling",
                       RuntimeWarning, stacklevel=3)
-        prep = _replace_static(prep, **changes)
+        prep = prep.with_buffers(**changes)
         frame = render_frame(prep, materials, spectral=spectral)
     raise RuntimeError("render: buffers still overflow after growing them")
 
 
-def ir_fallback(prep: Prepared) -> Any:
+def ir_fallback(prep: Prepared) -> RasterConfig | None:
     """The pass-1 raster capacities after an interreflection overflow: at least the generic
     ones (:func:`_ir_generic_config`); None when they are there already (nothing to grow)."""
-    cur = prep.ir_raster_config
+    cur = prep.buffers.ir_raster_config
     if cur is None:
         return None
-    tris = max(tb - ta for ta, tb in prep.ir_triangle_slices)
-    gen = _ir_generic_config(prep.ir_mode, prep.ir_texture_size, tris)
+    tris = max(tb - ta for ta, tb in prep.ir_mesh.triangle_slices)
+    gen = _ir_generic_config(prep.interreflection.mode, prep.interreflection.texture_size, tris)
     new = cur._replace(capacities=tuple(max(a, b) for a, b in zip(
         cur.capacities, gen.capacities, strict=True)),
         block_capacity=max(cur.block_capacity, gen.block_capacity))
     return None if new == cur else new
 
-
-def _replace_static(prep: Prepared, **changes: Any) -> Prepared:
-    import dataclasses
-
-    return dataclasses.replace(prep, **changes)

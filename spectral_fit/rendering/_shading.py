@@ -213,13 +213,13 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     the compilation of a two-object frame."""
     from ..lighting import fast_lookup, irradiance, lobe_moment_table
 
-    env = prep.env
-    settings = prep.split_settings
+    env = prep.lighting.env
+    settings = prep.lighting.split_settings
     k_out = int(to_out.shape[1])
     env_g = eqx.tree_at(lambda e: e.spectral_basis, env, env.spectral_basis @ to_out)
     mirror_env = _lut_env(env, mirror_table, env.texels.shape[:2])
-    lut = prep.irradiance_lut
-    slices = list(_object_slices(gb, prep.pixel_capacity))
+    lut = prep.lighting.irradiance_lut
+    slices = list(_object_slices(gb, prep.buffers.pixel_capacity))
     groups: dict[tuple[str, str], list[int]] = {}
     for i, m in enumerate(mats):
         groups.setdefault((m.distribution, m.geometry), []).append(i)
@@ -241,7 +241,7 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                   moments: jax.Array = moments, dflat: Any = dflat,
                   group_mirror: Any = group_mirror) -> jax.Array:
             m = jax.tree.map(lambda x: x[o], stacked)
-            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.split_map, group_mirror,
+            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.lighting.split_map, group_mirror,
                                                   moments[o], nn, vv, m, settings)
             if dflat is None:
                 e = jax.vmap(lambda d: irradiance(env, d))(nn)

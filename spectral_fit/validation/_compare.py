@@ -128,7 +128,7 @@ def validate(
 
             env = load_environment(scene, wl)
             white = scene_white_xyz(env @ xyz_weights(wl), scene.environment.rotation_y_deg,
-                                    np.asarray(prep.view)[2, :3])
+                                    np.asarray(prep.camera.view)[2, :3])
             out["white_xyz"] = white.tolist()
         spec = np.asarray(frame.spectral, np.float64)
         xyz = radiance_to_xyz(ref.patch_means(spec), wl)

@@ -107,9 +107,9 @@ def _case(opts: BenchOptions, *, mode: str = "gather", z: float = -0.275,
     out = measure(lambda: render_frame(prep).rgb, repeats=opts.repeats)
     f = render_frame(prep)
     out.update(prepare_s=prepare_s, mode=mode, channels=prep.channels,
-               size=[prep.shape[1], prep.shape[0]],
+               size=[prep.camera.shape[1], prep.camera.shape[0]],
                covered_pixels=int(f.stats["covered_pixels"]),
-               pixel_capacity=prep.pixel_capacity,
+               pixel_capacity=prep.buffers.pixel_capacity,
                overflow=bool(f.stats["pixel_overflow"] | f.stats["raster_overflow"]
                              | f.stats["interreflection_overflow"]))
     return out

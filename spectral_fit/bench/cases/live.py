@@ -138,7 +138,7 @@ def _live(opts: BenchOptions, mode: str | None = None) -> dict[str, Any]:
     out.update({
         "render_fps": 1e3 / out["median_ms"],
         "covered_pixels": _covered_pixels(session),
-        "pixel_capacity": list(session.prep.pixel_capacity),
+        "pixel_capacity": list(session.prep.buffers.pixel_capacity),
         "size": [int(x) for x in session.size],
         "mode": extra.get("mode", scene.interreflection.mode),
     })
@@ -202,7 +202,7 @@ def _benchmark_video(size: tuple[int, int], n: int, extra: dict[str, Any]) -> di
         out: dict[str, Any] = {"compile_s": time.perf_counter() - t0}
         out.update(_end_to_end(session, stream, n))
     out["covered_pixels"] = _covered_pixels(session)
-    out["pixel_capacity"] = list(session.prep.pixel_capacity)
+    out["pixel_capacity"] = list(session.prep.buffers.pixel_capacity)
     return out
 
 
@@ -237,7 +237,7 @@ def _benchmark_scene_inputs(session: Any, background: Any, *, quick: bool = Fals
     h, w = session.size
     prep = prepare(benchmark_scene(quick=quick), size=(w, h), **session._options)
     prep = with_output(prep, camera_output_matrix(prep, session.camera))
-    return (prep, prep.materials, prep.model, prep.view, all_visible(prep.num_objects),
+    return (prep, prep.materials, prep.model, prep.camera.view, all_visible(prep.num_objects),
             jnp.asarray(background), session.camera, mirror_needed(prep.materials))
 
 
@@ -258,7 +258,7 @@ def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
 
     out = measure(lambda: step()[0], repeats=repeats)
     stats = jax.block_until_ready(step())[1]
-    if prep.ir_mode == "gather":
+    if prep.interreflection.mode == "gather":
         # objects that stay put (a camera moving around them): the interreflection's
         # camera-independent half computed once (LiveSession's reuse), the step per frame
         from ...rendering import render_senders
@@ -276,8 +276,8 @@ def _benchmark_scene_step(session: Any, background: Any, *, quick: bool = False,
     out.update(render_fps=1e3 / out["median_ms"],
                covered_pixels=int(stats["covered_pixels"]),
                overflow=bool(stats["overflow"]),
-               pixel_capacity=list(prep.pixel_capacity),
-               mode=prep.ir_mode)
+               pixel_capacity=list(prep.buffers.pixel_capacity),
+               mode=prep.interreflection.mode)
     return out
 
 
@@ -434,9 +434,9 @@ def _in_flight_figures(quick: bool, repeats: int) -> dict[str, Any]:
                 "n": len(two)}
 
     bench = figures(args)
-    bench["mode"] = prep.ir_mode
+    bench["mode"] = prep.interreflection.mode
     headline = bench
-    if prep.ir_mode == "gather":
+    if prep.interreflection.mode == "gather":
         state = render_senders(prep, args[1], model=args[2], visible=args[4], mirror=args[7])
         headline = bench["objects_static"] = figures((*args, state))
     res: dict[str, Any] = {k: headline[k] for k in ("median_ms", "min_ms", "max_ms", "n",

@@ -80,15 +80,15 @@ def render_step(out: Path) -> dict:
         jax.block_until_ready(render_frame_cached(prep, spectral=True))
         again.append(time.perf_counter() - t1)
     files = write_frame(frame, png=out / "frame.png", exr=out / "frame.exr",
-                        mask_png=out / "frame_mask.png", wavelengths=prep.wavelengths,
+                        mask_png=out / "frame_mask.png", wavelengths=prep.colour.wavelengths,
                         colourspace=scene.display.colourspace)
     stats = {k: (v.item() if hasattr(v, "item") else v) for k, v in frame.stats.items()}
-    h, w = prep.shape
+    h, w = prep.camera.shape
     return {
         "config": str(CONFIG),
         "size": [w, h],
-        "interreflection": prep.ir_mode,
-        "spectral_mode": prep.spectral_mode,
+        "interreflection": prep.interreflection.mode,
+        "spectral_mode": prep.colour.spectral_mode,
         "channels": int(prep.channels),
         "first_frame_s": first,
         "frame_ms": statistics.median(again) * 1e3,

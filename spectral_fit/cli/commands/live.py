@@ -182,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         "frames_masked": {o.name: c for o, c in zip(scene.objects, lost, strict=True)},
         "output": args.output,
         "output_frames": written,
-        "pixel_capacity": session.prep.pixel_capacity,
+        "pixel_capacity": session.prep.buffers.pixel_capacity,
         "pipeline": pipeline,
         "devices": [str(d) for d in session.devices],
         "cg_blur_px": session.camera.blur_px,

@@ -105,31 +105,31 @@ def run(args: argparse.Namespace) -> int:
     written = write_frame(frame, png=args.output, exr=args.exr, xyz_exr=args.xyz_exr,
                           rgb_exr=args.rgb_exr, mask_png=args.mask,
                           composite_png=args.composite, background=args.background,
-                          wavelengths=prep.wavelengths,
+                          wavelengths=prep.colour.wavelengths,
                           colourspace=(load_scene(args.config).display.colourspace
                                        if args.rgb_exr else "sRGB"))
     stats = {k: (v.item() if hasattr(v, "item") else v) for k, v in frame.stats.items()}
-    h, w = prep.shape
+    h, w = prep.camera.shape
     summary = {
         "config": str(args.config),
         "size": [w, h],
-        "mode": prep.ir_mode,
-        "spectral_mode": prep.spectral_mode,
+        "mode": prep.interreflection.mode,
+        "spectral_mode": prep.colour.spectral_mode,
         "channels": prep.channels,
         "import_s": t_import,
         "prepare_s": t_prep,
         "first_frame_s": t_first,
         "frame_ms": t_frame * 1e3,
-        "exposure_luminance": float(prep.exposure),
+        "exposure_luminance": float(prep.colour.exposure),
         **stats,
         "files": written,
     }
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"rendered {w}x{h} ({prep.ir_mode}, {prep.spectral_mode}, {prep.channels} "
-              f"channels): frame {t_frame * 1e3:.1f} ms (first {t_first:.2f} s, prepare "
-              f"{t_prep:.2f} s); coverage {100 * stats['coverage']:.2f} % "
+        print(f"rendered {w}x{h} ({prep.interreflection.mode}, {prep.colour.spectral_mode}, "
+              f"{prep.channels} channels): frame {t_frame * 1e3:.1f} ms (first {t_first:.2f} s, "
+              f"prepare {t_prep:.2f} s); coverage {100 * stats['coverage']:.2f} % "
               f"({stats['covered_pixels']} px); out of gamut "
               f"{100 * stats['out_of_gamut_fraction']:.1f} % of object pixels; wrote "
               f"{', '.join(written)}", file=sys.stdout)

@@ -227,17 +227,18 @@ def baseline_inputs(prep: Prepared) -> BaselineInputs:
     from ....geometry import interreflection_camera
     from ....lighting import lobe_moment_table
 
-    if prep.spectral_mode != "bands":
+    lit, col, cam, mesh = prep.lighting, prep.colour, prep.camera, prep.mesh
+    if col.spectral_mode != "bands":
         raise InputError("the OpenGL baseline renders spectral bands only", field="spectral_mode")
-    if prep.quality != "fast" or prep.split_map is None:
+    if lit.quality != "fast" or lit.split_map is None:
         raise InputError("the OpenGL baseline renders quality 'fast' only", field="quality")
-    if prep.irradiance_lut is None:
+    if lit.irradiance_lut is None:
         raise InputError("the OpenGL baseline needs the irradiance map (diffuse='map')",
                          field="diffuse")
-    if prep.lens is not None:
+    if cam.lens is not None:
         raise InputError("the OpenGL baseline renders a pinhole camera only",
                          field="camera.distortion")
-    env = prep.env
+    env = lit.env
     c = int(env.channels)
     if c > 32:
         raise InputError(f"at most 32 bands (8 RGBA targets), got {c}", field="spectral")
@@ -250,10 +251,10 @@ def baseline_inputs(prep: Prepared) -> BaselineInputs:
         raise InputError(f"at most {MAX_SENDERS + 1} objects, got {n_obj}", field="objects")
 
     texels = np.asarray(env.texels, np.float32)
-    hl_wl = int(prep.irradiance_lut.shape[0]) - 2
+    hl_wl = int(lit.irradiance_lut.shape[0]) - 2
     hl = int(round(math.sqrt(hl_wl / 2)))
-    lut_flat = np.asarray(prep.irradiance_lut, np.float32)
-    sm = prep.split_map
+    lut_flat = np.asarray(lit.irradiance_lut, np.float32)
+    sm = lit.split_map
     atlas = np.asarray(sm.atlas, np.float32)
     table = np.asarray(sm.level_table)
     levels, level_poles = [], []
@@ -261,7 +262,7 @@ def baseline_inputs(prep: Prepared) -> BaselineInputs:
         off, h, w = int(off), int(h), int(w)
         levels.append(atlas[off:off + h * w].reshape(h, w, -1))
         level_poles.append(atlas[off + h * w:off + h * w + 2])
-    settings = prep.split_settings
+    settings = lit.split_settings
     mats = prep.materials
     params = np.stack([np.asarray(getattr(mats, f), np.float64)
                        for f in ("alpha", "beta", "chi", "gamma", "n", "mu")], axis=-1)
@@ -272,28 +273,28 @@ def baseline_inputs(prep: Prepared) -> BaselineInputs:
     moments = np.asarray(table_fn(jnp.asarray(mats.mu, jnp.float32),
                                   jnp.asarray(mats.n, jnp.float32)))
     verts, nrms, tris = [], [], []
-    for (a, b), (ta, tb) in zip(prep.object_slices, prep.triangle_slices, strict=True):
-        verts.append(np.asarray(prep.vertices[a:b], np.float32))
-        nrms.append(np.asarray(prep.normals[a:b], np.float32))
-        tris.append(np.asarray(prep.triangles[ta:tb], np.int32) - a)
+    for (a, b), (ta, tb) in zip(mesh.object_slices, mesh.triangle_slices, strict=True):
+        verts.append(np.asarray(mesh.vertices[a:b], np.float32))
+        nrms.append(np.asarray(mesh.normals[a:b], np.float32))
+        tris.append(np.asarray(mesh.triangles[ta:tb], np.int32) - a)
     model = np.asarray(prep.model, np.float64)
     centres = model[:, :3, 3]
     pair_vp = np.stack([np.asarray(interreflection_camera(
         centres[i].astype(np.float32), centres[j].astype(np.float32), aspect=1.0)
         .view_projection, np.float64) for i, j in _pairs(n_obj)]) if n_obj > 1 else \
         np.zeros((0, 4, 4))
-    display = prep.display
-    kw = dict(exposure_luminance=float(prep.exposure), display=display,
-              scene_white_xy=prep.scene_white_xy)
+    display = col.display
+    kw = dict(exposure_luminance=float(col.exposure), display=display,
+              scene_white_xy=col.scene_white_xy)
     offset = -np.asarray(display_linear(np.zeros(3), **kw), np.float64)
     disp = np.stack([np.asarray(display_linear(e, **kw), np.float64) + offset
                      for e in np.eye(3)], axis=-1)  # columns: the images of X, Y, Z
     import colour
 
-    white = np.asarray(colour.xy_to_XYZ(display.white_xy), np.float64) * float(prep.exposure)
+    white = np.asarray(colour.xy_to_XYZ(display.white_xy), np.float64) * float(col.exposure)
     return BaselineInputs(
-        shape=tuple(int(s) for s in prep.shape),
-        wavelengths=np.asarray(prep.wavelengths, np.float64),
+        shape=tuple(int(s) for s in cam.shape),
+        wavelengths=np.asarray(col.wavelengths, np.float64),
         env=texels, env_poles=np.asarray(env.poles, np.float32),
         to_map=np.asarray(env.rotation, np.float64).T,
         sh=np.asarray(env.sh, np.float32),
@@ -306,12 +307,13 @@ def baseline_inputs(prep: Prepared) -> BaselineInputs:
         materials=params, reflectance=np.asarray(mats.reflectance, np.float32),
         moments=moments.astype(np.float32),
         vertices=tuple(verts), normals=tuple(nrms), triangles=tuple(tris),
-        model=model, view=np.asarray(prep.view, np.float64),
-        projection=np.asarray(prep.projection, np.float64), pair_vp=pair_vp,
-        texture_size=int(prep.ir_texture_size), to_xyz=np.asarray(prep.to_xyz, np.float64),
+        model=model, view=np.asarray(cam.view, np.float64),
+        projection=np.asarray(cam.projection, np.float64), pair_vp=pair_vp,
+        texture_size=int(prep.interreflection.texture_size),
+        to_xyz=np.asarray(col.to_xyz, np.float64),
         display=disp, display_offset=offset, tone=display.tone,
-        tone_gamma=float(display.gamma), exposure=float(prep.exposure), white_xyz=white,
-        cull=prep.cull,
+        tone_gamma=float(display.gamma), exposure=float(col.exposure), white_xyz=white,
+        cull=cam.cull,
     )
 
 
