@@ -365,25 +365,20 @@ def test_interreflection_changes_only_pixels_that_see_the_other_object(scene_fol
     assert not np.any(changed & ~sees), int(np.sum(changed & ~sees))
 
 
-def test_render_cli_smoke(scene_folder, tmp_path):
+def test_render_cli_writes_frame_mask_xyz_and_json(scene_folder, tmp_path, capsys):
+    """`spectral-fit render` with every output at once (one frame program): the display PNG,
+    the mask, absolute XYZ as EXR of the requested size, and the JSON summary."""
     from spectral_fit.cli import main
     from spectral_fit.io import read_channels_exr
 
     cfg = write_scene(scene_folder, mode="none")
     png, xyz = tmp_path / "f.png", tmp_path / "f_xyz.exr"
     rc = main(["render", str(cfg), "-o", str(png), "--xyz-exr", str(xyz), "--size",
-               f"{SIZE[0]}x{SIZE[1]}", "--mode", "none", "--mask", str(tmp_path / "m.png")])
+               f"{SIZE[0]}x{SIZE[1]}", "--mode", "none", "--mask", str(tmp_path / "m.png"),
+               "--json"])
     assert rc == 0 and png.is_file() and (tmp_path / "m.png").is_file()
     img = read_channels_exr(xyz, "XYZ")
     assert img.shape == (SIZE[1], SIZE[0], 3) and img[..., 1].min() > 0
-
-
-def test_render_cli_json(scene_folder, tmp_path, capsys):
-    from spectral_fit.cli import main
-
-    cfg = write_scene(scene_folder, mode="none")
-    rc = main(["render", str(cfg), "-o", str(tmp_path / "f.png"), "--json"])
-    assert rc == 0
     out = json.loads(capsys.readouterr().out)
     assert out["size"] == list(SIZE) and out["mode"] == "none"
     assert 0.005 < out["coverage"] < 0.2 and out["frame_ms"] > 0
