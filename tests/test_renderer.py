@@ -125,8 +125,8 @@ def test_single_sphere_matches_shading_of_the_analytic_hit(prep):
     mat = jax.tree.map(lambda x: x[1], prep.materials)
     # brute force: irradiance by the texel sum over the whole map at each exact normal
     env = eqx_replace(prep.lighting.env, diffuse="exact")
-    rad = jax.vmap(lambda nn, vv: shade(mat, env, nn, vv))(
-        jnp.asarray(n[keep], jnp.float32), jnp.asarray(v[keep], jnp.float32))
+    rad = jax.jit(jax.vmap(shade, in_axes=(None, None, 0, 0)))(
+        mat, env, jnp.asarray(n[keep], jnp.float32), jnp.asarray(v[keep], jnp.float32))
     want = np.asarray(rad) @ _xyz_weights(prep)
     got = np.asarray(f.xyz)[rows[keep], cols[keep]]
     rel = np.abs(got - want) / want.max(axis=1, keepdims=True)
@@ -295,9 +295,11 @@ def test_object_pixel_lists_match_covered_pixels_per_object():
     obj = rng.integers(-1, 3, size=(h, w)).astype(np.int32)
     tri = np.where(obj >= 0, rng.integers(0, 1000, size=(h, w)), -1).astype(np.int32)
     caps = (int((obj == 0).sum()) + 7, int((obj == 1).sum()) - 5, 64 * 64)
-    pix, counts = _object_pixel_lists(jnp.asarray(tri), jnp.asarray(obj), caps)
-    want = [covered_pixels(Raster(tri_id=jnp.asarray(np.where(obj == o, tri, -1)), bary=None,
-                                  depth=None, overflow=None, needed=None), cap)
+    pix, counts = jax.jit(_object_pixel_lists, static_argnums=2)(jnp.asarray(tri),
+                                                                 jnp.asarray(obj), caps)
+    covered = jax.jit(covered_pixels, static_argnums=1)
+    want = [covered(Raster(tri_id=jnp.asarray(np.where(obj == o, tri, -1)), bary=None,
+                           depth=None, overflow=None, needed=None), cap)
             for o, cap in enumerate(caps)]
     np.testing.assert_array_equal(np.asarray(pix.index),
                                   np.concatenate([np.asarray(q.index) for q in want]))
