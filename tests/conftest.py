@@ -6,6 +6,7 @@ collecting a module that uses none of them stays as cheap as before."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -23,16 +24,40 @@ if os.environ.get("SPECTRAL_FIT_TEST_FAST_COMPILE", "") not in ("", "0") and (
         [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0"]).strip()
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_cmdline_main(config):
-    """With ``-n N`` (pytest-xdist) and no ``--dist`` given, distribute by ``loadgroup``: tests
-    go to whichever worker is free, as with xdist's default, except that the tests of an
-    ``xdist_group`` run on one worker. Modules whose tests share an expensive module fixture
-    (a compiled gather-mode scene, an OpenGL context) are grouped so that the fixture is built
-    once, not once per worker."""
-    if getattr(config.option, "numprocesses", None) and getattr(config.option, "dist",
-                                                                 None) == "no":
-        config.option.dist = "loadgroup"
+# Modules whose tests share an expensive module fixture (a compiled gather-mode scene, an OpenGL
+# context and its frames, two lens frames): with ``-n N`` each of them runs on one worker, so the
+# fixture is built once per run, not once per worker.
+ONE_WORKER_MODULES = frozenset({
+    "tests/test_gl_baseline.py",
+    "tests/test_ir_reuse.py",
+    "tests/test_lens.py",
+})
+
+
+def _scope_of(nodeid: str) -> str:
+    """The unit of work a test belongs to: its module for ``ONE_WORKER_MODULES``, else the test
+    itself (so the rest balances test by test, as with pytest-xdist's default ``load``)."""
+    module = nodeid.split("::", 1)[0]
+    return module if module in ONE_WORKER_MODULES else nodeid
+
+
+if importlib.util.find_spec("xdist") is not None:
+
+    def pytest_xdist_make_scheduler(config, log):
+        """With ``-n N`` and the default distribution, schedule by ``_scope_of``. (xdist's own
+        ``--dist loadgroup`` groups by a suffix it writes into the node ids, which pytest 9.2's
+        read-only node ids ignore: its groups are silently split across workers.) The largest
+        units go first (``LoadScopeScheduling`` orders them by size), single tests fill the
+        workers up at the end."""
+        if config.getvalue("dist") != "load":
+            return None
+        from xdist.scheduler import LoadScopeScheduling
+
+        class ModuleGroupScheduling(LoadScopeScheduling):
+            def _split_scope(self, nodeid: str) -> str:
+                return _scope_of(nodeid)
+
+        return ModuleGroupScheduling(config, log)
 
 
 @pytest.fixture(scope="session", autouse=True)

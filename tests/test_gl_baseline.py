@@ -17,10 +17,8 @@ import sys
 import numpy as np
 import pytest
 
-# one worker runs this module's tests (see tests/conftest.py), and the frames are a session
-# fixture: the OpenGL context and both frames are built once per run, even when the worker runs
-# other modules' tests between this module's
-pytestmark = pytest.mark.xdist_group("gl_baseline")
+# one worker runs this module's tests (ONE_WORKER_MODULES in tests/conftest.py), and the
+# frames are a session fixture: the OpenGL context and both frames are built once per run
 
 SIZE = (360, 240)
 

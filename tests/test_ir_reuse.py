@@ -13,9 +13,8 @@ import jax.numpy as jnp
 
 from spectral_fit._runtime.errors import InputError
 
-# one worker runs this module's tests (see tests/conftest.py):
+# one worker runs this module's tests (ONE_WORKER_MODULES in tests/conftest.py):
 # the gather scene's programs are compiled once
-pytestmark = pytest.mark.xdist_group("ir_reuse")
 
 
 def _views():

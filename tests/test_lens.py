@@ -24,9 +24,8 @@ from spectral_fit.geometry import (
     undistort_normalized,
 )
 
-# one worker runs this module's tests (see tests/conftest.py):
+# one worker runs this module's tests (ONE_WORKER_MODULES in tests/conftest.py):
 # the two lens frames are compiled once
-pytestmark = pytest.mark.xdist_group("lens")
 
 GL = np.array([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL eye axes
 K = np.array([[210.0, 0.0, 121.0], [0.0, 205.0, 78.5], [0.0, 0.0, 1.0]])  # 240 x 160
