@@ -60,6 +60,27 @@ if importlib.util.find_spec("xdist") is not None:
         return ModuleGroupScheduling(config, log)
 
 
+def pytest_configure(config):
+    """``SPECTRAL_FIT_TEST_COMPILE_LOG=FOLDER``: each process appends one line per JAX trace,
+    lowering and XLA compilation (a persistent-cache hit included) to ``FOLDER/<worker>.tsv``:
+    the test, the event, the function's name and the seconds it took, for finding what the
+    tests' time goes to (``scripts/compile_profile.py`` sums it)."""
+    folder = os.environ.get("SPECTRAL_FIT_TEST_COMPILE_LOG", "")
+    if not folder:
+        return
+    import jax.monitoring
+
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    log = open(Path(folder) / f"{os.environ.get('PYTEST_XDIST_WORKER', 'main')}.tsv", "a",
+               buffering=1, encoding="utf-8")
+
+    def listener(event: str, seconds: float, **kwargs) -> None:
+        test = os.environ.get("PYTEST_CURRENT_TEST", "").rsplit(" (", 1)[0]
+        log.write(f"{test}\t{event}\t{kwargs.get('fun_name', '')}\t{seconds:.4f}\n")
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _compilation_cache():
     """JAX's persistent compilation cache on for the whole run, in the folder the product uses

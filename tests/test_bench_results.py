@@ -44,3 +44,20 @@ def test_a_bad_results_file_is_a_one_line_error(tmp_path, content, field):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert str(bad) in r.stderr and field in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_second_run_of_the_day_adds_its_cases_to_the_file(tmp_path):
+    from spectral_fit.cli.commands.bench import merged_results
+
+    path = tmp_path / "day.json"
+    first = {"_meta": META, "frame_paper": {"median_ms": 16.7, "compile_s": 15.2, "n": 20},
+             "fit_demo": {"median_ms": 100.0, "compile_s": 1.7, "n": 20}}
+    assert merged_results(path, first) is first  # no file yet
+    path.write_text(json.dumps(first))
+    gl = {"_meta": {**META, "gl_renderer": "llvmpipe"},
+          "gl_paper": {"median_ms": 80.0, "compile_s": 9.0, "n": 20},
+          "fit_demo": {"median_ms": 90.0, "compile_s": 1.5, "n": 20}}
+    got = merged_results(path, gl)
+    assert set(got) == {"_meta", "frame_paper", "fit_demo", "gl_paper"}
+    assert got["fit_demo"]["median_ms"] == 90.0 and got["frame_paper"]["median_ms"] == 16.7
+    assert got["_meta"]["gl_renderer"] == "llvmpipe" and got["_meta"]["cpu"] == META["cpu"]

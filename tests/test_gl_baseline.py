@@ -48,6 +48,10 @@ def frames(tmp_path_factory):
     out["gl_paper"], out["gl_object"] = gl.render_xyz(True)
     out["gl_none"], out["gl_object_none"] = gl.render_xyz(False)
     out["gl_rgb8"] = gl.render(True)
+    # the anchor workload (60° pass-1 views, no culling, mip chains, lookups everywhere)
+    wide = GLBaseline(baseline_inputs(prep, pass1_fov_deg=60.0), ctx=ctx, cull="none",
+                      pass1_mipmaps=True, interreflection_everywhere=True)
+    out["gl_anchor_workload"], out["gl_object_anchor"] = wide.render_xyz(True)
     f = render_frame(prep)
     f0 = render_frame(dataclasses.replace(prep, interreflection=dataclasses.replace(
         prep.interreflection, mode="none")))
@@ -103,6 +107,22 @@ def test_interreflection_adds_the_same_light(frames):
     assert (lit_gl & lit_jax).sum() >= 0.8 * (lit_gl | lit_jax).sum()
     err = np.abs(add_gl - add_jax)[lit_gl | lit_jax].max()
     assert err <= 0.05 * peak, (err, peak)
+
+
+def test_anchor_workload_renders_the_same_interreflection(frames):
+    """``gl_paper_anchor_workload`` only adds work: no face culling (the depth test keeps the
+    nearest), a narrower pass-1 view (the sender sampled more finely), mip chains the frame does
+    not read, and lookups weighted by zero outside the sender's view. Its frame is
+    ``gl_paper``'s, up to the pass-1 sampling in the interreflection."""
+    assert np.array_equal(frames["gl_object_anchor"], frames["gl_object"])
+    m = _spheres(frames)
+    de = _delta_e(frames["gl_anchor_workload"][m], frames["gl_paper"][m], frames["white"])
+    assert np.percentile(de, 99) <= 0.5 and np.median(de) <= 0.01, np.percentile(de, [50, 99])
+    add = (frames["gl_anchor_workload"] - frames["gl_none"])[m]
+    ref = (frames["gl_paper"] - frames["gl_none"])[m]
+    peak = np.abs(ref[:, 1]).max()
+    assert np.abs(add[:, 1]).max() > 0.5 * peak  # it lights the same sliver
+    assert np.abs(add - ref).max() <= 0.1 * peak
 
 
 def test_display_image_matches_the_jax_renderer(frames):

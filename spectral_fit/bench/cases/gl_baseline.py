@@ -16,6 +16,13 @@ frames ``median_ms`` / ``min_ms`` / ``max_ms`` of ``n`` frames.
 * ``gl_paper_nocull``: ``gl_paper`` with face culling off (every triangle drawn, the depth
   test keeps the nearest; the same image): the OpenGL state of the anchor the project measured
   against before this baseline;
+* ``gl_paper_anchor_workload``: ``gl_paper`` doing the work of the external OpenGL
+  implementation of the same pipeline that the project measured against before this baseline
+  (the same equations, more work per frame): face culling off, 60° pass-1 views (the sender
+  covers ~3× the texels), the mip chains of the pass-1 targets built every frame, and pass 2's
+  texture lookups on every object fragment. Its image is ``gl_paper``'s up to the pass-1
+  texture resolution; its time is what ``gl_paper``'s would be with that implementation's
+  workload, so the two bracket it;
 * ``gl_first_frame``: fresh processes (import, EGL context, setup, first frame read back) with
   Mesa's shader cache in a temporary folder: cold (empty cache) and warm (second process).
 
@@ -42,8 +49,10 @@ __all__ = ["GL_CASES", "check_available", "gl_info"]
 _ROOT = Path(__file__).resolve().parents[2]
 #: the EGL context of this process's cases (made once)
 _CONTEXT: list[Any] = []
-#: the prepared inputs of this process's cases, by ``quick`` (one preparation for all cases)
-_MADE: dict[bool, dict[str, Any]] = {}
+#: the prepared inputs of this process's cases, by ``quick`` and pass-1 field of view
+_MADE: dict[tuple[bool, float], dict[str, Any]] = {}
+#: ``gl_paper_anchor_workload``'s pass-1 field of view (degrees)
+ANCHOR_PASS1_FOV_DEG = 60.0
 
 
 def check_available() -> dict[str, str]:
@@ -69,10 +78,10 @@ def gl_info() -> dict[str, str]:
     return {**info, "moderngl": str(moderngl.__version__)}
 
 
-def _inputs(opts: BenchOptions) -> dict[str, Any]:
+def _inputs(opts: BenchOptions, pass1_fov_deg: float = 90.0) -> dict[str, Any]:
     """The benchmark scene prepared in paper mode and its baseline inputs (cached)."""
-    if opts.quick in _MADE:
-        return _MADE[opts.quick]
+    if (opts.quick, pass1_fov_deg) in _MADE:
+        return _MADE[opts.quick, pass1_fov_deg]
     from ...rendering import prepare
     from .frame import benchmark_scene
     from .gl import baseline_inputs
@@ -81,15 +90,20 @@ def _inputs(opts: BenchOptions) -> dict[str, Any]:
     t0 = time.perf_counter()
     scene = benchmark_scene(quick=opts.quick)
     prep = prepare(scene, size=(180, 120) if opts.quick else None, mode="paper")
-    inputs = baseline_inputs(prep)
+    inputs = baseline_inputs(prep, pass1_fov_deg=pass1_fov_deg)
     made = {"inputs": inputs, "prepare_s": time.perf_counter() - t0}
-    _MADE[opts.quick] = made
+    _MADE[opts.quick, pass1_fov_deg] = made
     return made
 
 
-def _baseline(opts: BenchOptions, cull: str | None = None) -> tuple[Any, dict[str, Any]]:
+def _baseline(opts: BenchOptions, *, workload: str = "lean", cull: str | None = None
+              ) -> tuple[Any, dict[str, Any]]:
     from .gl import GLBaseline
 
+    if workload == "anchor":
+        made = _inputs(opts, ANCHOR_PASS1_FOV_DEG)
+        return GLBaseline(made["inputs"], ctx=_CONTEXT[0], cull="none", pass1_mipmaps=True,
+                          interreflection_everywhere=True), made
     made = _inputs(opts)
     return GLBaseline(made["inputs"], ctx=_CONTEXT[0], cull=cull), made
 
@@ -110,9 +124,9 @@ def _time_frames(fn: Any, repeats: int) -> dict[str, Any]:
             "compile_s": first, "n": len(times)}
 
 
-def _case(opts: BenchOptions, *, interreflection: bool, cull: str | None = None
-          ) -> dict[str, Any]:
-    gl, made = _baseline(opts, cull)
+def _case(opts: BenchOptions, *, interreflection: bool, cull: str | None = None,
+          workload: str = "lean") -> dict[str, Any]:
+    gl, made = _baseline(opts, workload=workload, cull=cull)
     inp = gl.inputs
     out = _time_frames(lambda: gl.render(interreflection), opts.repeats)
     if interreflection:
@@ -122,6 +136,8 @@ def _case(opts: BenchOptions, *, interreflection: bool, cull: str | None = None
     out.update(prepare_s=made["prepare_s"], setup_s=gl.setup_s,
                first_frame_ms=out["compile_s"] * 1e3, size=[inp.shape[1], inp.shape[0]],
                bands=inp.channels, texture_size=inp.texture_size, cull=gl.cull,
+               pass1_mipmaps=gl.pass1_mipmaps,
+               interreflection_everywhere=gl.interreflection_everywhere,
                interreflection=interreflection, covered_pixels=int((obj >= 0).sum()),
                triangles=int(sum(len(t) for t in inp.triangles)), **gl.info)
     return out
@@ -178,5 +194,6 @@ GL_CASES = {
     "gl_paper": lambda o: _case(o, interreflection=True),
     "gl_paper_none": lambda o: _case(o, interreflection=False),
     "gl_paper_nocull": lambda o: _case(o, interreflection=True, cull="none"),
+    "gl_paper_anchor_workload": lambda o: _case(o, interreflection=True, workload="anchor"),
     "gl_first_frame": gl_first_frame,
 }

@@ -86,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
     if args.save:
         saved = results_path(results["_meta"])
         saved.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(saved, text + "\n")
+        atomic_write_text(saved, json.dumps(merged_results(saved, results), indent=2,
+                                            sort_keys=True) + "\n")
         print(f"bench: wrote {saved}", file=sys.stderr)
     if args.json:
         print(text)
@@ -138,6 +139,16 @@ def _read_results(path: str) -> dict[str, Any]:
     if not isinstance(data, dict) or not isinstance(data.get("_meta"), dict):
         raise InputError("not a bench result (no '_meta' object)", path=path, field="_meta")
     return data
+
+
+def merged_results(path: Path, results: dict[str, Any]) -> dict[str, Any]:
+    """``results`` merged into the results file of the same date and machine at ``path`` (a
+    run of some cases, e.g. the OpenGL baseline's, adds to that day's file; a case run again
+    replaces its entry; ``_meta`` keeps both runs' keys, this run's winning)."""
+    if not path.exists():
+        return results
+    old = _read_results(str(path))
+    return {**old, **results, "_meta": {**old["_meta"], **results["_meta"]}}
 
 
 def results_table(runs: list[dict[str, Any]]) -> str:

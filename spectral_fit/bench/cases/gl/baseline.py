@@ -210,10 +210,12 @@ def _pairs(n: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(n) for j in range(n) if j != i]
 
 
-def baseline_inputs(prep: Prepared) -> BaselineInputs:
+def baseline_inputs(prep: Prepared, *, pass1_fov_deg: float = 90.0) -> BaselineInputs:
     """The baseline's inputs from a prepared scene (:func:`~spectral_fit.rendering.prepare`,
     spectral bands, quality "fast", irradiance map): the same precomputed environment,
     materials, meshes, cameras and display as the JAX frame of that ``prep``.
+    ``pass1_fov_deg``: the pass-1 cameras' vertical field of view (the JAX renderer's 90°;
+    a narrower view spreads the sender over more of the ``texture_size``² texels).
 
     Raises:
         InputError: a scene the baseline does not render (basis mode, more than 32 bands, an
@@ -279,10 +281,11 @@ def baseline_inputs(prep: Prepared) -> BaselineInputs:
         tris.append(np.asarray(mesh.triangles[ta:tb], np.int32) - a)
     model = np.asarray(prep.model, np.float64)
     centres = model[:, :3, 3]
-    pair_vp = np.stack([np.asarray(interreflection_camera(
-        centres[i].astype(np.float32), centres[j].astype(np.float32), aspect=1.0)
-        .view_projection, np.float64) for i, j in _pairs(n_obj)]) if n_obj > 1 else \
-        np.zeros((0, 4, 4))
+    pair_vp = np.zeros((0, 4, 4))
+    if n_obj > 1:
+        pair_vp = np.stack([np.asarray(interreflection_camera(
+            centres[i].astype(np.float32), centres[j].astype(np.float32), aspect=1.0,
+            fov_y_deg=pass1_fov_deg).view_projection, np.float64) for i, j in _pairs(n_obj)])
     display = col.display
     kw = dict(exposure_luminance=float(col.exposure), display=display,
               scene_white_xy=col.scene_white_xy)
@@ -355,15 +358,25 @@ class GLBaseline:
     ``GLBaseline(inputs)`` uploads the textures and buffers and compiles the programs
     (``setup_s``); :meth:`render` draws one frame. Use it as a context manager, or call
     :meth:`release`.
+
+    Options that add work without changing the image (for timing against other
+    implementations of the pipeline that do it): ``cull="none"`` draws back faces too (the
+    depth test keeps the nearest); ``pass1_mipmaps`` builds the mip chain of every pass-1
+    target each frame (for blurred lookups; the frame reads level 0);
+    ``interreflection_everywhere`` runs the pass-2 texture lookups on every object fragment,
+    weighting those outside a sender's view by zero.
     """
 
-    def __init__(self, inputs: BaselineInputs, ctx: Any = None, *, cull: str | None = None
+    def __init__(self, inputs: BaselineInputs, ctx: Any = None, *, cull: str | None = None,
+                 pass1_mipmaps: bool = False, interreflection_everywhere: bool = False
                  ) -> None:
         import moderngl
 
         t0 = time.perf_counter()
         self.inputs = inp = inputs
         self.cull = inputs.cull if cull is None else cull
+        self.pass1_mipmaps = bool(pass1_mipmaps)
+        self.interreflection_everywhere = bool(interreflection_everywhere)
         if self.cull not in ("back", "none"):
             raise InputError(f"must be 'back' or 'none', got {cull!r}", field="cull")
         self.ctx = ctx if ctx is not None else create_context()
@@ -560,6 +573,9 @@ class GLBaseline:
             self._set(self.p1, "recv_alpha", float(inp.materials[i, 0]) / math.pi)
             self._set(self.p1, "recv_gamma", float(inp.materials[i, 3]))
             self._vao1[j].render(moderngl.TRIANGLES)
+            if self.pass1_mipmaps:
+                for tex in ir["texs"]:
+                    tex.build_mipmaps()
 
     def pass2(self, interreflection: bool = True, *, xyz: bool = False) -> Any:
         """Pass 2 into the camera target (``xyz``: the float XYZ target); returns it."""
@@ -578,7 +594,8 @@ class GLBaseline:
         self._cull()
         p2["vp"].write(_mat_bytes(self._cam_vp))
         p2["eye"].value = tuple(float(x) for x in self._eye)
-        self._set(p2, "use_ir", 1 if interreflection and self.n_obj > 1 else 0)
+        self._set(p2, "use_ir", (2 if self.interreflection_everywhere else 1)
+                  if interreflection and self.n_obj > 1 else 0)
         for o in range(self.n_obj):
             if interreflection and self.n_obj > 1:
                 mine = [ir for ir in self._ir if ir["receiver"] == o]

@@ -290,7 +290,7 @@ void main() {
         if (mirror) c += kmirror * env_lookup(pr, i);
         L[i] = nv > 0.0 ? c : vec4(0.0);
     }
-    if (use_ir != 0) {
+    if (use_ir == 1) {
         for (int s = 0; s < NS; s++) {
             vec4 q = ir_vp[s] * vec4(w_pos, 1.0);
             if (q.w <= 0.0) continue;
@@ -299,6 +299,16 @@ void main() {
             if (dot(n, ir_centre[s] - w_pos) <= 0.0) continue;
             vec2 tc = 0.5 * ndc + 0.5;
             for (int i = 0; i < NB; i++) L[i] += textureLod(ir_tex[s * NB + i], tc, 0.0);
+        }
+    } else if (use_ir == 2) {   // the same sum, the lookups on every fragment
+        for (int s = 0; s < NS; s++) {
+            vec4 q = ir_vp[s] * vec4(w_pos, 1.0);
+            vec2 ndc = q.xy / max(abs(q.w), 1e-12);
+            bool seen = q.w > 0.0 && abs(ndc.x) <= 1.0 && abs(ndc.y) <= 1.0
+                        && dot(n, ir_centre[s] - w_pos) > 0.0;
+            float k = seen ? 1.0 : 0.0;
+            vec2 tc = clamp(0.5 * ndc + 0.5, 0.0, 1.0);
+            for (int i = 0; i < NB; i++) L[i] += k * textureLod(ir_tex[s * NB + i], tc, 0.0);
         }
     }
     vec3 xyz = spectra_to_xyz(L);
