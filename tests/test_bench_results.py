@@ -61,3 +61,16 @@ def test_a_second_run_of_the_day_adds_its_cases_to_the_file(tmp_path):
     assert set(got) == {"_meta", "frame_paper", "fit_demo", "gl_paper"}
     assert got["fit_demo"]["median_ms"] == 90.0 and got["frame_paper"]["median_ms"] == 16.7
     assert got["_meta"]["gl_renderer"] == "llvmpipe" and got["_meta"]["cpu"] == META["cpu"]
+
+
+def test_table_adds_the_speed_ratios_and_the_cold_start():
+    run = {"_meta": META,
+           "frame_paper": {"median_ms": 20.0, "compile_s": 15.0, "n": 20},
+           "gl_paper": {"median_ms": 50.0, "compile_s": 0.2, "n": 20},
+           "cold_start_s": {"median_ms": 7e4, "compile_s": 60.0, "n": 1,
+                            "first_frame_after_import_cold_s": 69.8,
+                            "first_frame_after_import_warm_s": 1.47}}
+    lines = results_table([run]).splitlines()
+    assert lines[2] == "| `cold_start_s` | 69.8 s cold, 1.47 s with warm caches |"
+    assert lines[-1] == "| `gl_paper` / `frame_paper` | 2.50× |"  # 50 / 20
+    assert len(lines) == 6  # no ratio row for cases the run lacks

@@ -151,8 +151,22 @@ def merged_results(path: Path, results: dict[str, Any]) -> dict[str, Any]:
     return {**old, **results, "_meta": {**old["_meta"], **results["_meta"]}}
 
 
+#: speed ratios the table adds when a run has both cases: (slower case, faster case)
+TABLE_RATIOS = (("gl_paper", "frame_paper"), ("gl_paper", "frame_paper_b1"),
+                ("gl_paper_none", "frame_paper_none"), ("gl_paper_anchor_workload", "frame_paper"))
+
+
+def _cell(name: str, v: dict[str, Any]) -> str:
+    if "first_frame_after_import_cold_s" in v:  # cold_start_s: a fresh process's first frame
+        return (f"{v['first_frame_after_import_cold_s']:.3g} s cold, "
+                f"{v['first_frame_after_import_warm_s']:.3g} s with warm caches")
+    return f"{v['median_ms']:.3g} ms (compile {v['compile_s']:.3g} s)"
+
+
 def results_table(runs: list[dict[str, Any]]) -> str:
-    """A Markdown table: one row per case, one column per run (median ms; compile s)."""
+    """A Markdown table: one row per case, one column per run (median ms; compile s; the
+    cold start as first frame after import, cold and with warm caches), then the speed ratios
+    of ``TABLE_RATIOS`` that some run has both cases of (median / median)."""
     cases = sorted({k for r in runs for k, v in r.items()
                     if not k.startswith("_") and isinstance(v, dict) and "median_ms" in v})
     head = ["case"] + [f"{r['_meta'].get('date', '?')}, {r['_meta'].get('cpu', '?')} "
@@ -163,7 +177,14 @@ def results_table(runs: list[dict[str, Any]]) -> str:
         cells = [f"`{c}`"]
         for r in runs:
             v = r.get(c)
-            cells.append("—" if not isinstance(v, dict) else
-                         f"{v['median_ms']:.3g} ms (compile {v['compile_s']:.3g} s)")
+            cells.append("—" if not isinstance(v, dict) else _cell(c, v))
         rows.append("| " + " | ".join(cells) + " |")
+    for slow, fast in TABLE_RATIOS:
+        cells = [f"`{slow}` / `{fast}`"]
+        for r in runs:
+            a, b = r.get(slow), r.get(fast)
+            ok = isinstance(a, dict) and isinstance(b, dict)
+            cells.append(f"{a['median_ms'] / b['median_ms']:.2f}×" if ok else "—")
+        if any(c != "—" for c in cells[1:]):
+            rows.append("| " + " | ".join(cells) + " |")
     return "\n".join(rows)
