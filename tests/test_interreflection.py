@@ -840,8 +840,11 @@ def test_batched_gather_pass1_equals_one_raster_per_pair(monkeypatch):
     assert np.abs(np.diff(np.asarray(slow.s_area), axis=0)).max() > 1e-6
 
 
-@pytest.mark.parametrize("diffuse_at", [
-    "samples", pytest.param("receivers", marks=pytest.mark.slow)])
+# slow: two gather programs compiled for one comparison; the product's (valid-first) layout is
+# checked against independent references in the default tier (brute-force single bounce,
+# furnace, the Mitsuba readings of the renderer's tests)
+@pytest.mark.slow
+@pytest.mark.parametrize("diffuse_at", ["samples", "receivers"])
 def test_valid_first_receivers_match_the_one_pass_receivers(gather_geom, monkeypatch,
                                                             diffuse_at):
     """Many receivers on the CPU layout (``_receive_valid_first``: valid receivers first, their
