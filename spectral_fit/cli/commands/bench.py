@@ -156,7 +156,7 @@ TABLE_RATIOS = (("gl_paper", "frame_paper"), ("gl_paper", "frame_paper_b1"),
                 ("gl_paper_none", "frame_paper_none"), ("gl_paper_anchor_workload", "frame_paper"))
 
 
-def _cell(name: str, v: dict[str, Any]) -> str:
+def _cell(v: dict[str, Any]) -> str:
     if "first_frame_after_import_cold_s" in v:  # cold_start_s: a fresh process's first frame
         return (f"{v['first_frame_after_import_cold_s']:.3g} s cold, "
                 f"{v['first_frame_after_import_warm_s']:.3g} s with warm caches")
@@ -177,7 +177,7 @@ def results_table(runs: list[dict[str, Any]]) -> str:
         cells = [f"`{c}`"]
         for r in runs:
             v = r.get(c)
-            cells.append("—" if not isinstance(v, dict) else _cell(c, v))
+            cells.append("—" if not isinstance(v, dict) else _cell(v))
         rows.append("| " + " | ".join(cells) + " |")
     for slow, fast in TABLE_RATIOS:
         cells = [f"`{slow}` / `{fast}`"]

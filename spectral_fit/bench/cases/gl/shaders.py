@@ -290,22 +290,13 @@ void main() {
         if (mirror) c += kmirror * env_lookup(pr, i);
         L[i] = nv > 0.0 ? c : vec4(0.0);
     }
-    if (use_ir == 1) {
-        for (int s = 0; s < NS; s++) {
-            vec4 q = ir_vp[s] * vec4(w_pos, 1.0);
-            if (q.w <= 0.0) continue;
-            vec2 ndc = q.xy / q.w;
-            if (abs(ndc.x) > 1.0 || abs(ndc.y) > 1.0) continue;
-            if (dot(n, ir_centre[s] - w_pos) <= 0.0) continue;
-            vec2 tc = 0.5 * ndc + 0.5;
-            for (int i = 0; i < NB; i++) L[i] += textureLod(ir_tex[s * NB + i], tc, 0.0);
-        }
-    } else if (use_ir == 2) {   // the same sum, the lookups on every fragment
+    if (use_ir != 0) {   // 2: the lookups on every fragment, weighted 0 outside the view
         for (int s = 0; s < NS; s++) {
             vec4 q = ir_vp[s] * vec4(w_pos, 1.0);
             vec2 ndc = q.xy / max(abs(q.w), 1e-12);
             bool seen = q.w > 0.0 && abs(ndc.x) <= 1.0 && abs(ndc.y) <= 1.0
                         && dot(n, ir_centre[s] - w_pos) > 0.0;
+            if (!seen && use_ir == 1) continue;
             float k = seen ? 1.0 : 0.0;
             vec2 tc = clamp(0.5 * ndc + 0.5, 0.0, 1.0);
             for (int i = 0; i < NB; i++) L[i] += k * textureLod(ir_tex[s * NB + i], tc, 0.0);
