@@ -41,30 +41,56 @@ def test_split_frame_equals_the_frame_that_computes_its_senders(prep):
     from spectral_fit._runtime.dispatch import array_jit
     from spectral_fit.rendering import TRACE_COUNT, render_pixels, render_senders
 
-    pixels = array_jit(lambda p, model, view, senders: render_pixels(
-        p, model=model, view=view, senders=senders, mirror=False).values)
+    both = jnp.array([True, True])
+    pixels = array_jit(lambda p, model, view, senders, visible=both: render_pixels(
+        p, model=model, view=view, visible=visible, senders=senders, mirror=False))
     senders = render_senders(prep, mirror=False)
     n0 = TRACE_COUNT["ir_senders"]
     for view in _views():
-        a = pixels(prep, prep.model, view, None)
-        b = pixels(prep, prep.model, view, senders)
+        a = pixels(prep, prep.model, view, None).values
+        b = pixels(prep, prep.model, view, senders).values
         peak = float(jnp.abs(a).max())
         assert float(jnp.abs(a - b).max()) <= 1e-6 * peak
     # the neighbour 1 km away: the interreflection is a visible part of those pixels
     view = prep.camera.view
     far = pixels(prep, prep.model.at[1, 1, 3].add(-1e3), view, None)
-    a = pixels(prep, prep.model, view, None)
-    assert float(jnp.abs(a - far).max()) > 1e-3 * float(jnp.abs(a).max())
+    full = pixels(prep, prep.model, view, None)
+    a = full.values
+    assert float(jnp.abs(a - far.values).max()) > 1e-3 * float(jnp.abs(a).max())
+    # a hidden neighbour (its marker lost) neither lights nor shadows object 0: its pixels
+    # are those of the neighbour 1 km away (physically ~1e-9 of the radiance there), finite
+    # (the collapsed geometry of a hidden object once made the form factors NaN), and the
+    # hidden object covers no pixel
+    hidden = pixels(prep, prep.model, view, None, jnp.array([True, False]))
+    _same_pixels_of_object_0(hidden, far)
+    assert not np.any(np.asarray(hidden.object_id) == 1)
     # another object state: the senders of that state, same compiled programs
     model = prep.model.at[1, 0, 3].add(0.01)
     s2 = render_senders(prep, model=model, mirror=False)
-    a = pixels(prep, model, view, None)
-    b = pixels(prep, model, view, s2)
-    c = pixels(prep, model, view, senders)  # stale senders: differs
+    a = pixels(prep, model, view, None).values
+    b = pixels(prep, model, view, s2).values
+    c = pixels(prep, model, view, senders).values  # stale senders: differs
     peak = float(jnp.abs(a).max())
     assert float(jnp.abs(a - b).max()) <= 1e-6 * peak
     assert float(jnp.abs(a - c).max()) > 1e-4 * peak
     assert TRACE_COUNT["ir_senders"] == n0
+
+
+def _same_pixels_of_object_0(got, ref) -> None:
+    """The values of ``got``'s object-0 pixels equal ``ref``'s at the same pixels (to 1e-5
+    of their peak) and are finite."""
+    def on0(f):
+        index, valid = np.asarray(f.index), np.asarray(f.valid)
+        keep = valid & (np.asarray(f.object_id).reshape(-1)[index] == 0)
+        pix = index[keep]
+        order = np.argsort(pix)
+        return pix[order], np.asarray(f.values)[keep][order]
+
+    pg, vg = on0(got)
+    pr, vr = on0(ref)
+    np.testing.assert_array_equal(pg, pr)
+    assert pg.size > 50 and np.isfinite(vg).all()
+    assert np.abs(vg - vr).max() < 1e-5 * np.abs(vr).max()
 
 
 @pytest.mark.slow  # the split frame's test above runs the same senders' path in the default tier

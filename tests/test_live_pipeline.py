@@ -318,6 +318,8 @@ def test_fov_camera_keeps_its_distortion():
     del d["camera"]["distortion"]
     assert scene_intrinsics(parse_scene(d), (240, 360))[1] is None
 
+@pytest.mark.slow  # the default tier checks a hidden neighbour on the gather scene of
+# tests/test_ir_reuse.py (against the neighbour 1 km away, no second frame program)
 def test_lost_marker_object_leaves_no_interreflection():
     """A hidden object (its marker lost) neither lights nor shadows the others: the visible
     sphere renders as with interreflection off in "gather" mode (whose form factors turned the

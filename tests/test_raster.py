@@ -168,7 +168,8 @@ def test_fan_around_a_vertex_at_a_pixel_centre():
     assert_matches_reference(r, clip, tris, SMALL)
 
 
-@pytest.mark.parametrize("kind", ["ico", "uv"])
+# the icosphere (no poles, triangles of one size) in the default tier, the UV sphere in slow
+@pytest.mark.parametrize("kind", ["ico", pytest.param("uv", marks=pytest.mark.slow)])
 def test_closed_mesh_one_front_and_one_back_face_per_pixel(kind):
     rng = np.random.default_rng(3 if kind == "ico" else 4)
     m = icosphere(0.5, 3) if kind == "ico" else uv_sphere(0.5, 30, 40)
