@@ -1,5 +1,5 @@
-"""Cameras and lenses, the watertight rasteriser, cluster culling, and the pytrees passed between
-rasterising and shading.
+"""Cameras and lenses, the watertight rasteriser, cluster culling, ray casting against meshes
+(a bounding volume hierarchy), and the pytrees passed between rasterising and shading.
 
 Public names are imported lazily from the private modules below on first use.
 """
@@ -10,6 +10,7 @@ from .._runtime.lazy import lazy_exports
 
 #: public name -> private module of this package that defines it
 _EXPORTS: dict[str, str] = {
+    "BVH": "_bvh",
     "CLUSTER_SIZE": "_culling",
     "Camera": "_camera",
     "GBuffer": "_gbuffer",
@@ -18,13 +19,16 @@ _EXPORTS: dict[str, str] = {
     "PixelList": "_pixels",
     "PlanCounts": "_raster_plan",
     "Raster": "_raster",
+    "RayHit": "_bvh",
     "RasterConfig": "_raster_plan",
     "TILE_SIZES": "_raster_plan",
     "TriangleClusters": "_culling",
+    "build_bvh": "_bvh",
     "build_clusters": "_culling",
     "capacity_ladder": "_raster_plan",
     "clear_plans": "_raster",
     "clip_to_pixel": "_raster_setup",
+    "closest_hit": "_bvh",
     "cluster_rows": "_culling",
     "compact_flags": "_pixels",
     "count_clusters": "_culling",
@@ -45,6 +49,7 @@ _EXPORTS: dict[str, str] = {
     "is_identity": "_lens",
     "lens_parameters": "_lens",
     "look_at": "_camera",
+    "occluded": "_bvh",
     "opencv_pose_to_view": "_camera",
     "opencv_to_opengl_axes": "_camera",
     "perspective": "_camera",
