@@ -26,9 +26,11 @@ if os.environ.get("SPECTRAL_FIT_TEST_FAST_COMPILE", "") not in ("", "0") and (
 
 # Modules whose tests share expensive module fixtures or compiled programs (a compiled
 # gather-mode scene, an OpenGL context and its frames, two lens frames, the renderer tests' frame
-# programs, the interreflection tests' pass 1 and gather programs): with ``-n N`` each of them
-# runs on one worker, so they are built once per run, not once per worker.
+# programs, the interreflection tests' pass 1 and gather programs, the fitting tests' problem and
+# solvers): with ``-n N`` each of them runs on one worker, so they are built once per run, not
+# once per worker.
 ONE_WORKER_MODULES = frozenset({
+    "tests/test_fitting.py",
     "tests/test_gl_baseline.py",
     "tests/test_interreflection.py",
     "tests/test_ir_reuse.py",

@@ -420,20 +420,60 @@ def test_cli_fit_writes_report(small, tmp_path, capsys):
     scene, session, prep, env, clean = small
     out = tmp_path / "o"
     rc = main(["fit", str(scene.path), str(session.path), "-o", str(out), "--json",
-               "--spot-resolution", str(RES), "--aim-step-mm", "0.5", "--no-render"])
+               "--spot-resolution", str(RES), "--aim-step-mm", "0.5", "--no-render",
+               "--profile"])
     cap = capsys.readouterr()
     assert rc == 0
     js = json.loads(cap.out)
     assert js["status"] == "converged"
     assert "step" in cap.err  # per-iteration progress
     for f in ("fit.json", "materials.json", "materials_mitsuba.xml", "chromaticity.png",
-              "spectra.png", "residuals.png"):
+              "spectra.png", "residuals.png", "profile.png"):
         assert (out / f).is_file()
+    assert set(js["profile"]) == set(js["free"]) and "profile interval" in cap.err
     assert js["params"]["yellow"]["alpha"] == pytest.approx(TRUE["yellow"]["alpha"], rel=3e-3)
     assert js["holdout"]["readings"] and js["readings"][0]["aim_sensitivity"][
         "delta_e00_per_mm"] is not None
     xml = (out / "materials_mitsuba.xml").read_text()
     assert xml.count('type="spectral_fit_model"') == 2
+
+
+def test_profile_intervals_match_fits_with_the_parameter_held(small):
+    """Profile-likelihood intervals (``profile=True``) of the noiseless small session: each
+    contains its estimate; where the model is close to linear over the interval (σ_lin < 2 % of
+    the value) the ends lie at p̂ ± σ_lin within 15 %; and at the ends of two parameters, a
+    fit of another problem with that parameter among the fixed ones (F − 1 unknowns, the
+    problem's own fixed-parameter path, not the profile's held solves) has risen by Δχ² = 1
+    within 10 %: the definition of the interval's end (Wilks, one parameter, 68.3 %)."""
+    import dataclasses
+
+    scene, session, prep, env, clean = small
+    kw = dict(starts=1, aim_step_m=0.0, holdout=False, rtol=1e-6, atol=1e-7, max_steps=100)
+    res = fitting.fit(scene, session, prepared=prep, profile=True, **kw)
+    assert res.status == "converged" and set(res.profile) == set(res.free)
+    s2 = max(1.0, res.chi2_red)
+    near_linear = 0
+    for label, iv in res.profile.items():
+        o, k = label.split(".")
+        p, se = res.params[o][k], res.stderr[o][k]
+        assert iv["lower"] < p < iv["upper"], (label, iv["lower"], p, iv["upper"])
+        if se < 0.02 * abs(p) and iv["lower_end"] == iv["upper_end"] == "profile":
+            near_linear += 1
+            assert abs((p - iv["lower"]) / se - 1) < 0.15, (label, p, iv["lower"], se)
+            assert abs((iv["upper"] - p) / se - 1) < 0.15, (label, p, iv["upper"], se)
+    assert near_linear >= 4
+    problem = prep.problem
+    names = list(prep.objects)
+    for label, end in (("red.beta", "upper"), ("yellow.n", "lower")):
+        iv = res.profile[label]
+        assert iv[f"{end}_end"] == "profile"
+        o, k = names.index(label.split(".")[0]), fitting.PARAMETERS.index(label.split(".")[1])
+        held = dataclasses.replace(prep, problem=dataclasses.replace(
+            problem, free=tuple(f for f in problem.free if f != (o, k)),
+            values=problem.values.at[o, k].set(iv[end])))
+        r2 = fitting.fit(scene, session, prepared=held, **kw)
+        rise = 2.0 * (r2.cost - res.cost) / s2
+        assert abs(rise - 1.0) < 0.1, (label, end, rise)
 
 
 @pytest.mark.slow

@@ -12,7 +12,8 @@ Pipeline (geometry and poses are fixed while materials are fitted):
    (:class:`~spectral_fit.fitting.CompactLM`, the iteration of
    ``optimistix.LevenbergMarquardt`` in one small compiled loop, or optimistix itself with
    ``solver="optimistix"``), several starts solved one after the other in one program,
-   uncertainties from the Jacobian, a bootstrap over readings, identifiability warnings, the
+   uncertainties from the Jacobian, profile-likelihood intervals (option ``profile``), a
+   bootstrap over readings, identifiability warnings, the
    sensitivity of each reading to aiming error, and the hold-out prediction of
    interreflection readings from a fit on object-colour readings (:class:`FitResult`).
    :func:`fit_many` fits K sets of readings of the same spots at once.
@@ -42,6 +43,7 @@ from ._options import FitOptions, _fit_options
 from ._params import _SQUARED, _dp_dy, _starts, physical_from_y, y_start
 from ._prepare import prepare_fit
 from ._problem import FitProblem, PreparedFit
+from ._profile import STEPS, profile_intervals
 from ._solver import _PROGRESS, _solve_measured, make_solver, solve_batch
 
 __all__ = ["FitResult", "fit", "fit_many"]
@@ -71,6 +73,10 @@ class FitResult:
         wavelengths, measured, fitted, sigma: (L,), (B, L) ×3 spectra.
         calibration: (L,) the environment calibration k(λ) applied.
         timings: seconds of preparation, compile + first solve, steady solve, uncertainty.
+        profile: with ``options.profile``, {label: interval} of every unknown from the
+            profile likelihood (:func:`~spectral_fit.fitting._profile.profile_intervals`:
+            value, lower, upper, how each end was found, the held values and their Δχ²);
+            else None.
     """
 
     params: dict[str, dict[str, float]]
@@ -98,6 +104,7 @@ class FitResult:
     timings: dict[str, float]
     iterations: int = 0
     values: np.ndarray | None = None  # (O, 6)
+    profile: dict[str, dict[str, Any]] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable summary (spectra excluded; see the report for those)."""
@@ -123,6 +130,7 @@ class FitResult:
             "iterations": self.iterations, "starts": self.starts,
             "bootstrap_std": self.bootstrap, "warnings": self.warnings,
             "readings": self.readings, "holdout": self.holdout, "timings": self.timings,
+            "profile": self.profile,
         })
 
 
@@ -324,6 +332,29 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     for j, (o, k) in enumerate(problem.free):
         stderr[names[o]][PARAMETERS[k]] = float(se[j])
     t_unc = time.perf_counter() - t2
+    # profile likelihood -------------------------------------------------------------------
+    profile = None
+    t_prof = 0.0
+    if opts.profile:
+        t4 = time.perf_counter()
+        say(f"profile likelihood: {len(kinds)} parameters x {2 * len(STEPS)} held fits ...")
+        prof = profile_intervals(problem, y, p_hat, se, float(costs[best]), use,
+                                 max(1.0, chi2_red), labels=labels, kinds=kinds,
+                                 rtol=opts.rtol, atol=opts.atol, max_steps=opts.max_steps,
+                                 jacobian=Jy)
+        profile = prof["intervals"]
+        if prof["lower_cost"] is not None:
+            warn.append(f"a profile fit reached a lower cost ({prof['lower_cost']:.6g}) than "
+                        f"the fit ({float(costs[best]):.6g}): the fit stopped short of the best "
+                        "minimum (more starts may find it)")
+        for label, iv in profile.items():
+            sides = [s_ for s_ in ("lower", "upper") if iv[f"{s_}_end"] == "open"]
+            if sides:
+                warn.append(f"{label}: the profile stays within Δχ² = {max(1.0, chi2_red):.3g} "
+                            f"out to {' and '.join(sides)} end(s) of the scan "
+                            f"({iv['lower']:.4g} .. {iv['upper']:.4g}): these readings do not "
+                            "bound it there")
+        t_prof = time.perf_counter() - t4
     fitted = out["predicted"][best].astype(np.float64)
     # colour table ---------------------------------------------------------------------------
     measured = np.asarray(problem.readings.measured, np.float64)
@@ -382,9 +413,10 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         measured=measured, fitted=fitted, sigma=sigma, calibration=calib * scale,
         calibration_mode=session.calibration,
         timings={"prepare_s": prep.seconds,
-                 "solve_s": t_solve, "uncertainty_s": t_unc, "bootstrap_s": t_boot,
+                 "solve_s": t_solve, "uncertainty_s": t_unc, "profile_s": t_prof,
+                 "bootstrap_s": t_boot,
                  "total_s": time.perf_counter() - t0},
-        iterations=steps_best, values=vals)
+        iterations=steps_best, values=vals, profile=profile)
 
 
 def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOptions,

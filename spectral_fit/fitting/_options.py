@@ -40,6 +40,10 @@ class FitOptions:
             error 0.07 % of peak.
         cache: node layout of the radiance cache
             (:class:`spectral_fit.fitting.CacheOptions`).
+        profile: also compute profile-likelihood intervals of every free parameter
+            (:mod:`spectral_fit.fitting._profile`: the fit repeated with the parameter held
+            at 10 values around its estimate, then 10 around the interval's ends; one more
+            compiled program).
         solver: "compact" (default; :class:`CompactLM`, the Levenberg–Marquardt iteration of
             optimistix in one small compiled loop) or "optimistix"
             (``optimistix.LevenbergMarquardt`` with a Cholesky normal-equation solve); both
@@ -65,6 +69,7 @@ class FitOptions:
     compress_tol: float = 3e-3
     cache: Any = None
     solver: str = "compact"
+    profile: bool = False
 
 
 _REMOVED_OPTIONS = {

@@ -2,7 +2,8 @@
 
 :func:`write_report` writes into one folder (every file atomically):
 
-- ``fit.json`` — parameters ± standard errors, correlations, bootstrap spread, warnings, per
+- ``fit.json`` — parameters ± standard errors, profile-likelihood intervals, correlations,
+  bootstrap spread, warnings, per
   reading ΔE00 / Δu′v′ / xy / u′v′ measured and fitted, the hold-out prediction, timings, and
   the spectra (measured, fitted, σ) on the scene's grid;
 - ``materials.json`` — the fitted materials (our physical scaling and the paper's), with S(λ);
@@ -12,6 +13,9 @@
   reading, as the paper's Fig. 11/13;
 - ``spectra.png`` — measured (points, ±2σ) and fitted spectra per reading;
 - ``residuals.png`` — normalised residuals (fitted − measured)/σ per reading and band;
+- ``profile.png`` — with the profile likelihood (``FitOptions.profile``,
+  ``spectral-fit fit --profile``): each parameter's profile Δχ², its interval and the
+  linearised parabola;
 - ``render.png`` — the scene rendered with the fitted materials, when the frame renderer is
   available.
 
@@ -149,6 +153,55 @@ def _residual_plot(result: FitResult, path: Path) -> None:
     _save(fig, path)
 
 
+def _profile_plot(result: FitResult, path: Path) -> None:
+    """One panel per free parameter: the profile's Δχ² (in units of max(1, χ²/dof)) at the
+    held values, the interval's ends, and the parabola of the linearised standard error."""
+    plt = _plt()
+    prof = result.profile or {}
+    labels = list(prof)
+    cols = min(5, len(labels))
+    rows = int(math.ceil(len(labels) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.6 * rows), squeeze=False)
+    fig.subplots_adjust(hspace=0.45, wspace=0.3)
+    se = {f"{o}.{k}": v for o, d in result.stderr.items() for k, v in d.items()}
+    if result.scale_stderr is not None:
+        se["scale"] = result.scale_stderr
+    for i in range(rows * cols):
+        ax = axes[i // cols][i % cols]
+        if i >= len(labels):
+            ax.axis("off")
+            continue
+        iv = prof[labels[i]]
+        x = np.asarray(iv["held"], np.float64)
+        z = np.asarray(iv["delta_chi2"], np.float64)
+        ok = np.isfinite(x) & np.isfinite(z)
+        ax.plot(np.r_[x[ok], iv["value"]], np.r_[z[ok], 0.0], ".", color="C0", ms=5,
+                label="profile")
+        s_ = se.get(labels[i], 0.0)
+        if s_ > 0:
+            xx = np.linspace(np.nanmin(x), np.nanmax(x), 100)
+            ax.plot(xx, ((xx - iv["value"]) / s_) ** 2, "--", color="0.5", lw=0.8,
+                    label="linearised")
+        ax.axhline(1.0, color="k", lw=0.5)
+        for end in ("lower", "upper"):
+            ax.axvline(iv[end], color="C3", lw=0.8, ls="-" if iv[f"{end}_end"] == "profile"
+                       else ":")
+        ax.set_ylim(0, 9)
+        # the held values up to Δχ² = 9 (3σ) and the interval's ends, with a margin
+        near = x[ok & (z <= 9.0)]
+        span = np.r_[near, iv["lower"], iv["upper"], iv["value"]]
+        pad = 0.15 * max(np.ptp(span), 1e-12)
+        ax.set_xlim(span.min() - pad, span.max() + pad)
+        ax.set_title(labels[i], fontsize=8)
+        ax.tick_params(labelsize=7)
+        if i == 0:
+            ax.legend(fontsize=6)
+    fig.supylabel("Δχ² / max(1, χ²/dof)")
+    fig.suptitle("profile likelihood: interval ends (red) where Δχ² = 1; dotted: open or at a "
+                 "bound", fontsize=9)
+    _save(fig, path)
+
+
 def _render(scene: Scene, result: FitResult, path: Path) -> str | None:
     """Render the fitted scene when the frame renderer exists; returns a note otherwise."""
     try:
@@ -202,6 +255,9 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
                          title="Spectroradiometer spots: measured (+) vs fitted render (×)")
     _spectra_plot(result, out / "spectra.png")
     _residual_plot(result, out / "residuals.png")
+    if result.profile:
+        _profile_plot(result, out / "profile.png")
+        pictures.append("profile.png")
     if render:
         note = _render(scene, result, out / "render.png")
         if note is None:

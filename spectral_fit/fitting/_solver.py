@@ -27,7 +27,7 @@ from ._options import FitOptions
 from ._params import physical_from_y
 from ._problem import FitProblem
 
-__all__ = ["CompactLM", "make_solver", "solve_batch"]
+__all__ = ["CompactLM", "make_solver", "solve_batch", "solve_frozen"]
 
 
 _PROGRESS: list[Callable[[np.ndarray, np.ndarray], None]] = []
@@ -113,9 +113,12 @@ def _residuals_jacobian(y: jax.Array, problem: FitProblem, reading_weights: jax.
 
 
 def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: CompactLM,
-                max_steps: int) -> dict[str, jax.Array]:
+                max_steps: int, frozen: jax.Array | None = None) -> dict[str, jax.Array]:
     """:class:`CompactLM` from ``y0`` (see there); returns the final state's y, residuals,
-    Jacobian, predicted readings, step count and whether it terminated (converged)."""
+    Jacobian, predicted readings, step count and whether it terminated (converged).
+    ``frozen`` (F,) bool: unknowns held at their start value (their rows and columns of the
+    normal equations replaced by the identity's, their gradient by 0: every step leaves them
+    where they are), for profile likelihoods."""
     dt = y0.dtype
     F = y0.shape[0]
     tau = 1e-4  # the damping after a rejection is at least τ max (JᵀJ)_ii
@@ -153,6 +156,11 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
             jax.debug.callback(_emit, s["steps"], 0.5 * jnp.sum(r * r))
         A = (J.T @ J).astype(dt)
         g = (J.T @ r).astype(dt)
+        if frozen is not None:
+            keep = jnp.logical_not(frozen)
+            A = (jnp.where(keep[:, None] & keep[None, :], A, 0.0)
+                 + jnp.diag(jnp.where(keep, 0.0, 1.0).astype(dt)))
+            g = jnp.where(keep, g, 0.0)
         dmax = jnp.where(first, jnp.max(jnp.diag(A)), s["dmax"])
         eye = jnp.eye(F, dtype=dt)
         chol = jax.scipy.linalg.cho_factor(A + lam * eye, lower=True)
@@ -215,6 +223,22 @@ def _solve_one(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Any,
     return {"y": sol.value, "cost": jnp.where(jnp.isfinite(cost), cost, jnp.inf),
             "converged": ok, "steps": sol.stats["num_steps"], "residual": r,
             "jacobian": info.jac.as_matrix(), "predicted": sol.aux}
+
+
+@eqx.filter_jit
+def solve_frozen(problem: FitProblem, y0: jax.Array, rw: jax.Array, frozen: jax.Array,
+                 solver: CompactLM, max_steps: int) -> dict[str, jax.Array]:
+    """Solve S problems one after the other (``lax.map``), each with some unknowns held at
+    their start: starts ``y0 (S, F)``, reading weights ``rw (S, B)``, ``frozen (S, F)`` bool.
+    Returns (S, ...) arrays: y, cost (½ Σ r², +inf when not finite), converged, steps."""
+    def one(args: tuple[jax.Array, jax.Array, jax.Array]) -> dict[str, jax.Array]:
+        s = _compact_lm(problem, args[0], args[1], solver, max_steps, frozen=args[2])
+        cost = 0.5 * jnp.sum(s["r"] * s["r"])
+        fin = jnp.isfinite(cost)
+        return {"y": s["y"], "cost": jnp.where(fin, cost, jnp.inf),
+                "converged": s["done"] & fin, "steps": s["steps"]}
+
+    return jax.lax.map(one, (y0, rw, frozen))
 
 
 @eqx.filter_jit

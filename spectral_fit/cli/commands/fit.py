@@ -27,6 +27,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--aim-step-mm", type=float, default=0.5,
                    help="aim shift for the aiming sensitivity (0: skip; default 0.5 mm)")
     p.add_argument("--no-render", action="store_true", help="skip the render of the fit")
+    p.add_argument("--profile", action="store_true",
+                   help="also compute profile-likelihood intervals (the fit repeated with each "
+                   "parameter held at 20 values around its estimate and its interval's ends; "
+                   "about 2 s per parameter on 2 CPU cores for 18 readings of 81 bands)")
     p.add_argument("--interreflection", choices=("auto", "none"), default="auto",
                    help="auto: the scene config's interreflection mode; none: fit without "
                    "the interreflection term")
@@ -70,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     res = fit(scene, session, progress=_say, starts=args.starts, bootstrap=args.bootstrap,
               kinds=kinds, spot_resolution=args.spot_resolution, max_steps=args.max_steps,
               holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3,
-              interreflection=args.interreflection)
+              interreflection=args.interreflection, profile=args.profile)
     summary = write_report(res, args.output, scene=scene, session=session,
                            render=not args.no_render)
     for w in res.warnings:
@@ -79,6 +83,14 @@ def run(args: argparse.Namespace) -> int:
     for obj, p in res.params.items():
         se = res.stderr[obj]
         _say(f"  {obj}: " + ", ".join(f"{k} {v:.4g} ± {se[k]:.2g}" for k, v in p.items()))
+        for k in p:
+            iv = (res.profile or {}).get(f"{obj}.{k}")
+            if iv is not None:
+                ends = ["" if iv[f"{e}_end"] == "profile" else
+                        (" (bound)" if iv[f"{e}_end"] == "bound" else " (open)")
+                        for e in ("lower", "upper")]
+                _say(f"    {k} profile interval {iv['lower']:.4g}{ends[0]} .. "
+                     f"{iv['upper']:.4g}{ends[1]}")
     _say(f"report in {args.output}/ ({', '.join(summary['files'])})")
     if args.json:
         slim = {k: v for k, v in summary.items() if k != "spectra"}
