@@ -136,6 +136,8 @@ def test_recovery_own_model(small):
     assert js["params"]["red"]["n"] == pytest.approx(TRUE["red"]["n"], abs=2e-3)
 
 
+@pytest.mark.slow  # the optimistix solver is an option; the default (compact) one is checked
+# against own-model truths, fixed-parameter fits and the spread of noisy refits in the default tier
 def test_compact_solver_matches_optimistix(small):
     """The compact Levenberg–Marquardt loop (default) and optimistix.LevenbergMarquardt
     (solver="optimistix", an independent implementation: it linearises the model and
@@ -474,6 +476,59 @@ def test_profile_intervals_match_fits_with_the_parameter_held(small):
         r2 = fitting.fit(scene, session, prepared=held, **kw)
         rise = 2.0 * (r2.cost - res.cost) / s2
         assert abs(rise - 1.0) < 0.1, (label, end, rise)
+
+
+def test_model_error_stated_and_estimated(small):
+    """The model's error per reading kind (the session's ``[model_error]``). Stated: it enters
+    each reading's σ in quadrature (closed form). "auto": the interreflection readings carry an
+    injected relative error of 3 % per band (a model that gets the transfer wrong), the object
+    readings only the instrument's noise: the estimate of that kind is within 20 % of the
+    injected error's realised RMS, the object kind's below 0.5 %, the kinds' χ² have their
+    expected size after, and the truth lies within 3 reported standard errors of every
+    parameter."""
+    import dataclasses
+
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    scene, session, prep, env, clean = small
+    kinds = np.array([r.kind for r in session.readings])
+    inter = kinds == "interreflection"
+    # stated: σ² = σ_noise² + (f L)² of the kind named, the others unchanged
+    stated = fitting.prepare_fit(scene, session.replace(model_error={"interreflection": 0.02}),
+                                 options=fitting.FitOptions(spot_resolution=RES), env=env)
+    s0, s1 = (np.asarray(q.problem.readings.sigma, np.float64) for q in (prep, stated))
+    meas = np.asarray(prep.problem.readings.measured, np.float64)
+    np.testing.assert_allclose(s1[inter], np.sqrt(s0[inter] ** 2 + (0.02 * meas[inter]) ** 2),
+                               rtol=1e-5)
+    np.testing.assert_array_equal(s1[~inter], s0[~inter])
+    # estimated: readings with noise, and a 3 % model error on the interreflection kind
+    rng = np.random.default_rng(11)
+    noisy = clean * (1.0 + 0.003 * rng.standard_normal(clean.shape))
+    wrong = 0.03 * rng.standard_normal(noisy[inter].shape)
+    noisy[inter] *= 1.0 + wrong
+    injected = float(np.sqrt(np.mean(wrong ** 2)))  # what these 2 × 16 draws realise
+    sigma = session.noise.sigma(noisy)
+    data = dataclasses.replace(prep, problem=eqx.tree_at(
+        lambda q: (q.readings.measured, q.readings.sigma), prep.problem,
+        (jnp.asarray(noisy, jnp.float32), jnp.asarray(sigma, jnp.float32))))
+    auto = session.replace(model_error={"object": "auto", "interreflection": "auto"})
+    kw = dict(prepared=data, starts=3, aim_step_m=0.0, holdout=False, rtol=1e-6, atol=1e-7,
+              max_steps=100)
+    res = fitting.fit(scene, auto, **kw)
+    assert res.status == "converged"
+    assert 0.8 * injected <= res.model_error["interreflection"] <= 1.2 * injected, (
+        res.model_error, injected)
+    assert res.model_error["object"] < 0.005, res.model_error
+    z = (res.fitted - res.measured) / res.sigma
+    n_free, n_all = len(res.free), z.size
+    for k in ("object", "interreflection"):
+        chi2 = float(np.sum(z[kinds == k] ** 2))
+        expect = z[kinds == k].size * (n_all - n_free) / n_all
+        assert abs(chi2 / expect - 1.0) < 0.35, (k, chi2, expect)
+    worst = max(abs(res.params[o][p] - v) / res.stderr[o][p]
+                for o, tp in TRUE.items() for p, v in tp.items())
+    assert worst < 3.0, worst
 
 
 @pytest.mark.slow

@@ -816,6 +816,8 @@ def test_pass1_sphere_tessellated_for_its_raster():
         np.testing.assert_allclose(ab.sum(-1), aa.sum(-1), rtol=0.025)
 
 
+@pytest.mark.slow  # the batched pass 1 (the product's) is checked against closed forms and
+# brute force by the gather tests of the default tier; this compares it with the per-pair one
 def test_batched_gather_pass1_equals_one_raster_per_pair(monkeypatch):
     """Senders of equal mesh shapes get their gather pass 1 as one vmapped raster; it must
     give each pair (i, j), in pair_list's order, the samples of that pair's own raster (the

@@ -200,6 +200,8 @@ def test_background_is_the_environment_along_each_pixels_ray(frames):
     assert np.median(np.abs(pin - want)[bg] / np.abs(want[bg]).max()) > 100 * np.median(err)
 
 
+@pytest.mark.slow  # two more frame programs; the lens frames of the default tier are checked
+# against OpenCV's projection and undistortion directly
 def test_a_lens_without_distortion_renders_the_pinhole_frame():
     from spectral_fit.rendering import prepare, render_frame
 

@@ -209,6 +209,27 @@ def test_bad_aim_and_free(base, tmp_path):
     assert e.field == "objects.red.free" and "rho" in str(e)
 
 
+def test_model_error_table(base, tmp_path):
+    """``[model_error]``: a fraction or "auto" per reading kind; absent: none; anything else
+    is refused with the field named."""
+    assert load_session(base / "s").model_error == {}
+    for i, (body, want) in enumerate((
+            ('object = 0.01\ninterreflection = "auto"',
+             {"object": 0.01, "interreflection": "auto"}),
+            ("interreflection = 0.05", {"interreflection": 0.05}))):
+        d = _copy(base, tmp_path / f"ok{i}")
+        _replace_in(d / "session.toml", "[dark]", f"[model_error]\n{body}\n\n[dark]")
+        assert load_session(d).model_error == want
+    for i, (body, field, words) in enumerate((
+            ("object = 1.5", "model_error.object", "<= 1"),
+            ('object = "guess"', "model_error.object", "auto"),
+            ("glossy = 0.1", "model_error.glossy", "unknown"))):
+        d = _copy(base, tmp_path / f"bad{i}")
+        _replace_in(d / "session.toml", "[dark]", f"[model_error]\n{body}\n\n[dark]")
+        e = _error(d)
+        assert e.field == field and words in str(e), (e.field, str(e))
+
+
 def test_white_standard_errors(base, tmp_path):
     d = _copy(base, tmp_path)
     _replace_in(d / "session.toml", "reflectance = 0.98", "reflectance = 0.01")

@@ -32,6 +32,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,6 +40,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from ..io import PARAMETERS, Scene, Session
 from ._model import _predict_jit
+from ._model_error import estimate_model_error, with_model_error
 from ._options import FitOptions, _fit_options
 from ._params import _SQUARED, _dp_dy, _starts, physical_from_y, y_start
 from ._prepare import prepare_fit
@@ -73,6 +75,9 @@ class FitResult:
         wavelengths, measured, fitted, sigma: (L,), (B, L) ×3 spectra.
         calibration: (L,) the environment calibration k(λ) applied.
         timings: seconds of preparation, compile + first solve, steady solve, uncertainty.
+        model_error: {kind: relative error of the model} added to the readings' σ in
+            quadrature (stated in the session's ``[model_error]``, or estimated there with
+            "auto"; :mod:`spectral_fit.fitting._model_error`).
         profile: with ``options.profile``, {label: interval} of every unknown from the
             profile likelihood (:func:`~spectral_fit.fitting._profile.profile_intervals`:
             value, lower, upper, how each end was found, the held values and their Δχ²);
@@ -105,6 +110,7 @@ class FitResult:
     iterations: int = 0
     values: np.ndarray | None = None  # (O, 6)
     profile: dict[str, dict[str, Any]] | None = None
+    model_error: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable summary (spectra excluded; see the report for those)."""
@@ -130,7 +136,7 @@ class FitResult:
             "iterations": self.iterations, "starts": self.starts,
             "bootstrap_std": self.bootstrap, "warnings": self.warnings,
             "readings": self.readings, "holdout": self.holdout, "timings": self.timings,
-            "profile": self.profile,
+            "profile": self.profile, "model_error": self.model_error,
         })
 
 
@@ -282,9 +288,46 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
             _PROGRESS.pop()
     t_solve = time.perf_counter() - t1
     costs = out["cost"].astype(np.float64)
+    best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
+    # the starts as solved (reported, and compared for local minima)
+    start_costs, start_oks, start_steps = costs, out["converged"], out["steps"]
+    start_best = best
+    # the model's error per reading kind: stated in the session, or estimated ("auto") from
+    # the residuals and the fit solved again with it (same program: σ is data)
+    reading_kinds = [r.kind for r in session.readings]
+    model_error = {k: float(v) for k, v in session.model_error.items() if not isinstance(v, str)}
+    auto = sorted(k for k, v in session.model_error.items() if v == "auto")
+    if auto and np.isfinite(costs[best]):
+        # estimated and solved again in turn (the first solve fitted every kind with the
+        # instrument's σ alone, so its residuals understate an erring kind's error): until
+        # the estimates settle within 5 %, at most 6 rounds
+        meas_ = np.asarray(problem.readings.measured, np.float64)
+        sig0 = np.asarray(problem.readings.sigma, np.float64)
+        est = {k: 0.0 for k in auto}
+        for _ in range(6):
+            new = estimate_model_error(out["predicted"][best] - meas_, meas_, sig0,
+                                       reading_kinds, use, auto, n_free=F)
+            settled = all(abs(new[k] - est.get(k, 0.0)) <= 0.05 * max(new[k], 1e-12)
+                          for k in new)
+            est.update(new)
+            sig_new = np.maximum(with_model_error(sig0, meas_, reading_kinds, est), 1e-12)
+            problem = eqx.tree_at(lambda q: q.readings.sigma, problem,
+                                  jnp.asarray(sig_new, dt))
+            again = solve_batch(problem,
+                                jnp.asarray(np.tile(out["y"][best], (len(starts), 1)), dt),
+                                jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
+                                opts.max_steps)
+            out = {k: np.asarray(v) for k, v in again.items()}
+            costs = out["cost"].astype(np.float64)
+            best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
+            if settled or not np.isfinite(costs[best]):
+                break
+        prep = dataclasses.replace(prep, problem=problem)
+        model_error.update(est)
+        say("model error estimated from the residuals: " + ", ".join(
+            f"{k} {100 * v:.2g} %" for k, v in est.items()))
     oks = out["converged"]
     steps = out["steps"]
-    best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
     if not np.isfinite(costs[best]):
         status = "failed"
     elif oks[best]:
@@ -296,10 +339,10 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     vals = np.asarray(vals, np.float64)
     scale = float(scale)
     warn = list(prep.warnings)
-    agree = [i for i in range(len(costs)) if np.isfinite(costs[i])
-             and costs[i] <= costs[best] * (1 + 1e-3) + 1e-9]
-    if len(agree) < len(costs):
-        worse = len(costs) - len(agree)
+    agree = [i for i in range(len(start_costs)) if np.isfinite(start_costs[i])
+             and start_costs[i] <= start_costs[start_best] * (1 + 1e-3) + 1e-9]
+    if len(agree) < len(start_costs):
+        worse = len(start_costs) - len(agree)
         warn.append(f"{worse} of {len(costs)} starts ended at a higher cost (local minima or "
                     "not converged); the best start is reported")
     # uncertainty: J w.r.t. the physical parameters by the chain rule ------------------------
@@ -407,8 +450,8 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         scale=scale if problem.fit_scale else None,
         scale_stderr=float(se[-1]) if problem.fit_scale else None,
         cost=float(costs[best]), chi2_red=chi2_red, dof=dof,
-        starts=[{"cost": float(costs[i]), "converged": bool(oks[i]), "steps": int(steps[i])}
-                for i in range(len(costs))],
+        starts=[{"cost": float(start_costs[i]), "converged": bool(start_oks[i]),
+                 "steps": int(start_steps[i])} for i in range(len(start_costs))],
         bootstrap=boot, warnings=warn, readings=table, holdout=holdout, wavelengths=wl,
         measured=measured, fitted=fitted, sigma=sigma, calibration=calib * scale,
         calibration_mode=session.calibration,
@@ -416,7 +459,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                  "solve_s": t_solve, "uncertainty_s": t_unc, "profile_s": t_prof,
                  "bootstrap_s": t_boot,
                  "total_s": time.perf_counter() - t0},
-        iterations=steps_best, values=vals, profile=profile)
+        iterations=steps_best, values=vals, profile=profile, model_error=model_error)
 
 
 def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOptions,

@@ -27,6 +27,7 @@ from .._runtime.errors import InputError
 from ..geometry import GBuffer, ObjectGeometry
 from ..io import PARAMETERS, Scene, Session
 from ..lighting import EnvironmentMap
+from ._model_error import with_model_error
 from ._options import FitOptions
 from ._problem import FitInstrument, FitProblem, FitReadings, FitSurfaces, PreparedFit
 from ._spots import _spot_samples, disc_pixels
@@ -106,6 +107,11 @@ def _calibration(session: Session, env: Any, band: np.ndarray) -> np.ndarray:
                             "the white standard at some wavelengths (does the normal face away "
                             "from every light?)")
     return math.pi * w.mean / (w.reflectance * e)
+
+
+def _stated(fraction: float | str) -> float:
+    """A stated model error, 0 for "auto" (estimated later, by the fit)."""
+    return 0.0 if isinstance(fraction, str) else float(fraction)
 
 
 def prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None = None,
@@ -223,6 +229,9 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
     measured = np.stack([r.mean for r in readings])
     nrep = np.array([r.repeats.shape[0] for r in readings], np.float64)
     sigma = session.noise.sigma(measured) / np.sqrt(nrep)[:, None]
+    # the model's own error stated per kind, in quadrature ("auto": estimated by the fit)
+    sigma = with_model_error(sigma, measured, [r.kind for r in readings],
+                             {k: _stated(v) for k, v in session.model_error.items()})
     sigma = np.maximum(sigma, 1e-12)
     band = band_matrix(session.wavelengths, session.bandwidth_nm)
     calib = _calibration(session, env, band)

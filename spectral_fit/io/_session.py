@@ -128,6 +128,10 @@ class Session:
     objects: dict[str, ObjectMeasurement]
     readings: tuple[Reading, ...]
     lines: dict[str, int] = dataclasses.field(repr=False, default_factory=dict)
+    #: the model's own error per reading kind, relative to each reading and added to its σ in
+    #: quadrature: {kind: fraction, or "auto" (the fit estimates it from its residuals)};
+    #: kinds not named: 0
+    model_error: dict[str, float | str] = dataclasses.field(default_factory=dict)
 
     def line_of(self, field: str) -> int | None:
         """Manifest line of a dotted field (``readings[2].aim``), or of its table."""

@@ -81,7 +81,7 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
     if not isinstance(data, dict):
         raise ctx.err("<root>", "must be a table")
     ctx.finish(data, ("session", "instrument", "calibration", "white_standard", "dark", "noise",
-                      "objects", "readings"), "")
+                      "model_error", "objects", "readings"), "")
 
     st = ctx.table(data, "session", "session", required=True)
     ctx.finish(st, ("format", "scene", "units", "instrument", "date", "notes"), "session")
@@ -271,6 +271,18 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
         if noise is None:
             noise = NoiseModel(absolute=1e-3 * float(np.max(means)), relative=0.01,
                                source="default")
+    # the model's own error per reading kind: a fraction, or "auto" ------------------------
+    mt = ctx.table(data, "model_error", "model_error")
+    ctx.finish(mt, KINDS, "model_error")
+    model_error: dict[str, float | str] = {}
+    for k in KINDS:
+        if k in mt:
+            if mt[k] == "auto":
+                model_error[k] = "auto"
+            elif isinstance(mt[k], str):
+                raise ctx.err(f"model_error.{k}", f'must be a fraction or "auto", got {mt[k]!r}')
+            else:
+                model_error[k] = ctx.number(mt, k, f"model_error.{k}", lo=0.0, hi=1.0)
     # a floor, so that bands with a vanishing signal do not dominate
     peak = float(np.max(np.abs(means)))
     if noise.absolute < 1e-6 * peak:
@@ -280,4 +292,4 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                    instrument=instrument, calibration=mode, bandwidth_nm=bandwidth,
                    reference=reference, white=white,
                    dark=dark, noise=noise, objects=objects, readings=tuple(readings),
-                   lines=lines)
+                   lines=lines, model_error=model_error)

@@ -55,6 +55,7 @@ def write_session(
     objects: dict[str, dict[str, Any]] | None = None,
     calibration: dict[str, Any] | None = None,
     noise: dict[str, float] | None = None,
+    model_error: dict[str, float | str] | None = None,
     notes: str = "",
     units: str = "W.sr^-1.m^-2.nm^-1",
 ) -> Path:
@@ -71,6 +72,8 @@ def write_session(
             ``spectra`` (M, L).
         dark: optional (M, L) dark readings.
         objects: optional per object ``reflectance`` (L,), ``geometry``, ``free``, ``start``.
+        model_error: optional ``{kind: relative error of the model, or "auto"}`` (estimated
+            by the fit).
 
     Returns:
         the manifest's path. Files are written atomically.
@@ -90,6 +93,9 @@ def write_session(
                                         for k, v in calibration.items()]
     if noise:
         out += ["", "[noise]"] + [f"{k} = {_toml_value(v)}" for k, v in noise.items()]
+    if model_error:
+        out += ["", "[model_error]"] + [f"{k} = {_toml_value(v)}"
+                                        for k, v in model_error.items()]
     if dark is not None:
         d = np.atleast_2d(dark)
         names = []
