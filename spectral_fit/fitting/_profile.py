@@ -36,21 +36,23 @@ __all__ = ["STEPS", "profile_intervals"]
 
 #: multiples of the linearised standard error at which each parameter is held
 STEPS = (-6.0, -3.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 3.0, 6.0)
-#: the physical range of each parameter (lower, upper)
-_RANGE = {"alpha": (0.0, math.inf), "beta": (0.0, math.inf), "mu": (0.0, math.inf),
-          "scale": (0.0, math.inf), "n": (1.0, math.inf), "chi": (0.0, math.inf),
-          "gamma": (0.0, math.inf)}
+#: the lower physical bound of each parameter (none has an upper one)
+_LOWER = {"alpha": 0.0, "beta": 0.0, "mu": 0.0, "scale": 0.0, "n": 1.0, "chi": 0.0,
+          "gamma": 0.0}
+
+
+def _floor(p: float, kind: str) -> float:
+    """The lowest value a parameter is held at: its bound, which the exp-parametrised
+    parameters approach without reaching (χ, γ = y² reach 0)."""
+    lo = _LOWER[kind]
+    return lo if kind in ("chi", "gamma") else lo + 1e-6 * max(abs(p), 1e-3)
 
 
 def _held_values(p: float, se: float, kind: str) -> np.ndarray:
-    """The values (len(STEPS),) at which a parameter is held; NaN where out of range."""
+    """The values (len(STEPS),) at which a parameter is held; NaN for repeats of the floor."""
     step = se if (math.isfinite(se) and se > 0) else (0.1 * abs(p) if p != 0 else 0.05)
-    lo, hi = _RANGE[kind]
-    v = p + step * np.asarray(STEPS)
-    # the open bounds of the exp-parametrised parameters are approached, not reached
-    floor = lo if kind in ("chi", "gamma") else lo + 1e-6 * max(abs(p), 1e-3)
-    out = np.where(v < floor, floor, v)
-    out = np.where(out > hi, np.nan, out)
+    floor = _floor(p, kind)
+    out = np.maximum(p + step * np.asarray(STEPS), floor)
     # a value clipped to the floor once is enough: the later ones repeat it
     first_floor = np.flatnonzero(out == floor)
     if first_floor.size > 1:
@@ -157,8 +159,7 @@ def profile_intervals(problem: FitProblem, y_hat: np.ndarray, p_hat: np.ndarray,
         ends: dict[str, Any] = {}
         for side, name in ((-1, "lower"), (1, "upper")):
             v, _, how = _bracket(xs, zs, float(p_hat[j]), side)
-            floor = _RANGE[kinds[j]][0]
-            if how == "open" and side < 0 and v <= floor + 1e-6 * max(abs(p_hat[j]), 1e-3):
+            if how == "open" and side < 0 and v <= _floor(float(p_hat[j]), kinds[j]):
                 how = "bound"
             ends[name], ends[f"{name}_end"] = v, how
         intervals[labels[j]] = {"value": float(p_hat[j]), **ends, "held": xs.tolist(),

@@ -66,10 +66,6 @@ class BVH(eqx.Module):
     e2: jax.Array
     triangle: jax.Array
 
-    @property
-    def num_nodes(self) -> int:
-        return int(self.lo.shape[0])
-
 
 class RayHit(eqx.Module):
     """The nearest hit of one ray (or of a batch under ``jax.vmap``: every field gains the
