@@ -95,10 +95,33 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         obj_img = jnp.where(ras.tri_id >= 0, tri_object[jnp.maximum(ras.tri_id, 0)], -1)
         pix, counts = _object_pixel_lists(ras.tri_id, obj_img,
                                            prep.buffers.pixel_capacity)
-    attrs = jnp.concatenate([world, wnorm], axis=1)
-    vals = interpolate_pixels(attrs, pix, tris, clip)
+    # output channels (XYZ, or all channels for the spectral output): no (N, C) array unless
+    # the spectra are asked for
+    if spectral:
+        to_out = jnp.eye(prep.channels, dtype=jnp.float32)
+        env = prep.lighting.env
+        hm, wm, c = env.texels.shape
+        mirror_table = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
+    else:
+        to_out = prep.colour.to_xyz
+        mirror_table = prep.colour.env_xyz
+    # the objects' own shape: each vertex's change of diffuse radiance (hidden environment,
+    # own light), interpolated with the geometry
+    occ = prep.occlusion
+    attrs = [world, wnorm]
+    if occ is not None:
+        from ._occlusion import vertex_correction
+
+        with jax.named_scope("self_occlusion"):
+            attrs.append(vertex_correction(
+                occ, env=prep.lighting.env, lut=prep.lighting.irradiance_lut, mats=mats,
+                model=model, normals=mesh.normals, world_normals=wnorm,
+                vertex_slices=mesh.object_slices,
+                bounces=(prep.interreflection.bounces
+                         if prep.interreflection.mode != "none" else 0), to_out=to_out))
+    vals = interpolate_pixels(jnp.concatenate(attrs, axis=1), pix, tris, clip)
     pos = vals[:, :3]
-    nrm = vals[:, 3:]
+    nrm = vals[:, 3:6]
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
     eye = eye_position(view)
     vdir = eye - pos
@@ -116,24 +139,25 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     gb = GBuffer(position=pos, normal=nrm, view=vdir, object=obj,
                  pixel=jnp.where(pix.valid, pix.index, -1))
 
-    # 3. shading + interreflection, in the output channels (XYZ, or all channels for the
-    # spectral output): no (N, C) array unless the spectra are asked for
-    if spectral:
-        to_out = jnp.eye(prep.channels, dtype=jnp.float32)
-        env = prep.lighting.env
-        hm, wm, c = env.texels.shape
-        mirror_table = jnp.concatenate([env.texels.reshape(hm * wm, c), env.poles])
-    else:
-        to_out = prep.colour.to_xyz
-        mirror_table = prep.colour.env_xyz
+    # 3. shading + interreflection, in the output channels
+    spec_vis = None
+    if occ is not None:
+        from ._occlusion import specular_visibility
+
+        spec_vis = specular_visibility(occ, model=model, world=world, triangles=tris,
+                                       vertex_object=mesh.vertex_object, tri_id=pix.tri_id,
+                                       position=pos, normal=nrm, view=vdir)
     with jax.named_scope("shading"):
         lit = prep.lighting
         if lit.quality == "fast":
-            radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table)
+            radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table, spec_vis)
         else:
             radiance = _shade_samples(mats, lit.env, gb, lit.batch_size, lit.irradiance_lut,
                                       lit.quality, prep.buffers.pixel_capacity,
-                                      lit.split_map, lit.split_settings) @ to_out
+                                      lit.split_map, lit.split_settings,
+                                      spec_vis=spec_vis) @ to_out
+    if occ is not None:
+        radiance = radiance + jnp.where(pix.valid[:, None], vals[:, 6:], 0.0)
     # (in the output channels: the receivers' side of the gather works in those)
     if senders is not None:
         from .interreflection._gather import gather_receivers

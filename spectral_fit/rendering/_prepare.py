@@ -130,6 +130,8 @@ def prepare(
     irradiance_shape: tuple[int, int] = (32, 64),
     quality: str = "fast",
     split_settings: Any = None,
+    occlusion: bool = True,
+    occlusion_resolution: int = 24,
 ) -> Prepared:
     """Precompute a scene for :func:`render_frame` (explicit precomputation).
 
@@ -161,6 +163,11 @@ def prepare(
             docs/lighting.md.
         split_settings: :class:`~spectral_fit.lighting.SplitSum` for "fast" (default
             settings when None).
+        occlusion: precompute what each non-convex object hides from itself (its
+            self-visibility over ``occlusion_resolution``² directions and its self-transfer,
+            docs/any_shape.md) and render with it; False: every object lit as if convex.
+            Convex objects cost nothing either way.
+        occlusion_resolution: R of the self-visibility's octahedral direction grid.
     Raises:
         InputError: bad options (naming the option), unreadable files (naming the file).
     """
@@ -196,6 +203,10 @@ def prepare(
     if smode == "basis" and not (1 <= kk <= wl.size):
         raise InputError(f"must be in 1..{wl.size}, got {kk}", field="k")
     nb = scene.interreflection.bounces if bounces is None else int(bounces)
+    res_ok = isinstance(occlusion_resolution, int | np.integer)
+    if not (res_ok and 4 <= occlusion_resolution <= 128):
+        raise InputError(f"must be an int in 4..128, got {occlusion_resolution!r}",
+                         field="occlusion_resolution")
     ts = scene.interreflection.texture_size if texture_size is None else int(texture_size)
 
     # meshes in object frames, concatenated (and those the interreflection's pass 1 uses)
@@ -316,6 +327,12 @@ def prepare(
                                paper_tris, [(ir_v[a:b], ir_t[ta:tb] - a) for (a, b),
                                             (ta, tb) in zip(ir_vsl, ir_tsl, strict=True)])
 
+    occ = None
+    if occlusion:
+        from ._occlusion import build_self_transfer
+
+        occ = build_self_transfer(vertices, triangles, normals, vsl, tsl, env,
+                                  resolution=int(occlusion_resolution))
     mesh = SceneMeshes(
         vertices=jnp.asarray(vertices), normals=jnp.asarray(normals),
         triangles=jnp.asarray(triangles), vertex_object=jnp.asarray(vobj_a),
@@ -347,6 +364,7 @@ def prepare(
                                 pixel_capacity=cap),
         interreflection=PreparedInterreflection(mode=ir_mode, bounces=nb, texture_size=ts),
         names=tuple(o.name for o in scene.objects),
+        occlusion=occ,
     )
 
 

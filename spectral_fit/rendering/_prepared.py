@@ -52,7 +52,7 @@ TRACE_COUNT = {"render_frame": 0, "ir_senders": 0}
 #: version of :class:`Prepared`'s layout (its parts and their fields), part of the
 #: prepared-scene cache's keys: an entry pickled with another layout is never loaded
 #: (1: one flat class; 2: the named parts)
-PREPARED_LAYOUT = 2
+PREPARED_LAYOUT = 3
 
 
 class SceneMeshes(eqx.Module):
@@ -224,6 +224,9 @@ class Prepared(eqx.Module):
         buffers: :class:`PreparedBuffers` (clusters, raster windows, covered-pixel lists).
         interreflection: :class:`PreparedInterreflection` (mode, bounces, texture size).
         names: static object names (O,).
+        occlusion: the non-convex objects' precomputed self-visibility and self-transfer
+            (:mod:`~spectral_fit.rendering._occlusion`), or None (every object convex, or
+            ``prepare(occlusion=False)``).
     """
 
     mesh: SceneMeshes
@@ -236,6 +239,7 @@ class Prepared(eqx.Module):
     buffers: PreparedBuffers
     interreflection: PreparedInterreflection
     names: tuple[str, ...] = eqx.field(static=True)
+    occlusion: Any = None
 
     @property
     def num_objects(self) -> int:

@@ -28,12 +28,15 @@ from ._prepared import Prepared
 def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
                    lut: jax.Array | None = None, quality: str = "render",
                    capacities: tuple[int, ...] | None = None, split_map: Any = None,
-                   split_settings: Any = None) -> jax.Array:
+                   split_settings: Any = None, spec_vis: jax.Array | None = None
+                   ) -> jax.Array:
     """Environment shading (eq. 5) of the G-buffer samples, (N, C): the samples are laid out
     object by object (``capacities[o]`` slots for object o), and each object's slice is shaded
     with its material by :func:`~spectral_fit.lighting.shade_points`. With an irradiance map
     ``lut`` (:func:`irradiance_table`), the diffuse term α S I_d(N)/π takes its irradiance from
-    the map (the gloss and mirror terms come from ``env`` as always)."""
+    the map (the gloss and mirror terms come from ``env`` as always). ``spec_vis`` (N,): the
+    gloss and mirror terms scaled by it (the visibility of the mirror direction, from the
+    objects' self-occlusion; None: 1)."""
     import dataclasses
 
     from ..lighting import shade_points
@@ -45,13 +48,22 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
         return _shade_fast(mats, env, gb, lut, capacities, split_map, split_settings)
     table = None if lut is None else _lut_env(env, lut)
     out = []
-    for m, cap, (nrm, v) in zip(mats, capacities, _object_slices(gb, capacities), strict=True):
+    for m, cap, (nrm, v, sv) in zip(mats, capacities,
+                                    _object_slices(gb, capacities, spec_vis), strict=True):
         bs = max(1, min(batch, cap))
-        if table is None:
+        if table is None and sv is None:
             out.append(shade_points(m, env, nrm, v, batch_size=bs, quality=quality))
             continue
         spec = shade_points(dataclasses.replace(m, alpha=jnp.zeros_like(m.alpha)), env, nrm, v,
                             batch_size=bs, quality=quality)
+        if sv is not None:
+            spec = spec * sv[:, None]
+        if table is None:
+            diffuse = shade_points(dataclasses.replace(m, beta=jnp.zeros_like(m.beta),
+                                                       chi=jnp.zeros_like(m.chi)),
+                                   env, nrm, v, batch_size=bs, quality=quality)
+            out.append(spec + diffuse)
+            continue
         e = jax.vmap(lambda d: _lookup(table, d))(nrm)
         se = _filtered_irradiance(m, env, e)
         front = jnp.sum(nrm * v, axis=-1, keepdims=True) > 0.0
@@ -59,12 +71,14 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
     return jnp.concatenate(out)
 
 
-def _object_slices(gb: GBuffer, capacities: tuple[int, ...]):
+def _object_slices(gb: GBuffer, capacities: tuple[int, ...], extra: jax.Array | None = None):
     """Yield each object's (normals, views), both (capacity, 3), from the G-buffer whose samples
-    are laid out object after object with the given capacities."""
+    are laid out object after object with the given capacities; with ``extra`` (N, ...) a
+    third item, its slice (else None)."""
     start = 0
     for cap in capacities:
-        yield gb.normal[start:start + cap], gb.view[start:start + cap]
+        yield (gb.normal[start:start + cap], gb.view[start:start + cap],
+               None if extra is None else extra[start:start + cap])
         start += cap
 
 
@@ -106,7 +120,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
 
     table = None if lut is None else _lut_env(env, lut)
     out = []
-    for m, (nrm, v) in zip(mats, _object_slices(gb, capacities), strict=True):
+    for m, (nrm, v, _) in zip(mats, _object_slices(gb, capacities), strict=True):
         kw = dict(distribution=m.distribution, geometry=m.geometry)
         moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
         gloss, mirror, nv = _gloss_and_mirror(env, split_map,
@@ -200,7 +214,8 @@ def _chunked(fn: Any, counts: Sequence[jax.Array], out_channels: int,
 
 
 def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[jax.Array],
-               to_out: jax.Array, mirror_table: jax.Array) -> jax.Array:
+               to_out: jax.Array, mirror_table: jax.Array,
+               spec_vis: jax.Array | None = None) -> jax.Array:
     """Environment shading (eq. 5, quality "fast") of the G-buffer samples straight into the
     output channels (N, K): ``to_out`` (C, K) maps radiance channels to them. The gloss and
     mirror depend on λ only through the environment, so they are looked up in K channels (the
@@ -210,7 +225,8 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     per frame: 2,050 rows). In chunks of slots, chunks past each object's covered count
     skipped; the objects whose materials share a distribution and geometry share one traced
     shading body (their per-object tables and parameters selected by object), which halves
-    the compilation of a two-object frame."""
+    the compilation of a two-object frame. ``spec_vis`` (N,): the gloss and mirror scaled by
+    it (see :func:`_shade_samples`)."""
     from ..lighting import fast_lookup, irradiance, lobe_moment_table
 
     env = prep.lighting.env
@@ -219,7 +235,8 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     env_g = eqx.tree_at(lambda e: e.spectral_basis, env, env.spectral_basis @ to_out)
     mirror_env = _lut_env(env, mirror_table, env.texels.shape[:2])
     lut = prep.lighting.irradiance_lut
-    slices = list(_object_slices(gb, prep.buffers.pixel_capacity))
+    slices = [sl if spec_vis is not None else sl[:2]
+              for sl in _object_slices(gb, prep.buffers.pixel_capacity, spec_vis)]
     groups: dict[tuple[str, str], list[int]] = {}
     for i, m in enumerate(mats):
         groups.setdefault((m.distribution, m.geometry), []).append(i)
@@ -237,8 +254,8 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
             dflat = jnp.stack([(m.alpha / math.pi) * _filtered_irradiance(m, env, lut) @ to_out
                                for m in group])
 
-        def shade(o: jax.Array, nn: jax.Array, vv: jax.Array, stacked: Material = stacked,
-                  moments: jax.Array = moments, dflat: Any = dflat,
+        def shade(o: jax.Array, nn: jax.Array, vv: jax.Array, sv: Any = None,
+                  stacked: Material = stacked, moments: jax.Array = moments, dflat: Any = dflat,
                   group_mirror: Any = group_mirror) -> jax.Array:
             m = jax.tree.map(lambda x: x[o], stacked)
             gloss, mirror, nv = _gloss_and_mirror(env_g, prep.lighting.split_map, group_mirror,
@@ -248,10 +265,12 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                 diffuse = (m.alpha / math.pi) * _filtered_irradiance(m, env, e) @ to_out
             else:
                 diffuse = fast_lookup(_lut_env(env, dflat[o]), nn)
-            rad = diffuse + m.beta * gloss
+            spec = m.beta * gloss
             if mirror is not None:
-                rad = rad + m.chi * mirror
-            return jnp.where(nv > 0.0, rad, 0.0)
+                spec = spec + m.chi * mirror
+            if sv is not None:
+                spec = spec * sv[:, None]
+            return jnp.where(nv > 0.0, diffuse + spec, 0.0)
 
         res = _chunked(shade, [counts[i] for i in members], k_out,
                        [slices[i] for i in members])
