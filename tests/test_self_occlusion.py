@@ -47,10 +47,10 @@ position = [0.0, 0.0, -0.2]
 [objects.material]
 reflectance = {rho}
 alpha = 1.0
-beta = 0.0
-chi = 0.0
-mu = 0.1
-n = 1.5
+beta = {beta}
+chi = {chi}
+mu = 0.15
+n = {n}
 """
 
 
@@ -66,7 +66,7 @@ def port_scene(tmp_path_factory):
     wl = np.arange(400.0, 701.0, 100.0)
     write_spectral_exr(folder / "sky.exr", wl, np.ones((16, 32, wl.size), np.float32))
     path = folder / "scene.toml"
-    path.write_text(CONFIG.format(env="sky.exr", rho=RHO))
+    path.write_text(CONFIG.format(env="sky.exr", rho=RHO, beta=0.0, chi=0.0, n=1.5))
     return path
 
 
@@ -107,6 +107,24 @@ def test_integrating_sphere_matches_its_closed_form(port_scene, mode, bounces):
     if mode == "none":
         s0 = _inside(render_frame(plain, spectral=True))
         assert np.median(s0) == pytest.approx(RHO, rel=0.02)
+
+
+@pytest.mark.slow
+def test_white_furnace_with_gloss_and_mirror(port_scene):
+    """A white (α = 1, S = 1) glossy and mirroring wall under a uniform sky, with many bounces:
+    every direction brings at least the sky's radiance, from the sky or from the wall (the
+    wall's gloss and mirror reflect the wall's diffuse light where it hides the sky), so the
+    frame equals the one that ignores the object's shape (the wall's own gloss towards its
+    neighbours is not carried, so nothing is added either)."""
+    scene = port_scene.parent / "furnace.toml"
+    # a high index (F0 = 0.25) makes the gloss and mirror a fifth of the radiance
+    scene.write_text(CONFIG.format(env="sky.exr", rho=1.0, beta=1.0, chi=0.2, n=3.0))
+    occ = render_frame(prepare(scene, mode="gather", bounces=24), spectral=True)
+    plain = render_frame(prepare(scene, mode="gather", occlusion=False), spectral=True)
+    a, b = _inside(occ), _inside(plain)
+    assert np.median(b) > 1.2  # the plain frame: diffuse 1 + the gloss and mirror
+    assert np.median(a / b) == pytest.approx(1.0, abs=0.01)
+    assert np.all(np.abs(a / b - 1.0) < 0.04)
 
 
 @pytest.mark.slow

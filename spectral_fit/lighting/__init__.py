@@ -69,6 +69,7 @@ _EXPORTS: dict[str, str] = {
     "lobe_albedo": "_lobe",
     "lobe_factor": "_lobe",
     "lobe_moment_table": "_split_sum",
+    "split_sum_albedo": "_split_sum",
     "lookup": "_environment",
     "lookup_level": "_environment",
     "make_environment": "_synthetic",

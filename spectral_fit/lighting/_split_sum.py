@@ -33,6 +33,7 @@ __all__ = [
     "SplitSumMap",
     "lobe_moment_table",
     "gloss_split_sum",
+    "split_sum_albedo",
 ]
 
 
@@ -137,6 +138,13 @@ def lobe_moment_table(mu: Any, n: Any, *, distribution: str = "gaussian",
     return jax.vmap(lambda cc: _lobe_moments(
         cc, mu, n, distribution=distribution, geometry=geometry, fresnel=fresnel,
         radial=s.radial, azimuthal=s.azimuthal))(jnp.asarray(c, dtype))
+
+
+def split_sum_albedo(table: jax.Array, nv: jax.Array) -> jax.Array:
+    """The gloss lobe's directional albedo A(θr) (...,) at cosθr = ``nv`` (...,) from a
+    :func:`lobe_moment_table` (size, 4): the gloss per unit β under a uniform sky of radiance 1,
+    as :func:`gloss_split_sum` uses it."""
+    return _interp_moments(jnp.asarray(table), jnp.clip(jnp.asarray(nv), 0.0, 1.0))[..., 0]
 
 
 def _interp_moments(table: jax.Array, nv: jax.Array) -> jax.Array:

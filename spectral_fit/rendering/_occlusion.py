@@ -27,11 +27,12 @@ Per frame (:func:`vertex_correction`, traced; every shape fixed by the meshes an
    which the frame interpolates over the triangles and adds to the shading of its pixels.
 
 The gloss and mirror terms are scaled per pixel by the visibility of the mirror direction
-(:func:`specular_visibility`: the pixel's triangle's three vertices, bilinear in the
-octahedral map, blended by the pixel's barycentrics): what the object hides of the lobe is
-removed, nothing reflected by the object itself is added for them.
+(:func:`own_reflection`: the pixel's triangle's three vertices, bilinear in the octahedral
+map, blended by the pixel's barycentrics), and the hidden share reflects the object's own
+diffuse radiance at the vertex nearest the hit instead, times β A(θr) + χ F (not in mode
+"none", which is the direct light alone).
 
-Errors: the hidden set is resolved to the directions' spacing (~0.14 rad at R = 24; the
+Errors: the hidden set is resolved to the directions' spacing (~0.15 rad at R = 24; the
 cosine-weighted visible fraction of a hemispherical bowl's inside, ½ exactly, comes out within
 ±0.04 per vertex); the self-interreflection is diffuse only; visibility carries no gradient
 (the correction is differentiable w.r.t. every material parameter).
@@ -54,7 +55,7 @@ RESOLUTION = 24
 #: shadow-map side used to compute it (pixels across the object's bounding sphere)
 RASTER_SIZE = 192
 #: at most this many senders per object in the self-transfer (else patches of vertices)
-MAX_PATCHES = 1024
+MAX_PATCHES = 256
 
 
 class SelfTransfer(eqx.Module):
@@ -63,7 +64,11 @@ class SelfTransfer(eqx.Module):
 
     Attributes:
         directions: (K, 3) float32 object-frame directions.
-        hidden: (V, K) uint8 over all of ``prep.mesh``'s vertices (rows of other objects 0).
+        row: (V,) int32 row of each of ``prep.mesh``'s vertices in ``hidden`` and
+            ``hit_vertex`` (−1 for the vertices of convex objects).
+        hidden: (V', K) uint8, the listed objects' vertices one object after another.
+        hit_vertex: (V', K) int32 the vertex (an index into ``prep.mesh``) of the hit
+            triangle nearest the hit point where hidden, else the vertex itself.
         weights: per listed object (V_o, K) float32 Ω cos⁺ h.
         transfer: per listed object (V_o, P_o) float32.
         patch_of: per listed object (V_o,) int32 patch of each vertex.
@@ -74,7 +79,9 @@ class SelfTransfer(eqx.Module):
     """
 
     directions: jax.Array
+    row: jax.Array
     hidden: jax.Array
+    hit_vertex: jax.Array
     weights: tuple[jax.Array, ...]
     transfer: tuple[jax.Array, ...]
     patch_of: tuple[jax.Array, ...]
@@ -132,7 +139,8 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
     from ..geometry import octahedral_directions, self_visibility
 
     dirs, _ = octahedral_directions(resolution)
-    hidden_all = np.zeros((len(vertices), len(dirs)), np.uint8)
+    row = np.full(len(vertices), -1, np.int32)
+    hidden_rows, hit_rows = [], []
     objs, weights, transfers, patch_of, shares = [], [], [], [], []
     for o, ((a, b), (ta, tb)) in enumerate(zip(vertex_slices, triangle_slices, strict=True)):
         v = np.asarray(vertices[a:b], np.float64)
@@ -153,7 +161,12 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
         hit = sv.hit_triangle[rows, cols]
         for j in range(3):
             np.add.at(tr, (rows, p_of[t[hit, j]]), w[rows, cols] * sv.hit_bary[rows, cols, j])
-        hidden_all[a:b] = sv.hidden
+        row[a:b] = sum(len(h) for h in hidden_rows) + np.arange(b - a, dtype=np.int32)
+        hidden_rows.append(sv.hidden.astype(np.uint8))
+        near = np.take_along_axis(t[np.maximum(sv.hit_triangle, 0)],
+                                  np.argmax(sv.hit_bary, axis=-1)[..., None], axis=-1)[..., 0]
+        own = np.arange(b - a)[:, None]
+        hit_rows.append((a + np.where(sv.hidden, near, own)).astype(np.int32))
         objs.append(o)
         weights.append(jnp.asarray(w, jnp.float32))
         transfers.append(jnp.asarray(tr, jnp.float32))
@@ -161,7 +174,9 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
         shares.append(jnp.asarray(share, jnp.float32))
     if not objs:
         return None
-    return SelfTransfer(jnp.asarray(dirs), jnp.asarray(hidden_all), tuple(weights),
+    return SelfTransfer(jnp.asarray(dirs), jnp.asarray(row),
+                        jnp.asarray(np.concatenate(hidden_rows)),
+                        jnp.asarray(np.concatenate(hit_rows)), tuple(weights),
                         tuple(transfers), tuple(patch_of), tuple(shares), tuple(objs),
                         int(resolution), env_level_for(env, resolution))
 
@@ -187,11 +202,12 @@ def _visible_along(hidden: jax.Array, d_obj: jax.Array, resolution: int) -> jax.
 def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
                       model: jax.Array, normals: jax.Array, world_normals: jax.Array,
                       vertex_slices: tuple[tuple[int, int], ...], bounces: int,
-                      to_out: jax.Array) -> jax.Array:
+                      to_out: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The change (V, D) of every vertex's diffuse radiance in the output channels of
     ``to_out`` (C, D) that its own object's shape makes (hidden environment, own diffuse
-    light; rows of convex objects 0). ``normals`` object-frame, ``world_normals`` (V, 3) world;
-    ``lut`` the frame's irradiance map table (or None: the environment's own irradiance)."""
+    light; rows of convex objects 0), and that diffuse radiance itself (V, D) (0 for convex
+    objects). ``normals`` object-frame, ``world_normals`` (V, 3) world; ``lut`` the frame's
+    irradiance map table (or None: the environment's own irradiance)."""
     from ..lighting import fast_lookup, irradiance, lookup_level
     from ._shading import _filtered_irradiance, _lut_env
 
@@ -202,6 +218,7 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
     src_flux = jnp.repeat(env.source_flux, env.source_dirs.shape[1], axis=0)  # (S·k, r)
     table = None if lut is None else _lut_env(env, lut)
     out = jnp.zeros((v_total, d_out), jnp.float32)
+    own = jnp.zeros((v_total, d_out), jnp.float32)
     for i, o in enumerate(st.objects):
         a, b = vertex_slices[o]
         m = mats[o]
@@ -210,10 +227,14 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
         d_world = d_world / jnp.linalg.norm(d_world, axis=-1, keepdims=True)
         d_map = d_world @ env.rotation
         env_k = jax.vmap(lambda d: lookup_level(env, st.env_level, d))(d_map)  # (K, r)
-        src_obj = _to_object(model[o], src_world)  # (S·k, 3)
-        vis_s = _visible_along(st.hidden[a:b], src_obj, st.resolution)  # (V_o, S·k)
-        cos_s = jnp.clip(normals[a:b] @ src_obj.T, 0.0, None)
-        e_hidden_r = st.weights[i] @ env_k + ((1.0 - vis_s) * cos_s) @ src_flux  # (V_o, r)
+        e_hidden_r = st.weights[i] @ env_k  # (V_o, r)
+        if src_world.shape[0]:  # the bright sources each object hides from its vertices
+            start = sum(int(w.shape[0]) for w in st.weights[:i])  # its rows, in order
+            src_obj = _to_object(model[o], src_world)  # (S·k, 3)
+            vis_s = _visible_along(st.hidden[start:start + (b - a)], src_obj,
+                                   st.resolution)  # (V_o, S·k)
+            cos_s = jnp.clip(normals[a:b] @ src_obj.T, 0.0, None)
+            e_hidden_r = e_hidden_r + ((1.0 - vis_s) * cos_s) @ src_flux
         e_hidden = e_hidden_r @ env.spectral_basis  # (V_o, C)
         nw = world_normals[a:b]
         e_map = (fast_lookup(table, nw) if table is not None
@@ -226,18 +247,24 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
             patch = jax.ops.segment_sum(rad * st.patch_share[i][:, None], st.patch_of[i],
                                         num_segments=n_p)
             e = e0 + st.transfer[i] @ patch
-        delta = (m.alpha / math.pi) * _filtered_irradiance(m, env, e - e_map)
-        out = out.at[a:b].set(delta @ to_out)
-    return out
+        delta = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e - e_map)) @ to_out
+        full = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e)) @ to_out
+        out = out.at[a:b].set(delta)
+        own = own.at[a:b].set(full)
+    return out, own
 
 
-def specular_visibility(st: SelfTransfer, *, model: jax.Array, world: jax.Array,
-                        triangles: jax.Array, vertex_object: jax.Array, tri_id: jax.Array,
-                        position: jax.Array, normal: jax.Array, view: jax.Array) -> jax.Array:
-    """(N,) visibility of each pixel's mirror direction from its own object (1 where nothing
-    of the object is in the way, and for convex objects): bilinear in the octahedral map at
-    the three vertices of the pixel's triangle ``tri_id`` (N,) (rows of ``triangles``; −1 = no
-    pixel), blended by the pixel's barycentrics from its world ``position``. No gradient."""
+def own_reflection(st: SelfTransfer, *, model: jax.Array, world: jax.Array,
+                   triangles: jax.Array, vertex_object: jax.Array, tri_id: jax.Array,
+                   position: jax.Array, normal: jax.Array, view: jax.Array,
+                   vertex_radiance: jax.Array | None) -> tuple[jax.Array, jax.Array | None]:
+    """What each pixel's own object puts in its mirror direction: the visibility (N,) of the
+    direction (1 where nothing of the object is in the way, and for convex objects), and the
+    object's diffuse radiance seen there times the hidden share (N, D) (from
+    ``vertex_radiance`` (V, D) at the vertex nearest each hit; None: not computed). Bilinear
+    in the octahedral map at the three vertices of the pixel's triangle ``tri_id`` (N,) (rows
+    of ``triangles``; −1 = no pixel), blended by the pixel's barycentrics from its world
+    ``position``. The visibility carries no gradient; the radiance does."""
     from ..geometry import octahedral_taps
 
     tri = triangles[jnp.maximum(tri_id, 0)]  # (N, 3)
@@ -253,14 +280,19 @@ def specular_visibility(st: SelfTransfer, *, model: jax.Array, world: jax.Array,
     det = jnp.maximum(d11 * d22 - d12 * d12, 1e-30)
     l1 = jnp.clip((d22 * r1 - d12 * r2) / det, 0.0, 1.0)
     l2 = jnp.clip((d11 * r2 - d12 * r1) / det, 0.0, 1.0)
-    bary = jnp.stack([1.0 - l1 - l2, l1, l2], -1)
-    bary = jnp.clip(bary, 0.0, 1.0)
+    bary = jnp.clip(jnp.stack([1.0 - l1 - l2, l1, l2], -1), 0.0, 1.0)
     bary = bary / jnp.maximum(jnp.sum(bary, -1, keepdims=True), 1e-12)
     refl = 2.0 * jnp.sum(normal * view, -1, keepdims=True) * normal - view
     obj = vertex_object[tri[:, 0]]
     d_obj = jax.vmap(_to_object)(model[obj], refl)
     idx, w = octahedral_taps(d_obj, st.resolution)  # (N, 4)
-    h = st.hidden[tri[:, :, None], idx[:, None, :]].astype(jnp.float32)  # (N, 3, 4)
-    hid = jnp.einsum("nj,njk,nk->n", bary, h, w)
-    vis = jnp.where(tri_id >= 0, 1.0 - hid, 1.0)
-    return jax.lax.stop_gradient(vis)
+    rows = st.row[tri]  # (N, 3)
+    listed = (rows >= 0) & (tri_id >= 0)[:, None]
+    rr = jnp.maximum(rows, 0)[:, :, None]
+    h = jnp.where(listed[:, :, None], st.hidden[rr, idx[:, None, :]].astype(jnp.float32), 0.0)
+    wt = jax.lax.stop_gradient(bary[:, :, None] * h * w[:, None, :])  # (N, 3, 4)
+    vis = 1.0 - jnp.sum(wt, axis=(1, 2))
+    if vertex_radiance is None:
+        return vis, None
+    seen = jnp.einsum("njk,njkd->nd", wt, vertex_radiance[st.hit_vertex[rr, idx[:, None, :]]])
+    return vis, seen

@@ -19,7 +19,7 @@ from ._inputs import _check_frame_inputs, _check_senders
 from ._ir_stage import _interreflection, _ir_geometries
 from ._materials import _as_stacked, _mirror_flag, _without_mirror
 from ._prepared import TRACE_COUNT, PixelFrame, Prepared
-from ._shading import _shade_out, _shade_samples
+from ._shading import _shade_out, _shade_samples, own_reflection_out
 
 __all__ = [
     "render_pixels",
@@ -112,13 +112,16 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
     if occ is not None:
         from ._occlusion import vertex_correction
 
+        # mode "none" is the direct light alone: the environment the objects do not hide,
+        # none of their own light (neither diffuse bounces nor its reflection)
+        own_light = prep.interreflection.mode != "none"
         with jax.named_scope("self_occlusion"):
-            attrs.append(vertex_correction(
+            corr, own_radiance = vertex_correction(
                 occ, env=prep.lighting.env, lut=prep.lighting.irradiance_lut, mats=mats,
                 model=model, normals=mesh.normals, world_normals=wnorm,
                 vertex_slices=mesh.object_slices,
-                bounces=(prep.interreflection.bounces
-                         if prep.interreflection.mode != "none" else 0), to_out=to_out))
+                bounces=prep.interreflection.bounces if own_light else 0, to_out=to_out)
+        attrs.append(corr)
     vals = interpolate_pixels(jnp.concatenate(attrs, axis=1), pix, tris, clip)
     pos = vals[:, :3]
     nrm = vals[:, 3:6]
@@ -140,22 +143,27 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                  pixel=jnp.where(pix.valid, pix.index, -1))
 
     # 3. shading + interreflection, in the output channels
-    spec_vis = None
+    spec_vis = spec_seen = None
     if occ is not None:
-        from ._occlusion import specular_visibility
+        from ._occlusion import own_reflection
 
-        spec_vis = specular_visibility(occ, model=model, world=world, triangles=tris,
-                                       vertex_object=mesh.vertex_object, tri_id=pix.tri_id,
-                                       position=pos, normal=nrm, view=vdir)
+        spec_vis, spec_seen = own_reflection(
+            occ, model=model, world=world, triangles=tris, vertex_object=mesh.vertex_object,
+            tri_id=pix.tri_id, position=pos, normal=nrm, view=vdir,
+            vertex_radiance=own_radiance if own_light else None)
     with jax.named_scope("shading"):
         lit = prep.lighting
         if lit.quality == "fast":
-            radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table, spec_vis)
+            radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table, spec_vis,
+                                  spec_seen)
         else:
             radiance = _shade_samples(mats, lit.env, gb, lit.batch_size, lit.irradiance_lut,
                                       lit.quality, prep.buffers.pixel_capacity,
                                       lit.split_map, lit.split_settings,
                                       spec_vis=spec_vis) @ to_out
+            if spec_seen is not None:
+                radiance = radiance + own_reflection_out(mats, gb, prep.buffers.pixel_capacity,
+                                                         spec_seen)
     if occ is not None:
         radiance = radiance + jnp.where(pix.valid[:, None], vals[:, 6:], 0.0)
     # (in the output channels: the receivers' side of the gather works in those)

@@ -36,7 +36,8 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
     ``lut`` (:func:`irradiance_table`), the diffuse term α S I_d(N)/π takes its irradiance from
     the map (the gloss and mirror terms come from ``env`` as always). ``spec_vis`` (N,): the
     gloss and mirror terms scaled by it (the visibility of the mirror direction, from the
-    objects' self-occlusion; None: 1)."""
+    objects' self-occlusion; None: 1); the object's own light reflected instead is
+    :func:`own_reflection_out`'s."""
     import dataclasses
 
     from ..lighting import shade_points
@@ -48,16 +49,17 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
         return _shade_fast(mats, env, gb, lut, capacities, split_map, split_settings)
     table = None if lut is None else _lut_env(env, lut)
     out = []
-    for m, cap, (nrm, v, sv) in zip(mats, capacities,
-                                    _object_slices(gb, capacities, spec_vis), strict=True):
+    extra = () if spec_vis is None else (spec_vis,)
+    for m, cap, (nrm, v, *sv) in zip(mats, capacities, _object_slices(gb, capacities, *extra),
+                                     strict=True):
         bs = max(1, min(batch, cap))
-        if table is None and sv is None:
+        if table is None and not sv:
             out.append(shade_points(m, env, nrm, v, batch_size=bs, quality=quality))
             continue
         spec = shade_points(dataclasses.replace(m, alpha=jnp.zeros_like(m.alpha)), env, nrm, v,
                             batch_size=bs, quality=quality)
-        if sv is not None:
-            spec = spec * sv[:, None]
+        if sv:
+            spec = spec * sv[0][:, None]
         if table is None:
             diffuse = shade_points(dataclasses.replace(m, beta=jnp.zeros_like(m.beta),
                                                        chi=jnp.zeros_like(m.chi)),
@@ -71,15 +73,45 @@ def _shade_samples(mats: list[Material], env: Any, gb: GBuffer, batch: int,
     return jnp.concatenate(out)
 
 
-def _object_slices(gb: GBuffer, capacities: tuple[int, ...], extra: jax.Array | None = None):
-    """Yield each object's (normals, views), both (capacity, 3), from the G-buffer whose samples
-    are laid out object after object with the given capacities; with ``extra`` (N, ...) a
-    third item, its slice (else None)."""
+def _object_slices(gb: GBuffer, capacities: tuple[int, ...], *extra: jax.Array):
+    """Yield each object's (normals, views, *extras), normals and views (capacity, 3), from the
+    G-buffer whose samples are laid out object after object with the given capacities, and
+    the same slices of each ``extra`` array (N, ...)."""
     start = 0
     for cap in capacities:
         yield (gb.normal[start:start + cap], gb.view[start:start + cap],
-               None if extra is None else extra[start:start + cap])
+               *(x[start:start + cap] for x in extra))
         start += cap
+
+
+def own_reflection_out(mats: list[Material], gb: GBuffer, capacities: tuple[int, ...],
+                       seen: jax.Array) -> jax.Array:
+    """:func:`_own_reflection` of every object's slice of the G-buffer (N, K), for the
+    qualities that shade in the radiance channels ("render", "exact": their lobe albedo from
+    the split sum's moment table, as quality "fast" uses)."""
+    from ..lighting import lobe_moment_table
+
+    out = []
+    for m, (nrm, v, sn) in zip(mats, _object_slices(gb, capacities, seen), strict=True):
+        moments = lobe_moment_table(m.mu, m.n, distribution=m.distribution, geometry=m.geometry)
+        nv = jnp.sum(nrm * v, axis=-1, keepdims=True)
+        out.append(jnp.where(nv > 0.0, _own_reflection(m, moments, nv, sn,
+                                                        mirror_needed([m])), 0.0))
+    return jnp.concatenate(out)
+
+
+def _own_reflection(mats: Material, moments: jax.Array, nv: jax.Array, seen: jax.Array,
+                    mirror: bool) -> jax.Array:
+    """The object's own light in its gloss lobe and mirror direction (N, K): (β A(θr) + χ F)
+    times ``seen`` (N, K), the object's diffuse radiance over the hidden share of the mirror
+    direction (:func:`~spectral_fit.rendering._occlusion.own_reflection`); A the lobe's albedo
+    from ``moments`` (:func:`~spectral_fit.lighting.lobe_moment_table`), ``nv`` (N, 1)."""
+    from ..lighting import fresnel_dielectric, split_sum_albedo
+
+    f = mats.beta * split_sum_albedo(moments, nv[:, 0])[:, None]
+    if mirror:
+        f = f + mats.chi * fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), mats.n)
+    return f * seen
 
 
 def _filtered_irradiance(m: Material, env: Any, e: jax.Array) -> jax.Array:
@@ -120,7 +152,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
 
     table = None if lut is None else _lut_env(env, lut)
     out = []
-    for m, (nrm, v, _) in zip(mats, _object_slices(gb, capacities), strict=True):
+    for m, (nrm, v) in zip(mats, _object_slices(gb, capacities), strict=True):
         kw = dict(distribution=m.distribution, geometry=m.geometry)
         moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
         gloss, mirror, nv = _gloss_and_mirror(env, split_map,
@@ -215,7 +247,8 @@ def _chunked(fn: Any, counts: Sequence[jax.Array], out_channels: int,
 
 def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[jax.Array],
                to_out: jax.Array, mirror_table: jax.Array,
-               spec_vis: jax.Array | None = None) -> jax.Array:
+               spec_vis: jax.Array | None = None,
+               spec_seen: jax.Array | None = None) -> jax.Array:
     """Environment shading (eq. 5, quality "fast") of the G-buffer samples straight into the
     output channels (N, K): ``to_out`` (C, K) maps radiance channels to them. The gloss and
     mirror depend on λ only through the environment, so they are looked up in K channels (the
@@ -225,8 +258,9 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     per frame: 2,050 rows). In chunks of slots, chunks past each object's covered count
     skipped; the objects whose materials share a distribution and geometry share one traced
     shading body (their per-object tables and parameters selected by object), which halves
-    the compilation of a two-object frame. ``spec_vis`` (N,): the gloss and mirror scaled by
-    it (see :func:`_shade_samples`)."""
+    the compilation of a two-object frame. ``spec_vis`` (N,), ``spec_seen`` (N, K): the
+    gloss and mirror scaled by the first, the object's own light reflected from the second
+    (see :func:`_shade_samples`)."""
     from ..lighting import fast_lookup, irradiance, lobe_moment_table
 
     env = prep.lighting.env
@@ -235,8 +269,8 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     env_g = eqx.tree_at(lambda e: e.spectral_basis, env, env.spectral_basis @ to_out)
     mirror_env = _lut_env(env, mirror_table, env.texels.shape[:2])
     lut = prep.lighting.irradiance_lut
-    slices = [sl if spec_vis is not None else sl[:2]
-              for sl in _object_slices(gb, prep.buffers.pixel_capacity, spec_vis)]
+    extra = tuple(x for x in (spec_vis, spec_seen) if x is not None)
+    slices = list(_object_slices(gb, prep.buffers.pixel_capacity, *extra))
     groups: dict[tuple[str, str], list[int]] = {}
     for i, m in enumerate(mats):
         groups.setdefault((m.distribution, m.geometry), []).append(i)
@@ -255,8 +289,8 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                                for m in group])
 
         def shade(o: jax.Array, nn: jax.Array, vv: jax.Array, sv: Any = None,
-                  stacked: Material = stacked, moments: jax.Array = moments, dflat: Any = dflat,
-                  group_mirror: Any = group_mirror) -> jax.Array:
+                  seen: Any = None, stacked: Material = stacked, moments: jax.Array = moments,
+                  dflat: Any = dflat, group_mirror: Any = group_mirror) -> jax.Array:
             m = jax.tree.map(lambda x: x[o], stacked)
             gloss, mirror, nv = _gloss_and_mirror(env_g, prep.lighting.split_map, group_mirror,
                                                   moments[o], nn, vv, m, settings)
@@ -270,6 +304,8 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                 spec = spec + m.chi * mirror
             if sv is not None:
                 spec = spec * sv[:, None]
+            if seen is not None:
+                spec = spec + _own_reflection(m, moments[o], nv, seen, group_mirror is not None)
             return jnp.where(nv > 0.0, diffuse + spec, 0.0)
 
         res = _chunked(shade, [counts[i] for i in members], k_out,
