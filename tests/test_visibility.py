@@ -101,19 +101,32 @@ def test_inside_a_closed_box_every_direction_is_hidden():
     assert sv.hidden[~inner][into[~inner]].all()
 
 
-def test_torus_visibility_matches_brute_force_rays():
+@pytest.mark.parametrize("outward", [True, False])
+def test_torus_visibility_matches_brute_force_rays(outward):
+    """Hidden or not, against brute-force rays; wound outward (a closed mesh: the hit is the
+    first surface along the ray) the hit point is the ray's first hit too."""
     v, t, n = torus(0.05, 0.02, 32, 16)
+    if outward:
+        t = t[:, ::-1].copy()
     sv = self_visibility(v, t, n, resolution=RES, raster_size=RASTER)
     rng = np.random.default_rng(3)
     picks = rng.choice(len(v), 48, replace=False)
-    agree = total = 0
+    agree = total = near = hits = 0
     for i in picks:
         cos = sv.directions @ n[i]
         use = cos > 0.15  # off the grazing directions, where the answer hangs on a hair
-        hit, _, _ = ray_mesh(v[i] + 1e-7 * n[i], sv.directions[use].astype(np.float64), v, n, t)
+        hit, dist, _ = ray_mesh(v[i] + 1e-7 * n[i], sv.directions[use].astype(np.float64),
+                                v, n, t)
         agree += int(np.sum(hit == sv.hidden[i, use]))
         total += int(use.sum())
+        both = hit & sv.hidden[i, use]
+        k = np.nonzero(use)[0][both]
+        p = np.einsum("kj,kjc->kc", sv.hit_bary[i, k], v[t[sv.hit_triangle[i, k]]])
+        near += int(np.sum(np.abs(np.linalg.norm(p - v[i], axis=1) - dist[both]) < 0.004))
+        hits += int(both.sum())
     assert agree / total > 0.97, agree / total
+    if outward:
+        assert hits > 200 and near / hits > 0.95, (near, hits)
     # the hole's inner rim is the most hidden part: about a third of its cosine-weighted sky
     frac = _visible_cosine_fraction(sv, n)
     inner = np.linalg.norm(v[:, [0, 2]], axis=1) < 0.05 - 0.019

@@ -159,11 +159,9 @@ def is_convex(vertices: Any, triangles: Any, normals: Any, *, tol: float = 1e-6)
     n_t = len(t)
     # the topology of the positions: vertices split for their normals or texture (a box's
     # hard edges) welded where they coincide
-    _, weld = np.unique(np.round(v / (size * 1e-7)).astype(np.int64), axis=0,
-                        return_inverse=True)
-    tw = weld.reshape(-1)[t]
+    tw = _welded(v, t)
     edges = np.concatenate([tw[:, [0, 1]], tw[:, [1, 2]], tw[:, [2, 0]]])
-    n_w = int(weld.max()) + 1
+    n_w = int(tw.max()) + 1
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n_w, n_w))
     _, label = connected_components(graph, directed=False)
     if len(np.unique(label[np.unique(tw)])) > 1:
@@ -182,6 +180,34 @@ def is_convex(vertices: Any, triangles: Any, normals: Any, *, tol: float = 1e-6)
     d1 = np.sum((v[far[i + 1]] - v[t[a, 0]]) * fn[a], axis=1)
     d2 = np.sum((v[far[i]] - v[t[b, 0]]) * fn[b], axis=1)
     return bool(np.all(d1 <= lim) and np.all(d2 <= lim))
+
+
+def _welded(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(T, 3) the triangles over vertices welded where their positions coincide (vertices
+    split for normals or texture joined again)."""
+    size = float(np.ptp(v, axis=0).max()) or 1.0
+    _, weld = np.unique(np.round(v / (size * 1e-7)).astype(np.int64), axis=0,
+                        return_inverse=True)
+    return weld.reshape(-1)[t]
+
+
+def _closed_outward(vertices: Any, triangles: Any) -> bool:
+    """Whether the mesh (vertices welded by position) is closed and consistently wound with
+    its outside counter-clockwise: every directed edge appears once and its reverse once, and
+    the enclosed signed volume is positive."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    tw = _welded(v, t)
+    e = np.concatenate([tw[:, [0, 1]], tw[:, [1, 2]], tw[:, [2, 0]]])
+    e = e[e[:, 0] != e[:, 1]]  # degenerate triangles' collapsed edges
+    fwd = np.unique(e, axis=0, return_counts=True)
+    if np.any(fwd[1] != 1):
+        return False
+    a = {tuple(x) for x in fwd[0].tolist()}
+    if any((y, x) not in a for x, y in a):
+        return False
+    p0, p1, p2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return float(np.sum(np.einsum("ij,ij->i", p0, np.cross(p1, p2)))) > 0.0
 
 
 def _frames(directions: np.ndarray) -> np.ndarray:
@@ -237,14 +263,14 @@ def _test_vertices(q: jax.Array, mesh_q: jax.Array, triangles: jax.Array, tri_id
 
 
 def _plan(vj: jax.Array, tj: jax.Array, frames: np.ndarray, centre: np.ndarray,
-          radius: float, size: tuple[int, int]) -> Any:
+          radius: float, size: tuple[int, int], cull: str) -> Any:
     """Raster capacities for the shadow maps: the most any direction needs (measured in NumPy
     for every direction, no compilation: a few ms each), so one compiled raster serves them
     all (a thin wall seen edge-on needs several times the windows of the average view)."""
     from ._raster_plan import plan_config
 
     _, clip = _light_coords(vj, jnp.asarray(frames), jnp.asarray(centre), jnp.float32(radius))
-    return plan_config(np.asarray(clip), np.asarray(tj), size, headroom=1.1)
+    return plan_config(np.asarray(clip), np.asarray(tj), size, cull=cull, headroom=1.1)
 
 
 def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
@@ -287,6 +313,12 @@ def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
         return SelfVisibility(dirs, omega, np.zeros((len(v), k), bool),
                               np.full((len(v), k), -1, np.int32),
                               np.zeros((len(v), k, 3), np.float32), True, int(resolution))
+    # a closed mesh wound outward keeps only the triangles facing back along each direction
+    # (towards the vertices below them): along a ray that crosses the object's material once
+    # (a cup's wall, a torus's tube) the front-most of those is the first surface the ray
+    # meets, not the far side of the object; any other mesh keeps every triangle (hidden is
+    # right either way, the hit is the outermost surface)
+    cull = "front" if _closed_outward(v, t) else "none"
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre = 0.5 * (lo + hi)
     radius = float(np.linalg.norm(v - centre, axis=1).max()) * 1.02 or 1.0
@@ -303,7 +335,7 @@ def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
     vj = jnp.asarray(v)
     lj = jnp.asarray(lifted.astype(np.float32))
     size = (int(raster_size), int(raster_size))
-    config = _plan(vj, tj, frames, centre, radius, size)
+    config = _plan(vj, tj, frames, centre, radius, size, cull)
     for start in range(0, k, _BATCH):
         fr = frames[start:start + _BATCH]
         pad = _BATCH - len(fr)
@@ -311,7 +343,7 @@ def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
         frj = jnp.asarray(fr)
         _, clip = _light_coords(vj, frj, jnp.asarray(centre), jnp.float32(radius))
         q, _ = _light_coords(lj, frj, jnp.asarray(centre), jnp.float32(radius))
-        ras = rasterize_batch(clip, tj, size, cull="none", config=config)
+        ras = rasterize_batch(clip, tj, size, cull=cull, config=config)
         hid, tri, bary = _test_vertices(q, clip[..., :3] * jnp.array([1.0, 1.0, -1.0]), tj,
                                         ras.tri_id, ras.depth)
         stop = min(start + _BATCH, k)

@@ -239,7 +239,9 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
         nw = world_normals[a:b]
         e_map = (fast_lookup(table, nw) if table is not None
                  else jax.vmap(lambda d: irradiance(env, d))(nw))
-        e0 = jnp.maximum(e_map - e_hidden, 0.0)
+        e0 = e_map - e_hidden
+        if env.product_tensor is None:  # bands: the grid's rounding may not make light negative
+            e0 = jnp.maximum(e0, 0.0)
         e = e0
         n_p = st.transfer[i].shape[1]
         for _ in range(bounces):
