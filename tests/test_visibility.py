@@ -106,7 +106,7 @@ def test_torus_visibility_matches_brute_force_rays(outward):
     """Hidden or not, against brute-force rays; wound outward (a closed mesh: the hit is the
     first surface along the ray) the hit point is the ray's first hit too."""
     v, t, n = torus(0.05, 0.02, 32, 16)
-    if outward:
+    if not outward:
         t = t[:, ::-1].copy()
     sv = self_visibility(v, t, n, resolution=RES, raster_size=RASTER)
     rng = np.random.default_rng(3)

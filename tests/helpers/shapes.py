@@ -22,14 +22,11 @@ def _grid_triangles(nu: int, nv: int, wrap_u: bool, wrap_v: bool) -> np.ndarray:
 
 
 def torus(big: float = 0.05, small: float = 0.02, nu: int = 48, nv: int = 24):
-    """A ring torus about the y axis: tube radius ``small`` around a circle of radius ``big``."""
-    u = np.linspace(0, 2 * np.pi, nu, endpoint=False)
-    v = np.linspace(0, 2 * np.pi, nv, endpoint=False)
-    uu, vv = np.meshgrid(u, v, indexing="ij")
-    nrm = np.stack([np.cos(vv) * np.cos(uu), np.sin(vv), np.cos(vv) * np.sin(uu)], -1)
-    ring = np.stack([np.cos(uu), np.zeros_like(uu), np.sin(uu)], -1)
-    pts = big * ring + small * nrm
-    return pts.reshape(-1, 3), _grid_triangles(nu, nv, True, True), nrm.reshape(-1, 3)
+    """A ring torus about the y axis (tube radius ``small`` about a circle of radius ``big``),
+    wound outward: the bundled mesh's generator (scripts/make_meshes.py) at these sizes."""
+    from . import load_script
+
+    return load_script("make_meshes").torus(big, small, nu, nv)
 
 
 def bowl(radius: float = 0.05, stacks: int = 24, slices: int = 48, *,
