@@ -60,6 +60,7 @@ _EXPORTS: dict[str, str] = {
     "opencv_to_opengl_axes": "_camera",
     "perspective": "_camera",
     "perspective_camera": "_camera",
+    "pixel_barycentrics": "_pixels",
     "pixel_rays": "_lens",
     "plan_config": "_raster_plan",
     "plan_counts": "_raster_plan",

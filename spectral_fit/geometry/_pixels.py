@@ -110,14 +110,21 @@ def covered_pixels(raster: Raster, capacity: int) -> PixelList:
     return PixelList(index, tri, count, count > capacity, (h, w))
 
 
+def pixel_barycentrics(pixels: PixelList, triangles, clip_xyzw) -> tuple[jax.Array, jax.Array]:
+    """The perspective-correct barycentrics ``(P, 3)`` of the listed pixels' centres in their
+    triangles (rows of ``triangles`` ``(T, 3)``; 0 in unused slots) and those triangles'
+    vertex indices ``(P, 3)``; differentiable w.r.t. the clip positions ``(V, 4)``."""
+    h, w = pixels.shape
+    py, px = jnp.divmod(pixels.index, w)
+    return _bary_at(jnp.asarray(clip_xyzw), jnp.asarray(triangles, jnp.int32),
+                    pixels.tri_id, px.astype(jnp.float32) + 0.5,
+                    py.astype(jnp.float32) + 0.5, (h, w))
+
+
 def interpolate_pixels(attributes, pixels: PixelList, triangles, clip_xyzw) -> jax.Array:
     """Attributes ``(V, C)`` interpolated at the listed pixels → ``(P, C)`` (0 in unused
     slots); differentiable w.r.t. attributes and clip positions."""
-    h, w = pixels.shape
-    py, px = jnp.divmod(pixels.index, w)
-    bary, idx = _bary_at(jnp.asarray(clip_xyzw), jnp.asarray(triangles, jnp.int32),
-                         pixels.tri_id, px.astype(jnp.float32) + 0.5,
-                         py.astype(jnp.float32) + 0.5, (h, w))
+    bary, idx = pixel_barycentrics(pixels, triangles, clip_xyzw)
     vals = jnp.einsum("nk,nkc->nc", bary, jnp.asarray(attributes)[idx])
     return jnp.where(pixels.valid[:, None], vals, 0.0)
 

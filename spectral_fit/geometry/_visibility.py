@@ -19,9 +19,12 @@ Dachsbacher 2008's parametrisation of the sphere): u, v ∈ [−1, 1], the upper
 square's inner diamond, the lower folded onto the corners. The map's texels have unequal solid
 angles (within a factor of ~2), which :attr:`SelfVisibility.solid_angle` carries.
 
-Convex meshes are recognised first (every vertex on or behind every face's plane, faces
-oriented along the vertex normals): nothing of such a mesh hides any direction above a vertex's
-tangent plane, and their result says so without rasterising.
+Convex meshes are recognised first (:func:`is_convex`: connected and convex at every edge):
+nothing of such a mesh hides any direction above a vertex's tangent plane, and their result
+says so without rasterising. A closed mesh wound outward keeps only the triangles facing back
+along each direction, so the hit is the first surface the vertex's ray meets wherever the ray
+crosses the object's material once; other meshes keep every triangle (the hit is then the
+outermost surface over the vertex).
 
 No gradient: visibility is a constant of the mesh (positions and shading that must be
 differentiable are computed elsewhere).
@@ -41,10 +44,10 @@ from .._runtime.errors import InputError
 __all__ = ["SelfVisibility", "is_convex", "octahedral_directions", "octahedral_taps",
            "octahedral_uv", "self_visibility"]
 
-#: default octahedral grid side R (K = R² directions over the sphere, ~0.14 rad apart)
+#: default octahedral grid side R (K = R² directions over the sphere, ~0.15 rad apart)
 RESOLUTION = 24
 #: default side of each direction's shadow map (pixels over the mesh's bounding sphere)
-RASTER_SIZE = 256
+RASTER_SIZE = 192
 #: views rasterised per compiled batch
 _BATCH = 16
 #: a surface counts as above the vertex when higher by this fraction of the bounding radius
@@ -221,14 +224,17 @@ def _frames(directions: np.ndarray) -> np.ndarray:
 
 
 @jax.jit
-def _light_coords(vertices: jax.Array, frames: jax.Array, centre: jax.Array,
-                  radius: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Vertices in each view's coordinates (B, V, 3) (x, y across, s along the direction;
-    units of the bounding radius) and their clip positions (B, V, 4) (the front-most surface
-    along the direction has the smallest depth)."""
-    q = jnp.einsum("vc,bkc->bvk", (vertices - centre) / radius, frames)
-    clip = jnp.concatenate([q[..., :2], -q[..., 2:3], jnp.ones_like(q[..., :1])], axis=-1)
-    return q, clip
+def _light_coords(points: jax.Array, frames: jax.Array, centre: jax.Array,
+                  radius: jax.Array) -> jax.Array:
+    """Points in each view's coordinates (B, V, 3): x, y across and s along the direction, in
+    units of the bounding radius."""
+    return jnp.einsum("vc,bkc->bvk", (points - centre) / radius, frames)
+
+
+def _clip(q: jax.Array) -> jax.Array:
+    """Clip positions (..., 4) of view coordinates (..., 3): the front-most surface along the
+    direction (largest s) has the smallest depth."""
+    return jnp.concatenate([q[..., :2], -q[..., 2:3], jnp.ones_like(q[..., :1])], axis=-1)
 
 
 @jax.jit
@@ -269,7 +275,8 @@ def _plan(vj: jax.Array, tj: jax.Array, frames: np.ndarray, centre: np.ndarray,
     all (a thin wall seen edge-on needs several times the windows of the average view)."""
     from ._raster_plan import plan_config
 
-    _, clip = _light_coords(vj, jnp.asarray(frames), jnp.asarray(centre), jnp.float32(radius))
+    clip = _clip(_light_coords(vj, jnp.asarray(frames), jnp.asarray(centre),
+                               jnp.float32(radius)))
     return plan_config(np.asarray(clip), np.asarray(tj), size, cull=cull, headroom=1.1)
 
 
@@ -341,11 +348,10 @@ def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
         pad = _BATCH - len(fr)
         fr = np.concatenate([fr, np.repeat(fr[-1:], pad, axis=0)]) if pad else fr
         frj = jnp.asarray(fr)
-        _, clip = _light_coords(vj, frj, jnp.asarray(centre), jnp.float32(radius))
-        q, _ = _light_coords(lj, frj, jnp.asarray(centre), jnp.float32(radius))
-        ras = rasterize_batch(clip, tj, size, cull=cull, config=config)
-        hid, tri, bary = _test_vertices(q, clip[..., :3] * jnp.array([1.0, 1.0, -1.0]), tj,
-                                        ras.tri_id, ras.depth)
+        mesh_q = _light_coords(vj, frj, jnp.asarray(centre), jnp.float32(radius))
+        q = _light_coords(lj, frj, jnp.asarray(centre), jnp.float32(radius))
+        ras = rasterize_batch(_clip(mesh_q), tj, size, cull=cull, config=config)
+        hid, tri, bary = _test_vertices(q, mesh_q, tj, ras.tri_id, ras.depth)
         stop = min(start + _BATCH, k)
         m = stop - start
         hidden[:, start:stop] = np.asarray(hid[:m]).T

@@ -50,10 +50,6 @@ import numpy as np
 
 __all__: list[str] = []
 
-#: octahedral grid side of the precomputed self-visibility (K = R² directions)
-RESOLUTION = 24
-#: shadow-map side used to compute it (pixels across the object's bounding sphere)
-RASTER_SIZE = 192
 #: at most this many senders per object in the self-transfer (else patches of vertices)
 MAX_PATCHES = 256
 
@@ -132,10 +128,11 @@ def env_level_for(env: Any, resolution: int) -> int:
 def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray,
                         vertex_slices: list[tuple[int, int]],
                         triangle_slices: list[tuple[int, int]], env: Any, *,
-                        resolution: int = RESOLUTION, raster_size: int = RASTER_SIZE
-                        ) -> SelfTransfer | None:
+                        resolution: int) -> SelfTransfer | None:
     """The :class:`SelfTransfer` of the scene's objects (concatenated mesh arrays and each
-    object's vertex and triangle ranges), or None when every object is convex."""
+    object's vertex and triangle ranges; each object's
+    :func:`~spectral_fit.geometry.self_visibility` over R = ``resolution`` directions per side,
+    its default shadow maps), or None when every object is convex."""
     from ..geometry import octahedral_directions, self_visibility
 
     dirs, _ = octahedral_directions(resolution)
@@ -146,7 +143,7 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
         v = np.asarray(vertices[a:b], np.float64)
         t = np.asarray(triangles[ta:tb], np.int64) - a
         n = np.asarray(normals[a:b], np.float64)
-        sv = self_visibility(v, t, n, resolution=resolution, raster_size=raster_size)
+        sv = self_visibility(v, t, n, resolution=resolution)
         if sv.convex or not sv.hidden.any():
             continue
         cos = np.clip(n @ sv.directions.T.astype(np.float64), 0.0, None)
@@ -208,8 +205,8 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
     light; rows of convex objects 0), and that diffuse radiance itself (V, D) (0 for convex
     objects). ``normals`` object-frame, ``world_normals`` (V, 3) world; ``lut`` the frame's
     irradiance map table (or None: the environment's own irradiance)."""
-    from ..lighting import fast_lookup, irradiance, lookup_level
-    from ._shading import _filtered_irradiance, _lut_env
+    from ..lighting import lookup_level
+    from ._shading import _filtered_irradiance, _irradiance_at, _lut_env
 
     d_out = int(to_out.shape[1])
     v_total = normals.shape[0]
@@ -236,9 +233,7 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
             cos_s = jnp.clip(normals[a:b] @ src_obj.T, 0.0, None)
             e_hidden_r = e_hidden_r + ((1.0 - vis_s) * cos_s) @ src_flux
         e_hidden = e_hidden_r @ env.spectral_basis  # (V_o, C)
-        nw = world_normals[a:b]
-        e_map = (fast_lookup(table, nw) if table is not None
-                 else jax.vmap(lambda d: irradiance(env, d))(nw))
+        e_map = _irradiance_at(env, table, world_normals[a:b])
         e0 = e_map - e_hidden
         if env.product_tensor is None:  # bands: the grid's rounding may not make light negative
             e0 = jnp.maximum(e0, 0.0)
@@ -256,40 +251,28 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
     return out, own
 
 
-def own_reflection(st: SelfTransfer, *, model: jax.Array, world: jax.Array,
-                   triangles: jax.Array, vertex_object: jax.Array, tri_id: jax.Array,
-                   position: jax.Array, normal: jax.Array, view: jax.Array,
-                   vertex_radiance: jax.Array | None) -> tuple[jax.Array, jax.Array | None]:
+def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Array,
+                   pixels: Any, triangles: jax.Array, clip: jax.Array, normal: jax.Array,
+                   view: jax.Array, vertex_radiance: jax.Array | None
+                   ) -> tuple[jax.Array, jax.Array | None]:
     """What each pixel's own object puts in its mirror direction: the visibility (N,) of the
     direction (1 where nothing of the object is in the way, and for convex objects), and the
     object's diffuse radiance seen there times the hidden share (N, D) (from
     ``vertex_radiance`` (V, D) at the vertex nearest each hit; None: not computed). Bilinear
-    in the octahedral map at the three vertices of the pixel's triangle ``tri_id`` (N,) (rows
-    of ``triangles``; −1 = no pixel), blended by the pixel's barycentrics from its world
-    ``position``. The visibility carries no gradient; the radiance does."""
-    from ..geometry import octahedral_taps
+    in the octahedral map at the three vertices of each listed pixel's triangle (``pixels`` a
+    :class:`~spectral_fit.geometry.PixelList` over rows of ``triangles``, ``clip`` the
+    vertices' clip positions), blended by the pixel's barycentrics
+    (:func:`~spectral_fit.geometry.pixel_barycentrics`, as the frame interpolates its
+    attributes). The visibility carries no gradient; the radiance does."""
+    from ..geometry import octahedral_taps, pixel_barycentrics
 
-    tri = triangles[jnp.maximum(tri_id, 0)]  # (N, 3)
-    p = world[tri]  # (N, 3, 3)
-    e1 = p[:, 1] - p[:, 0]
-    e2 = p[:, 2] - p[:, 0]
-    r = position - p[:, 0]
-    d11 = jnp.sum(e1 * e1, -1)
-    d12 = jnp.sum(e1 * e2, -1)
-    d22 = jnp.sum(e2 * e2, -1)
-    r1 = jnp.sum(r * e1, -1)
-    r2 = jnp.sum(r * e2, -1)
-    det = jnp.maximum(d11 * d22 - d12 * d12, 1e-30)
-    l1 = jnp.clip((d22 * r1 - d12 * r2) / det, 0.0, 1.0)
-    l2 = jnp.clip((d11 * r2 - d12 * r1) / det, 0.0, 1.0)
-    bary = jnp.clip(jnp.stack([1.0 - l1 - l2, l1, l2], -1), 0.0, 1.0)
-    bary = bary / jnp.maximum(jnp.sum(bary, -1, keepdims=True), 1e-12)
+    bary, tri = pixel_barycentrics(pixels, triangles, clip)  # (N, 3) each
     refl = 2.0 * jnp.sum(normal * view, -1, keepdims=True) * normal - view
     obj = vertex_object[tri[:, 0]]
     d_obj = jax.vmap(_to_object)(model[obj], refl)
     idx, w = octahedral_taps(d_obj, st.resolution)  # (N, 4)
     rows = st.row[tri]  # (N, 3)
-    listed = (rows >= 0) & (tri_id >= 0)[:, None]
+    listed = (rows >= 0) & (pixels.tri_id >= 0)[:, None]
     rr = jnp.maximum(rows, 0)[:, :, None]
     h = jnp.where(listed[:, :, None], st.hidden[rr, idx[:, None, :]].astype(jnp.float32), 0.0)
     wt = jax.lax.stop_gradient(bary[:, :, None] * h * w[:, None, :])  # (N, 3, 4)

@@ -148,8 +148,8 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         from ._occlusion import own_reflection
 
         spec_vis, spec_seen = own_reflection(
-            occ, model=model, world=world, triangles=tris, vertex_object=mesh.vertex_object,
-            tri_id=pix.tri_id, position=pos, normal=nrm, view=vdir,
+            occ, model=model, vertex_object=mesh.vertex_object, pixels=pix, triangles=tris,
+            clip=clip, normal=nrm, view=vdir,
             vertex_radiance=own_radiance if own_light else None)
     with jax.named_scope("shading"):
         lit = prep.lighting

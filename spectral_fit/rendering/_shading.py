@@ -114,6 +114,16 @@ def _own_reflection(mats: Material, moments: jax.Array, nv: jax.Array, seen: jax
     return f * seen
 
 
+def _irradiance_at(env: Any, table: Any, normals: jax.Array) -> jax.Array:
+    """Irradiance (N, C) of world ``normals`` (N, 3): looked up in the irradiance map ``table``
+    (:func:`_lut_env` of the frame's map), or the environment's own (SH or exact) without."""
+    from ..lighting import fast_lookup, irradiance
+
+    if table is None:
+        return jax.vmap(lambda d: irradiance(env, d))(normals)
+    return fast_lookup(table, normals)
+
+
 def _filtered_irradiance(m: Material, env: Any, e: jax.Array) -> jax.Array:
     """S(λ)·E (N, C): the irradiance ``e`` (N, C) filtered by the material's reflectance, per band
     or through the basis product tensor when the map is in K coefficients."""
@@ -148,7 +158,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
     (:func:`~spectral_fit.lighting.gloss_split_sum`; one moment table per object), the
     mirror by one lookup along R and the diffuse irradiance from the irradiance map ``lut``
     (or ``env``), all points of an object at once (few lookups per point: no batching)."""
-    from ..lighting import fast_lookup, irradiance, lobe_moment_table
+    from ..lighting import lobe_moment_table
 
     table = None if lut is None else _lut_env(env, lut)
     out = []
@@ -158,11 +168,7 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
         gloss, mirror, nv = _gloss_and_mirror(env, split_map,
                                               env if mirror_needed([m]) else None, moments,
                                               nrm, v, m, settings)
-        if table is None:
-            e = jax.vmap(lambda d: irradiance(env, d))(nrm)
-        else:
-            e = fast_lookup(table, nrm)
-        se = _filtered_irradiance(m, env, e)
+        se = _filtered_irradiance(m, env, _irradiance_at(env, table, nrm))
         front = nv > 0.0
         rad = (m.alpha / math.pi) * se + m.beta * gloss
         if mirror is not None:
@@ -261,7 +267,7 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
     the compilation of a two-object frame. ``spec_vis`` (N,), ``spec_seen`` (N, K): the
     gloss and mirror scaled by the first, the object's own light reflected from the second
     (see :func:`_shade_samples`)."""
-    from ..lighting import fast_lookup, irradiance, lobe_moment_table
+    from ..lighting import fast_lookup, lobe_moment_table
 
     env = prep.lighting.env
     settings = prep.lighting.split_settings
@@ -295,8 +301,8 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
             gloss, mirror, nv = _gloss_and_mirror(env_g, prep.lighting.split_map, group_mirror,
                                                   moments[o], nn, vv, m, settings)
             if dflat is None:
-                e = jax.vmap(lambda d: irradiance(env, d))(nn)
-                diffuse = (m.alpha / math.pi) * _filtered_irradiance(m, env, e) @ to_out
+                diffuse = (m.alpha / math.pi) * _filtered_irradiance(
+                    m, env, _irradiance_at(env, None, nn)) @ to_out
             else:
                 diffuse = fast_lookup(_lut_env(env, dflat[o]), nn)
             spec = m.beta * gloss
