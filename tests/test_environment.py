@@ -324,9 +324,10 @@ def test_vmap_pixels_and_materials_equals_loop(img3, env3):
     f = jax.jit(jax.vmap(jax.vmap(shade, in_axes=(None, None, 0, 0)), in_axes=(0, None, None,
                                                                             None)))
     got = np.asarray(f(stacked, env3, ns, vs))
+    one = jax.jit(shade)  # the unbatched function, one call per pixel and material
     for i, m in enumerate(mats):
         for j in range(5):
-            np.testing.assert_allclose(got[i, j], np.asarray(shade(m, env3, ns[j], vs[j])),
+            np.testing.assert_allclose(got[i, j], np.asarray(one(m, env3, ns[j], vs[j])),
                                        rtol=2e-5, atol=1e-9)
 
 

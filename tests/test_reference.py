@@ -357,7 +357,8 @@ def test_intrinsics_camera_rays_match_mitsuba_and_our_projection():
     xs[:2], ys[:2] = (20.8, 0.0), (17.1, 0.0)  # the principal point; a corner
     origin, ours = camera_rays(scene, xs, ys)
     for x, y, want in zip(xs, ys, ours, strict=True):
-        ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(x / 48, y / 32), mi.Point2f(0.5, 0.5))
+        ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(float(x) / 48, float(y) / 32),
+                                   mi.Point2f(0.5, 0.5))
         got = _as_vec(ray.d)
         assert np.abs(got / np.linalg.norm(got) - want).max() < 2e-5
         assert np.abs(np.cross(_as_vec(ray.o) - origin, want)).max() < 1e-6  # starts on it

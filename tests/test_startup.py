@@ -301,13 +301,24 @@ def test_render_frame_cached_matches_render_frame(config, tmp_path):
     with pytest.raises(InputError) as e:
         rendering.render_frame_cached(prep, model=model[:1], cache_dir=cache)
     assert e.value.field == "model"
+
+
+@pytest.mark.slow  # two more compiles of the frame program (one in-process, one in a child);
+# the default tier loads stored programs in fresh processes in
+# test_programs_stored_by_a_busy_process_load_elsewhere[none]
+def test_render_frame_cached_across_folders_and_fresh_processes(config, tmp_path):
+    from spectral_fit.rendering import render_frame
+
+    prep = rendering.prepare_cached(config, cache_dir=tmp_path / "cache", mode="none")
+    ref = render_frame(prep)
+    rendering.render_frame_cached(prep, cache_dir=tmp_path / "cache")
     # another cache folder is consulted (and filled), not served from this one's program
     other = tmp_path / "other"
     misses = rendering.CACHE_STATS["program_miss"]
-    got3 = rendering.render_frame_cached(prep, model=model, cache_dir=other)
+    got3 = rendering.render_frame_cached(prep, cache_dir=other)
     assert rendering.CACHE_STATS["program_miss"] == misses + 1
     assert list((other / "programs").glob("*.pkl"))
-    assert np.array_equal(np.asarray(got3.xyz), np.asarray(ref2.xyz))
+    assert np.array_equal(np.asarray(got3.xyz), np.asarray(ref.xyz))
     # a fresh process stores both entries, and the next fresh process finds them on disk and
     # renders the same frame without compiling. (The entries are written by a fresh process,
     # as `spectral-fit render` does: an executable compiled in a process that has compiled

@@ -238,11 +238,22 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
         if env.product_tensor is None:  # bands: the grid's rounding may not make light negative
             e0 = jnp.maximum(e0, 0.0)
         e = e0
-        n_p = st.transfer[i].shape[1]
-        for _ in range(bounces):
-            rad = (m.alpha / math.pi) * _filtered_irradiance(m, env, e)  # (V_o, C)
-            patch = jax.ops.segment_sum(rad * st.patch_share[i][:, None], st.patch_of[i],
-                                        num_segments=n_p)
+        if bounces:
+            # the Jacobi steps e ← e0 + T B(e), B the patches' share-weighted diffuse radiance,
+            # run on the patches: B is linear in e, so B_{k+1} = B(E0) + B(T_pp B_k) with
+            # E0 and T_pp = T the patch shares of e0 and of T's rows (P × P: each step costs
+            # P² instead of V × P); the vertices read the last B once
+            n_p = st.transfer[i].shape[1]
+
+            def patches(x: jax.Array, share: jax.Array = st.patch_share[i],
+                        of: jax.Array = st.patch_of[i], n_p: int = n_p) -> jax.Array:
+                return jax.ops.segment_sum(x * share[:, None], of, num_segments=n_p)
+
+            t_pp = patches(st.transfer[i])  # (P, P)
+            b0 = (m.alpha / math.pi) * _filtered_irradiance(m, env, patches(e0))  # (P, C)
+            patch = b0
+            for _ in range(bounces - 1):
+                patch = b0 + (m.alpha / math.pi) * _filtered_irradiance(m, env, t_pp @ patch)
             e = e0 + st.transfer[i] @ patch
         delta = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e - e_map)) @ to_out
         full = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e)) @ to_out
@@ -264,20 +275,60 @@ def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Arr
     vertices' clip positions), blended by the pixel's barycentrics
     (:func:`~spectral_fit.geometry.pixel_barycentrics`, as the frame interpolates its
     attributes). The visibility carries no gradient; the radiance does."""
-    from ..geometry import octahedral_taps, pixel_barycentrics
+    from ..geometry import pixel_barycentrics
 
     bary, tri = pixel_barycentrics(pixels, triangles, clip)  # (N, 3) each
     refl = 2.0 * jnp.sum(normal * view, -1, keepdims=True) * normal - view
-    obj = vertex_object[tri[:, 0]]
-    d_obj = jax.vmap(_to_object)(model[obj], refl)
-    idx, w = octahedral_taps(d_obj, st.resolution)  # (N, 4)
-    rows = st.row[tri]  # (N, 3)
-    listed = (rows >= 0) & (pixels.tri_id >= 0)[:, None]
-    rr = jnp.maximum(rows, 0)[:, :, None]
-    h = jnp.where(listed[:, :, None], st.hidden[rr, idx[:, None, :]].astype(jnp.float32), 0.0)
-    wt = jax.lax.stop_gradient(bary[:, :, None] * h * w[:, None, :])  # (N, 3, 4)
+    wt, rr, idx = _hidden_weights(st, model, vertex_object, pixels, bary, tri, refl)
     vis = 1.0 - jnp.sum(wt, axis=(1, 2))
     if vertex_radiance is None:
         return vis, None
     seen = jnp.einsum("njk,njkd->nd", wt, vertex_radiance[st.hit_vertex[rr, idx[:, None, :]]])
     return vis, seen
+
+
+def _hidden_weights(st: SelfTransfer, model: jax.Array, vertex_object: jax.Array,
+                    pixels: Any, bary: jax.Array, tri: jax.Array, dirs: jax.Array
+                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Per pixel, how much of the world direction ``dirs`` (N, 3) its own object hides, as
+    weights (N, 3, 4) over its triangle's vertices (barycentrics ``bary`` (N, 3), vertex
+    indices ``tri`` (N, 3)) × the direction's four octahedral taps (their sum: the hidden
+    share, 0 for convex objects); with the visibility rows (N, 3, 1) and taps (N, 4). No
+    gradient (visibility)."""
+    from ..geometry import octahedral_taps
+
+    obj = vertex_object[tri[:, 0]]
+    d_obj = jax.vmap(_to_object)(model[obj], dirs)
+    idx, w = octahedral_taps(d_obj, st.resolution)  # (N, 4)
+    rows = st.row[tri]  # (N, 3)
+    listed = (rows >= 0) & (pixels.tri_id >= 0)[:, None]
+    rr = jnp.maximum(rows, 0)[:, :, None]
+    h = jnp.where(listed[:, :, None], st.hidden[rr, idx[:, None, :]].astype(jnp.float32), 0.0)
+    return jax.lax.stop_gradient(bary[:, :, None] * h * w[:, None, :]), rr, idx
+
+
+def neighbour_visibility(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Array,
+                         pixels: Any, triangles: jax.Array, clip: jax.Array,
+                         position: jax.Array, visible: jax.Array) -> jax.Array:
+    """How much of the other objects each pixel's own object leaves in view (N,): the
+    visibility of the direction towards each other object's centre (as :func:`own_reflection`
+    reads its mirror direction's), averaged with weights 1/d² over the visible other
+    objects (1 for convex objects). The light the neighbours exchange with a pixel
+    (interreflection, and the environment they hide) is scaled by it: the inside of a cup
+    receives nothing from a neighbour behind its wall. No gradient."""
+    from ..geometry import pixel_barycentrics
+
+    bary, tri = pixel_barycentrics(pixels, triangles, clip)
+    obj = vertex_object[tri[:, 0]]
+    centres = model[:, :3, 3]
+    num = jnp.zeros(position.shape[:1], jnp.float32)
+    den = jnp.zeros(position.shape[:1], jnp.float32)
+    for k in range(model.shape[0]):
+        d = centres[k][None] - position
+        d2 = jnp.maximum(jnp.sum(d * d, -1), 1e-12)
+        wk = jnp.where((obj != k) & visible[k], 1.0 / d2, 0.0)
+        wt, _, _ = _hidden_weights(st, model, vertex_object, pixels, bary, tri,
+                                   d * jax.lax.rsqrt(d2)[:, None])
+        num = num + wk * (1.0 - jnp.sum(wt, axis=(1, 2)))
+        den = den + wk
+    return jax.lax.stop_gradient(jnp.where(den > 0.0, num / jnp.maximum(den, 1e-30), 1.0))

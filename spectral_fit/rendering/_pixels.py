@@ -178,6 +178,13 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         geoms = _ir_geometries(prep, model, visible)
         ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
     if ir is not None:
+        if occ is not None and n_obj > 1:
+            from ._occlusion import neighbour_visibility
+
+            # what the pixel's own object hides of its neighbours (a cup's inside)
+            ir = ir * neighbour_visibility(
+                occ, model=model, vertex_object=mesh.vertex_object, pixels=pix,
+                triangles=tris, clip=clip, position=pos, visible=visible)[:, None]
         radiance = radiance + ir
     # materialised: otherwise the interreflection's tail (its chunks' results put back in
     # slot order, the anchors' interpolation) was fused into each consumer's every channel

@@ -6,10 +6,10 @@ view-independent radiance (C) and a view-dependent one tabulated towards a 3 × 
 directions spanning the receiver's bounding sphere (gloss (9, r) in the map's principal
 channels, mirror (9, C)). The form factor F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²))
 (:func:`_form_factor_block`) weights them into Σ_y F L_y(→x) (:func:`_transfer`); the net
-light subtracts (Σ_y F) times the cosine-weighted environment over the neighbours' cones and
-the bright sources they hide (:func:`_diffuse_net`). It is evaluated at the samples
-themselves (:func:`_sample_diffuse_net`, interpolated to receivers by
-:func:`_interpolate_net`) or at every receiver (:func:`_direct_diffuse`).
+light subtracts the environment each sample hides, read along the receiver-to-sample
+direction (:func:`_hidden_env`), and the bright sources they hide (:func:`_diffuse_net`).
+It is evaluated at the samples themselves (:func:`_sample_diffuse_net`, interpolated to
+receivers by :func:`_interpolate_net`) or at every receiver (:func:`_direct_diffuse`).
 
 Every per-point quantity is computed batched and by components (no per-point vmapped
 gathers, no arctan2/arccos per lookup, unrolled tap sums: XLA:CPU runs those as slow loops,
@@ -28,8 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._runtime.backend import materialise
-from ...lighting import EnvironmentMap, atan2_poly, dot3, irradiance, taps_sum
+from ...lighting import EnvironmentMap, dot3, irradiance, taps_sum
 from ._pass1 import _MIN_COS, IRGeometry, _normalize, pair_list
 from ._shading import _env_blur, _Shading, _source_terms, _specular, _times_reflectance
 
@@ -140,51 +139,20 @@ def _transfer(w: jax.Array, tu: list[jax.Array], tv: list[jax.Array], lum: jax.A
     return lsum, jnp.sum(w, -1)
 
 
-#: cone quadrature of the environment a neighbour hides: rings (uniform in solid angle) ×
-#: azimuths
-_CONE_NODES = (2, 6)
-
-
-def _hidden_mean(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, nrm: jax.Array,
-                 o: jax.Array) -> jax.Array:
-    """Cosine-weighted mean environment radiance (N, r) (map channels) over the cones of the
-    receivers' neighbours' bounding spheres (above the receiver's horizon): the radiance the
-    neighbours hide, per unit of their form factor. Nodes: ``_CONE_NODES`` rings × azimuths
-    uniform in solid angle, the map prefiltered to the node spacing."""
-    k_per = geom.n_objects - 1
-    nr, na = _CONE_NODES
-    ur = (np.arange(nr) + 0.5) / nr
-    ph = 2.0 * np.pi * (np.arange(na) + 0.5 * (np.arange(nr)[:, None] % 2)) / na  # (nr, na)
-    num = jnp.zeros((pos.shape[0], env.atlas.shape[-1]), pos.dtype)
-    den = jnp.zeros((pos.shape[0],), pos.dtype)
-    for k in range(k_per):
-        pair = o * k_per + k
-        oc = geom.centre_j[pair] - pos
-        d = jnp.sqrt(jnp.maximum(jnp.sum(oc * oc, -1), 1e-30))
-        a = oc / d[:, None]
-        sin_c = jnp.clip(geom.radius_j[pair] / d, 1e-3, 0.999)
-        cos_c = jnp.sqrt(1.0 - sin_c * sin_c)
-        t1 = _normalize(jnp.cross(a, jnp.where(jnp.abs(a[:, 1:2]) < 0.9,
-                                               jnp.array([0.0, 1.0, 0.0]),
-                                               jnp.array([1.0, 0.0, 0.0]))))
-        t2 = jnp.cross(a, t1)
-        u = 1.0 - (1.0 - cos_c)[:, None] * jnp.asarray(ur, pos.dtype)[None]  # (N, nr)
-        s = jnp.sqrt(jnp.maximum(1.0 - u * u, 0.0))
-        cp = jnp.asarray(np.cos(ph), pos.dtype)
-        sp = jnp.asarray(np.sin(ph), pos.dtype)
-        dirs = (u[..., None, None] * a[:, None, None]
-                + s[..., None, None] * (cp[None, ..., None] * t1[:, None, None]
-                                        + sp[None, ..., None] * t2[:, None, None]))
-        dirs = dirs.reshape(pos.shape[0], -1, 3)
-        w = jnp.maximum(dot3(dirs, nrm[:, None]), 0.0) * (1.0 - cos_c)[:, None]
-        spacing = atan2_poly(sin_c, cos_c) / (2.0 * nr)
-        # the lookups computed once and summed node by node: a reduction over the nodes
-        # fused the lookups' taps into every channel's sum
-        lv = materialise(_env_blur(env, dirs, jnp.broadcast_to(spacing[:, None], w.shape)),
-                         cut=True)
-        num = num + sum(w[:, q, None] * lv[:, q] for q in range(w.shape[1]))
-        den = den + jnp.sum(w, -1)
-    return num / jnp.maximum(den, 1e-30)[:, None]
+def _hidden_env(x: jax.Array, w: jax.Array, ypos: jax.Array, yarea: jax.Array,
+                env: EnvironmentMap) -> jax.Array:
+    """Σ_y F(x, y) L_env(ω_xy) (..., R, r) in the map's r channels: the environment the
+    sender samples (``ypos`` (..., S, 3), ``yarea`` (..., S)) hide from the receivers ``x``
+    (..., R, 3) (positions in one frame), weighted by their form factors ``w`` (..., R, S) —
+    read along each receiver-to-sample direction, prefiltered to half the sample's angular
+    size there (what the neighbour's actual surface hides, sample by sample, not a bounding
+    sphere's cone)."""
+    d = ypos[..., None, :, :] - x[..., :, None, :]
+    r2 = jnp.maximum(jnp.sum(d * d, -1), 1e-30)
+    inv = jax.lax.rsqrt(r2)
+    sigma = jnp.clip(0.5 * jnp.sqrt(yarea[..., None, :] / math.pi) * inv, 1e-3, 0.5)
+    lv = _env_blur(env, d * inv[..., None], sigma)
+    return jnp.einsum("...rs,...rsc->...rc", w, lv)
 
 
 def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: jax.Array
@@ -206,12 +174,12 @@ def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: ja
     return occ
 
 
-def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, fsum: jax.Array,
+def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, hidden: jax.Array,
                  pos: jax.Array, nrm: jax.Array, o: jax.Array) -> jax.Array:
     """The light the neighbours add at receivers, before the receiver's α S/π (N, C):
-    Σ_y F L_y(→x) − (Σ_y F) ⟨L_env⟩_hidden − (1/π) Σ hidden sources flux max(0, N·d_s)."""
-    hm = _hidden_mean(geom, env, pos, nrm, o)
-    net = lsum - fsum[:, None] * (hm @ env.spectral_basis)
+    Σ_y F L_y(→x) (``lsum``) − Σ_y F L_env(ω_xy) (``hidden`` (N, r), :func:`_hidden_env`)
+    − (1/π) Σ hidden sources flux max(0, N·d_s)."""
+    net = lsum - hidden @ env.spectral_basis
     occ = _hidden_sources(geom, env, pos, o)
     if occ is not None:
         sdir, sflux = _source_terms(env)
@@ -220,10 +188,12 @@ def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, fsum: j
     return net
 
 
-def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap) -> jax.Array:
+def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap,
+                        hidden: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """:func:`_diffuse_net` (P, M, C) at every sample, gathered from all samples of the
     sample's own object's neighbours (dense, batched over pairs: P × M × (n − 1)M form
-    factors)."""
+    factors), and the environment those hide (P·M, r) (``hidden``: that of an earlier bounce,
+    which depends on the geometry alone)."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
     p_count, m_count = geom.s_area.shape
@@ -238,13 +208,16 @@ def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap) ->
     blk = (senders(snd.pos - origin), senders(snd.nrm), senders(snd.area),
            *(senders(f) for f in snd.frames))
     w, tu, tv = _form_factor_block(geom.s_pos - origin, geom.s_nrm, blk)
-    lsum, fsum = _transfer(w, tu, tv, senders(snd.lum), senders(snd.spec),
-                           None if snd.mirror is None else senders(snd.mirror),
-                           env.spectral_basis)
+    lsum, _ = _transfer(w, tu, tv, senders(snd.lum), senders(snd.spec),
+                        None if snd.mirror is None else senders(snd.mirror),
+                        env.spectral_basis)
+    if hidden is None:
+        hidden = _hidden_env(geom.s_pos - origin, w, blk[0], blk[2], env)
+        hidden = hidden.reshape(-1, hidden.shape[-1])
     obj = jnp.asarray(np.repeat(recv, m_count), jnp.int32)
-    net = _diffuse_net(geom, env, lsum.reshape(-1, lsum.shape[-1]), fsum.reshape(-1),
+    net = _diffuse_net(geom, env, lsum.reshape(-1, lsum.shape[-1]), hidden,
                        geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3), obj)
-    return net.reshape(p_count, m_count, -1)
+    return net.reshape(p_count, m_count, -1), hidden
 
 
 def _reverse_pairs(n: int) -> np.ndarray:
@@ -303,7 +276,8 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nr
     coverage × F_j (so each sample stands for its covered part and samples that barely see j
     count little), and multiplied by F_j at the receiver. Receivers facing several neighbours
     blend their grids with weights ∝ N·(c_j − c_i)⁺ (each grid holds the light from all
-    neighbours)."""
+    neighbours). (What a receiver's own object hides of j — the inside of a cup behind its
+    wall — is the renderer's part: its precomputed self-visibility.)"""
     g = geom.gather_size
     k_per = geom.n_objects - 1
     tex, tex_w = _net_tables(geom, net) if tables is None else tables
@@ -383,9 +357,10 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
     def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
         w, tu, tv = _form_factor_block(x0, nx, tuple(b[o] for b in blocks))
         w = jnp.where(sel[:, None], w, 0.0)
-        lsum, fsum = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else
-                               mirror[o], env.spectral_basis)
-        net = _diffuse_net(geom, env, lsum, fsum, x0 + origin, nx,
+        lsum, _ = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else
+                            mirror[o], env.spectral_basis)
+        hidden = _hidden_env(x0, w, blocks[0][o], blocks[2][o], env)
+        net = _diffuse_net(geom, env, lsum, hidden, x0 + origin, nx,
                            jnp.full(x0.shape[:1], o, jnp.int32))
         return jnp.where(sel[:, None], net, 0.0)
 

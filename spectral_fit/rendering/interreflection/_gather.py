@@ -96,7 +96,8 @@ class GatherSenders(eqx.Module):
     Attributes:
         geometry: :class:`IRGeometry` (gather mode).
         senders: the senders' samples as the last gather saw them.
-        atlas: (radiance (P, A, C), normal·coverage and coverage (P, A, 4)) mip atlases.
+        atlas: (radiance (P, A, C), normal·coverage, coverage and height·coverage (P, A, 5))
+            mip atlases (height: along the pair's axis towards the receiver, m).
         net: (P, M, C) diffuse net light at the samples, or None (``diffuse_at`` =
             "receivers" with one bounce).
     """
@@ -135,13 +136,17 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         spec, mirror = _sample_specular(geom, sh, frames)
         l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh), 0.0)
     cov = geom.s_cov[..., None]
+    # each sample's height above the sender's centre towards the receiver (the depth map the
+    # gloss quadrature's rays are marched through)
+    height = jnp.sum((geom.s_pos - geom.centre_j[:, None]) * geom.frame[:, None, 2], -1,
+                     keepdims=True)
 
     def senders_with(lum: jax.Array) -> tuple[_Senders, jax.Array]:
         snd = _Senders(pos=geom.s_pos, nrm=geom.s_nrm, area=geom.s_area, frames=frames,
                        lum=lum, spec=spec, mirror=mirror)
         with jax.named_scope("ir_atlas"):
             atlas = (_build_mips(lum * cov, geom.gather_size),
-                     _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1),
+                     _build_mips(jnp.concatenate([geom.s_nrm * cov, cov, height * cov], -1),
                                  geom.gather_size))
         return snd, atlas
 
@@ -150,11 +155,11 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
     s_obj = jnp.where(live.reshape(-1), jnp.asarray(np.repeat(senders, m_count), jnp.int32),
                       -1)
     s_pos, s_nrm = geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3)
-    net = None
+    net = hidden = None
     for b in range(bounces):
         if diffuse_at == "samples" or b < bounces - 1:
             with jax.named_scope("ir_sample_transfer"):
-                net = _sample_diffuse_net(geom, snd, env)
+                net, hidden = _sample_diffuse_net(geom, snd, env, hidden)
         if b == bounces - 1:
             break
         with jax.named_scope("ir_sample_bounce"):
