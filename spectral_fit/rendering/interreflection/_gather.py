@@ -140,14 +140,15 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
     # gloss quadrature's rays are marched through)
     height = jnp.sum((geom.s_pos - geom.centre_j[:, None]) * geom.frame[:, None, 2], -1,
                      keepdims=True)
+    with jax.named_scope("ir_atlas"):  # geometry alone: once, not per bounce
+        geo_atlas = _build_mips(jnp.concatenate([geom.s_nrm * cov, cov, height * cov], -1),
+                                geom.gather_size)
 
     def senders_with(lum: jax.Array) -> tuple[_Senders, jax.Array]:
         snd = _Senders(pos=geom.s_pos, nrm=geom.s_nrm, area=geom.s_area, frames=frames,
                        lum=lum, spec=spec, mirror=mirror)
         with jax.named_scope("ir_atlas"):
-            atlas = (_build_mips(lum * cov, geom.gather_size),
-                     _build_mips(jnp.concatenate([geom.s_nrm * cov, cov, height * cov], -1),
-                                 geom.gather_size))
+            atlas = (_build_mips(lum * cov, geom.gather_size), geo_atlas)
         return snd, atlas
 
     lum = l0

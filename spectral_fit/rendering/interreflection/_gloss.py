@@ -1,9 +1,9 @@
 """The gather mode's gloss and mirror interreflection at receivers: the receiver's own lobe.
 
 β A(x) Σ_q w_q h_q [L_j(y_q → x) − L_env(ω_q)] over a quadrature ω_q of the receiver's lobe
-D F G (V·H)/(N·V) (:func:`_lobe_nodes`), each node ray intersected with the neighbour's
-bounding sphere (soft hit h_q) and the neighbour's radiance at the hit read from its mip
-atlas plus :func:`_specular` towards x (:func:`_neighbour_along`); the mirror χ F(θr) times
+D F G (V·H)/(N·V) (:func:`_lobe_nodes`), each node ray marched through the neighbour's
+pass-1 depth map (hit h_q, :func:`_march`) and the neighbour's radiance at the hit read from
+its mip atlas plus :func:`_specular` towards x (:func:`_neighbour_along`); the mirror χ F(θr) times
 the same along R; less the bright sources' gloss that the neighbours hide
 (:func:`_hidden_source_gloss`). Only receivers whose lobe can reach a neighbour
 (:func:`_lobe_reach`) run the quadrature, in chunks with the active ones first
@@ -49,11 +49,9 @@ _LOBE_NODES = (2, 4)
 #: its rings at equal shares of the lobe's radial mass (:func:`environment._lobe_rings`): with
 #: 2 rings uniform in θh/μ the outer one carried e^−12 of the weight
 _LOBE_RADIAL_RULE = "mass"
-#: soft edge of a lobe node's hit on the neighbour's bounding sphere, as a fraction of the
-#: lobe's angular std √2 μ (times the distance), capped at ``_EDGE_CAP`` × the neighbour's
-#: radius (so a tiny or far neighbour's soft edge shrinks with it: no leak)
+#: footprint of a lobe node's hit on the neighbour, for its mip lookup: this fraction of the
+#: lobe's angular std √2 μ, times the distance
 _EDGE = 0.35
-_EDGE_CAP = 0.5
 
 
 def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, *,
@@ -163,11 +161,10 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     lum_atlas, geo_atlas = atlas
     cj = geom.centre_j[pair]  # (N, 3)
     t, hit = _march(geom, geo_atlas, pair, pos, dirs)
-    y = pos[:, None] + t[..., None] * dirs
-    rel = _normalize(y - cj[:, None])
+    d = pos[:, None] + t[..., None] * dirs - cj[:, None]  # the hit, from the sender's centre
+    rel = _normalize(d)
     fr = geom.frame[pair]  # (N, 3, 3)
     ext = geom.extent[pair][:, None]
-    d = y - cj[:, None]
     tx = (dot3(d, fr[:, None, 0]) / ext + 1.0) * 0.5 * g
     ty = (1.0 - dot3(d, fr[:, None, 1]) / ext) * 0.5 * g
     texel = 2.0 * ext / g
