@@ -7,8 +7,8 @@ call, ``median_ms`` the steady state.
 
 * ``frame_paper``: 720×480, 31 bands (400–700 nm, the anchor's), gather interreflection with
   the config's 2 bounces; ``frame_paper_b1``: one bounce, the anchor's work (eq. 6's two passes
-  carry one bounce; gather's interreflection regions ΔE00 median 0.29, p90 0.85 against the
-  path tracer, 0.21 / 0.43 with 2 bounces); ``frame_paper_none`` / ``frame_paper_paper``:
+  carry one bounce; gather's interreflection regions ΔE00 median 0.25, p90 0.86 against the
+  path tracer, 0.23 / 0.32 with 2 bounces); ``frame_paper_none`` / ``frame_paper_paper``:
   without interreflection / eq. (6) literally;
 * ``frame_paper_81``: 81 bands (400–700 nm at 3.75 nm); ``frame_paper_k8``: K = 8 basis;
 * ``frame_paper_lens``: the same frame through a distorting lens (``LENS``: the vertices

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...lighting import EnvironmentMap, dot3, irradiance, taps_sum
+from ._march import _cone_coverage
 from ._pass1 import _MIN_COS, IRGeometry, _normalize, pair_list
 from ._shading import _env_blur, _Shading, _source_terms, _specular, _times_reflectance
 
@@ -209,12 +210,75 @@ def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, hidden:
     return net
 
 
+def _coverage_factor(geom: IRGeometry, pair: jax.Array, x: jax.Array, nx: jax.Array,
+                     w: jax.Array) -> jax.Array:
+    """(R, k) the factor that brings receivers' form factors ``w`` (R, k·M) to each of k
+    neighbours (pairs ``pair`` (R, k), M samples each) to the neighbour's projected solid
+    angle from the receiver (:func:`~._march._cone_coverage`, marched through the
+    neighbour's depth map; receivers ``x`` (R, 3) world, unit normals ``nx``) over π Σ F of
+    its samples: the samples are the neighbour seen along the pair's axis, and a point off
+    that axis sees parts of it they lack (a quarter of a ring's solid angle from the wall of a
+    cup beside it). Within [0, ``_COVERAGE_MAX``]; 1 where Σ F is negligible. Geometry only
+    (no gradient)."""
+    r, k = pair.shape
+    omega = _cone_coverage(geom, pair.reshape(-1), jnp.repeat(x, k, axis=0),
+                           jnp.repeat(nx, k, axis=0)).reshape(r, k)
+    fsum = math.pi * jnp.sum(jax.lax.stop_gradient(w).reshape(r, k, -1), -1)
+    ok = fsum > 1e-3
+    return jnp.where(ok, jnp.clip(omega / jnp.where(ok, fsum, 1.0), 0.0, _COVERAGE_MAX), 1.0)
+
+
+def _sample_coverage(geom: IRGeometry) -> jax.Array:
+    """(P, M, n − 1) :func:`_coverage_factor` of the samples towards each neighbour of their
+    object, computed once per block of ``_COVERAGE_BLOCK``² samples (at its area-weighted
+    centre and mean normal; the factor varies slowly over an object, and the march is the
+    costly part) and shared by the block's samples; once per frame (the bounces reuse it)."""
+    k_per = geom.n_objects - 1
+    p_count, m_count = geom.s_area.shape
+    g = geom.gather_size
+    b = _COVERAGE_BLOCK if g % _COVERAGE_BLOCK == 0 else 1
+    gb = g // b
+
+    def blocks(x: jax.Array) -> jax.Array:  # (P, M, ...) → (P, gb², ...) block sums
+        x = x.reshape(p_count, gb, b, gb, b, *x.shape[2:]).sum(axis=(2, 4))
+        return x.reshape(p_count, gb * gb, *x.shape[3:])
+
+    area = blocks(geom.s_area)
+    pos = blocks(geom.s_pos * geom.s_area[..., None]) / jnp.maximum(area, 1e-30)[..., None]
+    pos = jnp.where((area > 0)[..., None], pos, geom.centre_j[:, None])
+    nrm = _normalize(blocks(geom.s_nrm * geom.s_area[..., None])
+                     + jnp.where(area > 0, 0.0, 1.0)[..., None] * geom.frame[:, None, 2])
+    recv = np.asarray([j for _, j in geom.pairs], np.int32)
+    src = recv[:, None] * k_per + np.arange(k_per)[None, :]  # (P, k_per)
+    origin = jnp.mean(geom.centre_j, axis=0)
+    sp = geom.s_pos[src].reshape(p_count, k_per * m_count, 3)
+    zero = jnp.zeros_like(sp)
+    blk = (sp - origin, geom.s_nrm[src].reshape(p_count, -1, 3),
+           geom.s_area[src].reshape(p_count, -1), zero, zero, zero,
+           jnp.ones(sp.shape[:2], sp.dtype))
+    w, _, _ = _form_factor_block(pos - origin, nrm, blk)  # (P, gb², k_per·M)
+    pair = jnp.asarray(np.repeat(src, gb * gb, axis=0))  # (P·gb², k_per)
+    cov = _coverage_factor(geom, pair, pos.reshape(-1, 3), nrm.reshape(-1, 3),
+                           w.reshape(p_count * gb * gb, -1))
+    cov = cov.reshape(p_count, gb, 1, gb, 1, k_per)
+    cov = jnp.broadcast_to(cov, (p_count, gb, b, gb, b, k_per))
+    return cov.reshape(p_count, m_count, k_per)
+
+
+#: the coverage factor is marched once per block of this many × this many samples
+_COVERAGE_BLOCK = 2
+#: the largest coverage factor (:func:`_sample_coverage`)
+_COVERAGE_MAX = 2.0
+
+
 def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap,
-                        hidden: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+                        hidden: jax.Array | None = None, coverage: jax.Array | None = None
+                        ) -> tuple[jax.Array, jax.Array]:
     """:func:`_diffuse_net` (P, M, C) at every sample, gathered from all samples of the
     sample's own object's neighbours (dense, batched over pairs: P × M × (n − 1)M form
-    factors), and the environment those hide (P·M, r) (``hidden``: that of an earlier bounce,
-    which depends on the geometry alone)."""
+    factors, scaled per neighbour by ``coverage`` (P, M, n − 1), :func:`_sample_coverage`),
+    and the environment those hide (P·M, r) (``hidden``: that of an earlier bounce, which
+    depends on the geometry alone)."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
     p_count, m_count = geom.s_area.shape
@@ -229,6 +293,8 @@ def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap,
     blk = (senders(snd.pos - origin), senders(snd.nrm), senders(snd.area),
            *(senders(f) for f in snd.frames))
     w, tu, tv = _form_factor_block(geom.s_pos - origin, geom.s_nrm, blk)
+    if coverage is not None:
+        w = w * jnp.repeat(coverage, m_count, axis=-1)
     lsum, _ = _transfer(w, tu, tv, senders(snd.lum), senders(snd.spec),
                         None if snd.mirror is None else senders(snd.mirror),
                         env.spectral_basis)
@@ -377,6 +443,9 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
 
     def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
         w, tu, tv = _form_factor_block(x0, nx, tuple(b[o] for b in blocks))
+        pair = jnp.broadcast_to(jnp.arange(k_per, dtype=jnp.int32) + o * k_per,
+                                (x0.shape[0], k_per))
+        w = w * jnp.repeat(_coverage_factor(geom, pair, x0 + origin, nx, w), m_count, axis=-1)
         w = jnp.where(sel[:, None], w, 0.0)
         lsum, _ = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else
                             mirror[o], env.spectral_basis)

@@ -31,6 +31,7 @@ from ._diffuse import (
     _direct_diffuse,
     _interpolate_net,
     _net_tables,
+    _sample_coverage,
     _sample_diffuse,
     _sample_diffuse_net,
     _sample_specular,
@@ -96,8 +97,7 @@ class GatherSenders(eqx.Module):
     Attributes:
         geometry: :class:`IRGeometry` (gather mode).
         senders: the senders' samples as the last gather saw them.
-        atlas: (radiance (P, A, C), normal·coverage, coverage and height·coverage (P, A, 5))
-            mip atlases (height: along the pair's axis towards the receiver, m).
+        atlas: (radiance (P, A, C), normal·coverage and coverage (P, A, 4)) mip atlases.
         net: (P, M, C) diffuse net light at the samples, or None (``diffuse_at`` =
             "receivers" with one bounce).
     """
@@ -136,12 +136,8 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         spec, mirror = _sample_specular(geom, sh, frames)
         l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh), 0.0)
     cov = geom.s_cov[..., None]
-    # each sample's height above the sender's centre towards the receiver (the depth map the
-    # gloss quadrature's rays are marched through)
-    height = jnp.sum((geom.s_pos - geom.centre_j[:, None]) * geom.frame[:, None, 2], -1,
-                     keepdims=True)
     with jax.named_scope("ir_atlas"):  # geometry alone: once, not per bounce
-        geo_atlas = _build_mips(jnp.concatenate([geom.s_nrm * cov, cov, height * cov], -1),
+        geo_atlas = _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1),
                                 geom.gather_size)
 
     def senders_with(lum: jax.Array) -> tuple[_Senders, jax.Array]:
@@ -156,11 +152,13 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
     s_obj = jnp.where(live.reshape(-1), jnp.asarray(np.repeat(senders, m_count), jnp.int32),
                       -1)
     s_pos, s_nrm = geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3)
-    net = hidden = None
+    net = hidden = coverage = None
     for b in range(bounces):
         if diffuse_at == "samples" or b < bounces - 1:
             with jax.named_scope("ir_sample_transfer"):
-                net, hidden = _sample_diffuse_net(geom, snd, env, hidden)
+                if coverage is None:  # geometry alone: once, not per bounce
+                    coverage = _sample_coverage(geom)
+                net, hidden = _sample_diffuse_net(geom, snd, env, hidden, coverage)
         if b == bounces - 1:
             break
         with jax.named_scope("ir_sample_bounce"):

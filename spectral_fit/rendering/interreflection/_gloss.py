@@ -29,8 +29,9 @@ from ...lighting import (
     taps_sum,
     visible_nodes,
 )
-from ._atlas import _mip_layout, _mip_taps
+from ._atlas import _mip_taps
 from ._diffuse import _hidden_sources
+from ._march import _march
 from ._pass1 import IRGeometry, _normalize
 from ._schedule import _image_anchors, _partition
 from ._shading import (
@@ -67,85 +68,6 @@ def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, 
     return light, f / jnp.maximum(jnp.sum(f), 1e-30)
 
 
-#: steps of the march of a lobe node's ray through the sender's depth map, over the ray's
-#: chord of the sender's bounding sphere
-_MARCH_STEPS = 16
-#: how far behind the sampled front surface a covered step still meets the sender (× its
-#: bounding radius; at least 1.5 steps): a coarse depth map's steep edges (a ring seen
-#: edge-on) put true hits well behind the box-filtered height, and only the front is known
-_THICK = 0.5
-
-
-def _depth_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, g: int
-                ) -> tuple[jax.Array, jax.Array]:
-    """Atlas rows (..., 4) and bilinear weights (..., 4) of level 0 of pair ``pair``'s atlas
-    at texel coordinates (tx, ty) (centres at integer + 0.5; outside: the zero border)."""
-    _, _, per_pair = _mip_layout(g)
-    x = jnp.clip(tx + 0.5, 0.0, g + 1.0)  # −0.5 (texel centres) + 1 (border)
-    y = jnp.clip(ty + 0.5, 0.0, g + 1.0)
-    x0f, y0f = jnp.floor(x), jnp.floor(y)
-    fx, fy = x - x0f, y - y0f
-    x0 = jnp.minimum(x0f.astype(jnp.int32), g + 1)
-    y0 = jnp.minimum(y0f.astype(jnp.int32), g + 1)
-    x1 = jnp.minimum(x0 + 1, g + 1)
-    y1 = jnp.minimum(y0 + 1, g + 1)
-    base = pair * per_pair
-    row = g + 2
-    idx = jnp.stack([base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
-                     base + y1 * row + x1], -1)
-    w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
-    return idx, w
-
-
-def _march(geom: IRGeometry, geo_atlas: jax.Array, pair: jax.Array, pos: jax.Array,
-           dirs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Where the rays (pos (N, 3), dirs (N, Q, 3)) first meet the sender of ``pair`` (N,):
-    the ray parameter t (N, Q) (m) and whether they do (N, Q) float. The sender is its pass-1
-    depth map (the samples' coverage and height along the pair's axis, bilinear at level 0 of
-    the atlas): the ray is stepped ``_MARCH_STEPS`` times over its chord of the sender's
-    bounding sphere, and meets the sender at the first step that is covered and at most one
-    step (or ``_THICK`` × the radius) behind the sampled surface, refined to the crossing of
-    the surface between that step and the previous one (t differentiable through that
-    refinement; which step is found is not)."""
-    g = geom.gather_size
-    cj = geom.centre_j[pair][:, None]  # (N, 1, 3)
-    rj = geom.radius_j[pair][:, None]  # (N, 1)
-    fr = geom.frame[pair]  # (N, 3, 3)
-    ext = geom.extent[pair][:, None, None]
-    oc = cj - pos[:, None]
-    tp = dot3(oc, dirs)
-    b2 = dot3(oc, oc) - tp * tp
-    h2 = rj * rj - b2
-    half = jnp.where(h2 > 0.0, jnp.sqrt(jnp.where(h2 > 0.0, h2, 1.0)), 0.0)  # (finite grads)
-    t0 = jnp.maximum(tp - half, 0.0)
-    t1 = jnp.maximum(tp + half, t0)
-    k = (jnp.arange(_MARCH_STEPS, dtype=pos.dtype) + 0.5) / _MARCH_STEPS
-    t = t0[..., None] + (t1 - t0)[..., None] * k  # (N, Q, K)
-    rel0 = pos[:, None] - cj  # (N, 1, 3)
-    coord = [dot3(rel0, fr[:, None, a])[..., None] + t * dot3(dirs, fr[:, None, a])[..., None]
-             for a in range(3)]  # (N, Q, K) each: along s, u and the axis towards i
-    tx = (coord[0] / ext + 1.0) * 0.5 * g
-    ty = (1.0 - coord[1] / ext) * 0.5 * g
-    idx, w = _depth_taps(jnp.broadcast_to(pair[:, None, None], tx.shape), tx, ty, g)
-    cov = jnp.sum(geo_atlas[idx, 3] * w, -1)
-    surf = jnp.sum(geo_atlas[idx, 4] * w, -1) / jnp.maximum(cov, 1e-6)
-    step = (t1 - t0)[..., None] / _MARCH_STEPS
-    thick = jnp.maximum(1.5 * step * jnp.abs(dot3(dirs, fr[:, None, 2]))[..., None],
-                        _THICK * rj[..., None])
-    below = coord[2] - surf  # > 0: in front of the surface (towards the receiver)
-    inside = (cov > 0.05) & (below <= 0.0) & (below >= -thick) & (half[..., None] > 0.0)
-    first = jnp.argmax(inside, -1)  # (N, Q)
-    hit = jnp.any(inside, -1)
-    tk = jnp.take_along_axis(t, first[..., None], -1)[..., 0]
-    bk = jnp.take_along_axis(below, first[..., None], -1)[..., 0]
-    prev = jnp.maximum(first - 1, 0)
-    bp = jnp.take_along_axis(below, prev[..., None], -1)[..., 0]
-    tpv = jnp.take_along_axis(t, prev[..., None], -1)[..., 0]
-    frac = jnp.where((first > 0) & (bp > 0.0), bp / jnp.maximum(bp - bk, 1e-12), 1.0)
-    t_hit = jnp.where(first > 0, tpv + frac * (tk - tpv), tk)
-    return t_hit, hit.astype(pos.dtype)
-
-
 def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
                      pair: jax.Array, sender: jax.Array, pos: jax.Array, dirs: jax.Array,
                      wts: jax.Array, edge: jax.Array, sigma_env: jax.Array) -> jax.Array:
@@ -160,7 +82,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     g = geom.gather_size
     lum_atlas, geo_atlas = atlas
     cj = geom.centre_j[pair]  # (N, 3)
-    t, hit = _march(geom, geo_atlas, pair, pos, dirs)
+    t, hit = _march(geom, pair, pos, dirs)
     d = pos[:, None] + t[..., None] * dirs - cj[:, None]  # the hit, from the sender's centre
     rel = _normalize(d)
     fr = geom.frame[pair]  # (N, 3, 3)
@@ -178,7 +100,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     # two atlases, each tap sum consumed whole by one contraction: XLA:CPU then fuses the
     # gather into the tap sum (slicing one (N, Q, C + 4) result made it materialise all
     # (N, Q, 8, C + 4) taps, many times slower)
-    geo = materialise(taps_sum(geo_atlas, idx, w))  # (N, Q, 5): n·cov, cov, height·cov
+    geo = materialise(taps_sum(geo_atlas, idx, w))  # (N, Q, 4): n·cov, cov
     cov = geo[..., 3]
     # the samples' normal where the atlas has coverage, the outward direction elsewhere
     ny = _normalize(geo[..., :3] + (1.0 - jnp.clip(cov, 0.0, 1.0))[..., None] * rel)

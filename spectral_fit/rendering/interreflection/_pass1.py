@@ -80,6 +80,12 @@ class IRGeometry(eqx.Module):
             3° above the sample's horizon).
         s_area: (P, M) surface area of each sample (m², 0 = empty).
         s_cov: (P, M) covered fraction of each sample's pass-1 texels.
+        s_front: (P, (S + 2)², 3) the pass-1 raster itself (S = ``SUPERSAMPLE`` · g texels a
+            side, rows from the top, padded by a one-texel zero border): coverage (0 or 1),
+            coverage × the front surface's height above c_j along the axis towards the
+            receiver (m) and the depth of the solid behind it (m: to the nearest back face;
+            0 where none): the sender's depth map at full resolution, which the gloss rays
+            march through.
         p_view_proj: (P, 4, 4) paper mode's pass-1 camera (projection @ view).
         p_index: (P, Q) flat texel index of the covered pass-1 texels (Q = capacity).
         p_pos, p_nrm: (P, Q, 3) their world positions and unit normals.
@@ -99,6 +105,7 @@ class IRGeometry(eqx.Module):
     s_view: jax.Array | None
     s_area: jax.Array | None
     s_cov: jax.Array | None
+    s_front: jax.Array | None
     p_view_proj: jax.Array | None
     p_index: jax.Array | None
     p_pos: jax.Array | None
@@ -140,7 +147,7 @@ def pass1_config(num_triangles: int, side: int) -> RasterConfig:
     planned capacity overflowed): per size of the rasteriser's window ladder
     (``raster.TILE_SIZES``) the larger of :func:`~spectral_fit.geometry.default_config`'s
     (T windows, the largest size enough for half the target) and a closed mesh's (T/2 + 16,
-    since at most half its faces are front faces; T/4 + 16 plus four tilings of the target
+    since at most half its faces face one way; T/4 + 16 plus four tilings of the target
     for the largest size), and every 8×8 block of the target. A pose needing more still
     sets the overflow flag."""
     side = int(side)
@@ -198,8 +205,9 @@ def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHE
             view[:3, :3] = np.stack([s, u, -f])
             view[:3, 3] = 3.0 * r * (view[:3, :3] @ f)  # −R·eye with eye = −3r f
             clip = _ortho_clip(view, v, _MARGIN * r, 1.9 * r, 4.1 * r, xp=np)
-            counts = plan_counts(clip, tris, (side, side), cull="back")
-            windows = np.maximum(windows, counts.windows)
+            for cull in ("back", "front"):  # the front and the back layer
+                counts = plan_counts(clip, tris, (side, side), cull=cull)
+                windows = np.maximum(windows, counts.windows)
     caps = tuple(capacity_ladder(headroom * int(n) + 16) for n in windows)
     return RasterConfig(TILE_SIZES, caps, (-(-side // 8)) ** 2)
 
@@ -241,14 +249,23 @@ def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array
     safe = jnp.where(ok, area, 1.0)
     s_pos = jnp.where(ok[:, None], blocks(a[..., None] * pos) / safe[:, None], cj)
     s_nrm = _normalize(jnp.where(ok[:, None], blocks(a[..., None] * nrm), axis))
-    s_cov = blocks(hit.astype(jnp.float32)) / (ss * ss)
+    hitf = hit.astype(jnp.float32)
+    s_cov = blocks(hitf) / (ss * ss)
+    height = jnp.sum((pos - cj) * frame[2], -1)
+    # the nearest back face behind each front one: where the first solid interval along the
+    # axis ends (its depth: 0 where there is none, an open mesh's edge or a single sheet)
+    ras_b = rasterize(clip, tris, (side, side), cull="front", config=config)
+    height_b = jnp.sum((interpolate(verts, ras_b, tris, clip) - cj) * frame[2], -1)
+    depth = jnp.where(hit & (ras_b.tri_id >= 0) & (height_b < height), height - height_b, 0.0)
+    front = jnp.pad(jnp.stack([hitf, jnp.where(hit, height, 0.0), depth], -1),
+                    ((1, 1), (1, 1), (0, 0))).reshape(-1, 3)
     near_i = ci + r_i * _normalize(s_pos - ci)
     s_view = _normalize(near_i - s_pos)
     # samples near j's rim cannot see that point; tilt their view just above the horizon
     # (the receivers that do see them are there)
     s_view = _normalize(s_view + jnp.maximum(0.0, _MIN_COS - jnp.sum(s_view * s_nrm, -1,
                                                                         keepdims=True)) * s_nrm)
-    return frame, extent, s_pos, s_nrm, s_view, area, s_cov, ras.overflow
+    return frame, extent, s_pos, s_nrm, s_view, area, s_cov, front, ras.overflow | ras_b.overflow
 
 
 def _paper_texels(obj_i: ObjectGeometry, obj_j: ObjectGeometry, t: int, capacity: int,
@@ -333,8 +350,8 @@ def _pass1(objects: tuple[ObjectGeometry, ...], mode: str, texture_size: int,
     cap = max(1, int(math.ceil(capacity_fraction * texture_size * texture_size)))
     cols: dict[str, list[Any]] = {k: [] for k in (
         "centre_i", "centre_j", "radius_i", "radius_j", "frame", "extent", "s_pos", "s_nrm",
-        "s_view", "s_area", "s_cov", "p_view_proj", "p_index", "p_pos", "p_nrm", "p_valid",
-        "overflow")}
+        "s_view", "s_area", "s_cov", "s_front", "p_view_proj", "p_index", "p_pos", "p_nrm",
+        "p_valid", "overflow")}
     for i, j in pairs:
         oi, oj = objects[i], objects[j]
         cols["centre_i"].append(jnp.asarray(oi.centre, jnp.float32))
@@ -342,10 +359,10 @@ def _pass1(objects: tuple[ObjectGeometry, ...], mode: str, texture_size: int,
         cols["radius_i"].append(radii[i])
         cols["radius_j"].append(radii[j])
         if mode == "gather":
-            frame, extent, sp, sn, sv, sa, sc, of = _gather_samples(
+            frame, extent, sp, sn, sv, sa, sc, sf, of = _gather_samples(
                 oi, oj, radii[i], radii[j], gather_size, raster_config)
-            for k, v in zip(("s_pos", "s_nrm", "s_view", "s_area", "s_cov"),
-                            (sp, sn, sv, sa, sc), strict=True):
+            for k, v in zip(("s_pos", "s_nrm", "s_view", "s_area", "s_cov", "s_front"),
+                            (sp, sn, sv, sa, sc, sf), strict=True):
                 cols[k].append(v)
         else:
             frame = look_at(jnp.asarray(oi.centre, jnp.float32),
@@ -374,7 +391,7 @@ def _pass1(objects: tuple[ObjectGeometry, ...], mode: str, texture_size: int,
         radius_i=stack("radius_i"), radius_j=stack("radius_j"),
         frame=stack("frame", (3, 3)), extent=stack("extent"),
         s_pos=stack("s_pos"), s_nrm=stack("s_nrm"), s_view=stack("s_view"),
-        s_area=stack("s_area"), s_cov=stack("s_cov"),
+        s_area=stack("s_area"), s_cov=stack("s_cov"), s_front=stack("s_front"),
         p_view_proj=stack("p_view_proj"), p_index=stack("p_index"), p_pos=stack("p_pos"),
         p_nrm=stack("p_nrm"), p_valid=stack("p_valid"),
         overflow=overflow, n_objects=n, mode=mode, texture_size=texture_size,
@@ -413,10 +430,11 @@ def _gather_pass1_batched(objects: Sequence[ObjectGeometry], pairs: list[tuple[i
                                triangles=obj_j.triangles, centre=c)  # only its centre is used
         return _gather_samples(obj_i, obj_j, a, b, g, config)
 
-    frame, extent, sp, sn, sv, sa, sc, of = jax.vmap(one)(c_i, senders, r_i, r_j)
+    frame, extent, sp, sn, sv, sa, sc, sf, of = jax.vmap(one)(c_i, senders, r_i, r_j)
     return IRGeometry(
         centre_i=c_i, centre_j=jnp.asarray(senders.centre, jnp.float32), radius_i=r_i,
         radius_j=r_j, frame=frame, extent=extent, s_pos=sp, s_nrm=sn, s_view=sv, s_area=sa,
-        s_cov=sc, p_view_proj=None, p_index=None, p_pos=None, p_nrm=None, p_valid=None,
+        s_cov=sc, s_front=sf, p_view_proj=None, p_index=None, p_pos=None, p_nrm=None,
+        p_valid=None,
         overflow=jnp.any(of), n_objects=len(objects), mode="gather",
         texture_size=texture_size, gather_size=g)
