@@ -230,6 +230,38 @@ def test_model_error_table(base, tmp_path):
         assert e.field == field and words in str(e), (e.field, str(e))
 
 
+def test_bounds_and_prior_tables(base, tmp_path):
+    """``[objects.NAME.bounds]`` ({parameter: [lower, upper]}, "none" for an open end) and
+    ``[objects.NAME.prior]`` ({parameter: {mean, sigma}}) load; a reversed or unphysical
+    bound, a prior outside its bound, a non-positive σ, a start outside a bound and an
+    unknown parameter are refused with the field named."""
+    assert load_session(base / "s").objects["red"].bounds == {}
+    ok = ('[objects.red.bounds]\nmu = [0.05, 0.3]\nn = ["none", 1.7]\n\n'
+          '[objects.red.prior]\nn = { mean = 1.49, sigma = 0.02 }\n\n')
+    d = _copy(base, tmp_path / "ok")
+    _replace_in(d / "session.toml", "[[readings]]", ok + "[[readings]]")
+    om = load_session(d).objects["red"]
+    assert om.bounds == {"mu": (0.05, 0.3), "n": (None, 1.7)}
+    assert om.prior == {"n": (1.49, 0.02)}
+    for i, (body, field, words) in enumerate((
+            ("[objects.red.bounds]\nmu = [0.3, 0.05]", "objects.red.bounds.mu", "below"),
+            ("[objects.red.bounds]\nn = [0.9, 1.7]", "objects.red.bounds.n", "> 1.0"),
+            ("[objects.red.bounds]\nmu = [0.05]", "objects.red.bounds.mu", "[lower, upper]"),
+            ("[objects.red.bounds]\nrho = [0, 1]", "objects.red.bounds.rho", "unknown"),
+            ("[objects.red.bounds]\nn = [1.3, 1.4]\n[objects.red.prior]\n"
+             "n = { mean = 1.5, sigma = 0.1 }", "objects.red.prior.n.mean", "outside"),
+            ("[objects.red.prior]\nn = { mean = 1.5, sigma = 0 }", "objects.red.prior.n.sigma",
+             "> 0"),
+            ("[objects.red.prior]\nn = { mean = 1.5 }", "objects.red.prior.n.sigma",
+             "missing"),
+            ("[objects.red.start]\nmu = 0.5\n[objects.red.bounds]\nmu = [0.05, 0.3]",
+             "objects.red.start.mu", "outside"))):
+        d = _copy(base, tmp_path / f"bad{i}")
+        _replace_in(d / "session.toml", "[[readings]]", body + "\n\n[[readings]]")
+        e = _error(d)
+        assert e.field == field and words in str(e), (e.field, str(e))
+
+
 def test_white_standard_errors(base, tmp_path):
     d = _copy(base, tmp_path)
     _replace_in(d / "session.toml", "reflectance = 0.98", "reflectance = 0.01")

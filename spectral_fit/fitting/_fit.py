@@ -42,7 +42,7 @@ from ..io import PARAMETERS, Scene, Session
 from ._model import _predict_jit
 from ._model_error import estimate_model_error, with_model_error
 from ._options import FitOptions, _fit_options
-from ._params import _SQUARED, _dp_dy, _starts, physical_from_y, y_start
+from ._params import _SQUARED, LOWER, _dp_dy, _starts, physical_from_y, unknowns, y_start
 from ._prepare import prepare_fit
 from ._problem import FitProblem, PreparedFit
 from ._profile import STEPS, profile_intervals
@@ -82,6 +82,8 @@ class FitResult:
             profile likelihood (:func:`~spectral_fit.fitting._profile.profile_intervals`:
             value, lower, upper, how each end was found, the held values and their Δχ²);
             else None.
+        constraints: {label: {"lower", "upper", "prior_mean", "prior_sigma"}} of the
+            unknowns with a bound or a prior stated in the session (None where not stated).
     """
 
     params: dict[str, dict[str, float]]
@@ -111,6 +113,7 @@ class FitResult:
     values: np.ndarray | None = None  # (O, 6)
     profile: dict[str, dict[str, Any]] | None = None
     model_error: dict[str, float] = dataclasses.field(default_factory=dict)
+    constraints: dict[str, dict[str, float | None]] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable summary (spectra excluded; see the report for those)."""
@@ -137,6 +140,7 @@ class FitResult:
             "bootstrap_std": self.bootstrap, "warnings": self.warnings,
             "readings": self.readings, "holdout": self.holdout, "timings": self.timings,
             "profile": self.profile, "model_error": self.model_error,
+            "constraints": self.constraints,
         })
 
 
@@ -251,7 +255,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     F = problem.n_free
     if F == 0:
         raise InputError("no free parameters", path=session.path, field="objects")
-    dof = int(use.sum()) * L - F
+    dof = int(use.sum()) * L + len(problem.prior) - F  # (each prior is one datum)
     if dof <= 0:
         raise InputError(f"{F} unknowns but only {int(use.sum()) * L} data", path=session.path,
                          field="readings")
@@ -347,10 +351,11 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                     "not converged); the best start is reported")
     # uncertainty: J w.r.t. the physical parameters by the chain rule ------------------------
     t2 = time.perf_counter()
-    kinds = [PARAMETERS[k] for _, k in problem.free] + (["scale"] if problem.fit_scale else [])
+    spec = unknowns(problem)
+    kinds = [k for k, _, _ in spec]
     p_hat = np.array([vals[o, k] for o, k in problem.free] + ([scale] if problem.fit_scale
                                                              else []))
-    dp_dy = np.array([_dp_dy(float(yy), kk) for yy, kk in zip(y, kinds, strict=True)])
+    dp_dy = np.array([_dp_dy(float(yy), *sp) for yy, sp in zip(y, spec, strict=True)])
     r = out["residual"][best].astype(np.float64)
     Jy = out["jacobian"][best].astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -364,11 +369,13 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
     warn += _identifiability(labels, corr, jtj)
-    for (o, k), v in zip(problem.free, p_hat, strict=False):
-        pname = PARAMETERS[k]
-        if pname in _SQUARED and v < 1e-4:
-            warn.append(f"{names[o]}.{pname} is at its bound 0 (its standard error is "
-                        "one-sided)")
+    for (o, _), v, (pname, lo, hi) in zip(problem.free, p_hat, spec, strict=False):
+        tol = 1e-3 * (hi - lo) if math.isfinite(hi) else 1e-4
+        at = ([lo] if (pname in _SQUARED or math.isfinite(hi) or lo > LOWER[pname])
+              and v < lo + tol else []) + ([hi] if math.isfinite(hi) and v > hi - tol else [])
+        if at:
+            warn.append(f"{names[o]}.{pname} is at its bound {at[0]:g} (its standard error "
+                        "is one-sided)")
     params = {nm: {p: float(vals[o, k]) for k, p in enumerate(PARAMETERS)}
               for o, nm in enumerate(names)}
     stderr = {nm: {p: 0.0 for p in PARAMETERS} for nm in names}
@@ -383,6 +390,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         say(f"profile likelihood: {len(kinds)} parameters x {2 * len(STEPS)} held fits ...")
         prof = profile_intervals(problem, y, p_hat, se, float(costs[best]), use,
                                  max(1.0, chi2_red), labels=labels, kinds=kinds,
+                                 limits=[(lo, hi) for _, lo, hi in spec],
                                  rtol=opts.rtol, atol=opts.atol, max_steps=opts.max_steps,
                                  jacobian=Jy)
         profile = prof["intervals"]
@@ -459,7 +467,23 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                  "solve_s": t_solve, "uncertainty_s": t_unc, "profile_s": t_prof,
                  "bootstrap_s": t_boot,
                  "total_s": time.perf_counter() - t0},
-        iterations=steps_best, values=vals, profile=profile, model_error=model_error)
+        iterations=steps_best, values=vals, profile=profile, model_error=model_error,
+        constraints=_constraints(session, names, problem, labels))
+
+
+def _constraints(session: Session, names: list[str], problem: FitProblem,
+                 labels: list[str]) -> dict[str, dict[str, float | None]]:
+    """The bounds and priors the session states for the unknowns, by label."""
+    out: dict[str, dict[str, float | None]] = {}
+    for label, (o, k) in zip(labels, problem.free, strict=False):
+        om = session.objects.get(names[o])
+        if om is None:
+            continue
+        lo, hi = om.bounds.get(PARAMETERS[k], (None, None))
+        mean, sd = om.prior.get(PARAMETERS[k], (None, None))
+        if lo is not None or hi is not None or mean is not None:
+            out[label] = {"lower": lo, "upper": hi, "prior_mean": mean, "prior_sigma": sd}
+    return out
 
 
 def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOptions,
@@ -619,13 +643,13 @@ def fit_many(prepared: PreparedFit, measured: Any, *, sigma: Any = None,
     params = np.zeros((K, O, 6))
     stderr = np.zeros((K, O, 6))
     scales = np.ones(K)
-    kinds = [PARAMETERS[k] for _, k in problem.free] + (["scale"] if problem.fit_scale else [])
+    spec = unknowns(problem)
     for i in range(K):
         y = out["y"][i].astype(np.float64)
         v, s = physical_from_y(problem, jnp.asarray(y, dt))
         params[i] = np.asarray(v, np.float64)
         scales[i] = float(s)
-        dp = np.array([_dp_dy(float(a), k) for a, k in zip(y, kinds, strict=True)])
+        dp = np.array([_dp_dy(float(a), *sp) for a, sp in zip(y, spec, strict=True)])
         with np.errstate(divide="ignore", invalid="ignore"):
             J = out["jacobian"][i].astype(np.float64) / dp[None, :]
         J[:, ~(np.abs(dp) > 1e-12)] = 0.0

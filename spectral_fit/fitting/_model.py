@@ -22,7 +22,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._params import physical_from_y
+from ._params import physical_from_y, prior_residuals
 from ._problem import FitProblem
 
 __all__ = [
@@ -76,10 +76,12 @@ def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Arr
 
 
 def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
-    """Weighted residuals (B·L,) ((model − measured)/σ · √w_b) at unconstrained ``y``."""
+    """Weighted residuals (B·L + K,) ((model − measured)/σ · √w_b, then the K priors'
+    (p − mean)/σ) at unconstrained ``y``."""
     vals, scale = physical_from_y(problem, y)
     r = (predict(problem, vals, scale) - problem.readings.measured) / problem.readings.sigma
-    return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
+    r = (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
+    return jnp.concatenate([r, prior_residuals(problem, y)])
 
 
 @eqx.filter_jit

@@ -249,6 +249,7 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
             if session.calibration == "global" and name == session.reference and pname == "alpha":
                 continue  # the gauge: scale and this alpha are degenerate
             free.append((o, k))
+    bounds, prior = _bounds_and_priors(session, names, free, vals)
     problem = FitProblem(
         env=env, receivers=recv, cache=cache,
         readings=FitReadings(average=jnp.asarray(avg, dtype), background=jnp.asarray(bg, dtype),
@@ -259,11 +260,36 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
         surfaces=FitSurfaces(reflectance=jnp.asarray(refl, dtype), sci=jnp.asarray(sci, dtype),
                              models=tuple(models)),
         values=jnp.asarray(vals, dtype), free=tuple(free),
-        fit_scale=session.calibration == "global", interreflection=bool(spheres))
+        fit_scale=session.calibration == "global", interreflection=bool(spheres),
+        bounds=bounds, prior=prior)
     for w in warn:
         warnings.warn(w, RuntimeWarning, stacklevel=2)
     return PreparedFit(problem=problem, session=session, objects=names, geometries=geometries,
                     coverage=coverage, warnings=warn, seconds=time.perf_counter() - t0)
+
+
+def _bounds_and_priors(session: Session, names: list[str], free: list[tuple[int, int]],
+                       vals: np.ndarray) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """The free parameters' (lower, upper) limits (stated bounds, else the physical ones;
+    upper inf: none) and Gaussian priors (index into ``free``, mean, σ) from the session's
+    objects; start values ``vals`` (O, 6) outside a stated bound are moved onto it (in
+    place). () for either when the session states none."""
+    from ._params import LOWER
+
+    bounds, prior, stated = [], [], False
+    for j, (o, k) in enumerate(free):
+        pname = PARAMETERS[k]
+        om = session.objects.get(names[o])
+        lo, hi = (om.bounds.get(pname, (None, None)) if om is not None else (None, None))
+        stated |= lo is not None or hi is not None
+        lo = LOWER[pname] if lo is None else lo
+        hi = math.inf if hi is None else hi
+        vals[o, k] = min(max(vals[o, k], lo), hi)
+        bounds.append((float(lo), float(hi)))
+        if om is not None and pname in om.prior:
+            m, sd = om.prior[pname]
+            prior.append((j, float(m), float(sd)))
+    return (tuple(bounds) if stated else ()), tuple(prior)
 
 
 def _scene_spheres(scene: Scene) -> list[Any]:

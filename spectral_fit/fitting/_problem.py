@@ -87,6 +87,10 @@ class FitProblem(eqx.Module):
         free: static (object, parameter) pairs that are fitted.
         fit_scale: static, whether a global scale is fitted too.
         interreflection: static, whether the model adds the interreflection term.
+        bounds: static (lower, upper) of each free parameter (upper = inf: none), from the
+            session's ``bounds`` and the physical limits; () = the physical limits.
+        prior: static Gaussian priors (index into ``free``, mean, σ), from the session's
+            ``prior``: rows (p − mean)/σ appended to the residuals.
     """
 
     env: EnvironmentMap
@@ -99,6 +103,8 @@ class FitProblem(eqx.Module):
     free: tuple[tuple[int, int], ...] = eqx.field(static=True)
     fit_scale: bool = eqx.field(static=True)
     interreflection: bool = eqx.field(static=True, default=False)
+    bounds: tuple[tuple[float, float], ...] = eqx.field(static=True, default=())
+    prior: tuple[tuple[int, float, float], ...] = eqx.field(static=True, default=())
 
     @property
     def irradiance(self) -> jax.Array:

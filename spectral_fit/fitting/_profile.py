@@ -12,8 +12,9 @@ readings do not bound the parameter there).
 
 The scanned values are p̂ + k·σ_lin for the multiples :data:`STEPS` (σ_lin the linearised
 standard error; 10 % of |p̂| or 0.05 where that is 0 or not finite), clipped to the
-parameter's physical range; a second batch of held fits then samples the bracket of each end
-(between the last scanned value inside the interval and the first outside) at 5 more values
+parameter's range (physical, or the bounds stated in the session); a second batch of held
+fits then samples the bracket of each end (between the last scanned value inside the interval
+and the first outside) at 5 more values
 (σ_lin can be far from the interval's width: in a curved valley it is the width of the
 linearisation, not of the valley). Each end is found where √(Δχ²/s²) crosses 1, linearly
 interpolated between the held values around it (√Δχ² is linear in p where the profile is
@@ -28,7 +29,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ._params import to_unconstrained
+from ._params import _EDGE, LOWER, to_unconstrained
 from ._problem import FitProblem
 from ._solver import CompactLM, solve_frozen
 
@@ -36,27 +37,34 @@ __all__ = ["STEPS", "profile_intervals"]
 
 #: multiples of the linearised standard error at which each parameter is held
 STEPS = (-6.0, -3.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 3.0, 6.0)
-#: the lower physical bound of each parameter (none has an upper one)
-_LOWER = {"alpha": 0.0, "beta": 0.0, "mu": 0.0, "scale": 0.0, "n": 1.0, "chi": 0.0,
-          "gamma": 0.0}
-
-
-def _floor(p: float, kind: str) -> float:
-    """The lowest value a parameter is held at: its bound, which the exp-parametrised
-    parameters approach without reaching (χ, γ = y² reach 0)."""
-    lo = _LOWER[kind]
+def _floor(p: float, kind: str, lo: float, hi: float = math.inf) -> float:
+    """The lowest value a parameter is held at: its lower limit ``lo``, which χ, γ = lo + y²
+    reach; the exp-parametrised ones approach it without reaching it, and an interval with
+    an upper bound ``hi`` (logistic) is held 0.1 % of its width inside."""
+    if math.isfinite(hi):
+        return lo + _EDGE * (hi - lo)
     return lo if kind in ("chi", "gamma") else lo + 1e-6 * max(abs(p), 1e-3)
 
 
-def _held_values(p: float, se: float, kind: str) -> np.ndarray:
-    """The values (len(STEPS),) at which a parameter is held; NaN for repeats of the floor."""
+def _ceiling(lo: float, hi: float) -> float:
+    """The highest value a parameter is held at: 0.1 % of its interval inside a stated upper
+    bound (inf: none)."""
+    return hi - _EDGE * (hi - lo) if math.isfinite(hi) else math.inf
+
+
+def _held_values(p: float, se: float, kind: str, lo: float = -math.inf,
+                 hi: float = math.inf) -> np.ndarray:
+    """The values (len(STEPS),) at which a parameter is held (inside its limits
+    [``lo``, ``hi``]); NaN for repeats of a limit."""
     step = se if (math.isfinite(se) and se > 0) else (0.1 * abs(p) if p != 0 else 0.05)
-    floor = _floor(p, kind)
-    out = np.maximum(p + step * np.asarray(STEPS), floor)
-    # a value clipped to the floor once is enough: the later ones repeat it
-    first_floor = np.flatnonzero(out == floor)
-    if first_floor.size > 1:
-        out[first_floor[:-1]] = np.nan
+    lo = LOWER[kind] if lo == -math.inf else lo
+    floor, ceil = _floor(p, kind, lo, hi), _ceiling(lo, hi)
+    out = np.minimum(np.maximum(p + step * np.asarray(STEPS), floor), ceil)
+    # a value clipped to a limit once is enough: the later ones repeat it
+    for edge, pick in ((floor, slice(None, -1)), (ceil, slice(1, None))):
+        at = np.flatnonzero(out == edge)
+        if at.size > 1:
+            out[at[pick]] = np.nan
     return out
 
 
@@ -79,7 +87,8 @@ def _bracket(values: np.ndarray, rise: np.ndarray, p_hat: float, side: int
 def profile_intervals(problem: FitProblem, y_hat: np.ndarray, p_hat: np.ndarray,
                       se: np.ndarray, cost_hat: float, use: np.ndarray, s2: float, *,
                       labels: list[str], kinds: list[str], rtol: float, atol: float,
-                      max_steps: int, jacobian: np.ndarray | None = None) -> dict[str, Any]:
+                      max_steps: int, jacobian: np.ndarray | None = None,
+                      limits: list[tuple[float, float]] | None = None) -> dict[str, Any]:
     """Profile-likelihood intervals of every unknown of ``problem`` (see the module
     docstring).
 
@@ -90,6 +99,8 @@ def profile_intervals(problem: FitProblem, y_hat: np.ndarray, p_hat: np.ndarray,
         use: (B,) reading weights of the fit.
         s2: the Δχ² of the interval's ends (max(1, χ²/dof)).
         labels, kinds: per unknown, ``object.parameter`` and the parameter's name.
+        limits: per unknown, (lower, upper) (the session's bounds, else the physical range;
+            None: the physical range).
         rtol, atol, max_steps: the solver's settings for the held fits.
         jacobian: (B·L, F) the residuals' Jacobian w.r.t. y at the optimum: each held fit
             then starts where the Gauss–Newton model puts the other unknowns for the held
@@ -104,7 +115,9 @@ def profile_intervals(problem: FitProblem, y_hat: np.ndarray, p_hat: np.ndarray,
         the best minimum), else None}.
     """
     F = len(y_hat)
-    held = np.stack([_held_values(float(p_hat[j]), float(se[j]), kinds[j]) for j in range(F)])
+    limits = limits or [(LOWER[k], math.inf) for k in kinds]
+    held = np.stack([_held_values(float(p_hat[j]), float(se[j]), kinds[j], *limits[j])
+                     for j in range(F)])
     n = held.shape[1]
     dt = problem.values.dtype
     solver = CompactLM(rtol=rtol, atol=atol)
@@ -123,8 +136,8 @@ def profile_intervals(problem: FitProblem, y_hat: np.ndarray, p_hat: np.ndarray,
         """Held fits at values (F, n) (NaN: no fit): Δχ² / s² (F, n) and ½ Σr² (F, n)."""
         y0 = np.tile(y_hat, (F * n, 1))
         for j in range(F):
-            yj = np.array([to_unconstrained(float(v), kinds[j]) if np.isfinite(v) else y_hat[j]
-                           for v in values[j]])
+            yj = np.array([to_unconstrained(float(v), kinds[j], *limits[j])
+                           if np.isfinite(v) else y_hat[j] for v in values[j]])
             y0[j * n:(j + 1) * n] += (yj - y_hat[j])[:, None] * follow[j][None]
             y0[j * n:(j + 1) * n, j] = yj
         y0 = np.where(np.isfinite(y0), y0, np.tile(y_hat, (F * n, 1)))
@@ -159,7 +172,9 @@ def profile_intervals(problem: FitProblem, y_hat: np.ndarray, p_hat: np.ndarray,
         ends: dict[str, Any] = {}
         for side, name in ((-1, "lower"), (1, "upper")):
             v, _, how = _bracket(xs, zs, float(p_hat[j]), side)
-            if how == "open" and side < 0 and v <= _floor(float(p_hat[j]), kinds[j]):
+            if how == "open" and ((side < 0 and v <= _floor(float(p_hat[j]), kinds[j],
+                                                             *limits[j]))
+                                  or (side > 0 and v >= _ceiling(*limits[j]))):
                 how = "bound"
             ends[name], ends[f"{name}_end"] = v, how
         intervals[labels[j]] = {"value": float(p_hat[j]), **ends, "held": xs.tolist(),

@@ -24,7 +24,7 @@ import numpy as np
 
 from ._model import predict
 from ._options import FitOptions
-from ._params import physical_from_y
+from ._params import physical_from_y, prior_residuals
 from ._problem import FitProblem
 
 __all__ = ["CompactLM", "make_solver", "solve_batch", "solve_frozen"]
@@ -94,22 +94,26 @@ def _residuals_aux(y: jax.Array, problem: FitProblem, reading_weights: jax.Array
     vals, scale = physical_from_y(problem, y)
     pred = predict(problem, vals, scale)
     r = (pred - problem.readings.measured) / problem.readings.sigma
-    return (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1), pred
+    r = (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
+    return jnp.concatenate([r, prior_residuals(problem, y)]), pred
 
 
 def _residuals_jacobian(y: jax.Array, problem: FitProblem, reading_weights: jax.Array
                         ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Weighted residuals (B·L,), their Jacobian (B·L, F) w.r.t. y (``jax.jacfwd``: the model
-    evaluated once, its F tangents batched) and the predicted readings (B, L)."""
-    def model(yy: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Weighted residuals (B·L + K,) (the readings', then the K priors' rows), their
+    Jacobian (B·L + K, F) w.r.t. y (``jax.jacfwd``: the model evaluated once, its F tangents
+    batched) and the predicted readings (B, L)."""
+    def model(yy: jax.Array) -> tuple[tuple[jax.Array, jax.Array], jax.Array]:
         vals, scale = physical_from_y(problem, yy)
         p = predict(problem, vals, scale)
-        return p, p
+        return (p, prior_residuals(problem, yy)), p
 
-    jp, pred = jax.jacfwd(model, has_aux=True)(y)  # (B, L, F), (B, L)
+    (jp, jq), pred = jax.jacfwd(model, has_aux=True)(y)  # (B, L, F), (K, F); (B, L)
     sw = jnp.sqrt(reading_weights)[:, None] / problem.readings.sigma
     r = ((pred - problem.readings.measured) * sw).reshape(-1)
-    return r, (jp * sw[..., None]).reshape(r.shape[0], y.shape[0]), pred
+    J = (jp * sw[..., None]).reshape(r.shape[0], y.shape[0])
+    return (jnp.concatenate([r, prior_residuals(problem, y)]), jnp.concatenate([J, jq]),
+            pred)
 
 
 def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: CompactLM,
@@ -122,10 +126,11 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
     dt = y0.dtype
     F = y0.shape[0]
     tau = 1e-4  # the damping after a rejection is at least τ max (JᵀJ)_ii
-    # residuals (B·L,), Jacobian (B·L, F), predictions (B, L)
+    # residuals (B·L + K,), Jacobian (B·L + K, F), predictions (B, L)
     B, L = problem.readings.measured.shape
     rdt = problem.readings.measured.dtype
-    r0, j0, p0 = (jnp.zeros((B * L,), rdt), jnp.zeros((B * L, F), rdt), jnp.zeros((B, L), rdt))
+    R = B * L + len(problem.prior)
+    r0, j0, p0 = (jnp.zeros((R,), rdt), jnp.zeros((R, F), rdt), jnp.zeros((B, L), rdt))
 
     def cond(s: dict[str, jax.Array]) -> jax.Array:
         return jnp.logical_not(s["done"]) & (s["steps"] < max_steps)

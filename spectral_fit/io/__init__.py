@@ -28,6 +28,7 @@ _EXPORTS: dict[str, str] = {
     "ObjectMeasurement": "_session",
     "ObjectSpec": "_scene",
     "PARAMETERS": "_session",
+    "PHYSICAL_LOWER": "_session",
     "RADIANCE_UNITS": "_spectrum_files",
     "Reading": "_session",
     "Scene": "_scene",

@@ -27,6 +27,7 @@ from ._scene import Scene
 __all__ = [
     "PARAMETERS",
     "DEFAULT_FREE",
+    "PHYSICAL_LOWER",
     "KINDS",
     "Reading",
     "WhiteStandard",
@@ -37,6 +38,9 @@ __all__ = [
 #: Reflection-model parameters per object (docs/conventions.md), in this order everywhere.
 PARAMETERS = ("alpha", "beta", "chi", "mu", "n", "gamma")
 DEFAULT_FREE = ("alpha", "beta", "chi", "mu", "n")
+#: each parameter's physical lower limit and whether that end is open (none has an upper one)
+PHYSICAL_LOWER = {"alpha": (0.0, True), "beta": (0.0, True), "chi": (0.0, False),
+                  "mu": (0.0, True), "n": (1.0, True), "gamma": (0.0, False)}
 KINDS = ("object", "interreflection")
 CALIBRATION_MODES = ("white", "global", "none")
 
@@ -107,6 +111,11 @@ class ObjectMeasurement:
     geometry: str  # "SCE" | "SCI"
     free: tuple[str, ...]
     start: dict[str, float]
+    #: {parameter: (lower, upper)} limits of the fit (None: the physical limit)
+    bounds: dict[str, tuple[float | None, float | None]] = dataclasses.field(
+        default_factory=dict)
+    #: {parameter: (mean, sigma)} Gaussian priors (e.g. n from a datasheet)
+    prior: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,6 +15,7 @@ This module is plain NumPy (the data layer).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 import tomllib
@@ -33,6 +34,7 @@ from ._session import (
     DEFAULT_FREE,
     KINDS,
     PARAMETERS,
+    PHYSICAL_LOWER,
     ObjectMeasurement,
     Reading,
     Session,
@@ -188,7 +190,7 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
             raise ctx.err(f, f"unknown object {name!r}; the scene config has {names}")
         if not isinstance(tab, dict):
             raise ctx.err(f, "must be a table")
-        ctx.finish(tab, ("reflectance", "geometry", "free", "start"), f)
+        ctx.finish(tab, ("reflectance", "geometry", "free", "start", "bounds", "prior"), f)
         refl = None
         if "reflectance" in tab:
             refl = _reflectance_value(ctx, tab, "reflectance", f"{f}.reflectance", base, wl)
@@ -211,9 +213,15 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
             lo, lo_open = {"mu": (0.0, True), "n": (1.0, True)}.get(k, (0.0, False))
             start[k] = ctx.number(start_t, k, f"{f}.start.{k}", lo=lo, lo_open=lo_open,
                                   hi=10.0)
+        bounds, prior = _bounds_and_prior(ctx, tab, f)
+        for k, v in start.items():
+            lo, hi = bounds.get(k, (None, None))
+            if (lo is not None and v < lo) or (hi is not None and v > hi):
+                raise ctx.err(f"{f}.start.{k}", f"{v} lies outside {f}.bounds.{k} "
+                              f"[{lo}, {hi}]")
         objects[name] = ObjectMeasurement(name=name, reflectance=refl, geometry=geom,
                                           free=tuple(x for x in PARAMETERS if x in free),
-                                          start=start)
+                                          start=start, bounds=bounds, prior=prior)
 
     # readings -------------------------------------------------------------------------------
     rl = data.get("readings", None)
@@ -293,3 +301,51 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                    reference=reference, white=white,
                    dark=dark, noise=noise, objects=objects, readings=tuple(readings),
                    lines=lines, model_error=model_error)
+
+
+
+def _bounds_and_prior(ctx: Any, tab: dict, f: str
+                      ) -> tuple[dict[str, tuple[float | None, float | None]],
+                                 dict[str, tuple[float, float]]]:
+    """``objects.<name>.bounds`` ({parameter: [lower, upper]}, either end may be the string
+    "none") and ``objects.<name>.prior`` ({parameter: {mean, sigma}}: a Gaussian prior), both
+    checked against the parameters' physical ranges (a prior's mean inside the bounds)."""
+    bt = ctx.table(tab, "bounds", f"{f}.bounds")
+    ctx.finish(bt, PARAMETERS, f"{f}.bounds")
+    bounds: dict[str, tuple[float | None, float | None]] = {}
+    for k, v in bt.items():
+        fk = f"{f}.bounds.{k}"
+        if not isinstance(v, list) or len(v) != 2:
+            raise ctx.err(fk, f"must be [lower, upper] (either may be \"none\"), got {v!r}")
+        ends: list[float | None] = []
+        for e in v:
+            if e == "none":
+                ends.append(None)
+            elif isinstance(e, bool) or not isinstance(e, int | float) or not math.isfinite(e):
+                raise ctx.err(fk, f"each end must be a finite number or \"none\", got {e!r}")
+            else:
+                ends.append(float(e))
+        lo, hi = ends
+        plo, open_ = PHYSICAL_LOWER[k]
+        for e in (lo, hi):
+            if e is not None and (e < plo or (open_ and e <= plo)):
+                raise ctx.err(fk, f"{k} must be {'>' if open_ else '>='} {plo}, got {e}")
+        if lo is not None and hi is not None and not lo < hi:
+            raise ctx.err(fk, f"lower must be below upper, got [{lo}, {hi}]")
+        if lo is not None or hi is not None:
+            bounds[k] = (lo, hi)
+    pt = ctx.table(tab, "prior", f"{f}.prior")
+    ctx.finish(pt, PARAMETERS, f"{f}.prior")
+    prior: dict[str, tuple[float, float]] = {}
+    for k in pt:
+        fk = f"{f}.prior.{k}"
+        t = ctx.table(pt, k, fk)
+        ctx.finish(t, ("mean", "sigma"), fk)
+        plo, open_ = PHYSICAL_LOWER[k]
+        mean = ctx.number(t, "mean", f"{fk}.mean", lo=plo, lo_open=open_)
+        sigma = ctx.number(t, "sigma", f"{fk}.sigma", lo=0.0, lo_open=True)
+        lo, hi = bounds.get(k, (None, None))
+        if (lo is not None and mean < lo) or (hi is not None and mean > hi):
+            raise ctx.err(f"{fk}.mean", f"{mean} lies outside {f}.bounds.{k} [{lo}, {hi}]")
+        prior[k] = (mean, sigma)
+    return bounds, prior
