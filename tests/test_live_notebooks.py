@@ -13,10 +13,40 @@ pytest.importorskip("cv2")
 pytest.importorskip("spectral_fit.rendering._frame")
 
 
+class _Client(nbclient.NotebookClient):
+    """nbclient's client whose wait for a cell's reply on the shell channel is sliced into 1 s
+    polls: after a cell that displays widgets, a single wait with the cell's timeout often
+    returned only at that timeout although the reply had arrived (jupyter/nbclient#312), which
+    made the sliders' notebook take 600 s instead of 20."""
+
+    async def async_start_new_kernel_client(self):  # noqa: ANN201 (nbclient's signature)
+        from queue import Empty
+        from time import monotonic
+
+        from jupyter_core.utils import ensure_async
+
+        kc = await super().async_start_new_kernel_client()
+        channel = kc.shell_channel
+        get_msg = channel.get_msg
+
+        async def sliced(timeout: float | None = None, **kwargs):  # noqa: ANN202
+            end = None if timeout is None else monotonic() + timeout
+            while True:
+                step = 1.0 if end is None else max(0.0, min(1.0, end - monotonic()))
+                try:
+                    return await ensure_async(get_msg(timeout=step, **kwargs))
+                except Empty:
+                    if end is not None and monotonic() >= end:
+                        raise
+
+        channel.get_msg = sliced
+        return kc
+
+
 def _run(name: str) -> nbformat.NotebookNode:
     nb = nbformat.read(ROOT / "notebooks" / name, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                                     resources={"metadata": {"path": str(ROOT)}})
+    client = _Client(nb, timeout=600, kernel_name="python3",
+                     resources={"metadata": {"path": str(ROOT)}})
     client.execute()
     return nb
 
