@@ -147,6 +147,16 @@ def _transfer(w: jax.Array, tu: list[jax.Array], tv: list[jax.Array], lum: jax.A
 _HIDDEN_BLOCK = 2
 
 
+def _block_sums(a: jax.Array, axis: int, g: int, b: int) -> jax.Array:
+    """Sums over blocks of b × b samples of the k grids of g × g samples along ``axis`` of
+    ``a`` (length k·g², rows first): that axis becomes k·(g/b)², in the same order."""
+    gb = g // b
+    k = a.shape[axis] // (g * g)
+    a = a.reshape(*a.shape[:axis], k, gb, b, gb, b, *a.shape[axis + 1:])
+    a = jnp.sum(a, axis=(axis + 2, axis + 4))
+    return a.reshape(*a.shape[:axis], k * gb * gb, *a.shape[axis + 3:])
+
+
 def _hidden_env(x: jax.Array, w: jax.Array, ypos: jax.Array, yarea: jax.Array,
                 env: EnvironmentMap, g: int) -> jax.Array:
     """Σ_y F(x, y) L_env(ω_xy) (..., R, r) in the map's r channels: the environment the
@@ -157,18 +167,10 @@ def _hidden_env(x: jax.Array, w: jax.Array, ypos: jax.Array, yarea: jax.Array,
     angular size there: what the neighbour's actual surface hides, not a bounding sphere's
     cone."""
     b = _HIDDEN_BLOCK if g % _HIDDEN_BLOCK == 0 else 1
-    gb = g // b
-    lead = ypos.shape[:-2]
-    k = ypos.shape[-2] // (g * g)
-
-    def blocks(a: jax.Array, n_lead: int) -> jax.Array:
-        a = a.reshape(*a.shape[:n_lead], k, gb, b, gb, b, *a.shape[n_lead + 1:])
-        a = jnp.sum(a, axis=(n_lead + 2, n_lead + 4))
-        return a.reshape(*a.shape[:n_lead], k * gb * gb, *a.shape[n_lead + 3:])
-
-    area = blocks(yarea, len(lead))
-    pos = blocks(ypos * yarea[..., None], len(lead)) / jnp.maximum(area, 1e-30)[..., None]
-    wb = blocks(w, w.ndim - 1)
+    n_lead = ypos.ndim - 2
+    area = _block_sums(yarea, n_lead, g, b)
+    pos = _block_sums(ypos * yarea[..., None], n_lead, g, b) / jnp.maximum(area, 1e-30)[..., None]
+    wb = _block_sums(w, w.ndim - 1, g, b)
     d = pos[..., None, :, :] - x[..., :, None, :]
     r2 = jnp.maximum(jnp.sum(d * d, -1), 1e-30)
     inv = jax.lax.rsqrt(r2)
@@ -238,15 +240,11 @@ def _sample_coverage(geom: IRGeometry) -> jax.Array:
     g = geom.gather_size
     b = _COVERAGE_BLOCK if g % _COVERAGE_BLOCK == 0 else 1
     gb = g // b
-
-    def blocks(x: jax.Array) -> jax.Array:  # (P, M, ...) → (P, gb², ...) block sums
-        x = x.reshape(p_count, gb, b, gb, b, *x.shape[2:]).sum(axis=(2, 4))
-        return x.reshape(p_count, gb * gb, *x.shape[3:])
-
-    area = blocks(geom.s_area)
-    pos = blocks(geom.s_pos * geom.s_area[..., None]) / jnp.maximum(area, 1e-30)[..., None]
+    area = _block_sums(geom.s_area, 1, g, b)
+    pos = (_block_sums(geom.s_pos * geom.s_area[..., None], 1, g, b)
+           / jnp.maximum(area, 1e-30)[..., None])
     pos = jnp.where((area > 0)[..., None], pos, geom.centre_j[:, None])
-    nrm = _normalize(blocks(geom.s_nrm * geom.s_area[..., None])
+    nrm = _normalize(_block_sums(geom.s_nrm * geom.s_area[..., None], 1, g, b)
                      + jnp.where(area > 0, 0.0, 1.0)[..., None] * geom.frame[:, None, 2])
     recv = np.asarray([j for _, j in geom.pairs], np.int32)
     src = recv[:, None] * k_per + np.arange(k_per)[None, :]  # (P, k_per)
