@@ -23,6 +23,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "calibrate",
     "validate": "validate",
     "fit": "fit",
+    "plan": "plan",
     "live": "live",
     "calibrate-colour": "calibrate_colour",
 }

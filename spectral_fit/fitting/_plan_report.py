@@ -1,0 +1,112 @@
+"""Outputs of a measurement plan (:func:`write_plan`): a session template with the planned
+readings (``session.toml``, ``files = []`` to fill in), ``plan.json`` and ``plan.png`` (where to
+stand and aim: top and side views). Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..io import Scene
+from ._plan import PlanResult
+
+__all__ = ["write_plan", "plan_session_toml"]
+
+
+def _toml(v: Any) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple | np.ndarray):
+        return "[" + ", ".join(_toml(x) for x in list(v)) + "]"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return repr(float(v))
+
+
+def plan_session_toml(result: PlanResult, *, scene_ref: str, units: str = "W.sr^-1.m^-2.nm^-1"
+                      ) -> str:
+    """The manifest of a session of the planned readings (``docs/measurements.md``), each
+    with ``files = []``: once every reading's spectrum files are listed, the session loader
+    reads it. ``scene_ref``: the scene config's path relative to the manifest's folder."""
+    out = ["# Planned readings (docs/planning.md). Take each reading, export its spectra and list",
+           "# them in its `files`; add [white_standard] and [dark] as in docs/measurements.md.",
+           "", "[session]", "format = 1", f"scene = {_toml(scene_ref)}", f"units = {_toml(units)}",
+           f"notes = {_toml(f'{len(result.chosen)} planned readings')}"]
+    for r in result.chosen:
+        out += ["", "[[readings]]", f"id = {_toml(r['id'])}", f"object = {_toml(r['object'])}",
+                f"kind = {_toml(r['kind'])}", "files = []",
+                f"aim = {_toml([round(float(x), 6) for x in r['aim']])}",
+                f"position = {_toml([round(float(x), 6) for x in r['position']])}",
+                f"field_angle_deg = {_toml(r['field_angle_deg'])}",
+                f"distance_m = {_toml(round(r['distance_m'], 4))}"]
+    return "\n".join(out) + "\n"
+
+
+def _picture(result: PlanResult, scene: Scene, path: Path) -> None:
+    """Top (x–z) and side (z–y) views: objects as circles, instrument positions numbered,
+    aim lines to the aim points."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .._runtime.fileio import atomic_path
+    from ._prepare import scene_geometry
+
+    geoms = scene_geometry(scene)
+    colours = {o.name: f"C{i}" for i, o in enumerate(scene.objects)}
+    fig, axes = plt.subplots(1, 2, figsize=(12, 6))
+    for ax, (a, b), title in ((axes[0], (0, 2), "top view (x, z)"),
+                              (axes[1], (2, 1), "side view (z, y)")):
+        for o, g in zip(scene.objects, geoms, strict=True):
+            c = np.asarray(o.position, np.float64)
+            r = float(np.max(np.linalg.norm(np.asarray(g.vertices, np.float64) - c, axis=1)))
+            ax.add_patch(plt.Circle((c[a], c[b]), r, fill=False, color=colours[o.name], lw=2))
+            ax.annotate(o.name, (c[a], c[b]), ha="center", va="center",
+                        color=colours[o.name], fontsize=9)
+        labels: dict[tuple[float, float], list[str]] = {}
+        for n, rd in enumerate(result.chosen):
+            p, t = np.asarray(rd["position"]), np.asarray(rd["aim"])
+            col = colours.get(rd["object"], "k")
+            ax.plot([p[a], t[a]], [p[b], t[b]], "-", color=col, lw=0.8, alpha=0.8)
+            ax.plot(p[a], p[b], "^", color=col, ms=7)
+            ax.plot(t[a], t[b], "o", color=col, ms=3)
+            labels.setdefault((round(p[a], 3), round(p[b], 3)), []).append(str(n + 1))
+        for (u, v), text in labels.items():  # readings from one place share a label
+            ax.annotate(",".join(text), (u, v), textcoords="offset points", xytext=(4, 4),
+                        fontsize=9)
+        ax.set_xlabel(["x", "y", "z"][a] + " (m)")
+        ax.set_ylabel(["x", "y", "z"][b] + " (m)")
+        ax.set_title(title)
+        ax.set_aspect("equal")
+        ax.autoscale_view()
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"{len(result.chosen)} planned readings (triangle: instrument, dot: aim point); "
+                 f"worst standard error {result.objective_after:.3g} tolerances")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+
+
+def write_plan(result: PlanResult, folder: str | os.PathLike[str], *, scene: Scene,
+               config_path: str | os.PathLike[str], picture: bool = True) -> dict[str, str]:
+    """Write ``session.toml`` (the planned readings), ``plan.json`` and ``plan.png`` into
+    ``folder`` (created; each file atomically). Returns {what: path}."""
+    from .._runtime.fileio import atomic_write_text
+
+    root = Path(folder)
+    root.mkdir(parents=True, exist_ok=True)
+    ref = os.path.relpath(Path(config_path).resolve(), root.resolve())
+    out = {"session": str(root / "session.toml"), "plan": str(root / "plan.json")}
+    atomic_write_text(out["session"], plan_session_toml(result, scene_ref=ref))
+    atomic_write_text(out["plan"], json.dumps(result.to_json(), indent=2) + "\n")
+    if picture:
+        out["picture"] = str(root / "plan.png")
+        _picture(result, scene, Path(out["picture"]))
+    return out
