@@ -318,7 +318,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     # the candidates ----------------------------------------------------------------------
     t1 = time.perf_counter()
     say("casting the candidates' central rays ...")
-    cands = plan_candidates(scene, region, geoms)
+    cands = plan_candidates(scene, region, geoms, margin_m=2.0 * sigma_aim_m)
     say(f"{len(cands)} candidates; their sensitivities at {draws} parameter draws ...")
     info = candidate_information(scene, cands, values, free=unknowns, fit_scale=fit_scale,
                                  scale=scale, noise=noise, sigma_aim_m=sigma_aim_m,

@@ -274,12 +274,16 @@ def _positions(region: Region, centre: np.ndarray) -> np.ndarray:
     return np.asarray(out)
 
 
-def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeometry]
-                    ) -> list[dict[str, Any]]:
+def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeometry], *,
+                    margin_m: float = 0.0, resolution: int = 6) -> list[dict[str, Any]]:
     """The readings the instrument can take from the region.
 
     Args:
         geometries: the scene's objects (:func:`~spectral_fit.fitting.scene_geometry`).
+        margin_m: an aiming error the field must stay on its object for: the field widened
+            by 2 × margin_m / distance (radians) and sampled by a ``resolution``² camera must
+            see only its object (so no aim error up to ``margin_m`` moves the field over the
+            object's edge).
 
     Returns:
         dicts with ``object``, ``position`` (3,), ``aim`` (3,), ``field_angle_deg`` and
@@ -330,7 +334,26 @@ def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeo
     if not kept:
         raise region.error("objects", "no candidate sees its object: every aim point is hidden "
                            "from every instrument position of the region (unreachable region)")
-    return [{**r, "field_angle_deg": float(f)} for r in kept for f in region.field_angles_deg]
+    out = [{**r, "field_angle_deg": float(f)} for r in kept for f in region.field_angles_deg]
+    on = _field_on_object(geometries, out, names, margin_m, resolution)
+    out = [c for c, ok in zip(out, on, strict=True) if ok]
+    if not out:
+        raise region.error("field_angles_deg", f"no candidate's field (with a {1e3 * margin_m:g} "
+                           "mm aiming margin) lies wholly on its object (unreachable region)")
+    return out
+
+
+def _field_on_object(geometries: Sequence[ObjectGeometry], cands: list[dict[str, Any]],
+                     names: list[str], margin_m: float, res: int) -> np.ndarray:
+    """(N,) whether each candidate's field, widened by the aiming margin, sees only its
+    object (every pixel ray of a ``res``² camera; the fit's spot ray casting)."""
+    pos = np.stack([c["position"] for c in cands])
+    aim = np.stack([c["aim"] for c in cands])
+    d = np.array([c["distance_m"] for c in cands])
+    field = np.array([c["field_angle_deg"] for c in cands]) + np.degrees(2 * margin_m / d)
+    S = _spot_samples(list(geometries), pos, aim, field, res)
+    obj = np.array([names.index(c["object"]) for c in cands])
+    return np.all(S["obj"] == obj[:, None], axis=1)
 
 
 def _centre_ray_hits(geometries: Sequence[ObjectGeometry], raw: list[dict[str, Any]],
