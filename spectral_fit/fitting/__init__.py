@@ -49,6 +49,7 @@ _EXPORTS: dict[str, str] = {
     "plan_measurements": "_plan",
     "plan_objective": "_plan_design",
     "predict": "_model",
+    "prepare_candidates": "_plan",
     "prepare_fit": "_prepare",
     "probe_radiance": "_cache_model",
     "reading_information": "_plan_design",

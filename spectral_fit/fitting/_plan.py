@@ -40,7 +40,7 @@ from ._plan_design import (
     tolerances,
 )
 
-__all__ = ["PlanResult", "plan_measurements", "candidate_information"]
+__all__ = ["PlanResult", "plan_measurements", "prepare_candidates", "candidate_information"]
 
 #: a candidate is kept when at least this fraction of its field lies on its object
 _MIN_COVERAGE = 0.99
@@ -138,32 +138,14 @@ def _session_for(scene: Scene, base: Session | None, spots: list[dict[str, Any]]
                    noise=NoiseModel(1.0, 0.0, "default"), objects={}, readings=reads)
 
 
-def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values: np.ndarray,
-                          *, free: tuple[tuple[int, int], ...], fit_scale: bool = False,
-                          scale: np.ndarray | None = None, noise: float = 0.01,
-                          sigma_aim_m: float = 1e-3, spot_resolution: int = 4,
-                          session: Session | None = None, env: Any = None,
-                          geometries: Any = None, chunk: int = 256,
-                          progress: Callable[[str], None] | None = None
-                          ) -> dict[str, np.ndarray]:
-    """Fisher information of each candidate reading at each parameter draw.
-
-    The candidates are prepared as the fit prepares readings (their fields ray-cast at
-    ``spot_resolution``, the radiance cache built; without the interreflection term), in
-    chunks of ``chunk`` (the last one padded, so one compiled program serves all).
-
-    Args:
-        candidates: dicts with ``object``, ``position``, ``aim``, ``field_angle_deg``,
-            ``distance_m``.
-        values: (D, O, 6) physical parameters of each draw; ``scale`` (D,) the global scale.
-        noise: relative noise of a reading (σ = noise × max(L, 1e-3 × its peak band)).
-        sigma_aim_m: aiming error (m, 1σ per direction across the axis).
-
-    Returns:
-        ``information`` (N, D, F, F) in tolerance units, ``coverage`` (N,) fraction of the
-        field on the object, ``mean`` (N, D, L) radiance, ``jacobian`` (N, D, L, F),
-        ``aim_gradient`` (N, D, L, 2) (per metre).
-    """
+def prepare_candidates(scene: Scene, candidates: list[dict[str, Any]], *,
+                       session: Session | None = None, spot_resolution: int = 4,
+                       env: Any = None, geometries: Any = None, chunk: int = 256,
+                       progress: Callable[[str], None] | None = None) -> list[Any]:
+    """The candidates prepared as the fit prepares readings (fields ray-cast at
+    ``spot_resolution``, radiance cache built; without the interreflection term), in chunks of
+    ``chunk`` (the last one padded with copies of its last candidate, so that one compiled
+    program serves every chunk). Returns one :class:`PreparedFit` per chunk."""
     from ._prepare import prepare_fit, scene_environment, scene_geometry
 
     say = progress or (lambda _m: None)
@@ -174,22 +156,61 @@ def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values
     opts = FitOptions(spot_resolution=spot_resolution, interreflection="none")
     N = len(candidates)
     size = min(chunk, N)
+    out = []
+    for start in range(0, N, size):
+        part = candidates[start:start + size]
+        part = part + [part[-1]] * (size - len(part))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out.append(prepare_fit(scene, _session_for(scene, session, part), options=opts,
+                                   env=env, geometries=geometries, check=False))
+        say(f"prepared candidates {min(start + size, N)}/{N}")
+    return out
+
+
+def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values: np.ndarray,
+                          *, free: tuple[tuple[int, int], ...], fit_scale: bool = False,
+                          scale: np.ndarray | None = None, noise: float = 0.01,
+                          sigma_aim_m: float = 1e-3, spot_resolution: int = 4,
+                          session: Session | None = None, env: Any = None,
+                          geometries: Any = None, chunk: int = 256,
+                          prepared: list[Any] | None = None,
+                          progress: Callable[[str], None] | None = None
+                          ) -> dict[str, np.ndarray]:
+    """Fisher information of each candidate reading at each parameter draw, through the fit's
+    forward model (:func:`reading_sensitivity`, :func:`reading_information`).
+
+    Args:
+        candidates: dicts with ``object``, ``position``, ``aim``, ``field_angle_deg``,
+            ``distance_m``.
+        values: (D, O, 6) physical parameters of each draw; ``scale`` (D,) the global scale.
+        noise: relative noise of a reading (σ = noise × max(L, 1e-3 × its peak band)).
+        sigma_aim_m: aiming error (m, 1σ per direction across the axis).
+        prepared: :func:`prepare_candidates` of these candidates (default: prepared here).
+
+    Returns:
+        ``information`` (N, D, F, F) in tolerance units, ``coverage`` (N,) fraction of the
+        field on the object, ``mean`` (N, D, L) radiance, ``jacobian`` (N, D, L, F),
+        ``aim_gradient`` (N, D, L, 2) (per metre).
+    """
+    say = progress or (lambda _m: None)
+    if prepared is None:
+        prepared = prepare_candidates(scene, candidates, session=session,
+                                      spot_resolution=spot_resolution, env=env,
+                                      geometries=geometries, chunk=chunk, progress=say)
+    N = len(candidates)
+    size = len(prepared[0].session.readings)
     tol = tolerances(values, free, scale if fit_scale else None)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("information", "coverage", "mean",
                                                           "jacobian", "aim_gradient")}
-    for start in range(0, N, size):
-        part = candidates[start:start + size]
-        n = len(part)
-        part = part + [part[-1]] * (size - n)
-        sess = _session_for(scene, session, part)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            prep = prepare_fit(scene, sess, options=opts, env=env, geometries=geometries,
-                               check=False)
+    for c, prep in enumerate(prepared):
+        start = c * size
+        n = min(size, N - start)
+        reads = prep.session.readings
         m, J, g = reading_sensitivity(
             prep.problem, values, free=free, fit_scale=fit_scale, scale=scale,
-            aim_distances=np.array([c["distance_m"] for c in part]),
-            field_angles_deg=np.array([c["field_angle_deg"] for c in part]),
+            aim_distances=np.array([np.linalg.norm(r.aim - r.position) for r in reads]),
+            field_angles_deg=np.array([r.field_angle_deg for r in reads]),
             spot_resolution=spot_resolution)
         peak = m.max(axis=-1, keepdims=True)
         sigma = noise * np.maximum(m, 1e-3 * np.maximum(peak, 1e-30))
