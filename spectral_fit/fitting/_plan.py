@@ -17,9 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-import warnings
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,15 +30,14 @@ from ._plan_design import (
     UNIDENTIFIED,
     default_range,
     draws_in_box,
-    reading_information,
-    reading_sensitivity,
     scaled_variances,
     select_readings,
     stderr_from_information,
     tolerances,
 )
+from ._plan_information import candidate_information, session_information
 
-__all__ = ["PlanResult", "plan_measurements", "prepare_candidates", "candidate_information"]
+__all__ = ["PlanResult", "plan_measurements"]
 
 #: a candidate is kept when at least this fraction of its field lies on its object
 _MIN_COVERAGE = 0.99
@@ -117,111 +114,6 @@ class PlanResult:
             "settings": self.settings,
             "timings": self.timings,
         }
-
-
-def _session_for(scene: Scene, base: Session | None, spots: list[dict[str, Any]]) -> Session:
-    """A session whose readings are ``spots`` (placeholder spectra), with the calibration,
-    white standard and objects of ``base`` (or none)."""
-    from ..io import NoiseModel, Reading
-
-    wl = np.asarray(scene.wavelengths, np.float64)
-    reads = tuple(
-        Reading(id=f"candidate_{i}", object=s["object"], kind="object", files=(),
-                repeats=np.ones((1, wl.size)), position=np.asarray(s["position"], np.float64),
-                aim=np.asarray(s["aim"], np.float64), field_angle_deg=float(s["field_angle_deg"]),
-                distance_m=None, line=None, index=i) for i, s in enumerate(spots))
-    if base is not None:
-        return base.replace(readings=reads)
-    return Session(path=Path("<plan>"), scene_path=None, scene=scene, wavelengths=wl,
-                   units="W.sr^-1.m^-2.nm^-1", instrument="planned", calibration="none",
-                   bandwidth_nm=0.0, reference=None, white=None, dark=None,
-                   noise=NoiseModel(1.0, 0.0, "default"), objects={}, readings=reads)
-
-
-def prepare_candidates(scene: Scene, candidates: list[dict[str, Any]], *,
-                       session: Session | None = None, spot_resolution: int = 4,
-                       env: Any = None, geometries: Any = None, chunk: int = 256,
-                       progress: Callable[[str], None] | None = None) -> list[Any]:
-    """The candidates prepared as the fit prepares readings (fields ray-cast at
-    ``spot_resolution``, radiance cache built; without the interreflection term), in chunks of
-    ``chunk`` (the last one padded with copies of its last candidate, so that one compiled
-    program serves every chunk). Returns one :class:`PreparedFit` per chunk."""
-    from ._prepare import prepare_fit, scene_environment, scene_geometry
-
-    say = progress or (lambda _m: None)
-    if env is None:
-        env = scene_environment(scene, compress_tol=FitOptions().compress_tol)
-    if geometries is None:
-        geometries = scene_geometry(scene)
-    opts = FitOptions(spot_resolution=spot_resolution, interreflection="none")
-    N = len(candidates)
-    size = min(chunk, N)
-    out = []
-    for start in range(0, N, size):
-        part = candidates[start:start + size]
-        part = part + [part[-1]] * (size - len(part))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            out.append(prepare_fit(scene, _session_for(scene, session, part), options=opts,
-                                   env=env, geometries=geometries, check=False))
-        say(f"prepared candidates {min(start + size, N)}/{N}")
-    return out
-
-
-def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values: np.ndarray,
-                          *, free: tuple[tuple[int, int], ...], fit_scale: bool = False,
-                          scale: np.ndarray | None = None, noise: float = 0.01,
-                          sigma_aim_m: float = 1e-3, spot_resolution: int = 4,
-                          session: Session | None = None, env: Any = None,
-                          geometries: Any = None, chunk: int = 256,
-                          prepared: list[Any] | None = None,
-                          progress: Callable[[str], None] | None = None
-                          ) -> dict[str, np.ndarray]:
-    """Fisher information of each candidate reading at each parameter draw, through the fit's
-    forward model (:func:`reading_sensitivity`, :func:`reading_information`).
-
-    Args:
-        candidates: dicts with ``object``, ``position``, ``aim``, ``field_angle_deg``,
-            ``distance_m``.
-        values: (D, O, 6) physical parameters of each draw; ``scale`` (D,) the global scale.
-        noise: relative noise of a reading (σ = noise × max(L, 1e-3 × its peak band)).
-        sigma_aim_m: aiming error (m, 1σ per direction across the axis).
-        prepared: :func:`prepare_candidates` of these candidates (default: prepared here).
-
-    Returns:
-        ``information`` (N, D, F, F) in tolerance units, ``coverage`` (N,) fraction of the
-        field on the object, ``mean`` (N, D, L) radiance, ``jacobian`` (N, D, L, F),
-        ``aim_gradient`` (N, D, L, 2) (per metre).
-    """
-    say = progress or (lambda _m: None)
-    if prepared is None:
-        prepared = prepare_candidates(scene, candidates, session=session,
-                                      spot_resolution=spot_resolution, env=env,
-                                      geometries=geometries, chunk=chunk, progress=say)
-    N = len(candidates)
-    size = len(prepared[0].session.readings)
-    tol = tolerances(values, free, scale if fit_scale else None)
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("information", "coverage", "mean",
-                                                          "jacobian", "aim_gradient")}
-    for c, prep in enumerate(prepared):
-        start = c * size
-        n = min(size, N - start)
-        reads = prep.session.readings
-        m, J, g = reading_sensitivity(
-            prep.problem, values, free=free, fit_scale=fit_scale, scale=scale,
-            aim_distances=np.array([np.linalg.norm(r.aim - r.position) for r in reads]),
-            field_angles_deg=np.array([r.field_angle_deg for r in reads]),
-            spot_resolution=spot_resolution)
-        peak = m.max(axis=-1, keepdims=True)
-        sigma = noise * np.maximum(m, 1e-3 * np.maximum(peak, 1e-30))
-        info = reading_information(J, sigma, g, tol, sigma_aim_m=sigma_aim_m)
-        parts["information"].append(np.swapaxes(info, 0, 1)[:n])
-        parts["coverage"].append(prep.coverage[:n])
-        parts["mean"].append(np.swapaxes(m, 0, 1)[:n])
-        parts["jacobian"].append(np.swapaxes(J, 0, 1)[:n])
-        parts["aim_gradient"].append(np.swapaxes(g, 0, 1)[:n])
-        say(f"sensitivity of candidates {start + n}/{N}")
-    return {k: np.concatenate(v) for k, v in parts.items()}
 
 
 def _unknowns(scene: Scene, session: Session | None, region: Region, free_params: tuple[str, ...],
@@ -329,12 +221,12 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     # the draws --------------------------------------------------------------------------
     centre = np.array([values0[o, k] for o, k in unknowns] + ([scale0] if fit_scale else []))
     lower, upper = _ranges(session, names, unknowns, centre, stderr0, fit_scale)
-    y = draws_in_box(centre, lower, upper, draws, seed)
+    y = draws_in_box(centre, lower, upper, n=draws, seed=seed)
     values = np.repeat(values0[None], draws, 0)
     for j, (o, k) in enumerate(unknowns):
         values[:, o, k] = y[:, j]
     scale = y[:, -1] if fit_scale else np.ones(draws)
-    tol = tolerances(values, unknowns, scale if fit_scale else None)
+    tol = tolerances(values, unknowns, scale=scale if fit_scale else None)
 
     # the candidates ----------------------------------------------------------------------
     t1 = time.perf_counter()
@@ -360,8 +252,9 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     # the information already there ---------------------------------------------------------
     base = np.zeros((draws, F, F))
     if prep_s is not None:
-        base = base + _session_information(prep_s, values, scale, unknowns, fit_scale, tol,
-                                           sigma_aim_m=sigma_aim_m, resolution=fo.spot_resolution)
+        base = base + session_information(prep_s, values, scale=scale, unknowns=unknowns,
+                                          fit_scale=fit_scale, tol=tol, sigma_aim_m=sigma_aim_m,
+                                          resolution=fo.spot_resolution)
 
     # the choice ------------------------------------------------------------------------------
     t1 = time.perf_counter()
@@ -431,23 +324,3 @@ def _ranges(session: Session | None, names: list[str], unknowns: tuple[tuple[int
         lo.append(a)
         hi.append(b)
     return np.asarray(lo), np.asarray(hi)
-
-
-def _session_information(prep: Any, values: np.ndarray, scale: np.ndarray,
-                         unknowns: tuple[tuple[int, int], ...], fit_scale: bool,
-                         tol: np.ndarray, *, sigma_aim_m: float, resolution: int) -> np.ndarray:
-    """(D, F, F) information of the session's readings (their standard errors, the same
-    aiming error) and of its priors, in tolerance units."""
-    pr = prep.problem
-    s = prep.session
-    dist = np.array([np.linalg.norm(r.aim - r.position) for r in s.readings])
-    fields = np.array([r.field_angle_deg for r in s.readings])
-    _, J, g = reading_sensitivity(pr, values, free=unknowns, fit_scale=fit_scale, scale=scale,
-                                  aim_distances=dist, field_angles_deg=fields,
-                                  spot_resolution=resolution)
-    info = reading_information(J, np.asarray(pr.readings.sigma, np.float64), g, tol,
-                               sigma_aim_m=sigma_aim_m).sum(axis=1)
-    for j, _, sd in pr.prior:
-        jj = unknowns.index(pr.free[j])
-        info[:, jj, jj] += (tol[:, jj] / sd) ** 2
-    return info

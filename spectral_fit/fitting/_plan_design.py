@@ -25,6 +25,8 @@ from ._problem import FitProblem
 __all__ = [
     "TOLERANCES",
     "UNIDENTIFIED",
+    "default_range",
+    "draws_in_box",
     "reading_sensitivity",
     "reading_information",
     "scaled_variances",
@@ -50,8 +52,8 @@ RIDGE = 1e-8
 UNIDENTIFIED = 1e6
 
 
-def tolerances(values: np.ndarray, free: Sequence[tuple[int, int]], scale: np.ndarray | None
-               = None) -> np.ndarray:
+def tolerances(values: np.ndarray, free: Sequence[tuple[int, int]], *,
+               scale: np.ndarray | None = None) -> np.ndarray:
     """(D, F) tolerance of each unknown at each draw (physical units; :data:`TOLERANCES`,
     relative ones of the draw's value, at least 1e-6) for ``values`` (D, O, 6) and, when the
     scale is an unknown, ``scale`` (D,)."""
@@ -197,7 +199,7 @@ def scaled_variances(info: np.ndarray) -> np.ndarray:
         return np.diagonal(np.linalg.pinv(M, hermitian=True), axis1=-2, axis2=-1).copy()
 
 
-def plan_objective(info: np.ndarray, mask: np.ndarray | None = None) -> float:
+def plan_objective(info: np.ndarray, *, mask: np.ndarray | None = None) -> float:
     """The design criterion: the worst scaled variance over the draws and the unknowns
     named by ``mask`` (F,) (default all) of the total information ``info`` (D, F, F)."""
     v = scaled_variances(info)
@@ -241,7 +243,10 @@ def select_readings(candidates: np.ndarray, budget: int, *, base: np.ndarray | N
     """
     N, D, F, _ = candidates.shape
     if not 1 <= budget <= N:
-        raise ValueError(f"budget {budget} outside [1, {N}]")
+        from .._runtime.errors import InputError
+
+        raise InputError(f"must be in [1, {N}] (the number of candidates), got {budget}",
+                         field="budget")
     base = np.zeros((D, F, F)) if base is None else np.asarray(base, np.float64)
     mask = np.ones(F, bool) if mask is None else np.asarray(mask, bool)
     say = progress or (lambda _m: None)
@@ -254,7 +259,7 @@ def select_readings(candidates: np.ndarray, budget: int, *, base: np.ndarray | N
         chosen.append(c)
         total = total + candidates[c]
         say(f"greedy {step + 1}/{budget}: candidate {c}")
-    best = (plan_objective(total, mask), float(_soft(scaled_variances(total)[..., mask])))
+    best = (plan_objective(total, mask=mask), float(_soft(scaled_variances(total)[..., mask])))
     for npass in range(max_passes):
         improved = False
         for i in range(budget):
@@ -273,11 +278,11 @@ def select_readings(candidates: np.ndarray, budget: int, *, base: np.ndarray | N
         say(f"exchange pass {npass + 1}: worst scaled variance {best[0]:.4g}")
         if not improved:
             break
-    return chosen, plan_objective(total, mask)
+    return chosen, plan_objective(total, mask=mask)
 
 
-def draws_in_box(centre: np.ndarray, lower: np.ndarray, upper: np.ndarray, n: int, seed: int
-                 ) -> np.ndarray:
+def draws_in_box(centre: np.ndarray, lower: np.ndarray, upper: np.ndarray, *, n: int,
+                 seed: int = 0) -> np.ndarray:
     """(n, F) parameter draws spanning the box [lower, upper] (F,): the centre first, then a
     Latin hypercube of n − 1 points (each unknown's range cut into n − 1 strata, one draw in
     each, shuffled independently per unknown)."""

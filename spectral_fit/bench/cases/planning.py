@@ -31,13 +31,14 @@ def planning(opts: BenchOptions) -> dict[str, Any]:
         PARAMETERS,
         Region,
         candidate_information,
+        default_range,
+        draws_in_box,
         plan_candidates,
         prepare_candidates,
         scene_environment,
         scene_geometry,
         select_readings,
     )
-    from ...fitting._plan_design import default_range, draws_in_box
     from ...io import load_scene
 
     n_cand = 256 if opts.quick else 2000
@@ -58,7 +59,8 @@ def planning(opts: BenchOptions) -> dict[str, Any]:
                       for o in scene.objects])
     centre = np.array([vals0[o, k] for o, k in free])
     rng = [default_range(PARAMETERS[k], vals0[o, k]) for o, k in free]
-    y = draws_in_box(centre, np.array([a for a, _ in rng]), np.array([b for _, b in rng]), 8, 0)
+    y = draws_in_box(centre, np.array([a for a, _ in rng]), np.array([b for _, b in rng]),
+                     n=8, seed=0)
     values = np.repeat(vals0[None], 8, 0)
     for j, (o, k) in enumerate(free):
         values[:, o, k] = y[:, j]
