@@ -262,8 +262,11 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     vals0 = np.asarray(problem.values, np.float64)
     scale0 = 1.0
     if problem.fit_scale:  # closed-form start for the scale from the diffuse term alone
-        pr_ = {k: np.asarray(getattr(problem, k), np.float64) for k in
-               ("irradiance", "reflectance", "average", "background", "measured", "calibration")}
+        pr_ = {k: np.asarray(v, np.float64) for k, v in (
+            ("irradiance", problem.irradiance), ("reflectance", problem.surfaces.reflectance),
+            ("average", problem.readings.average), ("background", problem.readings.background),
+            ("measured", problem.readings.measured),
+            ("calibration", problem.instrument.calibration))}
         obj = np.maximum(np.asarray(problem.receivers.object), 0)
         diff = vals0[obj, 0:1] / math.pi * pr_["reflectance"][obj] * pr_["irradiance"]
         diff *= (np.asarray(problem.receivers.object) >= 0)[:, None]
