@@ -242,3 +242,43 @@ def test_cli_plan(small, tmp_path, capsys):
     rc = main(["plan", str(cfg), "--budget", "2", "--out", str(out), "--field-angles", "5"])
     assert rc == 2
     assert "field_angles_deg" in capsys.readouterr().err
+
+
+def test_information_woodbury_matches_direct_inverse():
+    """The information with an aiming error (Woodbury) against Jᵀ C⁻¹ J with the covariance
+    C = diag(σ²) + σ_aim² G Gᵀ inverted directly."""
+    rng = np.random.default_rng(0)
+    D, B, L, F = 2, 3, 7, 4
+    J = rng.standard_normal((D, B, L, F))
+    sigma = 0.1 + rng.random((D, B, L))
+    G = rng.standard_normal((D, B, L, 2))
+    tol = 0.5 + rng.random((D, F))
+    got = fitting.reading_information(J, sigma, G, tol, sigma_aim_m=0.3)
+    for d in range(D):
+        for b in range(B):
+            C = np.diag(sigma[d, b] ** 2) + 0.09 * G[d, b] @ G[d, b].T
+            Js = J[d, b] * tol[d]
+            np.testing.assert_allclose(got[d, b], Js.T @ np.linalg.solve(C, Js), rtol=1e-9,
+                                       atol=1e-12)
+
+
+def test_session_information_matches_the_fit(small, tmp_path):
+    """With a session (noiseless own-model readings of 10 spots, calibration "global": the
+    scale is a nuisance unknown), the plan's standard errors before equal the fit's own
+    (Jacobian) standard errors at its optimum (no aiming error), and the plan lowers the
+    worst one."""
+    from helpers.fitting import spots, write_session
+
+    cfg, scene, _ = small
+    opts = fitting.FitOptions(spot_resolution=RES)
+    clean = fitting.simulate_readings(scene, spots(), options=opts)
+    session = load_session(write_session(tmp_path / "s", cfg, clean, scene.wavelengths),
+                           scene=scene)
+    res = fitting.fit(scene, session, options=opts, starts=1, holdout=False, aim_step_m=0.0)
+    plan = fitting.plan_measurements(scene, session, budget=2, region=REGION,
+                                     sigma_aim_m=0.0, draws=2, fit_options=opts)
+    assert plan.unknowns[-1] == "scale" and "yellow.alpha" not in plan.unknowns
+    for j, label in enumerate(plan.unknowns[:-1]):
+        obj, p = label.split(".")
+        assert plan.stderr_before[j] == pytest.approx(res.stderr[obj][p], rel=0.02), label
+    assert plan.objective_after < plan.objective_before
