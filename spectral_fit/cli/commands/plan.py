@@ -7,6 +7,10 @@ import dataclasses
 import json
 import math
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ...fitting import Region
 
 HELP = "plan K spectroradiometer readings that pin every parameter down (experiment design)"
 
@@ -63,7 +67,7 @@ def _floats(text: str, option: str, counts: tuple[int, ...] | None = None) -> li
     return out
 
 
-def region_from_args(args: argparse.Namespace) -> object:
+def region_from_args(args: argparse.Namespace) -> Region:
     """The region file (or the default region) with the command-line options applied."""
     from ...fitting import Region, load_region
 
