@@ -53,6 +53,10 @@ def _say(msg: str) -> None:
     print(f"plan: {msg}", file=sys.stderr, flush=True)
 
 
+def _num(x: float, fmt: str = ".4g") -> str:
+    return format(x, fmt) if math.isfinite(x) else "unidentified"
+
+
 def _floats(text: str, option: str, counts: tuple[int, ...] | None = None) -> list[float]:
     from ..._runtime.errors import InputError
 
@@ -129,10 +133,14 @@ def run(args: argparse.Namespace) -> int:
     _say(f"  {'parameter':>14s} {'tolerance':>10s} {'stderr before':>14s} "
          f"{'stderr after':>13s} {'worst/tol':>9s}")
     for j, u in enumerate(res.unknowns):
-        _say(f"  {u:>14s} {res.tolerance[j]:10.4g} {res.stderr_before[j]:14.4g} "
-             f"{res.stderr_after[j]:13.4g} {res.worst_after[j]:9.3g}")
-    _say(f"worst standard error over the draws: {res.objective_before:.4g} -> "
-         f"{res.objective_after:.4g} tolerances")
+        _say(f"  {u:>14s} {res.tolerance[j]:10.4g} {_num(res.stderr_before[j]):>14s} "
+             f"{_num(res.stderr_after[j]):>13s} {_num(res.worst_after[j], '.3g'):>9s}")
+    _say(f"worst standard error over the draws: {_num(res.objective_before)} -> "
+         f"{_num(res.objective_after)} tolerances")
+    open_ = [u for u, w in zip(res.unknowns, res.worst_after, strict=True) if not math.isfinite(w)]
+    if open_:
+        _say(f"warning: {len(open_)} unknown(s) stay unidentified in some draw "
+             f"({', '.join(open_)}); plan more readings or widen the region")
     _say("wrote " + ", ".join(files.values()))
     if args.json:
         json.dump(res.to_json(), sys.stdout, indent=2)
