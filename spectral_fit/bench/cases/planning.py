@@ -46,9 +46,10 @@ def planning(opts: BenchOptions) -> dict[str, Any]:
     t0, c0 = time.perf_counter(), time.process_time()
     env = scene_environment(scene, compress_tol=3e-3)
     geoms = scene_geometry(scene)
-    region = Region(elevation_steps=4, azimuth_steps=7, aims_per_object=48)
+    region = Region(elevation_steps=5, azimuth_steps=9, aims_per_object=48)
     cands = plan_candidates(scene, region, geoms, margin_m=2e-3)
-    cands = (cands * (n_cand // len(cands) + 1))[:n_cand]
+    distinct = min(len(cands), n_cand)
+    cands = (cands * (n_cand // len(cands) + 1))[:n_cand]  # (repeated if the region gives fewer)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         preps = prepare_candidates(scene, cands, spot_resolution=4, env=env, geometries=geoms)
@@ -77,7 +78,8 @@ def planning(opts: BenchOptions) -> dict[str, Any]:
         return obj
 
     out = measure(run, repeats=max(3, min(opts.repeats, 5)))
-    out.update(candidates=len(cands), unknowns=len(free), draws=8, budget=10,
+    out.update(candidates=len(cands), distinct_candidates=distinct, unknowns=len(free), draws=8,
+               budget=10,
                bands=int(scene.wavelengths.size), chunks=len(preps),
                compile_cpu_s=cpu["first"], prepare_s=prepare_s, prepare_cpu_s=prepare_cpu_s,
                worst_stderr_tolerances=float(np.sqrt(chosen["objective"])),
