@@ -232,6 +232,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     t1 = time.perf_counter()
     say("casting the candidates' central rays ...")
     cands = plan_candidates(scene, region, geoms, margin_m=2.0 * sigma_aim_m)
+    _check_budget(budget, len(cands), region)
     say(f"{len(cands)} candidates; their sensitivities at {draws} parameter draws ...")
     info = candidate_information(scene, cands, values, free=unknowns, fit_scale=fit_scale,
                                  scale=scale, noise=noise, sigma_aim_m=sigma_aim_m,
@@ -244,10 +245,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     cands = [c for c, k in zip(cands, ok, strict=True) if k]
     cinfo = info["information"][ok]
     timings["candidates_s"] = time.perf_counter() - t1
-    if budget > len(cands):
-        raise InputError(f"{budget} readings asked for but the region gives only "
-                         f"{len(cands)} valid candidates; widen the region or lower the budget",
-                         path=region.path, field="budget")
+    _check_budget(budget, len(cands), region)
 
     # the information already there ---------------------------------------------------------
     base = np.zeros((draws, F, F))
@@ -294,6 +292,13 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
                   "session": None if session is None else str(session.path),
                   "region": region.path, "interreflection": "none (object readings)"},
         timings=timings)
+
+
+def _check_budget(budget: int, n: int, region: Region) -> None:
+    if budget > n:
+        raise InputError(f"{budget} readings asked for but the region gives only {n} valid "
+                         "candidates; widen the region or lower the budget", path=region.path,
+                         field="budget")
 
 
 def _ranges(session: Session | None, names: list[str], unknowns: tuple[tuple[int, int], ...],
