@@ -164,7 +164,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
         InputError: a bad region (see :func:`plan_candidates`), no valid candidate, a budget
             larger than the number of valid candidates or below 1, bad options.
     """
-    from ._prepare import prepare_fit, scene_environment, scene_geometry
+    from ._prepare import scene_environment, scene_geometry
 
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
@@ -192,24 +192,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
 
     # the centre, the existing readings and what is free --------------------------------
     t1 = time.perf_counter()
-    prep_s = None
-    values0 = np.array([[float(getattr(o.material, p)) for p in PARAMETERS]
-                        for o in scene.objects])
-    scale0, stderr0 = 1.0, None
-    fit_scale = False
-    if session is not None:
-        from ._fit import fit
-
-        say(f"fitting the session's {len(session.readings)} readings ...")
-        prep_s = prepare_fit(scene, session, options=fo, env=env, geometries=geoms)
-        res = fit(scene, session, options=dataclasses.replace(fo, starts=1, holdout=False,
-                                                               aim_step_m=0.0, bootstrap=0),
-                  prepared=prep_s)
-        values0 = np.asarray(res.values, np.float64)
-        fit_scale = prep_s.problem.fit_scale
-        scale0 = float(res.scale) if res.scale is not None else 1.0
-        stderr0 = res.stderr
-        say(f"session fit: {res.status}, chi2/dof {res.chi2_red:.3g}")
+    prep_s, values0, scale0, stderr0 = _centre(scene, session, fo, env, geoms, say)
+    fit_scale = prep_s is not None and prep_s.problem.fit_scale
     timings["session_fit_s"] = time.perf_counter() - t1
     unknowns = _unknowns(scene, session, region, tuple(free),
                          prep_s.problem.free if prep_s is not None else ())
@@ -222,10 +206,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     centre = np.array([values0[o, k] for o, k in unknowns] + ([scale0] if fit_scale else []))
     lower, upper = _ranges(session, names, unknowns, centre, stderr0, fit_scale)
     y = draws_in_box(centre, lower, upper, n=draws, seed=seed)
-    values = np.repeat(values0[None], draws, 0)
-    for j, (o, k) in enumerate(unknowns):
-        values[:, o, k] = y[:, j]
-    scale = y[:, -1] if fit_scale else np.ones(draws)
+    values, scale = _draw_values(values0, unknowns, y, fit_scale)
     tol = tolerances(values, unknowns, scale=scale if fit_scale else None)
 
     # the candidates ----------------------------------------------------------------------
@@ -268,14 +249,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
         return np.where(np.max(v, axis=0) >= UNIDENTIFIED, math.inf, w)
 
     obj_before = float(np.max(worst(before_v)[mask]))
-    chosen = []
-    for n, c in enumerate(idx):
-        r = cands[c]
-        chosen.append({"id": f"plan_{n + 1:02d}_{r['object']}", "object": r["object"],
-                       "kind": "object", "aim": np.asarray(r["aim"]),
-                       "position": np.asarray(r["position"]),
-                       "field_angle_deg": float(r["field_angle_deg"]),
-                       "distance_m": float(r["distance_m"]), "candidate": int(c)})
+    chosen = _chosen_readings(cands, idx)
     timings["total_s"] = time.perf_counter() - t0
     return PlanResult(
         chosen=chosen, candidates=cands, unknowns=labels, tolerance=tol[0],
@@ -292,6 +266,54 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
                   "session": None if session is None else str(session.path),
                   "region": region.path, "interreflection": "none (object readings)"},
         timings=timings)
+
+
+def _centre(scene: Scene, session: Session | None, fo: FitOptions, env: Any, geoms: Any,
+            say: Callable[[str], None]) -> tuple[Any, np.ndarray, float, Any]:
+    """(the session's PreparedFit or None, (O, 6) centre values, centre scale, the session
+    fit's standard errors or None): the session's fit (one start), else the config's
+    materials."""
+    from ._fit import fit
+    from ._prepare import prepare_fit
+
+    values0 = np.array([[float(getattr(o.material, p)) for p in PARAMETERS]
+                        for o in scene.objects])
+    if session is None:
+        return None, values0, 1.0, None
+    say(f"fitting the session's {len(session.readings)} readings ...")
+    prep = prepare_fit(scene, session, options=fo, env=env, geometries=geoms)
+    res = fit(scene, session, options=dataclasses.replace(fo, starts=1, holdout=False,
+                                                           aim_step_m=0.0, bootstrap=0),
+              prepared=prep)
+    values = np.asarray(res.values, np.float64)
+    if res.status == "failed" or not np.all(np.isfinite(values)):
+        raise InputError("the fit of the session's readings failed, so it cannot centre the "
+                         "plan; check the session with `spectral-fit fit`", path=session.path,
+                         field="readings")
+    say(f"session fit: {res.status}, chi2/dof {res.chi2_red:.3g}")
+    return prep, values, float(res.scale) if res.scale is not None else 1.0, res.stderr
+
+
+def _draw_values(values0: np.ndarray, unknowns: tuple[tuple[int, int], ...], y: np.ndarray,
+                 fit_scale: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(D, O, 6) parameters and (D,) scales of the draws ``y`` (D, F) of the unknowns."""
+    values = np.repeat(values0[None], y.shape[0], 0)
+    for j, (o, k) in enumerate(unknowns):
+        values[:, o, k] = y[:, j]
+    return values, (y[:, -1] if fit_scale else np.ones(y.shape[0]))
+
+
+def _chosen_readings(cands: list[dict[str, Any]], idx: list[int]) -> list[dict[str, Any]]:
+    """The chosen candidates as planned readings (ids ``plan_NN_object``)."""
+    out = []
+    for n, c in enumerate(idx):
+        r = cands[c]
+        out.append({"id": f"plan_{n + 1:02d}_{r['object']}", "object": r["object"],
+                    "kind": "object", "aim": np.asarray(r["aim"]),
+                    "position": np.asarray(r["position"]),
+                    "field_angle_deg": float(r["field_angle_deg"]),
+                    "distance_m": float(r["distance_m"]), "candidate": int(c)})
+    return out
 
 
 def _check_budget(budget: int, n: int, region: Region) -> None:
