@@ -120,7 +120,9 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                 occ, env=prep.lighting.env, lut=prep.lighting.irradiance_lut, mats=mats,
                 model=model, normals=mesh.normals, world_normals=wnorm,
                 vertex_slices=mesh.object_slices,
-                bounces=prep.interreflection.bounces if own_light else 0, to_out=to_out)
+                bounces=prep.interreflection.bounces if own_light else 0, to_out=to_out,
+                quality=prep.lighting.quality, split_map=prep.lighting.split_map,
+                split_settings=prep.lighting.split_settings)
         attrs.append(corr)
     vals = interpolate_pixels(jnp.concatenate(attrs, axis=1), pix, tris, clip)
     pos = vals[:, :3]

@@ -114,6 +114,32 @@ def _own_reflection(mats: Material, moments: jax.Array, nv: jax.Array, seen: jax
     return f * seen
 
 
+def specular_at(m: Material, env: Any, normals: jax.Array, views: jax.Array, *,
+                quality: str, split_map: Any = None, split_settings: Any = None,
+                batch_size: int = 32) -> jax.Array:
+    """The gloss and mirror terms of eq. (5), β gloss + χ F L(R), at points of one material
+    (normals, views (N, 3) world, unit) in the radiance channels (N, C); 0 where N·V ≤ 0.
+    Quality "fast": the split sum (``split_map``, ``split_settings``) and one mirror lookup,
+    as the frame's pixels; else :func:`~spectral_fit.lighting.shade_points` with α = 0."""
+    import dataclasses
+
+    from ..lighting import lobe_moment_table, shade_points
+
+    if quality != "fast":
+        spec = shade_points(dataclasses.replace(m, alpha=jnp.zeros_like(m.alpha)), env,
+                            normals, views, batch_size=batch_size, quality=quality)
+        nv = jnp.sum(normals * views, axis=-1, keepdims=True)
+        return jnp.where(nv > 0.0, spec, 0.0)
+    moments = lobe_moment_table(m.mu, m.n, settings=split_settings,
+                                distribution=m.distribution, geometry=m.geometry)
+    gloss, mirror, nv = _gloss_and_mirror(env, split_map, env if mirror_needed([m]) else None,
+                                          moments, normals, views, m, split_settings)
+    spec = m.beta * gloss
+    if mirror is not None:
+        spec = spec + m.chi * mirror
+    return jnp.where(nv > 0.0, spec, 0.0)
+
+
 def _irradiance_at(env: Any, table: Any, normals: jax.Array) -> jax.Array:
     """Irradiance (N, C) of world ``normals`` (N, 3): looked up in the irradiance map ``table``
     (:func:`_lut_env` of the frame's map), or the environment's own (SH or exact) without."""
