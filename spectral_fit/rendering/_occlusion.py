@@ -409,25 +409,22 @@ def _gloss_irradiance(st: SelfTransfer, i: int, m: Any, env: Any, rot: jax.Array
     (the split sum's lobe albedo, as :func:`own_reflection` reflects the object's own
     light). ``rot`` (3, 3) the object's rotation. The walls of a cup pass the sky and each
     other's light on this way (Fresnel is large at the grazing angles between them)."""
-    from ..lighting import fresnel_dielectric, lobe_moment_table, split_sum_albedo
+    from ..lighting import lobe_moment_table
     from ._materials import mirror_needed
-    from ._shading import specular_at
+    from ._shading import lobe_albedo, specular_at
 
     n_g = st.gloss_normal[i].shape[0]
     n_j = st.gloss_share[i].shape[-1]
     normal = st.gloss_normal[i] @ rot.T
     senders = jnp.broadcast_to(normal[None, :, None], (n_g, n_g, n_j, 3)).reshape(-1, 3)
     view = st.gloss_view[i].reshape(-1, 3) @ rot.T  # (G·G·J, 3) rows (p, q, j)
-    spec = specular_at(m, env, senders, view, quality=quality, split_map=split_map,
-                       split_settings=split_settings)  # (G·G·J, C)
-    spec = spec * st.gloss_visible[i].reshape(-1, 1)
-    e_env = _gloss_to_vertices(st, i, spec)
-    nv = jnp.sum(senders * view, axis=-1, keepdims=True)  # (G·G·J, 1)
     moments = lobe_moment_table(m.mu, m.n, settings=split_settings,
                                 distribution=m.distribution, geometry=m.geometry)
-    albedo = m.beta * split_sum_albedo(moments, nv[:, 0])[:, None]
-    if mirror_needed([m]):
-        albedo = albedo + m.chi * fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), m.n)
+    spec = specular_at(m, env, senders, view, quality=quality, split_map=split_map,
+                       split_settings=split_settings, moments=moments)  # (G·G·J, C)
+    e_env = _gloss_to_vertices(st, i, spec * st.gloss_visible[i].reshape(-1, 1))
+    nv = jnp.sum(senders * view, axis=-1, keepdims=True)  # (G·G·J, 1)
+    albedo = lobe_albedo(m, moments, nv, mirror=mirror_needed([m]))
     return e_env, jnp.where(nv > 0.0, albedo, 0.0)
 
 

@@ -86,41 +86,45 @@ def _object_slices(gb: GBuffer, capacities: tuple[int, ...], *extra: jax.Array):
 
 def own_reflection_out(mats: list[Material], gb: GBuffer, capacities: tuple[int, ...],
                        seen: jax.Array) -> jax.Array:
-    """:func:`_own_reflection` of every object's slice of the G-buffer (N, K), for the
-    qualities that shade in the radiance channels ("render", "exact": their lobe albedo from
-    the split sum's moment table, as quality "fast" uses)."""
+    """The object's own light in its gloss lobe and mirror direction (N, K), every object's
+    slice of the G-buffer: :func:`lobe_albedo` times ``seen`` (N, K), the object's diffuse
+    radiance over the hidden share of the mirror direction
+    (:func:`~spectral_fit.rendering._occlusion.own_reflection`); for the qualities that
+    shade in the radiance channels ("render", "exact": their lobe albedo from the split
+    sum's moment table, as quality "fast" uses)."""
     from ..lighting import lobe_moment_table
 
     out = []
     for m, (nrm, v, sn) in zip(mats, _object_slices(gb, capacities, seen), strict=True):
         moments = lobe_moment_table(m.mu, m.n, distribution=m.distribution, geometry=m.geometry)
         nv = jnp.sum(nrm * v, axis=-1, keepdims=True)
-        out.append(jnp.where(nv > 0.0, _own_reflection(m, moments, nv, sn,
-                                                        mirror_needed([m])), 0.0))
+        own = lobe_albedo(m, moments, nv, mirror=mirror_needed([m])) * sn
+        out.append(jnp.where(nv > 0.0, own, 0.0))
     return jnp.concatenate(out)
 
 
-def _own_reflection(mats: Material, moments: jax.Array, nv: jax.Array, seen: jax.Array,
-                    mirror: bool) -> jax.Array:
-    """The object's own light in its gloss lobe and mirror direction (N, K): (β A(θr) + χ F)
-    times ``seen`` (N, K), the object's diffuse radiance over the hidden share of the mirror
-    direction (:func:`~spectral_fit.rendering._occlusion.own_reflection`); A the lobe's albedo
-    from ``moments`` (:func:`~spectral_fit.lighting.lobe_moment_table`), ``nv`` (N, 1)."""
+def lobe_albedo(m: Material, moments: jax.Array, nv: jax.Array, *, mirror: bool) -> jax.Array:
+    """β A(θr) + χ F(θr) (N, 1): how much of a uniform radiance around the mirror direction
+    the gloss and mirror reflect at cosθr = ``nv`` (N, 1); A the lobe's albedo from
+    ``moments`` (:func:`~spectral_fit.lighting.lobe_moment_table`), the mirror term only
+    with ``mirror``."""
     from ..lighting import fresnel_dielectric, split_sum_albedo
 
-    f = mats.beta * split_sum_albedo(moments, nv[:, 0])[:, None]
+    f = m.beta * split_sum_albedo(moments, nv[:, 0])[:, None]
     if mirror:
-        f = f + mats.chi * fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), mats.n)
-    return f * seen
+        f = f + m.chi * fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), m.n)
+    return f
 
 
 def specular_at(m: Material, env: Any, normals: jax.Array, views: jax.Array, *,
                 quality: str, split_map: Any = None, split_settings: Any = None,
-                batch_size: int = 32) -> jax.Array:
+                moments: jax.Array | None = None, batch_size: int = 32) -> jax.Array:
     """The gloss and mirror terms of eq. (5), β gloss + χ F L(R), at points of one material
     (normals, views (N, 3) world, unit) in the radiance channels (N, C); 0 where N·V ≤ 0.
-    Quality "fast": the split sum (``split_map``, ``split_settings``) and one mirror lookup,
-    as the frame's pixels; else :func:`~spectral_fit.lighting.shade_points` with α = 0."""
+    Quality "fast": the split sum (``split_map``, ``split_settings``; the material's
+    :func:`~spectral_fit.lighting.lobe_moment_table` ``moments``, computed when None) and
+    one mirror lookup, as the frame's pixels; else
+    :func:`~spectral_fit.lighting.shade_points` with α = 0."""
     import dataclasses
 
     from ..lighting import lobe_moment_table, shade_points
@@ -130,13 +134,11 @@ def specular_at(m: Material, env: Any, normals: jax.Array, views: jax.Array, *,
                             normals, views, batch_size=batch_size, quality=quality)
         nv = jnp.sum(normals * views, axis=-1, keepdims=True)
         return jnp.where(nv > 0.0, spec, 0.0)
-    moments = lobe_moment_table(m.mu, m.n, settings=split_settings,
-                                distribution=m.distribution, geometry=m.geometry)
-    gloss, mirror, nv = _gloss_and_mirror(env, split_map, env if mirror_needed([m]) else None,
-                                          moments, normals, views, m, split_settings)
-    spec = m.beta * gloss
-    if mirror is not None:
-        spec = spec + m.chi * mirror
+    if moments is None:
+        moments = lobe_moment_table(m.mu, m.n, settings=split_settings,
+                                    distribution=m.distribution, geometry=m.geometry)
+    spec, nv = _gloss_and_mirror(env, split_map, env if mirror_needed([m]) else None, moments,
+                                 normals, views, m, split_settings)
     return jnp.where(nv > 0.0, spec, 0.0)
 
 
@@ -160,11 +162,11 @@ def _filtered_irradiance(m: Material, env: Any, e: jax.Array) -> jax.Array:
 
 def _gloss_and_mirror(env_gloss: Any, split_map: Any, env_mirror: Any, moments: jax.Array,
                       nrm: jax.Array, v: jax.Array, m: Material, settings: Any
-                      ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Quality "fast" gloss and mirror of eq. (5) at points nrm, v (N, 3): the split-sum gloss
-    per unit β looked up in ``env_gloss``'s channels, F(n, N·V) times the mirror radiance
-    along R from ``env_mirror`` (N, C; None when ``env_mirror`` is None: no mirror term), and
-    N·V (N, 1)."""
+                      ) -> tuple[jax.Array, jax.Array]:
+    """Quality "fast" gloss and mirror of eq. (5) at points nrm, v (N, 3), β gloss + χ F L(R)
+    (N, C): the split-sum gloss per unit β looked up in ``env_gloss``'s channels, F(n, N·V)
+    times the mirror radiance along R from ``env_mirror`` (None: no mirror term); and N·V
+    (N, 1)."""
     from ..lighting import fast_lookup, fresnel_dielectric, gloss_split_sum
 
     gloss = gloss_split_sum(env_gloss, split_map, moments, nrm, v, m.mu, m.n,
@@ -174,8 +176,10 @@ def _gloss_and_mirror(env_gloss: Any, split_map: Any, env_mirror: Any, moments: 
     refl = 2.0 * nv * nrm - v
     # per-point factors computed once (not inside each of the C channels' expressions)
     fac = materialise(jnp.concatenate([fresnel_dielectric(nv, m.n), nv], axis=-1))
-    mirror = None if env_mirror is None else fac[:, 0:1] * fast_lookup(env_mirror, refl)
-    return gloss, mirror, fac[:, 1:2]
+    spec = m.beta * gloss
+    if env_mirror is not None:
+        spec = spec + m.chi * (fac[:, 0:1] * fast_lookup(env_mirror, refl))
+    return spec, fac[:, 1:2]
 
 
 def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | None,
@@ -191,15 +195,10 @@ def _shade_fast(mats: list[Material], env: Any, gb: GBuffer, lut: jax.Array | No
     for m, (nrm, v) in zip(mats, _object_slices(gb, capacities), strict=True):
         kw = dict(distribution=m.distribution, geometry=m.geometry)
         moments = lobe_moment_table(m.mu, m.n, settings=settings, **kw)
-        gloss, mirror, nv = _gloss_and_mirror(env, split_map,
-                                              env if mirror_needed([m]) else None, moments,
-                                              nrm, v, m, settings)
+        spec, nv = _gloss_and_mirror(env, split_map, env if mirror_needed([m]) else None,
+                                     moments, nrm, v, m, settings)
         se = _filtered_irradiance(m, env, _irradiance_at(env, table, nrm))
-        front = nv > 0.0
-        rad = (m.alpha / math.pi) * se + m.beta * gloss
-        if mirror is not None:
-            rad = rad + m.chi * mirror
-        out.append(jnp.where(front, rad, 0.0))
+        out.append(jnp.where(nv > 0.0, (m.alpha / math.pi) * se + spec, 0.0))
     return jnp.concatenate(out)
 
 
@@ -324,20 +323,18 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                   seen: Any = None, stacked: Material = stacked, moments: jax.Array = moments,
                   dflat: Any = dflat, group_mirror: Any = group_mirror) -> jax.Array:
             m = jax.tree.map(lambda x: x[o], stacked)
-            gloss, mirror, nv = _gloss_and_mirror(env_g, prep.lighting.split_map, group_mirror,
-                                                  moments[o], nn, vv, m, settings)
+            spec, nv = _gloss_and_mirror(env_g, prep.lighting.split_map, group_mirror,
+                                         moments[o], nn, vv, m, settings)
             if dflat is None:
                 diffuse = (m.alpha / math.pi) * _filtered_irradiance(
                     m, env, _irradiance_at(env, None, nn)) @ to_out
             else:
                 diffuse = fast_lookup(_lut_env(env, dflat[o]), nn)
-            spec = m.beta * gloss
-            if mirror is not None:
-                spec = spec + m.chi * mirror
             if sv is not None:
                 spec = spec * sv[:, None]
             if seen is not None:
-                spec = spec + _own_reflection(m, moments[o], nv, seen, group_mirror is not None)
+                spec = spec + lobe_albedo(m, moments[o], nv,
+                                          mirror=group_mirror is not None) * seen
             return jnp.where(nv > 0.0, diffuse + spec, 0.0)
 
         res = _chunked(shade, [counts[i] for i in members], k_out,
