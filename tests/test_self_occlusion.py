@@ -123,6 +123,7 @@ def test_gloss_self_transfer_against_ray_casting(port_scene):
     from helpers.lighting import fresnel
 
     import spectral_fit.rendering._occlusion as occlusion
+    from spectral_fit.geometry import fibonacci_directions
 
     scene = port_scene.parent / "mirror.toml"
     scene.write_text(CONFIG.format(env="sky.exr", rho=RHO, beta=0.0, chi=1.0, n=1.5))
@@ -137,9 +138,7 @@ def test_gloss_self_transfer_against_ray_casting(port_scene):
 
     v, t, n = bowl(R, 16, 32, port_deg=PORT_DEG)
     k = 6000
-    z = 1.0 - 2.0 * (np.arange(k) + 0.5) / k
-    phi = np.pi * (1.0 + 5.0 ** 0.5) * np.arange(k)
-    dirs = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
+    dirs = fibonacci_directions(k)
     polar = np.degrees(np.arccos(np.clip(-v[:, 2] / R, -1.0, 1.0)))
     for i in np.flatnonzero((polar > 10.0) & (polar < 90.0))[::37]:
         d = dirs[dirs @ n[i] > 0.0]

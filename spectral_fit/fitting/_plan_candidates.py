@@ -214,11 +214,9 @@ def _surface_points(geom: ObjectGeometry, n: int) -> tuple[np.ndarray, np.ndarra
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     d = cen - c
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    phi = math.pi * (1.0 + math.sqrt(5.0)) * k
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    fib = np.stack([r * np.cos(phi), z, r * np.sin(phi)], -1)
+    from ..geometry import fibonacci_directions
+
+    fib = fibonacci_directions(n)[:, [0, 2, 1]]  # the lattice's pole along +Y
     pick = np.unique(np.argmax(fib @ d.T, axis=1))
     return cen[pick], nrm[pick]
 

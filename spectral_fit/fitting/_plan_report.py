@@ -8,24 +8,13 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from ..io import Scene
+from ..io import Scene, toml_value
 from ._plan import PlanResult
 
 __all__ = ["write_plan", "plan_session_toml"]
-
-
-def _toml(v: Any) -> str:
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, list | tuple | np.ndarray):
-        return "[" + ", ".join(_toml(x) for x in list(v)) + "]"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    return repr(float(v))
 
 
 def plan_session_toml(result: PlanResult, *, scene_ref: str, units: str = "W.sr^-1.m^-2.nm^-1"
@@ -35,15 +24,17 @@ def plan_session_toml(result: PlanResult, *, scene_ref: str, units: str = "W.sr^
     reads it. ``scene_ref``: the scene config's path relative to the manifest's folder."""
     out = ["# Planned readings (docs/planning.md). Take each reading, export its spectra and list",
            "# them in its `files`; add [white_standard] and [dark] as in docs/measurements.md.",
-           "", "[session]", "format = 1", f"scene = {_toml(scene_ref)}", f"units = {_toml(units)}",
-           f"notes = {_toml(f'{len(result.chosen)} planned readings')}"]
+           "", "[session]", "format = 1", f"scene = {toml_value(scene_ref)}",
+           f"units = {toml_value(units)}",
+           f"notes = {toml_value(f'{len(result.chosen)} planned readings')}"]
     for r in result.chosen:
-        out += ["", "[[readings]]", f"id = {_toml(r['id'])}", f"object = {_toml(r['object'])}",
-                f"kind = {_toml(r['kind'])}", "files = []",
-                f"aim = {_toml([round(float(x), 6) for x in r['aim']])}",
-                f"position = {_toml([round(float(x), 6) for x in r['position']])}",
-                f"field_angle_deg = {_toml(r['field_angle_deg'])}",
-                f"distance_m = {_toml(round(r['distance_m'], 4))}"]
+        out += ["", "[[readings]]", f"id = {toml_value(r['id'])}",
+                f"object = {toml_value(r['object'])}", f"kind = {toml_value(r['kind'])}",
+                "files = []",
+                f"aim = {toml_value([round(float(x), 6) for x in r['aim']])}",
+                f"position = {toml_value([round(float(x), 6) for x in r['position']])}",
+                f"field_angle_deg = {toml_value(float(r['field_angle_deg']))}",
+                f"distance_m = {toml_value(round(float(r['distance_m']), 4))}"]
     return "\n".join(out) + "\n"
 
 

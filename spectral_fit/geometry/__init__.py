@@ -26,6 +26,7 @@ _EXPORTS: dict[str, str] = {
     "TriangleClusters": "_culling",
     "build_bvh": "_bvh",
     "is_convex": "_visibility",
+    "fibonacci_directions": "_visibility",
     "octahedral_directions": "_visibility",
     "octahedral_taps": "_visibility",
     "octahedral_uv": "_visibility",

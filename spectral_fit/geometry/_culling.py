@@ -45,7 +45,6 @@ frames through a lens model (the distortion is not projective) use no clusters.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -283,11 +282,9 @@ def worst_direction_count(clusters: TriangleClusters, *, directions: int = 256) 
     infinitely far along any of ``directions`` Fibonacci-sphere directions (its own worst
     one): a bound on the count under any rotation of a convex object (a nearer eye sees
     less of it), used to size the kept list for objects that turn."""
-    k = np.arange(directions) + 0.5
-    z = 1.0 - 2.0 * k / directions
-    phi = math.pi * (1.0 + math.sqrt(5.0)) * k
-    r = np.sqrt(1.0 - z * z)
-    dirs = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)  # (D, 3)
+    from ._visibility import fibonacci_directions
+
+    dirs = fibonacci_directions(directions)  # (D, 3)
     plane = np.asarray(clusters.plane, np.float64)
     total = 0
     for ca, cb in clusters.cluster_slices:

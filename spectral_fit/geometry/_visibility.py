@@ -32,6 +32,7 @@ differentiable are computed elsewhere).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import equinox as eqx
@@ -104,6 +105,16 @@ def _decode(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     y = np.where(z < 0, (1.0 - np.abs(u)) * np.sign(v), v)
     d = np.stack([x, y, z], axis=-1)
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """(n, 3) unit directions spread evenly over the sphere (the Fibonacci lattice: z in n
+    equal steps, the golden angle between successive azimuths; +Z the lattice's pole)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = math.pi * (1.0 + math.sqrt(5.0)) * k
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 def octahedral_directions(resolution: int, *, supersample: int = 8

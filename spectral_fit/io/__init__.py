@@ -65,6 +65,7 @@ _EXPORTS: dict[str, str] = {
     "translate": "_mesh",
     "uv_sphere": "_mesh",
     "vertex_normals": "_mesh",
+    "toml_value": "_session_write",
     "write_session": "_session_write",
     "write_spectral_exr": "_exr",
 }

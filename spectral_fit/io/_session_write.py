@@ -11,10 +11,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["write_session"]
+__all__ = ["toml_value", "write_session"]
 
 
-def _toml_value(v: Any) -> str:
+def toml_value(v: Any) -> str:
+    """``v`` (bool, int, float, str, dict, list / tuple / array of these) as a TOML value."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int | np.integer):
@@ -24,9 +25,9 @@ def _toml_value(v: Any) -> str:
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+        return "{ " + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + " }"
     if isinstance(v, list | tuple | np.ndarray):
-        return "[" + ", ".join(_toml_value(x) for x in list(np.asarray(v).tolist()
+        return "[" + ", ".join(toml_value(x) for x in list(np.asarray(v).tolist()
                                                           if isinstance(v, np.ndarray) else v)
                                ) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
@@ -83,18 +84,18 @@ def write_session(
     root = Path(folder)
     wl = np.asarray(wavelengths, np.float64)
     out = ["# Spectroradiometer session (format: docs/measurements.md)", "", "[session]",
-           "format = 1", f"scene = {_toml_value(scene)}", f"units = {_toml_value(units)}"]
+           "format = 1", f"scene = {toml_value(scene)}", f"units = {toml_value(units)}"]
     if notes:
-        out.append(f"notes = {_toml_value(notes)}")
+        out.append(f"notes = {toml_value(notes)}")
     if instrument:
-        out += ["", "[instrument]"] + [f"{k} = {_toml_value(v)}" for k, v in instrument.items()]
+        out += ["", "[instrument]"] + [f"{k} = {toml_value(v)}" for k, v in instrument.items()]
     if calibration:
-        out += ["", "[calibration]"] + [f"{k} = {_toml_value(v)}"
+        out += ["", "[calibration]"] + [f"{k} = {toml_value(v)}"
                                         for k, v in calibration.items()]
     if noise:
-        out += ["", "[noise]"] + [f"{k} = {_toml_value(v)}" for k, v in noise.items()]
+        out += ["", "[noise]"] + [f"{k} = {toml_value(v)}" for k, v in noise.items()]
     if model_error:
-        out += ["", "[model_error]"] + [f"{k} = {_toml_value(v)}"
+        out += ["", "[model_error]"] + [f"{k} = {toml_value(v)}"
                                         for k, v in model_error.items()]
     if dark is not None:
         d = np.atleast_2d(dark)
@@ -103,24 +104,24 @@ def write_session(
             name = f"dark/dark_{k + 1}.csv"
             atomic_write_text(root / name, _spectrum_text(wl, row, units, "dark reading"))
             names.append(name)
-        out += ["", "[dark]", f"readings = {_toml_value(names)}"]
+        out += ["", "[dark]", f"readings = {toml_value(names)}"]
     if white:
         out += ["", "[white_standard]"]
         refl = white["reflectance"]
         if np.ndim(refl) == 0:
-            out.append(f"reflectance = {_toml_value(float(refl))}")
+            out.append(f"reflectance = {toml_value(float(refl))}")
         else:
             atomic_write_text(root / "white" / "reflectance.csv",
                               _spectrum_text(wl, refl, "1", "white standard reflectance"))
             out.append('reflectance = "white/reflectance.csv"')
-        out.append(f"position = {_toml_value(list(map(float, white['position'])))}")
-        out.append(f"normal = {_toml_value(list(map(float, white['normal'])))}")
+        out.append(f"position = {toml_value(list(map(float, white['position'])))}")
+        out.append(f"normal = {toml_value(list(map(float, white['normal'])))}")
         names = []
         for k, row in enumerate(np.atleast_2d(white["spectra"])):
             name = f"white/white_{k + 1}.csv"
             atomic_write_text(root / name, _spectrum_text(wl, row, units, "white standard"))
             names.append(name)
-        out.append(f"readings = {_toml_value(names)}")
+        out.append(f"readings = {toml_value(names)}")
     for name, spec in (objects or {}).items():
         out += ["", f"[objects.{name}]"]
         for k, v in spec.items():
@@ -131,7 +132,7 @@ def write_session(
                     f"({spec.get('geometry', 'SCE')})"))
                 out.append(f'reflectance = "{fn}"')
             else:
-                out.append(f"{k} = {_toml_value(v)}")
+                out.append(f"{k} = {toml_value(v)}")
     for r in readings:
         out += ["", "[[readings]]"]
         files = []
@@ -141,14 +142,14 @@ def write_session(
             files.append(fn)
         for k in ("id", "object", "kind"):
             if k in r:
-                out.append(f"{k} = {_toml_value(r[k])}")
-        out.append(f"files = {_toml_value(files)}")
+                out.append(f"{k} = {toml_value(r[k])}")
+        out.append(f"files = {toml_value(files)}")
         for k in ("aim", "position"):
             if k in r:
-                out.append(f"{k} = {_toml_value([float(x) for x in r[k]])}")
+                out.append(f"{k} = {toml_value([float(x) for x in r[k]])}")
         for k in ("field_angle_deg", "distance_m"):
             if k in r:
-                out.append(f"{k} = {_toml_value(float(r[k]))}")
+                out.append(f"{k} = {toml_value(float(r[k]))}")
     manifest = root / "session.toml"
     atomic_write_text(manifest, "\n".join(out) + "\n")
     return manifest
