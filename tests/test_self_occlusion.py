@@ -130,11 +130,12 @@ def test_gloss_self_transfer_against_ray_casting(port_scene):
     prep = prepare(scene, mode="gather")
     st, lit = prep.occlusion, prep.lighting
     m = jax.tree.map(lambda x: x[0], prep.materials)
-    e_sky, albedo = occlusion._gloss_irradiance(
+    sky, albedo = occlusion._gloss_irradiance(
         st, 0, m, lit.env, jnp.eye(3), quality=lit.quality, split_map=lit.split_map,
         split_settings=lit.split_settings)
-    e_own = occlusion._own_gloss(st, 0, albedo, jnp.ones((st.transfer[0].shape[1], 4)))
-    e_sky, e_own = np.asarray(e_sky)[:, 1], np.asarray(e_own)[:, 1]
+    own = occlusion._own_gloss(st, 0, albedo, jnp.ones((st.transfer[0].shape[1], 4)))
+    e_sky, e_own = (np.asarray(occlusion._gloss_to_vertices(st, 0, x))[:, 1]
+                    for x in (sky, own))
 
     v, t, n = bowl(R, 16, 32, port_deg=PORT_DEG)
     k = 6000

@@ -78,22 +78,31 @@ class SelfTransfer(eqx.Module):
         transfer: per listed object (V_o, P_o) float32.
         patch_of: per listed object (V_o,) int32 patch of each vertex.
         patch_share: per listed object (V_o,) float32 the vertex's share of its patch's area.
+        patch_transfer: per listed object (P_o, P_o) float32 ``transfer``'s rows averaged
+            over each patch (area shares): the Jacobi steps' patch-to-patch transfer.
         gloss_transfer: per listed object (V_o, G_o) float32, as ``transfer`` over the
             object's G_o gloss patches.
         gloss_patch_of: per listed object (V_o,) int32 gloss patch of each vertex.
         gloss_normal: per listed object (G_o, 3) float32 each gloss patch's mean normal.
-        gloss_share: per listed object (G_o, G_o, J) float32 [p, q, j]: the share of the
-            pair's transfer whose angle at the sender falls into bin j of ``GLOSS_BINS``.
-        gloss_view: per listed object (G_o, G_o, J, 3) float32: a direction from sender q
-            towards receiver patch p with the bin's mean cosθ (object frame).
-        gloss_visible: per listed object (G_o, G_o, J) float32: how much of the mirror
-            direction of ``gloss_view`` about ``gloss_normal[q]`` patch q's vertices see
-            (area-weighted mean of their bilinear visibility; 0 for empty bins).
-        gloss_hit: per listed object (G_o·G_o·J, G_o) float32: where that mirror direction
-            lands on the object instead, as shares of the gloss patches (each row sums to
+        gloss_pair: per listed object (U_o,) int32 the pair p·G_o + q (receiver patch p,
+            sender q) of each of the U_o (pair, angle bin) triples that carry light: per
+            pair, the hidden directions' angles at the sender fall into bins of cosθ
+            (``GLOSS_BINS``), and a bin that none falls into carries nothing.
+        gloss_share: per listed object (U_o,) float32 the triple's bin's share of the pair's
+            transfer.
+        gloss_view: per listed object (U_o, 3) float32 a direction from sender q towards
+            receiver patch p with the bin's mean cosθ (object frame).
+        gloss_visible: per listed object (U_o,) float32 how much of the mirror direction of
+            ``gloss_view`` about ``gloss_normal[q]`` patch q's vertices see (area-weighted
+            mean of their bilinear visibility).
+        gloss_hit: per listed object (U_o, G_o) float32 where that mirror direction lands on
+            the object instead, as shares of the gloss patches (each row sums to
             1 − ``gloss_visible``).
-        gloss_from_patch: per listed object (G_o, P_o) float32: each gloss patch's area
-            shares of the patches (a patch radiance's mean over a gloss patch).
+        gloss_from_patch: per listed object (G_o, P_o) float32 each gloss patch's area shares
+            of the patches (a patch radiance's mean over a gloss patch).
+        gloss_to_patches: per listed object (P_o, U_o) float32 what radiance sent along each
+            triple adds to the patches' irradiance (the vertices' gloss irradiance,
+            :func:`_gloss_to_vertices`, averaged over each patch as the Jacobi steps do).
         objects: static indices of the listed (non-convex) objects.
         resolution: static R.
         env_level: static prefilter level of the environment along the directions.
@@ -107,14 +116,17 @@ class SelfTransfer(eqx.Module):
     transfer: tuple[jax.Array, ...]
     patch_of: tuple[jax.Array, ...]
     patch_share: tuple[jax.Array, ...]
+    patch_transfer: tuple[jax.Array, ...]
     gloss_transfer: tuple[jax.Array, ...]
     gloss_patch_of: tuple[jax.Array, ...]
     gloss_normal: tuple[jax.Array, ...]
+    gloss_pair: tuple[jax.Array, ...]
     gloss_share: tuple[jax.Array, ...]
     gloss_view: tuple[jax.Array, ...]
     gloss_visible: tuple[jax.Array, ...]
     gloss_hit: tuple[jax.Array, ...]
     gloss_from_patch: tuple[jax.Array, ...]
+    gloss_to_patches: tuple[jax.Array, ...]
     objects: tuple[int, ...] = eqx.field(static=True)
     resolution: int = eqx.field(static=True)
     env_level: int = eqx.field(static=True)
@@ -202,12 +214,12 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
         hit = sv.hit_triangle[rows, cols]
         for j in range(3):
             np.add.at(tr, (rows, p_of[t[hit, j]]), w[rows, cols] * sv.hit_bary[rows, cols, j])
+        t_pp = np.zeros((n_p, n_p))
+        np.add.at(t_pp, p_of, share[:, None] * tr)
         g_of = _patches(feat, GLOSS_PATCHES)
-        from_patch = np.zeros((int(g_of.max()) + 1, n_p))
-        np.add.at(from_patch, (g_of, p_of), area)
-        from_patch /= np.maximum(from_patch.sum(axis=1, keepdims=True), 1e-30)
-        gloss.append((*_gloss_pairs(v, n, area, sv, w, rows, cols, t, hit, g_of),
-                      from_patch.astype(np.float32)))
+        gloss.append((t_pp.astype(np.float32),
+                      *_gloss_used(*_gloss_pairs(v, n, area, sv, w, rows, cols, t, hit, g_of),
+                                   p_of=p_of, vertex_share=share, area=area)))
         row[a:b] = sum(len(h) for h in hidden_rows) + np.arange(b - a, dtype=np.int32)
         hidden_rows.append(sv.hidden.astype(np.uint8))
         near = np.take_along_axis(t[np.maximum(sv.hit_triangle, 0)],
@@ -221,14 +233,42 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
         shares.append(jnp.asarray(share, jnp.float32))
     if not objs:
         return None
-    g_tr, g_of, g_n, g_share, g_view, g_vis, g_hit, g_from = (
-        tuple(jnp.asarray(x) for x in col) for col in zip(*gloss, strict=True))
+    per_object = (tuple(jnp.asarray(x) for x in col) for col in zip(*gloss, strict=True))
     return SelfTransfer(jnp.asarray(dirs), jnp.asarray(row),
                         jnp.asarray(np.concatenate(hidden_rows)),
                         jnp.asarray(np.concatenate(hit_rows)), tuple(weights),
-                        tuple(transfers), tuple(patch_of), tuple(shares), g_tr, g_of, g_n,
-                        g_share, g_view, g_vis, g_hit, g_from, tuple(objs), int(resolution),
-                        env_level_for(env, resolution))
+                        tuple(transfers), tuple(patch_of), tuple(shares), *per_object,
+                        tuple(objs), int(resolution), env_level_for(env, resolution))
+
+
+def _gloss_used(tg: np.ndarray, g_of: np.ndarray, normal: np.ndarray, share: np.ndarray,
+                view: np.ndarray, visible: np.ndarray, lands: np.ndarray, *,
+                p_of: np.ndarray, vertex_share: np.ndarray, area: np.ndarray
+                ) -> tuple[np.ndarray, ...]:
+    """:func:`_gloss_pairs`' arrays (``tg`` (V, G), ``g_of`` (V,), ``normal`` (G, 3) and, per
+    (pair, bin), ``share`` (G, G, J), ``view`` (G, G, J, 3), ``visible`` (G, G, J), ``lands``
+    (G·G·J, G)) kept for the U triples that carry light, with the maps from the gloss patches
+    to the P patches ``p_of`` (V,) (``vertex_share`` (V,): each vertex's area share of its
+    patch; ``area`` (V,)): the :class:`SelfTransfer` fields from ``gloss_transfer`` to
+    ``gloss_to_patches``."""
+    n_g = normal.shape[0]
+    n_j = share.shape[-1]
+    n_p = int(p_of.max()) + 1
+    used = np.flatnonzero(share.reshape(-1) > 0)  # (U,) flat (p, q, j)
+    pair = (used // n_j).astype(np.int32)
+    p_u, q_u = pair // n_g, pair % n_g
+    s_u = share.reshape(-1)[used]
+    from_patch = np.zeros((n_g, n_p))
+    np.add.at(from_patch, (g_of, p_of), area)
+    from_patch /= np.maximum(from_patch.sum(axis=1, keepdims=True), 1e-30)
+    # patches' share-weighted sum of the vertices' Σ_q T_vq (per pair p(v), q): (P, G, G)
+    by_pair = np.zeros((n_p, n_g, n_g))
+    np.add.at(by_pair, (p_of, g_of), vertex_share[:, None] * tg.astype(np.float64))
+    to_patches = by_pair[:, p_u, q_u] * s_u[None]
+    f32 = np.float32
+    return (tg.astype(f32), g_of.astype(np.int32), normal.astype(f32), pair, s_u.astype(f32),
+            view.reshape(-1, 3)[used].astype(f32), visible.reshape(-1)[used].astype(f32),
+            lands[used].astype(f32), from_patch.astype(f32), to_patches.astype(f32))
 
 
 def _gloss_pairs(v: np.ndarray, n: np.ndarray, area: np.ndarray, sv: Any, w: np.ndarray,
@@ -368,27 +408,27 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
             e0 = jnp.maximum(e0, 0.0)
         e = e0
         if bounces:
-            e_gloss, albedo = _gloss_irradiance(st, i, m, env, rot, quality=quality,
-                                                split_map=split_map,
-                                                split_settings=split_settings)
-            e0 = e0 + e_gloss
-            # the Jacobi steps e ← e0 + T B(e), B the patches' share-weighted diffuse radiance,
-            # run on the patches: B is linear in e, so B_{k+1} = B(E0) + B(T_pp B_k) with
-            # E0 and T_pp = T the patch shares of e0 and of T's rows (P × P: each step costs
-            # P² instead of V × P); the vertices read the last B once
-            n_p = st.transfer[i].shape[1]
+            # the light the object's gloss and mirror send along the triples: from the
+            # environment (fixed) and from its own diffuse radiance (linear in B)
+            spec, albedo = _gloss_irradiance(st, i, m, env, rot, quality=quality,
+                                             split_map=split_map,
+                                             split_settings=split_settings)
 
-            def patches(x: jax.Array, share: jax.Array = st.patch_share[i],
-                        of: jax.Array = st.patch_of[i], n_p: int = n_p) -> jax.Array:
-                return jax.ops.segment_sum(x * share[:, None], of, num_segments=n_p)
-
-            t_pp = patches(st.transfer[i])  # (P, P)
-            b0 = (m.alpha / math.pi) * _filtered_irradiance(m, env, patches(e0))  # (P, C)
+            # the Jacobi steps e ← e0 + G + T B(e), B the patches' share-weighted diffuse
+            # radiance, G the gloss along the triples, run on the patches: B is linear in e,
+            # so B_{k+1} = B(E0) + B(T_pp B_k) with E0 and T_pp = T the patch shares of e0 and
+            # of T's rows (P × P: each step costs P² instead of V × P), the triples' light
+            # reaching the patches by ``gloss_to_patches``; the vertices read the last B once
+            to_p = st.gloss_to_patches[i]  # (P, U)
+            e_p = jax.ops.segment_sum(e0 * st.patch_share[i][:, None], st.patch_of[i],
+                                      num_segments=to_p.shape[0]) + to_p @ spec
+            b0 = (m.alpha / math.pi) * _filtered_irradiance(m, env, e_p)  # (P, C)
             patch = b0
             for _ in range(bounces - 1):
-                e_own = t_pp @ patch + patches(_own_gloss(st, i, albedo, patch))
+                e_own = st.patch_transfer[i] @ patch + to_p @ _own_gloss(st, i, albedo, patch)
                 patch = b0 + (m.alpha / math.pi) * _filtered_irradiance(m, env, e_own)
-            e = e0 + st.transfer[i] @ patch + _own_gloss(st, i, albedo, patch)
+            e = e0 + st.transfer[i] @ patch + _gloss_to_vertices(
+                st, i, spec + _own_gloss(st, i, albedo, patch))
         delta = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e - e_map)) @ to_out
         full = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e)) @ to_out
         out = out.at[a:b].set(delta)
@@ -399,52 +439,47 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
 def _gloss_irradiance(st: SelfTransfer, i: int, m: Any, env: Any, rot: jax.Array, *,
                       quality: str, split_map: Any, split_settings: Any
                       ) -> tuple[jax.Array, jax.Array]:
-    """The irradiance (V_o, C) that the listed object ``i``'s own gloss and mirror send into
-    its vertices' hidden directions from the environment, and the senders' lobe albedo
-    (G·G, 1) for :func:`_own_gloss`: for every pair of gloss patches (receiver p, sender q),
-    the sender's gloss and mirror radiance (:func:`~._shading.specular_at`, the frame's
-    shading) at its mean normal towards the pair's mean direction, times the share of its
-    mirror direction the object leaves open, weighted per vertex by the hidden directions'
-    shares of each sender (``gloss_transfer``); the albedo β A(θ) + χ F(θ) at that angle
-    (the split sum's lobe albedo, as :func:`own_reflection` reflects the object's own
-    light). ``rot`` (3, 3) the object's rotation. The walls of a cup pass the sky and each
-    other's light on this way (Fresnel is large at the grazing angles between them)."""
+    """What the listed object ``i``'s own gloss and mirror send along its U triples (see
+    :class:`SelfTransfer`) from the environment, (U, C), and the senders' lobe albedo
+    (U, 1) for :func:`_own_gloss`: the sender's gloss and mirror radiance
+    (:func:`~._shading.specular_at`, the frame's shading) at its mean normal towards the
+    triple's direction, times the share of its mirror direction the object leaves open; the
+    albedo β A(θ) + χ F(θ) at that angle (:func:`~._shading.lobe_albedo`, as
+    :func:`own_reflection` reflects the object's own light). ``rot`` (3, 3) the object's
+    rotation. The walls of a cup pass the sky and each other's light on this way (Fresnel
+    is large at the grazing angles between them)."""
     from ..lighting import lobe_moment_table
     from ._materials import mirror_needed
     from ._shading import lobe_albedo, specular_at
 
     n_g = st.gloss_normal[i].shape[0]
-    n_j = st.gloss_share[i].shape[-1]
-    normal = st.gloss_normal[i] @ rot.T
-    senders = jnp.broadcast_to(normal[None, :, None], (n_g, n_g, n_j, 3)).reshape(-1, 3)
-    view = st.gloss_view[i].reshape(-1, 3) @ rot.T  # (G·G·J, 3) rows (p, q, j)
+    senders = (st.gloss_normal[i] @ rot.T)[st.gloss_pair[i] % n_g]  # (U, 3)
+    view = st.gloss_view[i] @ rot.T  # (U, 3)
     moments = lobe_moment_table(m.mu, m.n, settings=split_settings,
                                 distribution=m.distribution, geometry=m.geometry)
     spec = specular_at(m, env, senders, view, quality=quality, split_map=split_map,
-                       split_settings=split_settings, moments=moments)  # (G·G·J, C)
-    e_env = _gloss_to_vertices(st, i, spec * st.gloss_visible[i].reshape(-1, 1))
-    nv = jnp.sum(senders * view, axis=-1, keepdims=True)  # (G·G·J, 1)
+                       split_settings=split_settings, moments=moments)  # (U, C)
+    nv = jnp.sum(senders * view, axis=-1, keepdims=True)  # (U, 1)
     albedo = lobe_albedo(m, moments, nv, mirror=mirror_needed([m]))
-    return e_env, jnp.where(nv > 0.0, albedo, 0.0)
+    return spec * st.gloss_visible[i][:, None], jnp.where(nv > 0.0, albedo, 0.0)
 
 
 def _gloss_to_vertices(st: SelfTransfer, i: int, radiance: jax.Array) -> jax.Array:
     """The irradiance (V_o, C) of the listed object ``i``'s vertices from the radiance
-    (G·G·J, C) its gloss patches send along each pair's bins: Σ_q T_vq Σ_j s_pqj L_pqj, p
-    the vertex's gloss patch, T ``gloss_transfer``, s ``gloss_share``."""
-    n_g, _, n_j = st.gloss_share[i].shape
-    pair = jnp.einsum("pqj,pqjc->pqc", st.gloss_share[i],
-                      radiance.reshape(n_g, n_g, n_j, -1))
+    (U, C) its gloss patches send along the triples: Σ_q T_vq Σ_j s_pqj L_pqj, p the
+    vertex's gloss patch, T ``gloss_transfer``, s ``gloss_share``."""
+    n_g = st.gloss_normal[i].shape[0]
+    pair = jax.ops.segment_sum(st.gloss_share[i][:, None] * radiance, st.gloss_pair[i],
+                               num_segments=n_g * n_g).reshape(n_g, n_g, -1)
     return jnp.einsum("vq,vqc->vc", st.gloss_transfer[i], pair[st.gloss_patch_of[i]])
 
 
 def _own_gloss(st: SelfTransfer, i: int, albedo: jax.Array, patch: jax.Array) -> jax.Array:
-    """The irradiance (V_o, C) the listed object ``i``'s gloss and mirror pass on from its
-    own diffuse radiance ``patch`` (P_o, C) (per patch): every pair's sender reflects, with
-    ``albedo`` (G·G·J, 1) (:func:`_gloss_irradiance`), what its mirror direction meets of
-    the object (``gloss_hit``, the radiance averaged over the gloss patches)."""
-    seen = st.gloss_hit[i] @ (st.gloss_from_patch[i] @ patch)  # (G·G·J, C)
-    return _gloss_to_vertices(st, i, albedo * seen)
+    """The radiance (U, C) the listed object ``i``'s gloss and mirror send along its triples
+    from its own diffuse radiance ``patch`` (P_o, C) (per patch): each sender reflects, with
+    ``albedo`` (U, 1) (:func:`_gloss_irradiance`), what its mirror direction meets of the
+    object (``gloss_hit``, the radiance averaged over the gloss patches)."""
+    return albedo * (st.gloss_hit[i] @ (st.gloss_from_patch[i] @ patch))
 
 
 def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Array,
