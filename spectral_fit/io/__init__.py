@@ -22,6 +22,7 @@ _EXPORTS: dict[str, str] = {
     "MAX_BLUR_PX": "_scene",
     "MAX_NOISE": "_scene",
     "MarkerSpec": "_scene",
+    "SurfaceSpec": "_scene",
     "MaterialSpec": "_scene",
     "Mesh": "_mesh",
     "NoiseModel": "_noise",

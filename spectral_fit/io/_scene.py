@@ -37,6 +37,12 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
       [objects.material] reflectance (number, CSV file, or "colourchecker:<set>/<patch>"),
                        alpha [1], beta [1], chi [0], mu [0.1], n [1.5], gamma [1],
                        distribution ["gaussian" | "beckmann"], geometry ["vcavity" | "smith"]
+    [[surfaces]]       (optional) real surfaces that are not drawn but take part in the light
+                       transport (docs/surfaces.md): name (unique), shape ["plane"],
+                       point [[0,0,0]] (a point of the plane, world, m), normal [[0,1,0]]
+                       (world; the objects' side), reflectance (as a material's, [0.5]),
+                       margin [3.0] (the shaded region around the objects, in bounding radii),
+                       resolution [128] (texels across that region)
     [markers]          (optional; live mixed reality, see spectral_fit/live/_markers.py)
                        dictionary ["DICT_5X5_100"] (an OpenCV ArUco/AprilTag dictionary),
                        size [0.08] (side of the black square, m), world (optional marker id
@@ -74,6 +80,7 @@ __all__ = [
     "ObjectSpec",
     "MaterialSpec",
     "MarkerSpec",
+    "SurfaceSpec",
     "CameraColourSpec",
     "MARKER_DICTIONARIES",
     "load_scene",
@@ -249,6 +256,34 @@ class MarkerSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class SurfaceSpec:
+    """A real surface of the scene (a ``[[surfaces]]`` table): an infinite plane that is not
+    drawn but hides the environment below it, receives the objects' shadows and light and
+    reflects its own light onto them (Lambertian).
+
+    Attributes:
+        name: unique name.
+        shape: "plane".
+        point: (3,) a point of the plane, world frame (m).
+        normal: (3,) unit normal, world frame, pointing to the objects' side.
+        reflectance: (L,) spectral reflectance on the scene's wavelengths, in [0, 1].
+        reflectance_source: where it came from (for reports).
+        margin: half-side of the shaded region beyond the objects' footprints, in units of
+            their largest bounding radius.
+        resolution: texels across the shaded region (per side).
+    """
+
+    name: str
+    shape: str
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    reflectance: np.ndarray
+    reflectance_source: str
+    margin: float = 3.0
+    resolution: int = 128
+
+
+@dataclasses.dataclass(frozen=True)
 class CameraColourSpec:
     """The video camera's colour model of a live session (the ``[camera_colour]`` table), a
     3×3 fitted from a ColorChecker shot: linear frame RGB = diag(white_balance) · matrix · XYZ
@@ -282,6 +317,7 @@ class Scene:
     objects: tuple[ObjectSpec, ...]
     markers: MarkerSpec | None = None
     camera_colour: CameraColourSpec | None = None
+    surfaces: tuple[SurfaceSpec, ...] = ()
 
     @property
     def wavelengths(self) -> np.ndarray:
@@ -486,6 +522,29 @@ def _object(r: _Reader, wl: np.ndarray) -> ObjectSpec:
     return obj
 
 
+def _surface(r: _Reader, wl: np.ndarray) -> SurfaceSpec:
+    name = r.string("name")
+    shape = r.choice("shape", ("plane",), "plane")
+    refl, src = _reflectance(r, wl)
+    if (refl > 1.0).any():
+        raise r.err("reflectance", "a real surface reflects at most all the light (≤ 1)")
+    normal = np.asarray(r.vector("normal", 3, [0.0, 1.0, 0.0]), np.float64)
+    length = float(np.linalg.norm(normal))
+    if length < 1e-9:
+        raise r.err("normal", "must not be zero")
+    s = SurfaceSpec(
+        name=name, shape=shape,
+        point=tuple(r.vector("point", 3, [0.0, 0.0, 0.0],  # type: ignore[arg-type]
+                             bound=MAX_COORD_M)),
+        normal=tuple(float(x) for x in normal / length),  # type: ignore[arg-type]
+        reflectance=refl, reflectance_source=src,
+        margin=r.number("margin", 3.0, lo=0.5, hi=50.0),
+        resolution=r.integer("resolution", 128, lo=8, hi=2048),
+    )
+    r.finish()
+    return s
+
+
 def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = None) -> Scene:
     """Validate a parsed config (a dict as from ``tomllib``) into a :class:`Scene`."""
     p = None if path is None else Path(path)
@@ -595,12 +654,19 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise root.err("objects", f"object names must be unique; repeated: {sorted(dup)}")
+    surf = root.raw("surfaces", [])
+    if not isinstance(surf, list):
+        raise root.err("surfaces", "must be an array of tables ([[surfaces]])")
+    surfaces = tuple(_surface(_Reader(t, f"surfaces[{i}]", p), wl) for i, t in enumerate(surf))
+    snames = [t.name for t in surfaces]
+    if len(set(snames)) != len(snames):
+        raise root.err("surfaces", f"surface names must be unique: {snames}")
     markers = _markers(root, objects) if "markers" in data else None
     camera_colour = _camera_colour(root) if "camera_colour" in data else None
     root.finish()
     return Scene(path=p, width=width, height=height, camera=camera, environment=environment,
                  display=display, spectral=spectral, interreflection=inter, objects=objects,
-                 markers=markers, camera_colour=camera_colour)
+                 markers=markers, camera_colour=camera_colour, surfaces=surfaces)
 
 
 def _camera_colour(root: _Reader) -> CameraColourSpec:

@@ -16,6 +16,7 @@ if TYPE_CHECKING:  # for annotations (imported where they are used)
     from ..io import Scene
 
 __all__ = [
+    "ground_surfaces",
     "load_environment",
 ]
 
@@ -70,3 +71,17 @@ def irradiance_table(texels: np.ndarray, shape: tuple[int, int] = (32, 64),
     normals = np.concatenate([texel_directions(hl, wl).reshape(-1, 3),
                               uv_to_direction(0.0, 0.0)[None], uv_to_direction(0.0, 1.0)[None]])
     return np.maximum(normals @ src.T, 0.0) @ rad
+
+
+def ground_surfaces(scene: Scene, texels: np.ndarray) -> np.ndarray:
+    """The environment (Hm, Wm, L) as the objects see it above the scene's ``[[surfaces]]``
+    planes: every direction below a plane's horizon shows that plane's uniform radiance
+    ρ E_up/π (:func:`~spectral_fit.lighting.ground_plane`; the planes in config order). A
+    scene without surfaces returns ``texels`` unchanged."""
+    from ..lighting import ground_plane, rotation_y
+
+    img = np.asarray(texels)
+    rot = rotation_y(scene.environment.rotation_y_deg)  # world from map
+    for s in scene.surfaces:
+        img, _ = ground_plane(img, rot.T @ np.asarray(s.normal, np.float64), s.reflectance)
+    return img

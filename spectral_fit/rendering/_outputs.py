@@ -75,11 +75,25 @@ def read_background(path: str | os.PathLike[str], shape: tuple[int, int]) -> np.
     return a
 
 
-def composite(rgb: Any, mask: Any, background: Any) -> np.ndarray:
+def composite(rgb: Any, mask: Any, background: Any, ratio: Any = None,
+              display: Any = None) -> np.ndarray:
     """Object pixels of ``rgb`` (H, W, 3) where ``mask`` (H, W), ``background`` (H, W, 3)
-    elsewhere (all display-encoded)."""
+    elsewhere (all display-encoded). With ``ratio`` (H, W, 3), the change the objects make
+    on the real surfaces in linear display RGB (:func:`~spectral_fit.rendering.surface_ratio`,
+    1 where none): the background's pixels are decoded with ``display``'s curve (sRGB by
+    default), multiplied and encoded again; pixels with a ratio of exactly 1, or with a
+    clipped channel (the picture does not know their light), keep their values."""
     m = np.asarray(mask, bool)[..., None]
-    return np.where(m, np.asarray(rgb, np.float64), np.asarray(background, np.float64))
+    bg = np.asarray(background, np.float64)
+    if ratio is not None:
+        from ..color import decode, encode
+
+        r = np.asarray(ratio, np.float64)
+        keep = np.all(r == 1.0, axis=-1, keepdims=True) | np.any(bg >= 1.0, axis=-1,
+                                                                   keepdims=True)
+        lit = np.clip(encode(decode(bg, display) * r, display), 0.0, 1.0)
+        bg = np.where(keep, bg, lit)
+    return np.where(m, np.asarray(rgb, np.float64), bg)
 
 
 def write_frame(
@@ -92,13 +106,16 @@ def write_frame(
     mask_png: str | os.PathLike[str] | None = None,
     composite_png: str | os.PathLike[str] | None = None,
     background: str | os.PathLike[str] | None = None,
+    surface_ratio: Any = None,
     wavelengths: Any = None,
     colourspace: str = "sRGB",
 ) -> list[str]:
     """Write the chosen files of a :class:`~spectral_fit.rendering.Frame`; returns their paths.
 
     ``exr`` needs ``frame.spectral`` and ``wavelengths`` (L,); ``composite_png`` needs
-    ``background`` (a picture of the frame's size).
+    ``background`` (a picture of the frame's size); ``surface_ratio`` (H, W, 3) the
+    objects' shadows and light on the real surfaces, applied to the background
+    (:func:`composite`).
     """
     from ..color import save_png
     from ..io import write_spectral_exr
@@ -126,6 +143,6 @@ def write_frame(
         if background is None:
             raise InputError("a composite needs a background picture", field="background")
         bg = read_background(background, tuple(np.shape(frame.mask)))
-        save_png(composite_png, composite(frame.rgb, frame.mask, bg))
+        save_png(composite_png, composite(frame.rgb, frame.mask, bg, surface_ratio))
         written.append(str(composite_png))
     return written

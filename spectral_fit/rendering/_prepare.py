@@ -24,7 +24,7 @@ from .._runtime.process import single_threaded_blas
 from ..geometry import build_clusters, capacity_ladder, spatial_order
 from ._camera import _check_lens_tessellation, _lens, _look_at_jit, _projection, camera_clip
 from ._capacities import _ir_raster_config, _plan_clusters, plan_capacities
-from ._environment import irradiance_table, load_environment
+from ._environment import ground_surfaces, irradiance_table, load_environment
 from ._materials import _stack, scene_materials
 from ._prepared import (
     Prepared,
@@ -238,6 +238,7 @@ def prepare(
 
     # environment
     img = load_environment(scene, wl) if environment is None else np.asarray(environment)
+    img = ground_surfaces(scene, img)  # what the objects see below a table: the table
     W = xyz_weights(wl)  # (L, 3) absolute
     basis = None
     if smode == "basis":
@@ -342,6 +343,11 @@ def prepare(
         triangles=jnp.asarray(ir_t, jnp.int32), vertex_object=jnp.asarray(ir_o, jnp.int32),
         tri_object=jnp.asarray(ir_to, jnp.int32), object_slices=tuple(ir_vsl),
         triangle_slices=tuple(ir_tsl))
+    surfaces = ()
+    if scene.surfaces:
+        from ._surfaces import surface_transfer
+
+        surfaces = surface_transfer(scene.surfaces, env, ir_mesh, model)
     return Prepared(
         mesh=mesh, ir_mesh=ir_mesh, model=jnp.asarray(model), materials=mats,
         camera=PreparedCamera(
@@ -365,7 +371,9 @@ def prepare(
         interreflection=PreparedInterreflection(mode=ir_mode, bounces=nb, texture_size=ts),
         names=tuple(o.name for o in scene.objects),
         occlusion=occ,
+        surfaces=surfaces,
     )
+
 
 
 def _concat_meshes(meshes: Sequence[Any]) -> tuple[Any, ...]:

@@ -52,7 +52,7 @@ TRACE_COUNT = {"render_frame": 0, "ir_senders": 0}
 #: version of :class:`Prepared`'s layout (its parts and their fields), part of the
 #: prepared-scene cache's keys: an entry pickled with another layout is never loaded
 #: (1: one flat class; 2: the named parts)
-PREPARED_LAYOUT = 4
+PREPARED_LAYOUT = 5
 
 
 class SceneMeshes(eqx.Module):
@@ -227,6 +227,9 @@ class Prepared(eqx.Module):
         occlusion: the non-convex objects' precomputed self-visibility and self-transfer
             (:mod:`~spectral_fit.rendering._occlusion`), or None (every object convex, or
             ``prepare(occlusion=False)``).
+        surfaces: one :class:`~spectral_fit.rendering.SurfaceTransfer` per ``[[surfaces]]``
+            plane of the config, for the prepared poses (the objects' shadows and light on
+            it; :func:`~spectral_fit.rendering.surface_layer`), or ().
     """
 
     mesh: SceneMeshes
@@ -240,6 +243,7 @@ class Prepared(eqx.Module):
     interreflection: PreparedInterreflection
     names: tuple[str, ...] = eqx.field(static=True)
     occlusion: Any = None
+    surfaces: tuple = ()
 
     @property
     def num_objects(self) -> int:

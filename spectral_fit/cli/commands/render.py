@@ -102,9 +102,17 @@ def run(args: argparse.Namespace) -> int:
     from ...rendering import regrow
 
     frame = regrow(prep, frame, None, bool(args.exr))
+    ratio = None
+    if prep.surfaces:  # the table drawn in the frame, and its change over a background
+        from ...rendering import draw_surfaces, surface_layer, surface_ratio
+
+        layer = surface_layer(prep, prep.surfaces)
+        ratio = surface_ratio(prep, layer, frame.mask)
+        frame = draw_surfaces(prep, frame, layer)
     written = write_frame(frame, png=args.output, exr=args.exr, xyz_exr=args.xyz_exr,
                           rgb_exr=args.rgb_exr, mask_png=args.mask,
                           composite_png=args.composite, background=args.background,
+                          surface_ratio=ratio,
                           wavelengths=prep.colour.wavelengths,
                           colourspace=(load_scene(args.config).display.colourspace
                                        if args.rgb_exr else "sRGB"))

@@ -1,0 +1,448 @@
+"""Real surfaces (a table under the objects): the objects' shadows and light on them.
+
+A ``[[surfaces]]`` plane of the config is not drawn as an object; it takes part in the light
+transport in two ways:
+
+1. what the objects see of it: the environment below its horizon is replaced by its uniform
+   radiance ρ E_up / π (:func:`~spectral_fit.lighting.ground_plane`, at :func:`prepare`);
+2. what the objects do to it (this module): at a point x of the plane, the objects hide part
+   of the sky and show their own radiance instead,
+
+       E(x) = E_up − Σ_k h_k(x) Φ_k + Σ_k h_k(x) Ω⊥_k L_obj(hit_k(x)),
+       L_surface(x, λ) = ρ(λ) E(x, λ) / π,
+
+   over D directions of the plane's upper hemisphere: K cosine-weighted directions (a
+   Fibonacci spiral on the unit disc lifted to the hemisphere, Malley's method) whose cells
+   (every environment texel belongs to its nearest direction) carry the environment's
+   cosine-weighted flux Φ_k = ∫_cell L (n·ω) dω and projected solid angle Ω⊥_k, plus the
+   sub-points of each bright source of the map (their own flux times n·ω, taken out of
+   their cells): sharp shadows of small lamps. h_k(x) ∈ {0, 1}: an object lies along the ray
+   from x in direction k. L_obj is the objects' diffuse radiance α S(λ) E(n)/π at the vertex
+   the ray meets (E from the frame's irradiance map of the grounded environment).
+
+Visibility (precomputed per pose, no gradient): for each direction the objects' meshes are
+projected along it onto the plane (an oblique parallel projection: a point X goes to
+X − s d with s = n·(X − p)/n·d its distance along d above the plane) and rasterised over a
+T × T texel grid of a square region of the plane around the objects (the config's ``margin``
+in bounding radii beyond their footprints); the front-most triangle (smallest s) is what the
+texel's ray meets first. The rasteriser is the package's own (``rasterize_batch``, one
+compiled program for all directions). The result is a :class:`SurfaceTransfer`: the hidden
+environment per texel (T², C), and the (texel, vertex, Ω⊥) triples of the hits, padded to a
+capacity on the ladder so that rebuilding it for a new pose rarely recompiles.
+
+Per frame (:func:`surface_texels`, differentiable in the materials): the objects' vertex
+radiance, gathered into the texels, gives E(x); a camera pixel whose ray meets the plane in
+front of the camera reads its texel bilinearly (:func:`surface_layer`); outside the region
+the surface has its radiance without objects, ρ E_up / π.
+
+What it leaves out: the objects' gloss towards the plane, their self-shadowing as seen from
+the plane (their vertex radiance is that of a convex object), and the shadows that fall
+outside the region. Conventions: world frame, metres; radiance in the environment's unit
+(W·sr⁻¹·m⁻²·nm⁻¹); texel (row, col) has plane coordinates
+u = (col + ½)·2/T − 1, v = 1 − (row + ½)·2/T times the region's half side along t1, t2.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.errors import InputError
+
+__all__ = ["SurfaceLayer", "SurfaceTransfer", "build_surface_transfer", "draw_surfaces",
+           "surface_layer", "surface_ratio",
+           "surface_texels", "surface_transfer"]
+
+#: cosine-weighted directions over each plane's hemisphere (their cells carry the environment)
+DIRECTIONS = 160
+#: views rasterised per compiled batch
+_BATCH = 16
+#: directions within this cosine of the plane's horizon are left out (their shadows run off
+#: the region; their cells' flux is carried by the nearest direction above)
+_MIN_COS = 0.03
+
+
+class SurfaceTransfer(eqx.Module):
+    """What the objects do to one plane, precomputed for one set of poses
+    (:func:`build_surface_transfer`).
+
+    Attributes:
+        origin: (3,) the region's centre on the plane (world, m).
+        axes: (3, 3) rows t1, t2, n: the region's axes and the plane's normal (world).
+        half: () half side of the square region (m).
+        reflectance: (L,) the plane's ρ(λ) on the scene's wavelengths.
+        upper: (C,) E_up, the plane's irradiance without objects (environment channels).
+        hidden: (T², C) irradiance the objects hide from each texel (environment channels).
+        pair_texel, pair_vertex: (P,) int32 texel and interreflection-mesh vertex of each
+            (texel, hit) pair (padding rows: weight 0).
+        pair_weight: (P,) float32 projected solid angle (sr) of the pair's directions.
+        resolution: T, texels per side (static).
+    """
+
+    origin: jax.Array
+    axes: jax.Array
+    half: jax.Array
+    reflectance: jax.Array
+    upper: jax.Array
+    hidden: jax.Array
+    pair_texel: jax.Array
+    pair_vertex: jax.Array
+    pair_weight: jax.Array
+    resolution: int = eqx.field(static=True)
+
+
+class SurfaceLayer(eqx.Module):
+    """The surfaces as a camera sees them (:func:`surface_layer`).
+
+    Attributes:
+        radiance: (H, W, K) the surfaces' radiance with the objects present, in the output
+            channels (0 where no surface is seen).
+        base: (H, W, K) their radiance without the objects (0 where none is seen).
+        mask: (H, W) bool: a surface is seen (in front of the camera); objects may cover it.
+    """
+
+    radiance: jax.Array
+    base: jax.Array
+    mask: jax.Array
+
+
+def hemisphere_directions(k: int) -> np.ndarray:
+    """(k, 3) cosine-weighted directions in a local frame (z up): a Fibonacci spiral of equal
+    areas on the unit disc lifted to the hemisphere (Malley's method), so that each carries
+    about π/k of projected solid angle."""
+    i = np.arange(k) + 0.5
+    r = np.sqrt(i / k)
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))],
+                    axis=1)
+
+
+def _plane_axes(normal: np.ndarray) -> np.ndarray:
+    n = normal / np.linalg.norm(normal)
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    t1 = np.cross(a, n)
+    t1 /= np.linalg.norm(t1)
+    return np.stack([t1, np.cross(n, t1), n])
+
+
+def _region(spec: Any, axes: np.ndarray, world: np.ndarray,
+            slices: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, float]:
+    """Centre (3,) on the plane and half side of the square region around the objects'
+    footprints, ``spec.margin`` bounding radii beyond them."""
+    p0 = np.asarray(spec.point, np.float64)
+    lo, hi, rmax = np.full(2, np.inf), np.full(2, -np.inf), 0.0
+    for a, b in slices:
+        v = world[a:b]
+        c = 0.5 * (v.min(0) + v.max(0))
+        r = float(np.linalg.norm(v - c, axis=1).max())
+        rmax = max(rmax, r)
+        uv = (v - p0) @ axes[:2].T
+        lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
+    pad = spec.margin * rmax
+    lo, hi = lo - pad, hi + pad
+    mid = 0.5 * (lo + hi)
+    return p0 + mid @ axes[:2], float(0.5 * np.max(hi - lo))
+
+
+def _cells(env: Any, dirs: np.ndarray, src_dirs: np.ndarray, src_flux: np.ndarray,
+           normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per direction (K): the environment's flux Φ_k (K, C) over its cell of the upper
+    hemisphere without the bright sources, the cell's projected solid angle Ω⊥_k (K,), and
+    the sources' sub-points' flux (S', C) times their cosine (world directions)."""
+    from ..lighting import texel_directions, texel_solid_angles
+
+    img = np.asarray(env.texels, np.float64)
+    h, w, c = img.shape
+    rot = np.asarray(env.rotation, np.float64)
+    tex = texel_directions(h, w).reshape(-1, 3) @ rot.T
+    cos = tex @ normal
+    sa = texel_solid_angles(h, w).reshape(-1)
+    up = cos > 0.0
+    near = np.argmax(tex[up] @ dirs.T, axis=1)
+    wts = (sa * cos)[up]
+    flux = np.zeros((len(dirs), c))
+    np.add.at(flux, near, img.reshape(-1, c)[up] * wts[:, None])
+    proj = np.bincount(near, weights=wts, minlength=len(dirs))
+    if len(src_dirs):
+        cs = np.maximum(src_dirs @ normal, 0.0)
+        s_near = np.argmax(src_dirs @ dirs.T, axis=1)
+        np.add.at(flux, s_near, -src_flux * cs[:, None])
+        return flux, proj, src_flux * cs[:, None]
+    return flux, proj, np.zeros((0, c))
+
+
+def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles: np.ndarray,
+                           slices: tuple[tuple[int, int], ...], *,
+                           directions: int = DIRECTIONS, capacity: int | None = None,
+                           progress: Any = None) -> SurfaceTransfer:
+    """Precompute what the objects hide from, and show to, a plane (see the module docstring).
+
+    Args:
+        spec: the plane (:class:`~spectral_fit.io.SurfaceSpec`: point, normal, reflectance,
+            margin, resolution).
+        env: the frame's :class:`~spectral_fit.lighting.EnvironmentMap` (its unfiltered
+            texels, rotation and bright sources).
+        vertices: (V, 3) the objects' interreflection-mesh vertices in the WORLD (posed).
+        triangles: (T, 3) int vertex indices; ``slices`` the vertex range of each object.
+        directions: K, cosine-weighted directions over the hemisphere.
+        capacity: pair capacity (default: the count on the capacity ladder).
+        progress: optional callable(done, total) after each batch of views.
+
+    Returns:
+        :class:`SurfaceTransfer` (JAX arrays).
+
+    Raises:
+        InputError: an object lies below the plane.
+    """
+    from ..geometry import capacity_ladder, plan_config, rasterize_batch
+
+    world = np.asarray(vertices, np.float64)
+    tris = np.asarray(triangles, np.int32)
+    normal = np.asarray(spec.normal, np.float64)
+    axes = _plane_axes(normal)
+    p0 = np.asarray(spec.point, np.float64)
+    height = (world - p0) @ normal
+    for i, (a, b) in enumerate(slices):
+        if height[a:b].max() <= 0.0:
+            raise InputError(f"object {i} lies wholly below the plane (normal {spec.normal})",
+                             field=f"surfaces.{spec.name}")
+    origin, half = _region(spec, axes, world, slices)
+    t = int(spec.resolution)
+    local = hemisphere_directions(int(directions))
+    local = local[local[:, 2] > _MIN_COS]
+    dirs = local @ axes
+    src_dirs = np.asarray(env.source_dirs, np.float64).reshape(-1, 3) @ np.asarray(
+        env.rotation, np.float64).T
+    k_sub = max(int(env.source_dirs.shape[1]), 1)
+    src_flux = np.repeat(np.asarray(env.source_flux_full, np.float64) / k_sub, k_sub, axis=0)
+    keep = src_dirs @ normal > _MIN_COS
+    src_dirs, src_flux = src_dirs[keep], src_flux[keep]
+    flux, proj, sflux = _cells(env, dirs, src_dirs, src_flux, normal)
+    views = np.concatenate([dirs, src_dirs]) if len(src_dirs) else dirs
+    view_flux = np.concatenate([flux, sflux])
+    n_dir = len(dirs)
+
+    # oblique projections onto the region: (u, v) across, depth s along the direction
+    hgt = np.maximum(height, 0.0)
+    cosd = views @ normal  # (D,)
+    s = hgt[None, :] / cosd[:, None]  # (D, V)
+    s_max = float(s.max()) * 1.01 + 1e-9
+    foot = world[None] - s[..., None] * views[:, None, :] - origin
+    clip = np.stack([foot @ axes[0] / half, foot @ axes[1] / half,
+                     2.0 * s / s_max - 1.0, np.ones_like(s)], axis=-1).astype(np.float32)
+    size = (t, t)
+    config = plan_config(clip, tris, size, cull="none", headroom=1.1)
+    tj = jnp.asarray(tris)
+    hidden_count = np.zeros((len(views), t * t), np.float32)
+    pair_t, pair_v, pair_w = [], [], []
+    for start in range(0, len(views), _BATCH):
+        stop = min(start + _BATCH, len(views))
+        batch = clip[start:stop]
+        if stop - start < _BATCH:
+            batch = np.concatenate([batch, np.repeat(batch[-1:], _BATCH - (stop - start), 0)])
+        ras = rasterize_batch(jnp.asarray(batch), tj, size, cull="none", config=config)
+        tri_id = np.asarray(ras.tri_id[:stop - start]).reshape(stop - start, -1)
+        bary = np.asarray(ras.bary[:stop - start]).reshape(stop - start, t * t, 3)
+        hit = tri_id >= 0
+        hidden_count[start:stop] = hit
+        for j in range(stop - start):
+            if start + j >= n_dir:
+                continue  # a source's direction: its solid angle shows no object light
+            texels = np.nonzero(hit[j])[0]
+            corner = np.argmax(bary[j, texels], axis=1)
+            pair_t.append(texels)
+            pair_v.append(tris[tri_id[j, texels], corner])
+            pair_w.append(np.full(len(texels), proj[start + j]))
+        if progress is not None:
+            progress(stop, len(views))
+    hidden = hidden_count.T @ view_flux  # (T², C)
+    pt = np.concatenate(pair_t) if pair_t else np.zeros(0, np.int64)
+    pv = np.concatenate(pair_v) if pair_v else np.zeros(0, np.int64)
+    pw = np.concatenate(pair_w) if pair_w else np.zeros(0)
+    key = pt.astype(np.int64) * (len(world) + 1) + pv
+    uniq, inv = np.unique(key, return_inverse=True)
+    wsum = np.bincount(inv, weights=pw, minlength=len(uniq))
+    cap = capacity_ladder(len(uniq), 64) if capacity is None else int(capacity)
+    if cap < len(uniq):
+        raise InputError(f"pair capacity {cap} below the {len(uniq)} pairs needed",
+                         field="capacity")
+    pad = cap - len(uniq)
+    from ..lighting import upper_irradiance
+
+    upper = upper_irradiance(np.asarray(env.texels, np.float64),
+                             np.asarray(env.rotation, np.float64).T @ normal)
+    return SurfaceTransfer(
+        origin=jnp.asarray(origin, jnp.float32), axes=jnp.asarray(axes, jnp.float32),
+        half=jnp.asarray(half, jnp.float32),
+        reflectance=jnp.asarray(spec.reflectance, jnp.float32),
+        upper=jnp.asarray(upper, jnp.float32), hidden=jnp.asarray(hidden, jnp.float32),
+        pair_texel=jnp.asarray(np.concatenate([uniq // (len(world) + 1),
+                                               np.zeros(pad, np.int64)]), jnp.int32),
+        pair_vertex=jnp.asarray(np.concatenate([uniq % (len(world) + 1),
+                                                np.zeros(pad, np.int64)]), jnp.int32),
+        pair_weight=jnp.asarray(np.concatenate([wsum, np.zeros(pad)]), jnp.float32),
+        resolution=t)
+
+
+def surface_transfer(surfaces: Any, env: Any, ir_mesh: Any, model: Any, *,
+                     progress: Any = None) -> tuple[SurfaceTransfer, ...]:
+    """The :class:`SurfaceTransfer` of every plane of ``surfaces`` (a scene's
+    :class:`~spectral_fit.io.SurfaceSpec` s) for the objects of ``ir_mesh`` (the prepared
+    scene's ``ir_mesh``) at ``model`` (O, 4, 4), under ``env`` (``prep.lighting.env``).
+    Rebuild it when the objects move relative to the planes (no gradient); the per-frame work
+    (:func:`surface_layer`) stays the same program while the pair capacity holds."""
+    m = np.asarray(model, np.float64)
+    obj = np.asarray(ir_mesh.vertex_object)
+    v = np.asarray(ir_mesh.vertices, np.float64)
+    world = np.einsum("vij,vj->vi", m[obj][:, :3, :3], v) + m[obj][:, :3, 3]
+    return tuple(build_surface_transfer(s, env, world, np.asarray(ir_mesh.triangles),
+                                        ir_mesh.object_slices, progress=progress)
+                 for s in surfaces)
+
+
+def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Array
+                   ) -> jax.Array:
+    """The plane's irradiance E(x) (T², C) in the environment's channels with the objects at
+    ``model`` (their radiance from their materials; the hidden environment from ``st``'s
+    poses)."""
+    from ._materials import _as_stacked
+    from ._shading import _filtered_irradiance, _irradiance_at, _lut_env
+
+    mats = _as_stacked(prep.materials if materials is None else materials, prep.num_objects)
+    mesh = prep.ir_mesh
+    env = prep.lighting.env
+    lut = prep.lighting.irradiance_lut
+    table = None if lut is None else _lut_env(env, lut)
+    rot = model[mesh.vertex_object][:, :3, :3]
+    nrm = jnp.einsum("vij,vj->vi", rot, mesh.normals)
+    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
+    e = _irradiance_at(env, table, nrm)
+    rad = []
+    for i, (a, b) in enumerate(mesh.object_slices):
+        m = mats[i]
+        rad.append((m.alpha / math.pi) * _filtered_irradiance(m, env, e[a:b]))
+    radiance = jnp.concatenate(rad, axis=0)  # (V, C)
+    t2 = st.resolution * st.resolution
+    seen = jax.ops.segment_sum(st.pair_weight[:, None] * radiance[st.pair_vertex],
+                               st.pair_texel, num_segments=t2)
+    return st.upper[None, :] + seen - st.hidden
+
+
+def _pixel_rays(prep: Any, view: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """World-frame ray directions (H·W, 3) of the pixel centres (not normalised) and the
+    eye (3,)."""
+    from ..geometry import eye_position
+    from ._background import _pinhole_ray_components
+
+    rays = prep.camera.pixel_rays
+    if rays is not None:
+        d = rays @ view[:3, :3]
+    else:
+        comp = _pinhole_ray_components(prep, view, jnp.eye(3, dtype=jnp.float32))
+        d = jnp.stack([c.reshape(-1) for c in comp], axis=-1)
+    return d, eye_position(view)
+
+
+def surface_layer(prep: Any, transfers: tuple[SurfaceTransfer, ...], materials: Any = None, *,
+                  model: Any = None, view: Any = None, out: Any = None) -> SurfaceLayer:
+    """The surfaces seen through each pixel centre, with and without the objects.
+
+    Args:
+        prep: the prepared scene.
+        transfers: one :class:`SurfaceTransfer` per plane (:func:`surface_transfer`).
+        materials: the objects' materials (default: the config's).
+        model: (O, 4, 4) the objects' poses for their radiance (default: the prepared ones;
+            the shadows are those of the transfers' poses).
+        view: (4, 4) world → eye (default: the config's camera).
+        out: (L, K) spectral radiance → output channels (default: absolute XYZ, the frame's
+            ``xyz``); e.g. a video camera's spectral weights.
+
+    Returns:
+        :class:`SurfaceLayer` (H, W, K); where several planes are seen, the nearest.
+    """
+    from ..color import xyz_weights
+
+    h, w = prep.camera.shape
+    model = jnp.asarray(prep.model if model is None else model, jnp.float32)
+    view = jnp.asarray(prep.camera.view if view is None else view, jnp.float32)
+    col = prep.colour
+    if out is None:
+        out = jnp.asarray(xyz_weights(np.asarray(col.wavelengths)), jnp.float32)
+    out = jnp.asarray(out, jnp.float32)
+    d, eye = _pixel_rays(prep, view)
+    best = jnp.full((h * w,), jnp.inf)
+    rad = jnp.zeros((h * w, out.shape[1]), jnp.float32)
+    base = jnp.zeros_like(rad)
+    for st in transfers:
+        n = st.axes[2]
+        denom = d @ n
+        dist = ((st.origin - eye) @ n) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
+        hit = (dist > 0.0) & (denom < 0.0) & (dist < best)
+        p = eye + dist[:, None] * d
+        uv = ((p - st.origin) @ st.axes[:2].T) / st.half  # (N, 2) in [-1, 1] over the region
+        e = surface_texels(prep, st, materials, model)  # (T², C)
+        spec_scale = st.reflectance / math.pi
+        tex = ((e @ col.to_spectrum) * spec_scale) @ out  # (T², K)
+        e0 = ((st.upper @ col.to_spectrum) * spec_scale) @ out  # (K,)
+        t = st.resolution
+        tex = tex.reshape(t, t, -1)
+        x = (uv[:, 0] + 1.0) * 0.5 * t - 0.5
+        y = (1.0 - uv[:, 1]) * 0.5 * t - 0.5
+        inside = (x > -0.5) & (x < t - 0.5) & (y > -0.5) & (y < t - 0.5)
+        x0 = jnp.clip(jnp.floor(x), 0, t - 2)
+        y0 = jnp.clip(jnp.floor(y), 0, t - 2)
+        fx = jnp.clip(x - x0, 0.0, 1.0)[:, None]
+        fy = jnp.clip(y - y0, 0.0, 1.0)[:, None]
+        xi, yi = x0.astype(jnp.int32), y0.astype(jnp.int32)
+        val = ((1 - fy) * ((1 - fx) * tex[yi, xi] + fx * tex[yi, xi + 1])
+               + fy * ((1 - fx) * tex[yi + 1, xi] + fx * tex[yi + 1, xi + 1]))
+        val = jnp.where(inside[:, None], val, e0[None, :])
+        rad = jnp.where(hit[:, None], val, rad)
+        base = jnp.where(hit[:, None], e0[None, :], base)
+        best = jnp.where(hit, dist, best)
+    mask = jnp.isfinite(best)
+    k = out.shape[1]
+    return SurfaceLayer(radiance=rad.reshape(h, w, k), base=base.reshape(h, w, k),
+                        mask=mask.reshape(h, w))
+
+
+def draw_surfaces(prep: Any, frame: Any, layer: SurfaceLayer) -> Any:
+    """``frame`` (:class:`~spectral_fit.rendering.Frame`) with the surfaces drawn where no
+    object covers a pixel: their radiance (``layer`` in absolute XYZ, :func:`surface_layer`'s
+    default channels) instead of the environment, then the frame's display encoding. For a
+    render without a video: in mixed reality the surface is the real table and only the
+    change the objects make is composited (:func:`spectral_fit.live.composite_surfaces`)."""
+    from ..color import display_linear, encode
+
+    col = prep.colour
+    show = layer.mask & ~frame.mask
+    xyz = jnp.where(show[..., None], layer.radiance, frame.xyz)
+    linear = display_linear(xyz, exposure_luminance=col.exposure, display=col.display,
+                            scene_white_xy=col.scene_white_xy)
+    return eqx.tree_at(lambda f: (f.xyz, f.linear_rgb, f.rgb), frame,
+                       (xyz, linear, encode(linear, col.display)))
+
+
+def surface_ratio(prep: Any, layer: SurfaceLayer, object_mask: Any = None) -> jax.Array:
+    """(H, W, 3) the change the objects make on the surfaces, as a ratio per channel of the
+    frame's linear display RGB (with / without the objects; ``layer`` in absolute XYZ), 1
+    where no surface is seen or ``object_mask`` (H, W) covers the pixel. The ratio form of
+    differential rendering: a real table's pixel times it shows the objects' shadow and
+    light, whatever the table's true reflectance and the camera's exposure (both cancel in
+    the ratio; docs/surfaces.md)."""
+    from ..color import display_linear
+
+    col = prep.colour
+    kw = dict(exposure_luminance=col.exposure, display=col.display,
+              scene_white_xy=col.scene_white_xy)
+    with_ = display_linear(layer.radiance, **kw)
+    without = display_linear(layer.base, **kw)
+    show = layer.mask if object_mask is None else layer.mask & ~jnp.asarray(object_mask, bool)
+    ok = show[..., None] & (without > 1e-6)
+    r = jnp.where(ok, with_ / jnp.where(ok, without, 1.0), 1.0)
+    return jnp.clip(r, 0.0, 4.0)

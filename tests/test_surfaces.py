@@ -1,0 +1,255 @@
+"""Real surfaces (a table under the objects) against closed forms: the plane's radiance in the
+objects' environment, a sphere's form factor from the plane under a uniform sky, the hard
+shadow of a sphere under one small bright source, a white furnace, gradients, and the
+differential composite."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from spectral_fit._runtime.errors import InputError
+from spectral_fit.io import parse_scene, write_spectral_exr
+from spectral_fit.lighting import ground_plane, upper_irradiance
+from spectral_fit.rendering import prepare, surface_layer, surface_texels
+
+WL = np.arange(400.0, 701.0, 100.0)
+R = 0.05
+
+CONFIG = """
+[frame]
+width = 96
+height = 64
+
+[camera]
+fov_y_deg = 60.0
+position = [0.0, 0.35, 0.45]
+look_at = [0.0, 0.0, 0.0]
+
+[environment]
+file = "{env}"
+
+[spectral]
+start_nm = 400.0
+end_nm = 700.0
+step_nm = 100.0
+
+[interreflection]
+mode = "none"
+
+[[objects]]
+name = "ball"
+shape = "icosphere"
+subdivisions = 4
+radius = {r}
+position = [0.0, {h}, 0.0]
+
+[objects.material]
+reflectance = {rho_obj}
+alpha = {alpha}
+beta = 0.0
+chi = 0.0
+
+[[surfaces]]
+name = "table"
+reflectance = {rho}
+resolution = 64
+margin = 2.0
+"""
+
+
+def _scene(folder, env: np.ndarray, *, h: float, alpha: float, rho: float = 1.0,
+           rho_obj: float = 1.0):
+    write_spectral_exr(folder / "sky.exr", WL, env.astype(np.float32))
+    path = folder / "scene.toml"
+    path.write_text(CONFIG.format(env="sky.exr", r=R, h=h, alpha=alpha, rho=rho,
+                                  rho_obj=rho_obj))
+    return path
+
+
+def _texel_centres(st) -> np.ndarray:
+    """World positions (T², 3) of the transfer's texel centres (the module's convention)."""
+    t = st.resolution
+    col, row = np.meshgrid(np.arange(t), np.arange(t))
+    u = (col.reshape(-1) + 0.5) * 2.0 / t - 1.0
+    v = 1.0 - (row.reshape(-1) + 0.5) * 2.0 / t
+    axes = np.asarray(st.axes, np.float64)
+    half = float(st.half)
+    return np.asarray(st.origin, np.float64) + half * (u[:, None] * axes[0]
+                                                       + v[:, None] * axes[1])
+
+
+def test_ground_plane_closed_form():
+    """Uniform sky L0 over a plane of reflectance ρ: E_up = π L0, and every direction below
+    the horizon shows ρ L0; half-split texels on the horizon by area."""
+    h, w = 16, 32
+    sky = np.full((h, w, 3), 2.0)
+    e_up = upper_irradiance(sky, [0.0, 1.0, 0.0])
+    np.testing.assert_allclose(e_up, 2.0 * math.pi, rtol=1e-3)
+    grounded, plane = ground_plane(sky, [0.0, 1.0, 0.0], [0.2, 0.5, 1.0])
+    np.testing.assert_allclose(plane, [0.4, 1.0, 2.0], rtol=1e-3)
+    np.testing.assert_allclose(grounded[: h // 2], 2.0)
+    np.testing.assert_allclose(grounded[h // 2:], np.broadcast_to(plane, (h // 2, w, 3)),
+                               rtol=1e-3)
+    # a tilted plane: the lower side's share follows the normal
+    tilted, _ = ground_plane(sky, [math.sin(0.3), math.cos(0.3), 0.0], 0.0)
+    from spectral_fit.lighting import texel_solid_angles
+
+    sa = texel_solid_angles(h, w)
+    dark = 1.0 - (tilted[..., 0] / 2.0)  # share of each texel below
+    np.testing.assert_allclose((dark * sa).sum(), 2.0 * math.pi, rtol=2e-3)
+
+
+def test_objects_see_the_plane(tmp_path):
+    """A white plane (ρ = 1) under a uniform sky makes the objects' environment uniform: the
+    prepared map equals the sky everywhere; ρ = 0.25 darkens the lower half to 0.25 L0."""
+    sky = np.ones((16, 32, WL.size))
+    prep = prepare(_scene(tmp_path, sky, h=R, alpha=1.0, rho=1.0), occlusion=False)
+    np.testing.assert_allclose(np.asarray(prep.lighting.env.texels), 1.0, rtol=2e-3)
+    prep = prepare(_scene(tmp_path, sky, h=R, alpha=1.0, rho=0.25), occlusion=False)
+    tex = np.asarray(prep.lighting.env.texels)
+    np.testing.assert_allclose(tex[:8], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(tex[8:], 0.25, rtol=2e-3)
+
+
+def test_sphere_form_factor_from_plane(tmp_path):
+    """A black sphere (radius r, centre at height h) over a plane under a uniform sky L0: the
+    plane's irradiance is π L0 (1 − F) with F = r² h / d³, the sphere's form factor from a
+    point at distance d from its centre (a sphere wholly above the point's horizon: its
+    cosine-weighted solid angle is π sin²θ cosφ = π r² h / d³; Howell's catalogue of
+    configuration factors, C-56)."""
+    h = 2.0 * R
+    prep = prepare(_scene(tmp_path, np.ones((32, 64, WL.size)), h=h, alpha=0.0),
+                   occlusion=False)
+    st = prep.surfaces[0]
+    e = np.asarray(surface_texels(prep, st, None, prep.model))[:, 0]
+    x = _texel_centres(st)
+    d = np.linalg.norm(x - np.array([0.0, h, 0.0]), axis=1)
+    expect = math.pi * (1.0 - R * R * h / d ** 3)
+    err = (e - expect) / math.pi
+    assert np.median(np.abs(err)) < 0.005
+    assert np.abs(err).max() < 0.03
+    # right under the sphere: F = (r/h)² = 0.25
+    centre = np.argmin(np.linalg.norm(x[:, [0, 2]], axis=1))
+    assert abs(e[centre] / math.pi - 0.75) < 0.02
+
+
+def _source_sky() -> tuple[np.ndarray, np.ndarray]:
+    """A dim sky (1e-3) with one bright texel at elevation ~40°: the map and the texel's
+    direction (world frame, rotation 0)."""
+    from spectral_fit.lighting import texel_directions
+
+    sky = np.full((64, 128, WL.size), 1e-3)
+    row, col = 16, 40
+    sky[row, col] = 2000.0
+    return sky, texel_directions(64, 128)[row, col]
+
+
+def test_hard_shadow_of_a_sphere(tmp_path):
+    """A black sphere under one small bright source (its texel's four sub-points): each texel
+    of the plane loses the share of the source's flux whose sub-points' rays hit the sphere
+    (ray–sphere intersection, analytic), to within the texel grid's edge."""
+    h = 1.5 * R
+    sky, _ = _source_sky()
+    prep = prepare(_scene(tmp_path, sky, h=h, alpha=0.0), occlusion=False)
+    env = prep.lighting.env
+    sub = np.asarray(env.source_dirs, np.float64).reshape(-1, 3) @ np.asarray(
+        env.rotation, np.float64).T
+    flux = np.asarray(env.source_flux_full, np.float64)[0, 0] / 4.0
+    assert sub.shape == (4, 3)
+    st = prep.surfaces[0]
+    e = np.asarray(surface_texels(prep, st, None, prep.model))[:, 0]
+    x = _texel_centres(st)
+    c = np.array([0.0, h, 0.0])
+    hidden = np.zeros(len(x))
+    near_edge = np.zeros(len(x), bool)
+    texel = 2.0 * float(st.half) / st.resolution
+    for s in sub:
+        oc = c - x
+        along = oc @ s
+        miss = np.sqrt(np.maximum(np.sum(oc * oc, 1) - along ** 2, 0.0))
+        hidden += ((miss < R) & (along > 0)) * flux * s[1]
+        near_edge |= np.abs(miss - R) < 1.5 * texel
+    drop = float(np.asarray(st.upper)[0]) - e
+    total = flux * sub[:, 1].sum()
+    assert hidden.max() > 0.99 * total  # the shadow is in the region
+    ok = ~near_edge
+    np.testing.assert_allclose(drop[ok], hidden[ok], atol=0.02 * total)
+    # the shadow's area (sum of the lost flux) within 5 % of the analytic one
+    assert abs(drop.sum() - hidden.sum()) < 0.05 * hidden.sum()
+
+
+def test_white_furnace(tmp_path):
+    """A white Lambertian sphere on a white plane under a uniform sky: everything is lit by
+    L0 from every direction, so the plane's irradiance stays π L0 wherever the sphere is."""
+    prep = prepare(_scene(tmp_path, np.ones((32, 64, WL.size)), h=R, alpha=1.0, rho=1.0,
+                          rho_obj=1.0), occlusion=False)
+    st = prep.surfaces[0]
+    e = np.asarray(surface_texels(prep, st, None, prep.model))
+    np.testing.assert_allclose(e / math.pi, 1.0, atol=0.02)
+
+
+def test_gradient_against_finite_differences(tmp_path):
+    """∂(plane radiance)/∂α of the object, through the layer, against a central difference."""
+    import jax
+    import jax.numpy as jnp
+
+    from spectral_fit.lighting import Material
+
+    sky, _ = _source_sky()
+    sky = sky + 0.5
+    prep = prepare(_scene(tmp_path, sky, h=R, alpha=0.6, rho=0.5, rho_obj=0.8),
+                   occlusion=False)
+    st = prep.surfaces
+
+    def total(a):
+        m = prep.materials
+        mats = Material(**{**{f: getattr(m, f) for f in m.__dataclass_fields__},
+                           "alpha": jnp.reshape(a, m.alpha.shape)})
+        lay = surface_layer(prep, st, mats)
+        return jnp.sum(lay.radiance[..., 1])
+
+    a0 = 0.6
+    g = float(jax.grad(total)(jnp.float32(a0)))
+    eps = 0.05
+    fd = (float(total(jnp.float32(a0 + eps))) - float(total(jnp.float32(a0 - eps)))) / (2 * eps)
+    assert g > 0
+    assert abs(g - fd) < 1e-3 * abs(fd) + 1e-6
+
+
+def test_layer_sees_the_plane_through_the_camera(tmp_path):
+    """The layer's pixels: every pixel whose ray goes down meets the plane (the camera looks
+    down at it), and far from the sphere the radiance equals the plane's without objects."""
+    prep = prepare(_scene(tmp_path, np.ones((32, 64, WL.size)), h=R, alpha=0.0, rho=0.5),
+                   occlusion=False)
+    lay = surface_layer(prep, prep.surfaces)
+    mask = np.asarray(lay.mask)
+    assert mask.mean() > 0.9
+    rad, base = np.asarray(lay.radiance), np.asarray(lay.base)
+    ratio = rad[..., 1] / np.where(mask, base[..., 1], 1.0)
+    assert ratio[mask].min() < 0.6  # the contact shadow
+    assert np.isclose(np.median(ratio[mask]), 1.0, atol=1e-3)
+    # base = ρ π L0 / π = ρ in XYZ-weighted units: Y = 683 ∫ ȳ ρ L0 dλ on the grid
+    from spectral_fit.color import xyz_weights
+
+    y = float((0.5 * xyz_weights(WL))[:, 1].sum())
+    np.testing.assert_allclose(base[mask][:, 1], y, rtol=1e-4)
+
+
+def test_config_errors(tmp_path):
+    data = {
+        "environment": {"file": str(tmp_path / "sky.exr")},
+        "objects": [{"name": "a"}],
+        "surfaces": [{"name": "t", "normal": [0.0, 0.0, 0.0]}],
+    }
+    write_spectral_exr(tmp_path / "sky.exr", WL, np.ones((8, 16, WL.size), np.float32))
+    with pytest.raises(InputError, match=r"surfaces\[0\]\.normal"):
+        parse_scene(data, path=tmp_path / "x.toml")
+    data["surfaces"] = [{"name": "t", "reflectance": 1.2}]
+    with pytest.raises(InputError, match=r"surfaces\[0\]\.reflectance"):
+        parse_scene(data, path=tmp_path / "x.toml")
+    data["surfaces"] = [{"name": "t", "colour": 1}]
+    with pytest.raises(InputError, match=r"surfaces\[0\]\.colour"):
+        parse_scene(data, path=tmp_path / "x.toml")
