@@ -54,24 +54,12 @@ def scene_geometry(scene: Scene) -> list[ObjectGeometry]:
 
 def scene_environment(scene: Scene, *, dtype: Any = jnp.float32, compress_tol: float = 1e-4
                       ) -> EnvironmentMap:
-    """The scene's environment map on its wavelength grid (config scale and rotation applied)."""
-    from ..color import resample
+    """The scene's environment map on its wavelength grid (config scale and rotation applied),
+    as the frame's: below a ``[[surfaces]]`` plane's horizon the plane's own radiance."""
+    from ..rendering import ground_surfaces, load_environment
 
     spec = scene.environment
-    wl = scene.wavelengths
-    from ..io import read_spectral_exr
-
-    try:
-        wl_in, img = read_spectral_exr(spec.file)
-        img = resample(wl_in, np.asarray(img, np.float64), wl, path=spec.file,
-                       field="environment")
-    except InputError as exc:
-        if "spectral" not in str(exc).lower() and "channel" not in str(exc).lower():
-            raise
-        from ..lighting import read_rgb_environment
-
-        _, img = read_rgb_environment(spec.file, wl, method=spec.upsampling)
-    img = np.asarray(img, np.float64) * spec.scale
+    img = ground_surfaces(scene, load_environment(scene, scene.wavelengths))
     return EnvironmentMap.from_array(img, rotation_y_deg=spec.rotation_y_deg, dtype=dtype,
                                      compress_tol=compress_tol, path=str(spec.file))
 
