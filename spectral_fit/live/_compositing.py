@@ -68,6 +68,7 @@ __all__ = [
     "decode_frame",
     "composite",
     "composite_pixels",
+    "relight",
     "camera_model_from_spec",
     "chart_xyz",
     "ChartCalibration",
@@ -320,6 +321,27 @@ def composite(frame, cg_linear, coverage, model: CameraModel) -> jax.Array:
     mixed = cov * cg + (1.0 - cov) * lut[fr.astype(jnp.int32)]
     enc = jnp.round(encode_frame(mixed, model) * 255.0).astype(jnp.uint8)
     return jnp.where(cov > 0, enc, fr)
+
+
+def relight(frame, ratio, model: CameraModel) -> jax.Array:
+    """The objects' shadows and light on a real surface, put into the video frame: each pixel
+    decoded through the model's tone curve (a 256-entry table, exact for uint8), times
+    ``ratio`` (H, W, 3) (the surface's radiance with / without the objects in the frame's
+    linear RGB, :func:`spectral_fit.rendering.surface_ratio`), encoded again. Pixels whose
+    ratio is exactly 1 keep their bytes, so a frame without objects comes back bit for bit.
+    A pixel with a clipped channel (255) holds at least the clip level's light: it is
+    darkened from that level where the objects shade it (a lower bound of its true value,
+    and the same as its unclipped neighbours get: no speckle on white paper), never
+    brightened (its true light is unknown)."""
+    fr = jnp.asarray(frame, jnp.uint8)
+    r = jnp.asarray(ratio, jnp.float32)
+    clipped = jnp.any(fr == 255, axis=-1, keepdims=True)
+    r = jnp.where(clipped, jnp.minimum(r, 1.0), r)
+    lut = decode_frame(jnp.arange(256, dtype=jnp.float32) / 255.0, model)
+    lit = lut[fr.astype(jnp.int32)] * r
+    enc = jnp.round(encode_frame(lit, model) * 255.0).astype(jnp.uint8)
+    keep = jnp.all(r == 1.0, axis=-1, keepdims=True)
+    return jnp.where(keep, fr, enc)
 
 
 def composite_pixels(frame, cg_linear, index, valid, model: CameraModel) -> jax.Array:

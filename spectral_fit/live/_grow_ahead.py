@@ -85,8 +85,10 @@ class GrowAhead:
                                                  visible=visible, mirror=self._mirror)
                         if stop.is_set():
                             return
+                    state = self._surface_state  # the same program as the frames'
                     out, _ = live_step(placed, placed.materials, model, view, visible,
-                                   put(background), cam, self._mirror, senders)
+                                       put(background), cam, self._mirror, senders,
+                                       None if state is None else state[2])
                     if stop.is_set():
                         return
                     jax.block_until_ready(out)

@@ -54,7 +54,7 @@ from ._frames import FramesInFlight, FrameTimings
 from ._grow_ahead import GrowAhead, _pixel_slots
 from ._scene_camera import scene_camera_model, scene_intrinsics
 from ._senders_reuse import SendersReuse, _object_corners
-from ._step import camera_output_matrix, live_step
+from ._step import camera_output_matrix, camera_spectral_matrix, live_step
 
 if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
     from ..geometry import TriangleClusters
@@ -173,6 +173,12 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         self._senders: dict[Any, Any] = {}  # device -> the current senders' half there
         self._senders_key: Any = None
         self._corners = _object_corners(self.prep)
+        # the real surfaces' shadows and light: built for the tracked placement of the
+        # objects, rebuilt when one moves more than surface_reuse_mm / _deg relative to them
+        self.surface_reuse_mm = 3.0
+        self.surface_reuse_deg = 1.0
+        self.surface_builds = 0
+        self._surface_state: tuple[Any, Any, Any] | None = None  # (visible, model, textures)
 
     # ------------------------------------------------------------------ preparation
 
@@ -284,8 +290,10 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         h, w = self.size
         # kept on disk (startup's cache; SPECTRAL_FIT_CACHE="" turns it off): a session of
         # the same config, camera and options starts from the stored prepared scene
+        # the planes' shadows are built from the tracked poses (_surfaces_for), not from
+        # the planning scene's stand-in placement
         prep = prepare_cached(self._planning_scene(), size=(w, h), headroom=headroom,
-                              **self._options)
+                              surfaces=False, **self._options)
         return with_output(prep, camera_output_matrix(prep, self.camera))
 
     # ------------------------------------------------------------------ per frame
@@ -363,7 +371,38 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         dev = _device_of(bg, self.devices)
         prep, camera = self._placed(dev)
         return live_step(prep, prep.materials, *inputs, bg, camera, self._mirror,
-                     self._senders_for(poses, inputs, dev))
+                         self._senders_for(poses, inputs, dev), self._surfaces_for(poses))
+
+    def _surfaces_for(self, poses: Any) -> Any:
+        """The ``[[surfaces]]`` planes' textures (camera channels) for the visible objects at
+        ``poses``: the last ones while no object moved more than ``surface_reuse_mm`` /
+        ``surface_reuse_deg`` (nor appeared or vanished), else built again (a second or so;
+        the step's program stays the same while the texture shapes hold). None without
+        surfaces or visible objects."""
+        from ..rendering import surface_textures, surface_transfer
+
+        if not self.scene.surfaces:
+            return None
+        vis = np.asarray(poses.visible, bool)
+        if not vis.any():
+            return None
+        model = np.asarray(poses.model, np.float64)
+        st = self._surface_state
+        if st is not None and np.array_equal(st[0], vis):
+            moved = np.linalg.norm(model[vis, :3, 3] - st[1][vis, :3, 3], axis=1).max()
+            rot = np.einsum("oij,oik->ojk", model[vis, :3, :3], st[1][vis, :3, :3])
+            cos = np.clip((np.trace(rot, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+            turned = np.degrees(np.arccos(cos)).max()
+            if moved * 1e3 <= self.surface_reuse_mm and turned <= self.surface_reuse_deg:
+                return st[2]
+        prep = self.prep
+        transfers = surface_transfer(self.scene.surfaces, prep.lighting.env, prep.ir_mesh,
+                                     model, visible=vis)
+        textures = surface_textures(prep, transfers, prep.materials, model=model,
+                                    out=camera_spectral_matrix(prep, self.camera))
+        self.surface_builds += 1
+        self._surface_state = (vis, model, textures)
+        return textures
 
 
 def _planned_clusters(prep: Prepared, poses: Any, headroom: float

@@ -1,6 +1,8 @@
-"""The live step program: one jitted step that renders the covered pixels of the traced poses
-(shaded straight into the video camera's linear RGB), encodes them and writes them into the
-(H, W, 3) uint8 background frame, with the buffer statistics the session re-plans from.
+"""The live step program: one jitted step that puts the objects' shadows and light on the real
+surfaces into the (H, W, 3) uint8 background frame (``[[surfaces]]``, as a ratio of the
+table's radiance with / without them), renders the covered pixels of the traced poses
+(shaded straight into the video camera's linear RGB), encodes them and writes them into it,
+with the buffer statistics the session re-plans from.
 """
 
 from __future__ import annotations
@@ -11,13 +13,13 @@ import jax
 import numpy as np
 
 from .._runtime.dispatch import array_jit
-from ._compositing import CameraModel, composite_pixels
+from ._compositing import CameraModel, composite_pixels, relight
 
 if TYPE_CHECKING:  # for annotations (the renderer is imported where it is used)
     from ..lighting import Material
     from ..rendering import Prepared
 
-__all__ = ["STEP_TRACES", "camera_output_matrix", "live_step"]
+__all__ = ["STEP_TRACES", "camera_output_matrix", "camera_spectral_matrix", "live_step"]
 
 #: number of times the live step has been traced (compiled), for tests and reports
 STEP_TRACES = {"step": 0}
@@ -32,13 +34,29 @@ def camera_output_matrix(prep: Prepared, camera: CameraModel) -> np.ndarray:
     return np.asarray(prep.colour.to_xyz) @ np.asarray(camera.xyz_matrix).T
 
 
+def camera_spectral_matrix(prep: Prepared, camera: CameraModel) -> np.ndarray:
+    """(L, 3) map from spectral radiance on ``prep``'s wavelengths to the video camera's
+    linear RGB (its spectral weights, or XYZ and its 3 × 3)."""
+    if camera.has_spectral:
+        return np.asarray(camera.spectral_weights)
+    from ..color import xyz_weights
+
+    return xyz_weights(np.asarray(prep.colour.wavelengths)) @ np.asarray(camera.xyz_matrix).T
+
+
 def _step_impl(prep: Prepared, materials: Material, model: jax.Array, view: jax.Array,
                visible: jax.Array, background: jax.Array, camera: CameraModel,
-               mirror: bool = True, senders: Any = None
+               mirror: bool = True, senders: Any = None, surfaces: Any = None
                ) -> tuple[jax.Array, dict[str, jax.Array]]:
     from ..rendering import render_pixels
 
     STEP_TRACES["step"] += 1
+    if surfaces is not None:  # the objects' shadows and light on the real table, first
+        from ..rendering import surface_layer, surface_ratio
+
+        layer = surface_layer(prep, view=view, textures=surfaces)
+        background = relight(background, surface_ratio(prep, layer, channels="linear"),
+                             camera)
     # only the covered pixels are shaded (in the camera's linear RGB: prep's output matrix),
     # encoded and written into the video frame: no environment background, no full-frame
     # display encoding, no decoding of the video

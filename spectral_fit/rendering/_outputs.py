@@ -81,16 +81,17 @@ def composite(rgb: Any, mask: Any, background: Any, ratio: Any = None,
     elsewhere (all display-encoded). With ``ratio`` (H, W, 3), the change the objects make
     on the real surfaces in linear display RGB (:func:`~spectral_fit.rendering.surface_ratio`,
     1 where none): the background's pixels are decoded with ``display``'s curve (sRGB by
-    default), multiplied and encoded again; pixels with a ratio of exactly 1, or with a
-    clipped channel (the picture does not know their light), keep their values."""
+    default), multiplied and encoded again; pixels with a ratio of exactly 1 keep their
+    values, and a pixel with a clipped channel is only darkened (as
+    :func:`spectral_fit.live.relight`)."""
     m = np.asarray(mask, bool)[..., None]
     bg = np.asarray(background, np.float64)
     if ratio is not None:
         from ..color import decode, encode
 
         r = np.asarray(ratio, np.float64)
-        keep = np.all(r == 1.0, axis=-1, keepdims=True) | np.any(bg >= 1.0, axis=-1,
-                                                                   keepdims=True)
+        r = np.where(np.any(bg >= 1.0, axis=-1, keepdims=True), np.minimum(r, 1.0), r)
+        keep = np.all(r == 1.0, axis=-1, keepdims=True)
         lit = np.clip(encode(decode(bg, display) * r, display), 0.0, 1.0)
         bg = np.where(keep, bg, lit)
     return np.where(m, np.asarray(rgb, np.float64), bg)

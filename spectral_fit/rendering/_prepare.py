@@ -132,6 +132,7 @@ def prepare(
     split_settings: Any = None,
     occlusion: bool = True,
     occlusion_resolution: int = 24,
+    surfaces: bool = True,
 ) -> Prepared:
     """Precompute a scene for :func:`render_frame` (explicit precomputation).
 
@@ -168,6 +169,9 @@ def prepare(
             docs/any_shape.md) and render with it; False: every object lit as if convex.
             Convex objects cost nothing either way.
         occlusion_resolution: R of the self-visibility's octahedral direction grid.
+        surfaces: precompute the ``[[surfaces]]`` planes' shadows and light for the
+            configured poses (``Prepared.surfaces``); False: only the objects see the planes
+            (a live session places the objects from markers and builds them then).
     Raises:
         InputError: bad options (naming the option), unreadable files (naming the file).
     """
@@ -343,11 +347,11 @@ def prepare(
         triangles=jnp.asarray(ir_t, jnp.int32), vertex_object=jnp.asarray(ir_o, jnp.int32),
         tri_object=jnp.asarray(ir_to, jnp.int32), object_slices=tuple(ir_vsl),
         triangle_slices=tuple(ir_tsl))
-    surfaces = ()
-    if scene.surfaces:
+    planes = ()
+    if scene.surfaces and surfaces:
         from ._surfaces import surface_transfer
 
-        surfaces = surface_transfer(scene.surfaces, env, ir_mesh, model)
+        planes = surface_transfer(scene.surfaces, env, ir_mesh, model)
     return Prepared(
         mesh=mesh, ir_mesh=ir_mesh, model=jnp.asarray(model), materials=mats,
         camera=PreparedCamera(
@@ -371,7 +375,7 @@ def prepare(
         interreflection=PreparedInterreflection(mode=ir_mode, bounces=nb, texture_size=ts),
         names=tuple(o.name for o in scene.objects),
         occlusion=occ,
-        surfaces=surfaces,
+        surfaces=planes,
     )
 
 

@@ -54,9 +54,9 @@ import numpy as np
 
 from .._runtime.errors import InputError
 
-__all__ = ["SurfaceLayer", "SurfaceTransfer", "build_surface_transfer", "draw_surfaces",
-           "surface_layer", "surface_ratio",
-           "surface_texels", "surface_transfer"]
+__all__ = ["SurfaceLayer", "SurfaceTexture", "SurfaceTransfer", "build_surface_transfer",
+           "draw_surfaces", "surface_layer", "surface_ratio", "surface_texels",
+           "surface_textures", "surface_transfer"]
 
 #: cosine-weighted directions over each plane's hemisphere (their cells carry the environment)
 DIRECTIONS = 160
@@ -94,6 +94,23 @@ class SurfaceTransfer(eqx.Module):
     pair_vertex: jax.Array
     pair_weight: jax.Array
     resolution: int = eqx.field(static=True)
+
+
+class SurfaceTexture(eqx.Module):
+    """One plane's radiance with the objects present, in some output channels
+    (:func:`surface_textures`): what the camera-side lookup needs, nothing of the materials.
+
+    Attributes:
+        origin, axes, half: the plane's region (as :class:`SurfaceTransfer`).
+        texels: (T, T, K) radiance over the region (row 0 at +t2, column 0 at −t1).
+        base: (K,) radiance without the objects (everywhere outside the region too).
+    """
+
+    origin: jax.Array
+    axes: jax.Array
+    half: jax.Array
+    texels: jax.Array
+    base: jax.Array
 
 
 class SurfaceLayer(eqx.Module):
@@ -290,18 +307,25 @@ def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles:
 
 
 def surface_transfer(surfaces: Any, env: Any, ir_mesh: Any, model: Any, *,
-                     progress: Any = None) -> tuple[SurfaceTransfer, ...]:
+                     visible: Any = None, progress: Any = None
+                     ) -> tuple[SurfaceTransfer, ...]:
     """The :class:`SurfaceTransfer` of every plane of ``surfaces`` (a scene's
     :class:`~spectral_fit.io.SurfaceSpec` s) for the objects of ``ir_mesh`` (the prepared
-    scene's ``ir_mesh``) at ``model`` (O, 4, 4), under ``env`` (``prep.lighting.env``).
-    Rebuild it when the objects move relative to the planes (no gradient); the per-frame work
+    scene's ``ir_mesh``) at ``model`` (O, 4, 4), under ``env`` (``prep.lighting.env``);
+    ``visible`` (O,) bool: only those objects cast shadows (default all). Rebuild it when the
+    objects move relative to the planes (no gradient); the per-frame work
     (:func:`surface_layer`) stays the same program while the pair capacity holds."""
     m = np.asarray(model, np.float64)
     obj = np.asarray(ir_mesh.vertex_object)
     v = np.asarray(ir_mesh.vertices, np.float64)
     world = np.einsum("vij,vj->vi", m[obj][:, :3, :3], v) + m[obj][:, :3, 3]
-    return tuple(build_surface_transfer(s, env, world, np.asarray(ir_mesh.triangles),
-                                        ir_mesh.object_slices, progress=progress)
+    tris = np.asarray(ir_mesh.triangles)
+    slices = tuple(ir_mesh.object_slices)
+    if visible is not None:
+        keep = np.asarray(visible, bool)
+        tris = tris[keep[np.asarray(ir_mesh.tri_object)]]
+        slices = tuple(sl for sl, k in zip(slices, keep, strict=True) if k)
+    return tuple(build_surface_transfer(s, env, world, tris, slices, progress=progress)
                  for s in surfaces)
 
 
@@ -348,67 +372,100 @@ def _pixel_rays(prep: Any, view: jax.Array) -> tuple[jax.Array, jax.Array]:
     return d, eye_position(view)
 
 
-def surface_layer(prep: Any, transfers: tuple[SurfaceTransfer, ...], materials: Any = None, *,
-                  model: Any = None, view: Any = None, out: Any = None) -> SurfaceLayer:
-    """The surfaces seen through each pixel centre, with and without the objects.
+def surface_textures(prep: Any, transfers: tuple[SurfaceTransfer, ...], materials: Any = None,
+                     *, model: Any = None, out: Any = None) -> tuple[SurfaceTexture, ...]:
+    """Each plane's radiance ρ E(x)/π over its region, in output channels.
 
     Args:
         prep: the prepared scene.
-        transfers: one :class:`SurfaceTransfer` per plane (:func:`surface_transfer`).
+        transfers: one :class:`SurfaceTransfer` per plane (``prep.surfaces`` or
+            :func:`surface_transfer`).
         materials: the objects' materials (default: the config's).
         model: (O, 4, 4) the objects' poses for their radiance (default: the prepared ones;
             the shadows are those of the transfers' poses).
-        view: (4, 4) world → eye (default: the config's camera).
-        out: (L, K) spectral radiance → output channels (default: absolute XYZ, the frame's
-            ``xyz``); e.g. a video camera's spectral weights.
+        out: (L, K) spectral radiance → output channels (default: absolute XYZ); e.g. a video
+            camera's spectral weights.
 
     Returns:
-        :class:`SurfaceLayer` (H, W, K); where several planes are seen, the nearest.
+        one :class:`SurfaceTexture` per plane (differentiable in ``materials``).
     """
     from ..color import xyz_weights
 
-    h, w = prep.camera.shape
     model = jnp.asarray(prep.model if model is None else model, jnp.float32)
-    view = jnp.asarray(prep.camera.view if view is None else view, jnp.float32)
     col = prep.colour
     if out is None:
         out = jnp.asarray(xyz_weights(np.asarray(col.wavelengths)), jnp.float32)
     out = jnp.asarray(out, jnp.float32)
-    d, eye = _pixel_rays(prep, view)
-    best = jnp.full((h * w,), jnp.inf)
-    rad = jnp.zeros((h * w, out.shape[1]), jnp.float32)
-    base = jnp.zeros_like(rad)
+    result = []
     for st in transfers:
-        n = st.axes[2]
+        e = surface_texels(prep, st, materials, model)  # (T², C)
+        scale = st.reflectance / math.pi
+        t = st.resolution
+        tex = (((e @ col.to_spectrum) * scale) @ out).reshape(t, t, -1)
+        base = ((st.upper @ col.to_spectrum) * scale) @ out
+        result.append(SurfaceTexture(origin=st.origin, axes=st.axes, half=st.half,
+                                     texels=tex, base=base))
+    return tuple(result)
+
+
+def surface_layer(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = None,
+                  materials: Any = None, *, model: Any = None, view: Any = None,
+                  out: Any = None, textures: tuple[SurfaceTexture, ...] | None = None
+                  ) -> SurfaceLayer:
+    """The surfaces seen through each pixel centre, with and without the objects.
+
+    Args:
+        prep: the prepared scene.
+        transfers: one :class:`SurfaceTransfer` per plane (default ``prep.surfaces``).
+        materials, model, out: as :func:`surface_textures`.
+        view: (4, 4) world → eye (default: the config's camera).
+        textures: the planes' :class:`SurfaceTexture` s already computed (then
+            ``transfers``, ``materials``, ``model`` and ``out`` are not used): a live session
+            computes them once per placement of the objects.
+
+    Returns:
+        :class:`SurfaceLayer` (H, W, K); where several planes are seen, the nearest.
+    """
+    if textures is None:
+        textures = surface_textures(prep, prep.surfaces if transfers is None else transfers,
+                                    materials, model=model, out=out)
+    h, w = prep.camera.shape
+    view = jnp.asarray(prep.camera.view if view is None else view, jnp.float32)
+    d, eye = _pixel_rays(prep, view)
+    k = textures[0].base.shape[0] if textures else 3
+    best = jnp.full((h * w,), jnp.inf)
+    rad = jnp.zeros((h * w, k), jnp.float32)
+    base = jnp.zeros_like(rad)
+    for tx in textures:
+        n = tx.axes[2]
         denom = d @ n
-        dist = ((st.origin - eye) @ n) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
+        dist = ((tx.origin - eye) @ n) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
         hit = (dist > 0.0) & (denom < 0.0) & (dist < best)
         p = eye + dist[:, None] * d
-        uv = ((p - st.origin) @ st.axes[:2].T) / st.half  # (N, 2) in [-1, 1] over the region
-        e = surface_texels(prep, st, materials, model)  # (T², C)
-        spec_scale = st.reflectance / math.pi
-        tex = ((e @ col.to_spectrum) * spec_scale) @ out  # (T², K)
-        e0 = ((st.upper @ col.to_spectrum) * spec_scale) @ out  # (K,)
-        t = st.resolution
-        tex = tex.reshape(t, t, -1)
-        x = (uv[:, 0] + 1.0) * 0.5 * t - 0.5
-        y = (1.0 - uv[:, 1]) * 0.5 * t - 0.5
-        inside = (x > -0.5) & (x < t - 0.5) & (y > -0.5) & (y < t - 0.5)
-        x0 = jnp.clip(jnp.floor(x), 0, t - 2)
-        y0 = jnp.clip(jnp.floor(y), 0, t - 2)
-        fx = jnp.clip(x - x0, 0.0, 1.0)[:, None]
-        fy = jnp.clip(y - y0, 0.0, 1.0)[:, None]
-        xi, yi = x0.astype(jnp.int32), y0.astype(jnp.int32)
-        val = ((1 - fy) * ((1 - fx) * tex[yi, xi] + fx * tex[yi, xi + 1])
-               + fy * ((1 - fx) * tex[yi + 1, xi] + fx * tex[yi + 1, xi + 1]))
-        val = jnp.where(inside[:, None], val, e0[None, :])
+        uv = ((p - tx.origin) @ tx.axes[:2].T) / tx.half  # (N, 2) in [-1, 1] over the region
+        val = _bilinear(tx.texels, uv, tx.base)
         rad = jnp.where(hit[:, None], val, rad)
-        base = jnp.where(hit[:, None], e0[None, :], base)
+        base = jnp.where(hit[:, None], tx.base[None, :], base)
         best = jnp.where(hit, dist, best)
-    mask = jnp.isfinite(best)
-    k = out.shape[1]
     return SurfaceLayer(radiance=rad.reshape(h, w, k), base=base.reshape(h, w, k),
-                        mask=mask.reshape(h, w))
+                        mask=jnp.isfinite(best).reshape(h, w))
+
+
+def _bilinear(tex: jax.Array, uv: jax.Array, outside: jax.Array) -> jax.Array:
+    """Bilinear lookups (N, K) of ``tex`` (T, T, K) at region coordinates ``uv`` (N, 2) in
+    [−1, 1] (the module's texel convention); ``outside`` (K,) beyond the region."""
+    t = tex.shape[0]
+    x = (uv[:, 0] + 1.0) * 0.5 * t - 0.5
+    y = (1.0 - uv[:, 1]) * 0.5 * t - 0.5
+    inside = (x > -0.5) & (x < t - 0.5) & (y > -0.5) & (y < t - 0.5)
+    x0 = jnp.clip(jnp.floor(x), 0, t - 2)
+    y0 = jnp.clip(jnp.floor(y), 0, t - 2)
+    fx = jnp.clip(x - x0, 0.0, 1.0)[:, None]
+    fy = jnp.clip(y - y0, 0.0, 1.0)[:, None]
+    xi, yi = x0.astype(jnp.int32), y0.astype(jnp.int32)
+    val = ((1 - fy) * ((1 - fx) * tex[yi, xi] + fx * tex[yi, xi + 1])
+           + fy * ((1 - fx) * tex[yi + 1, xi] + fx * tex[yi + 1, xi + 1]))
+    return jnp.where(inside[:, None], val, outside[None, :])
 
 
 def draw_surfaces(prep: Any, frame: Any, layer: SurfaceLayer) -> Any:
@@ -416,7 +473,7 @@ def draw_surfaces(prep: Any, frame: Any, layer: SurfaceLayer) -> Any:
     object covers a pixel: their radiance (``layer`` in absolute XYZ, :func:`surface_layer`'s
     default channels) instead of the environment, then the frame's display encoding. For a
     render without a video: in mixed reality the surface is the real table and only the
-    change the objects make is composited (:func:`spectral_fit.live.composite_surfaces`)."""
+    change the objects make is composited (:func:`spectral_fit.live.relight`)."""
     from ..color import display_linear, encode
 
     col = prep.colour
@@ -428,20 +485,25 @@ def draw_surfaces(prep: Any, frame: Any, layer: SurfaceLayer) -> Any:
                        (xyz, linear, encode(linear, col.display)))
 
 
-def surface_ratio(prep: Any, layer: SurfaceLayer, object_mask: Any = None) -> jax.Array:
-    """(H, W, 3) the change the objects make on the surfaces, as a ratio per channel of the
-    frame's linear display RGB (with / without the objects; ``layer`` in absolute XYZ), 1
-    where no surface is seen or ``object_mask`` (H, W) covers the pixel. The ratio form of
-    differential rendering: a real table's pixel times it shows the objects' shadow and
-    light, whatever the table's true reflectance and the camera's exposure (both cancel in
-    the ratio; docs/surfaces.md)."""
+def surface_ratio(prep: Any, layer: SurfaceLayer, object_mask: Any = None, *,
+                  channels: str = "xyz") -> jax.Array:
+    """(H, W, 3) the change the objects make on the surfaces, as a ratio per channel (with /
+    without the objects) of the frame's linear display RGB (``channels`` "xyz": ``layer`` in
+    absolute XYZ, :func:`surface_layer`'s default) or of the layer's own channels ("linear":
+    e.g. a video camera's linear RGB); 1 where no surface is seen or ``object_mask`` (H, W)
+    covers the pixel. The ratio form of differential rendering: a real table's pixel times
+    it shows the objects' shadow and light whatever the table's true reflectance and the
+    camera's exposure (both cancel in the ratio; docs/surfaces.md)."""
     from ..color import display_linear
 
-    col = prep.colour
-    kw = dict(exposure_luminance=col.exposure, display=col.display,
-              scene_white_xy=col.scene_white_xy)
-    with_ = display_linear(layer.radiance, **kw)
-    without = display_linear(layer.base, **kw)
+    if channels not in ("xyz", "linear"):
+        raise InputError(f"must be 'xyz' or 'linear', got {channels!r}", field="channels")
+    with_, without = layer.radiance, layer.base
+    if channels == "xyz":
+        col = prep.colour
+        kw = dict(exposure_luminance=col.exposure, display=col.display,
+                  scene_white_xy=col.scene_white_xy)
+        with_, without = display_linear(with_, **kw), display_linear(without, **kw)
     show = layer.mask if object_mask is None else layer.mask & ~jnp.asarray(object_mask, bool)
     ok = show[..., None] & (without > 1e-6)
     r = jnp.where(ok, with_ / jnp.where(ok, without, 1.0), 1.0)

@@ -179,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
         "interreflection_senders": {"computed": session.ir_updates,
                                     "reused": session.ir_reuses,
                                     "reuse_mm": session.ir_reuse_mm},
+        "surface_shadow_builds": session.surface_builds,
         "frames_masked": {o.name: c for o, c in zip(scene.objects, lost, strict=True)},
         "output": args.output,
         "output_frames": written,
