@@ -179,6 +179,8 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         self.surface_reuse_deg = 1.0
         self.surface_builds = 0
         self._surface_state: tuple[Any, Any, Any] | None = None  # (visible, model, textures)
+        self._surface_next: tuple[Any, Any, Any] | None = None  # a background build's result
+        self._surface_thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------ preparation
 
@@ -371,38 +373,55 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         dev = _device_of(bg, self.devices)
         prep, camera = self._placed(dev)
         return live_step(prep, prep.materials, *inputs, bg, camera, self._mirror,
-                         self._senders_for(poses, inputs, dev), self._surfaces_for(poses))
+                         self._senders_for(poses, inputs, dev), self.surface_textures_for(poses))
 
-    def _surfaces_for(self, poses: Any) -> Any:
+    def surface_textures_for(self, poses: Any, *, rebuild: bool = False) -> Any:
         """The ``[[surfaces]]`` planes' textures (camera channels) for the visible objects at
-        ``poses``: the last ones while no object moved more than ``surface_reuse_mm`` /
-        ``surface_reuse_deg`` (nor appeared or vanished), else built again (a second or so;
-        the step's program stays the same while the texture shapes hold). None without
-        surfaces or visible objects."""
-        from ..rendering import surface_textures, surface_transfer
-
+        ``poses``. Built when an object appears or vanishes (at once: a shadow must not
+        outlive its object); when one moves more than ``surface_reuse_mm`` /
+        ``surface_reuse_deg``, built again in a background thread while the frames keep the
+        last ones (a build takes a second or more on a CPU; the step's program stays the
+        same while the texture shapes hold). None without surfaces or visible objects.
+        ``rebuild``: build them now even if the objects stayed."""
         if not self.scene.surfaces:
             return None
         vis = np.asarray(poses.visible, bool)
         if not vis.any():
             return None
         model = np.asarray(poses.model, np.float64)
+        if self._surface_next is not None:  # a background build finished
+            self._surface_state, self._surface_next = self._surface_next, None
         st = self._surface_state
-        if st is not None and np.array_equal(st[0], vis):
-            moved = np.linalg.norm(model[vis, :3, 3] - st[1][vis, :3, 3], axis=1).max()
-            rot = np.einsum("oij,oik->ojk", model[vis, :3, :3], st[1][vis, :3, :3])
-            cos = np.clip((np.trace(rot, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-            turned = np.degrees(np.arccos(cos)).max()
-            if moved * 1e3 <= self.surface_reuse_mm and turned <= self.surface_reuse_deg:
-                return st[2]
+        if st is None or rebuild or not np.array_equal(st[0], vis):
+            self._surface_state = self._build_surfaces(vis, model)
+            return self._surface_state[2]
+        moved = np.linalg.norm(model[vis, :3, 3] - st[1][vis, :3, 3], axis=1).max()
+        rot = np.einsum("oij,oik->ojk", model[vis, :3, :3], st[1][vis, :3, :3])
+        cos = np.clip((np.trace(rot, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+        turned = np.degrees(np.arccos(cos)).max()
+        if moved * 1e3 > self.surface_reuse_mm or turned > self.surface_reuse_deg:
+            t = self._surface_thread
+            if t is None or not t.is_alive():
+                def work(v: np.ndarray = vis, m: np.ndarray = model) -> None:
+                    self._surface_next = self._build_surfaces(v, m)
+
+                # not a daemon (as the grow-ahead thread: XLA must not be stopped mid-call)
+                self._surface_thread = threading.Thread(target=work,
+                                                        name="spectral_fit-surfaces")
+                self._surface_thread.start()
+        return st[2]
+
+    def _build_surfaces(self, vis: np.ndarray, model: np.ndarray) -> tuple[Any, Any, Any]:
+        """(visible, model, the planes' textures in the camera's linear RGB)."""
+        from ..rendering import surface_textures, surface_transfer
+
         prep = self.prep
         transfers = surface_transfer(self.scene.surfaces, prep.lighting.env, prep.ir_mesh,
                                      model, visible=vis)
         textures = surface_textures(prep, transfers, prep.materials, model=model,
                                     out=camera_spectral_matrix(prep, self.camera))
         self.surface_builds += 1
-        self._surface_state = (vis, model, textures)
-        return textures
+        return vis, model, jax.block_until_ready(textures)
 
 
 def _planned_clusters(prep: Prepared, poses: Any, headroom: float
