@@ -375,3 +375,38 @@ def test_interreflection_overflow_falls_back_in_the_live_session(tables):
         tris, SUPERSAMPLE * 16).capacities
     assert s.recompiles == 1 and ok.recompiles == 0
     assert np.abs(got.astype(int) - want.astype(int)).max() <= 1
+
+
+@pytest.mark.slow  # a second live session compiled, with the table's shadows
+def test_live_session_puts_shadows_on_the_table(tables):
+    """With the table under the world marker as a ``[[surfaces]]`` plane, the session darkens
+    the video's table around the spheres (and leaves it untouched far from them); a marker
+    lost and found again recompiles nothing."""
+    import dataclasses
+
+    from spectral_fit.io import SurfaceSpec
+    from spectral_fit.live import STEP_TRACES, LiveSession
+
+    scene = small_scene(world=3)
+    wl = scene.wavelengths
+    table = SurfaceSpec(name="table", shape="plane", point=(0.0, 0.0, 0.0),
+                        normal=(0.0, 1.0, 0.0), reflectance=np.full(wl.shape, 0.4),
+                        reflectance_source="constant 0.4", resolution=64)
+    session = LiveSession(dataclasses.replace(scene, surfaces=(table,)), size=SMALL_SIZE)
+    both, only3 = tables
+    eye = (0.0, 0.3, 0.25)
+    img, _, _ = small_frame(both, eye, seed=1)
+    out = session.process(img).astype(int)
+    bg = session.undistort(img).astype(int)
+    oid = np.asarray(session.last_object_id)
+    table_px = oid < 0
+    darker = (bg - out).sum(-1) > 6
+    assert darker[table_px].sum() > 30  # the contact shadows
+    assert darker[table_px].mean() < 0.25  # and only around the spheres
+    assert session.surface_builds == 1
+    traces = (STEP_TRACES["step"], session.recompiles)
+    lost, _, _ = small_frame(only3, eye, seed=2)
+    session.process(lost)  # the shadow of the lost sphere's object goes at once
+    assert session.surface_builds == 2
+    session.process(img)
+    assert (STEP_TRACES["step"], session.recompiles) == traces
