@@ -17,8 +17,9 @@ transport in two ways:
    cosine-weighted flux Φ_k = ∫_cell L (n·ω) dω and projected solid angle Ω⊥_k, plus the
    sub-points of each bright source of the map (their own flux times n·ω, taken out of
    their cells): sharp shadows of small lamps. h_k(x) ∈ {0, 1}: an object lies along the ray
-   from x in direction k. L_obj is the objects' diffuse radiance α S(λ) E(n)/π at the vertex
-   the ray meets (E from the frame's irradiance map of the grounded environment).
+   from x in direction k. L_obj is the radiance of the vertex the ray meets towards x: its
+   diffuse light α S(λ) E(n)/π (E from the frame's irradiance map of the grounded
+   environment) and its gloss and mirror along −d_k (as the frame shades its pixels).
 
 Visibility (precomputed per pose, no gradient): for each direction the objects' meshes are
 projected along it onto the plane (an oblique parallel projection: a point X goes to
@@ -27,18 +28,19 @@ T × T texel grid of a square region of the plane around the objects (the config
 in bounding radii beyond their footprints); the front-most triangle (smallest s) is what the
 texel's ray meets first. The rasteriser is the package's own (``rasterize_batch``, one
 compiled program for all directions). The result is a :class:`SurfaceTransfer`: the hidden
-environment per texel (T², C), and the (texel, vertex, Ω⊥) triples of the hits, padded to a
-capacity on the ladder so that rebuilding it for a new pose rarely recompiles.
+environment per texel (T², C), the (vertex, direction) pairs the texels see and the
+(texel, pair, Ω⊥) hits, padded to capacities on the ladder so that rebuilding it for a new
+pose rarely recompiles.
 
 Per frame (:func:`surface_texels`, differentiable in the materials): the objects' vertex
 radiance, gathered into the texels, gives E(x); a camera pixel whose ray meets the plane in
 front of the camera reads its texel bilinearly (:func:`surface_layer`); outside the region
 the surface has its radiance without objects, ρ E_up / π.
 
-What it leaves out: the objects' gloss towards the plane, their self-shadowing as seen from
-the plane (their vertex radiance is that of a convex object), and the shadows that fall
-outside the region. Conventions: world frame, metres; radiance in the environment's unit
-(W·sr⁻¹·m⁻²·nm⁻¹); texel (row, col) has plane coordinates
+What it leaves out: the objects' self-shadowing as seen from the plane (their vertex radiance
+is that of a convex object), the darker table in their own shadow as they see it, and the
+shadows that fall outside the region. Conventions: world frame, metres; radiance in the
+environment's unit (W·sr⁻¹·m⁻²·nm⁻¹); texel (row, col) has plane coordinates
 u = (col + ½)·2/T − 1, v = 1 − (row + ½)·2/T times the region's half side along t1, t2.
 """
 
@@ -78,9 +80,12 @@ class SurfaceTransfer(eqx.Module):
         reflectance: (L,) the plane's ρ(λ) on the scene's wavelengths.
         upper: (C,) E_up, the plane's irradiance without objects (environment channels).
         hidden: (T², C) irradiance the objects hide from each texel (environment channels).
-        pair_texel, pair_vertex: (P,) int32 texel and interreflection-mesh vertex of each
-            (texel, hit) pair (padding rows: weight 0).
-        pair_weight: (P,) float32 projected solid angle (sr) of the pair's directions.
+        hit_texel, hit_pair: (Q,) int32 each hit's texel and (vertex, direction) pair
+            (padding rows: weight 0).
+        hit_weight: (Q,) float32 projected solid angle Ω⊥ (sr) of the hit's direction.
+        pair_vertex: (U,) int32 interreflection-mesh vertex of each pair seen.
+        pair_view: (U, 3) float32 world direction from that vertex back to the plane.
+        pair_object: (U,) int32 its object (−1: padding).
         resolution: T, texels per side (static).
     """
 
@@ -90,9 +95,12 @@ class SurfaceTransfer(eqx.Module):
     reflectance: jax.Array
     upper: jax.Array
     hidden: jax.Array
-    pair_texel: jax.Array
+    hit_texel: jax.Array
+    hit_pair: jax.Array
+    hit_weight: jax.Array
     pair_vertex: jax.Array
-    pair_weight: jax.Array
+    pair_view: jax.Array
+    pair_object: jax.Array
     resolution: int = eqx.field(static=True)
 
 
@@ -256,7 +264,7 @@ def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles:
     config = plan_config(clip, tris, size, cull="none", headroom=1.1)
     tj = jnp.asarray(tris)
     hidden_count = np.zeros((len(views), t * t), np.float32)
-    pair_t, pair_v, pair_w = [], [], []
+    hit_t, hit_v, hit_k = [], [], []
     for start in range(0, len(views), _BATCH):
         stop = min(start + _BATCH, len(views))
         batch = clip[start:stop]
@@ -272,23 +280,34 @@ def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles:
                 continue  # a source's direction: its solid angle shows no object light
             texels = np.nonzero(hit[j])[0]
             corner = np.argmax(bary[j, texels], axis=1)
-            pair_t.append(texels)
-            pair_v.append(tris[tri_id[j, texels], corner])
-            pair_w.append(np.full(len(texels), proj[start + j]))
+            hit_t.append(texels)
+            hit_v.append(tris[tri_id[j, texels], corner])
+            hit_k.append(np.full(len(texels), start + j))
         if progress is not None:
             progress(stop, len(views))
     hidden = hidden_count.T @ view_flux  # (T², C)
-    pt = np.concatenate(pair_t) if pair_t else np.zeros(0, np.int64)
-    pv = np.concatenate(pair_v) if pair_v else np.zeros(0, np.int64)
-    pw = np.concatenate(pair_w) if pair_w else np.zeros(0)
-    key = pt.astype(np.int64) * (len(world) + 1) + pv
-    uniq, inv = np.unique(key, return_inverse=True)
-    wsum = np.bincount(inv, weights=pw, minlength=len(uniq))
-    cap = capacity_ladder(len(uniq), 64) if capacity is None else int(capacity)
-    if cap < len(uniq):
-        raise InputError(f"pair capacity {cap} below the {len(uniq)} pairs needed",
+    pt = np.concatenate(hit_t) if hit_t else np.zeros(0, np.int64)
+    pv = np.concatenate(hit_v) if hit_v else np.zeros(0, np.int64)
+    pk = np.concatenate(hit_k) if hit_k else np.zeros(0, np.int64)
+    # the (vertex, direction) pairs seen: each is shaded once (its diffuse and its gloss
+    # towards the plane); every hit is a (texel, pair) entry weighted by Ω⊥ of its direction
+    uniq, inv = np.unique(pv.astype(np.int64) * n_dir + pk, return_inverse=True)
+    u_cap = capacity_ladder(len(uniq), 64)
+    q_cap = capacity_ladder(len(pt), 64) if capacity is None else int(capacity)
+    if q_cap < len(pt):
+        raise InputError(f"capacity {q_cap} below the {len(pt)} hits needed",
                          field="capacity")
-    pad = cap - len(uniq)
+    u_vertex = np.zeros(u_cap, np.int64)
+    u_vertex[:len(uniq)] = uniq // n_dir
+    u_view = np.zeros((u_cap, 3))
+    u_view[:, 1] = 1.0
+    u_view[:len(uniq)] = -dirs[uniq % n_dir]  # from the object back to the texel
+    u_object = np.full(u_cap, -1, np.int64)
+    vobj = np.zeros(len(world), np.int64)
+    for i, (a, b) in enumerate(slices):
+        vobj[a:b] = i
+    u_object[:len(uniq)] = vobj[uniq // n_dir] if len(uniq) else 0
+    pad = q_cap - len(pt)
     from ..lighting import upper_irradiance
 
     upper = upper_irradiance(np.asarray(env.texels, np.float64),
@@ -298,11 +317,13 @@ def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles:
         half=jnp.asarray(half, jnp.float32),
         reflectance=jnp.asarray(spec.reflectance, jnp.float32),
         upper=jnp.asarray(upper, jnp.float32), hidden=jnp.asarray(hidden, jnp.float32),
-        pair_texel=jnp.asarray(np.concatenate([uniq // (len(world) + 1),
-                                               np.zeros(pad, np.int64)]), jnp.int32),
-        pair_vertex=jnp.asarray(np.concatenate([uniq % (len(world) + 1),
-                                                np.zeros(pad, np.int64)]), jnp.int32),
-        pair_weight=jnp.asarray(np.concatenate([wsum, np.zeros(pad)]), jnp.float32),
+        hit_texel=jnp.asarray(np.concatenate([pt, np.zeros(pad, np.int64)]), jnp.int32),
+        hit_pair=jnp.asarray(np.concatenate([inv.reshape(-1), np.zeros(pad, np.int64)]),
+                             jnp.int32),
+        hit_weight=jnp.asarray(np.concatenate([proj[pk], np.zeros(pad)]), jnp.float32),
+        pair_vertex=jnp.asarray(u_vertex, jnp.int32),
+        pair_view=jnp.asarray(u_view, jnp.float32),
+        pair_object=jnp.asarray(u_object, jnp.int32),
         resolution=t)
 
 
@@ -335,7 +356,7 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     ``model`` (their radiance from their materials; the hidden environment from ``st``'s
     poses)."""
     from ._materials import _as_stacked
-    from ._shading import _filtered_irradiance, _irradiance_at, _lut_env
+    from ._shading import _filtered_irradiance, _irradiance_at, _lut_env, specular_at
 
     mats = _as_stacked(prep.materials if materials is None else materials, prep.num_objects)
     mesh = prep.ir_mesh
@@ -350,10 +371,19 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     for i, (a, b) in enumerate(mesh.object_slices):
         m = mats[i]
         rad.append((m.alpha / math.pi) * _filtered_irradiance(m, env, e[a:b]))
-    radiance = jnp.concatenate(rad, axis=0)  # (V, C)
+    diffuse = jnp.concatenate(rad, axis=0)  # (V, C)
+    # each (vertex, direction) pair's radiance towards the plane: its diffuse light and its
+    # gloss and mirror along that direction (each object's material on its own pairs)
+    light = diffuse[st.pair_vertex]
+    n_pair = nrm[st.pair_vertex]
+    lt = prep.lighting
+    for i, m in enumerate(mats):
+        spec = specular_at(m, env, n_pair, st.pair_view, quality=lt.quality,
+                           split_map=lt.split_map, split_settings=lt.split_settings)
+        light = light + jnp.where((st.pair_object == i)[:, None], spec, 0.0)
     t2 = st.resolution * st.resolution
-    seen = jax.ops.segment_sum(st.pair_weight[:, None] * radiance[st.pair_vertex],
-                               st.pair_texel, num_segments=t2)
+    seen = jax.ops.segment_sum(st.hit_weight[:, None] * light[st.hit_pair], st.hit_texel,
+                               num_segments=t2)
     return st.upper[None, :] + seen - st.hidden
 
 
