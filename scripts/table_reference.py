@@ -38,7 +38,9 @@ error |ours − ref| / ref in %.
 
 Writes ``<out>/table_reference.npz`` (patch boxes, owners, regions, per-band patch means with
 and without the objects and their standard errors, our patch means, the per-pixel object ids and
-surface mask), ``<out>/table_reference.json`` (the statistics), ``<out>/table_de.png``
+surface mask), ``<out>/table_reference.json`` (the statistics; ``reference_table``: the
+reference's own table, its luminance without the objects and the with / without ratio, i.e.
+how uniform the surfaces-only table is and how deep the shadows are), ``<out>/table_de.png``
 (false-colour ΔE00 per patch) and ``<out>/table_reference.png`` (the depth-16 reference in sRGB,
 with our display exposure).
 """
@@ -466,6 +468,16 @@ def main(argv: list[str] | None = None) -> int:
             (se16 / np.maximum(ref16, 1e-30))[is_obj | near_table]))} if k > 1 else {},
         "frames": {},
     }
+    ys_ = ref_s @ wy
+    ratio_y = (ref16 @ wy) / np.maximum(ys_, 1e-30)
+    out["reference_table"] = {
+        "surfaces-only luminance, table near (cd/m²)": _stats(ys_[near_table]),
+        "surfaces-only luminance, table far (cd/m²)": _stats(ys_[far_table]),
+        "luminance with / without the objects, table near": _stats(ratio_y[near_table]),
+        "luminance with / without the objects, table far": _stats(ratio_y[far_table]),
+        "minimum with / without, per object (table near)": {
+            o.name: (float(ratio_y[sel].min()) if (sel := near_table & (region == i)).any()
+                     else None) for i, o in enumerate(scene.objects)}}
     de_maps: dict[str, np.ndarray] = {}
     rgbs: dict[str, np.ndarray] = {}
 
