@@ -208,6 +208,19 @@ def read_config(path: Path, size: tuple[int, int] | None, bands: Any
     return scene, full, surfaces
 
 
+def plane_irradiance(env: np.ndarray, rotation_y_deg: float, normal: Any) -> np.ndarray:
+    """Irradiance (L,) of a plane with world ``normal`` under the map's texels ``env``
+    (Hm, Wm, L) on its side: Σ L max(0, N·ω) Δω (an infinite plane, alone, sees no other
+    surface; times reflectance / π its radiance)."""
+    from spectral_fit.lighting import rotation_y, texel_directions, texel_solid_angles
+
+    h, w, _ = env.shape
+    n = rotation_y(rotation_y_deg).T @ (np.asarray(normal, np.float64)
+                                        / np.linalg.norm(normal))
+    wgt = np.maximum(texel_directions(h, w) @ n, 0.0) * texel_solid_angles(h, w)
+    return np.einsum("hw,hwl->l", wgt, env)
+
+
 def object_spheres(scene: Any) -> tuple[np.ndarray, np.ndarray]:
     """Centres (O, 3) and bounding radii (O,) of the scene's objects, world frame."""
     cs, rs = [], []
@@ -398,8 +411,9 @@ def main(argv: list[str] | None = None) -> int:
     pts = np.full((len(boxes), 3), np.nan)
     best = np.full(len(boxes), np.inf)
     region = np.full(len(boxes), -1, np.int32)
+    seen = np.full(len(boxes), -1, np.int32)  # the surface seen at the patch centre
     centres, radii = object_spheres(scene)
-    for s in surfaces:
+    for si, s in enumerate(surfaces):
         p = plane_hits(origin, dc, s["point"], s["normal"], half)
         dist = np.linalg.norm(p - origin, axis=-1)
         closer = np.isfinite(dist) & (dist < best)
@@ -407,6 +421,7 @@ def main(argv: list[str] | None = None) -> int:
         best[closer] = dist[closer]
         near = near_object(p, centres, radii, s["point"], s["normal"], args.radii)
         region[closer] = near[closer]
+        seen[closer] = si
     near_table = (owner == TABLE) & (region >= 0)
     far_table = (owner == TABLE) & (region < 0)
     mixed = owner == MIXED
@@ -470,7 +485,19 @@ def main(argv: list[str] | None = None) -> int:
     }
     ys_ = ref_s @ wy
     ratio_y = (ref16 @ wy) / np.maximum(ys_, 1e-30)
+    env_np = np.asarray(env, np.float64)
+    analytic = {}
+    for si, sf in enumerate(surfaces):
+        lum = sf["reflectance"] * plane_irradiance(env_np, scene.environment.rotation_y_deg,
+                                                   sf["normal"]) / math.pi
+        sel = (owner == TABLE) & (region < 0) & (seen == si)
+        analytic[sf["name"]] = {
+            "luminance (cd/m²)": float(lum @ wy),
+            "reference / analytic, table far, median over patches, per band": (
+                np.round(np.median(ref_s[sel], axis=0) / np.maximum(lum, 1e-30), 5).tolist()
+                if sel.any() else None)}
     out["reference_table"] = {
+        "surfaces alone, analytic (infinite plane under the map's hemisphere)": analytic,
         "surfaces-only luminance, table near (cd/m²)": _stats(ys_[near_table]),
         "surfaces-only luminance, table far (cd/m²)": _stats(ys_[far_table]),
         "luminance with / without the objects, table near": _stats(ratio_y[near_table]),
@@ -555,7 +582,7 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write_text(args.out / "table_reference.json", json.dumps(out, indent=2) + "\n")
     np.savez_compressed(
         args.out / "table_reference.npz", wavelengths=wl, boxes=boxes, owner=owner,
-        object_of=obj_of, region=region, surface_point=pts, share=share,
+        object_of=obj_of, region=region, surface_seen=seen, surface_point=pts, share=share,
         ref16=ref16, ref2=ref2, ref_surfaces=ref_s, se16=se16, object_id=obj,
         surface_mask=surface_px, object_names=np.asarray([o.name for o in scene.objects]),
         **{f"de_{DE_KEYS[k]}": v for k, v in de_maps.items()},
