@@ -42,7 +42,7 @@ surface mask), ``<out>/table_reference.json`` (the statistics; ``reference_table
 reference's own table, its luminance without the objects and the with / without ratio, i.e.
 how uniform the surfaces-only table is and how deep the shadows are), ``<out>/table_de.png``
 (false-colour ΔE00 per patch) and ``<out>/table_reference.png`` (the depth-16 reference in sRGB,
-with our display exposure).
+with our display exposure; ``table_reference_surfaces_only.png`` without the objects).
 """
 
 from __future__ import annotations
@@ -317,9 +317,11 @@ def render_reference(scene: Any, surfaces: list[dict[str, Any]], *, spp: int, pa
 def our_surface_frame(scene_full: Any) -> dict[str, np.ndarray] | None:
     """Our frame with the config's surfaces, or None when the renderer has no surface layer:
     ``spectral`` (H, W, L) the objects' radiance, ``object_id`` (H, W), ``radiance`` (H, W, C)
-    the surfaces' radiance with the objects present, ``mask`` (H, W), ``base`` (C,) the
-    surfaces' radiance without the objects, ``to_xyz`` (C, 3) those channels to XYZ and
-    ``rgb`` (H, W, 3) the displayed frame. The one place that calls the surface API."""
+    the surfaces' radiance with the objects present, ``mask`` (H, W) a surface is seen (objects
+    may cover it), ``base`` (H, W, C) or (C,) the surfaces' radiance without the objects,
+    ``to_xyz`` (C, 3) those channels to XYZ and ``rgb`` (H, W, 3) the displayed frame. The one
+    place that calls the surface API (its channels: the bands when the layer takes ``out``, an
+    (L, C) matrix from spectral radiance, else its default, absolute XYZ)."""
     try:
         from spectral_fit.rendering import surface_layer
     except ImportError:
@@ -333,9 +335,13 @@ def our_surface_frame(scene_full: Any) -> dict[str, np.ndarray] | None:
 
     prep = prepare(scene_full)
     frame = jax.block_until_ready(render_frame(prep, spectral=True))
-    layer = jax.block_until_ready(surface_layer(prep, None))
-    rad = np.asarray(layer.radiance, np.float64)
     wl = scene_full.wavelengths
+    try:
+        layer = surface_layer(prep, out=np.eye(wl.size, dtype=np.float32))
+    except TypeError:
+        layer = surface_layer(prep)
+    layer = jax.block_until_ready(layer)
+    rad = np.asarray(layer.radiance, np.float64)
     c = rad.shape[-1]
     if c == wl.size:
         to_xyz = xyz_weights(wl)
@@ -505,6 +511,8 @@ def main(argv: list[str] | None = None) -> int:
         "minimum with / without, per object (table near)": {
             o.name: (float(ratio_y[sel].min()) if (sel := near_table & (region == i)).any()
                      else None) for i, o in enumerate(scene.objects)}}
+    disp = dict(exposure_luminance=float(col.exposure), display=col.display,
+                scene_white_xy=col.scene_white_xy)
     de_maps: dict[str, np.ndarray] = {}
     rgbs: dict[str, np.ndarray] = {}
 
@@ -524,6 +532,7 @@ def main(argv: list[str] | None = None) -> int:
     rgbs["objects only (no surfaces)"] = np.asarray(frame.rgb)
     ours_patches = {"objects_only": pm(spec_obj)}
 
+    ratio_err = None
     ours = our_surface_frame(scene_full)
     if ours is None:
         out["surfaces"] = "not available"
@@ -552,11 +561,21 @@ def main(argv: list[str] | None = None) -> int:
             ((near_table | far_table) & ~covered).sum())
         # the differential form: with / without the objects, per channel
         to_c = np.linalg.pinv(ours["to_xyz"]) if ours["radiance"].shape[-1] != wl.size else None
-        ratio_ours = pm(ours["radiance"]) / np.maximum(ours["base"], 1e-30)
+        base = ours["base"]
+        base = pm(base) if base.ndim == 3 else base
+        ratio_ours = pm(ours["radiance"]) / np.maximum(base, 1e-30)
         ref_c, ref_sc = (ref16, ref_s) if to_c is None else (xyz_ref @ to_c,
                                                              radiance_to_xyz(ref_s, wl) @ to_c)
         ratio_ref = ref_c / np.maximum(ref_sc, 1e-30)
         err = 100.0 * np.abs(ratio_ours - ratio_ref) / np.maximum(np.abs(ratio_ref), 1e-30)
+        # the reference's own noise on that ratio (standard error over the passes, %)
+        g16, gs = grid[0], grid[2]  # (K, P, L)
+        if to_c is not None:
+            g16, gs = radiance_to_xyz(g16, wl) @ to_c, radiance_to_xyz(gs, wl) @ to_c
+        rp = g16 / np.maximum(gs, 1e-30)
+        ratio_se = (100.0 * rp.std(0, ddof=1) / math.sqrt(k) / np.maximum(np.abs(ratio_ref),
+                                                                          1e-30)
+                    if k > 1 else np.full(ratio_ref.shape, np.nan))
         diff = {}
         for name, sel in (("table near", near_table & covered),
                           *((f"table near {o.name}", near_table & covered & (region == i))
@@ -571,13 +590,20 @@ def main(argv: list[str] | None = None) -> int:
             diff[name] = {"averaged over channels": _stats(e.mean(axis=1)),
                           "worst channel": {"channel": (float(wl[worst]) if to_c is None
                                                         else "XYZ"[worst]),
-                                            **_stats(e[:, worst])}}
+                                            **_stats(e[:, worst])},
+                          "reference standard error %, median": {
+                              "averaged over channels": float(np.median(
+                                  ratio_se[sel].mean(axis=1))),
+                              "worst channel": float(np.median(ratio_se[sel][:, worst]))}}
         r["differential ratio error %"] = diff
         out["frames"]["with surfaces"] = r
         de_maps["with surfaces"] = de
-        rgbs["with surfaces"] = ours["rgb"]
+        # our frame with the surfaces drawn (the objects' exposure), as the reference's
+        rgbs["with surfaces"] = np.clip(np.nan_to_num(np.asarray(
+            to_display(np.where(np.isfinite(px_xyz), px_xyz, 0.0), **disp).rgb)), 0, 1)
         ours_patches["with_surfaces_xyz"] = xyz_ours
         ours_patches["with_surfaces_ratio"] = ratio_ours
+        ratio_err = np.where((near_table | far_table) & covered, err.mean(axis=1), np.nan)
 
     atomic_write_text(args.out / "table_reference.json", json.dumps(out, indent=2) + "\n")
     np.savez_compressed(
@@ -588,8 +614,6 @@ def main(argv: list[str] | None = None) -> int:
         **{f"de_{DE_KEYS[k]}": v for k, v in de_maps.items()},
         **{f"ours_{k}": v for k, v in ours_patches.items()})
 
-    disp = dict(exposure_luminance=float(col.exposure), display=col.display,
-                scene_white_xy=col.scene_white_xy)
     ref_rgb = np.asarray(to_display(ref["xyz16"].astype(np.float64), **disp).rgb)
     ref_rgb_s = np.asarray(to_display(ref["xyz_surfaces"].astype(np.float64), **disp).rgb)
     import matplotlib.image
@@ -600,15 +624,18 @@ def main(argv: list[str] | None = None) -> int:
                             (np.clip(np.nan_to_num(ref_rgb_s), 0, 1) * 255 + 0.5)
                             .astype(np.uint8))
     figure(args.out / "table_de.png", ref_rgb, rgbs, de_maps, boxes, owner, region, high,
-           vmax=args.vmax)
+           vmax=args.vmax, ratio_ref=ratio_y, ratio_err=ratio_err)
     print(json.dumps(out, indent=2))
     return 0
 
 
 def figure(path: Path, ref_rgb: np.ndarray, rgbs: dict[str, np.ndarray],
            de_maps: dict[str, np.ndarray], boxes: np.ndarray, owner: np.ndarray,
-           region: np.ndarray, high: np.ndarray, *, vmax: float = 3.0) -> None:
-    """Reference | region map on top; per frame of ours: the frame | its ΔE00 per patch."""
+           region: np.ndarray, high: np.ndarray, *, vmax: float = 3.0,
+           ratio_ref: np.ndarray | None = None, ratio_err: np.ndarray | None = None) -> None:
+    """Reference | region map on top; per frame of ours: the frame | its ΔE00 per patch; then
+    (with ``ratio_err``) the reference's luminance with / without the objects | our ratio's
+    error (%, averaged over channels) per table patch."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -630,7 +657,7 @@ def figure(path: Path, ref_rgb: np.ndarray, rgbs: dict[str, np.ndarray],
     reg[owner == MIXED] = 3
     reg[owner >= 0] = 4
     reg[(owner >= 0) & high] = 5
-    n = 1 + len(rgbs)
+    n = 1 + len(rgbs) + (ratio_err is not None)
     fig, axes = plt.subplots(n, 2, figsize=(12, 3.9 * n), squeeze=False)
     axes[0, 0].imshow(ref_rgb)
     axes[0, 0].set_title("reference, path depth 16")
@@ -656,6 +683,28 @@ def figure(path: Path, ref_rgb: np.ndarray, rgbs: dict[str, np.ndarray],
         med = f"median {np.median(fin):.2f}, p90 {np.percentile(fin, 90):.2f}" if fin.size else ""
         ax.set_title(f"ΔE00 per 5×5 patch ({med})", fontsize=9)
         fig.colorbar(im, ax=ax, fraction=0.03, label="ΔE00")
+    if ratio_err is not None:
+        ax = axes[-1, 0]
+        table = owner == TABLE
+        grey = plt.get_cmap("gray").copy()
+        grey.set_bad("#3b75af")
+        im = ax.imshow(np.ma.masked_invalid(grid(np.where(table, ratio_ref, np.nan))),
+                       cmap=grey, vmin=0.3, vmax=1.02, extent=ext, interpolation="nearest")
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_title("reference: table luminance with / without the objects (blue: not table)",
+                     fontsize=9)
+        fig.colorbar(im, ax=ax, fraction=0.03)
+        ax = axes[-1, 1]
+        cmap_e = plt.get_cmap("inferno").copy()
+        cmap_e.set_bad("#3b75af")
+        im = ax.imshow(np.ma.masked_invalid(grid(ratio_err)), cmap=cmap_e, vmin=0.0, vmax=5.0,
+                       extent=ext, interpolation="nearest")
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_title("ours: |ratio − reference's| / reference's, % (mean over channels)",
+                     fontsize=9)
+        fig.colorbar(im, ax=ax, fraction=0.03, label="%")
     for ax in axes.ravel():
         ax.set_xticks([])
         ax.set_yticks([])
