@@ -34,15 +34,18 @@ patches near an object, table patches farther away, mixed patches. Our frames: t
 ``render_frame`` of the full config, surface pixels from the layer's ``radiance``. The
 differential form (what a composite over a photograph of the table uses): the reference's
 (with objects) / (surfaces only) against our ``radiance / base``, per channel, as the relative
-error |ours − ref| / ref in %.
+error |ours − ref| / ref in %, with the reference's own standard error of that ratio. Without
+a surface layer (or a config reader that knows ``[[surfaces]]``) the JSON says ``"surfaces":
+"not available"`` and only the objects-only frame is scored.
 
 Writes ``<out>/table_reference.npz`` (patch boxes, owners, regions, per-band patch means with
 and without the objects and their standard errors, our patch means, the per-pixel object ids and
 surface mask), ``<out>/table_reference.json`` (the statistics; ``reference_table``: the
 reference's own table, its luminance without the objects and the with / without ratio, i.e.
 how uniform the surfaces-only table is and how deep the shadows are), ``<out>/table_de.png``
-(false-colour ΔE00 per patch) and ``<out>/table_reference.png`` (the depth-16 reference in sRGB,
-with our display exposure; ``table_reference_surfaces_only.png`` without the objects).
+(false-colour ΔE00 per patch; the ratio's error per table patch) and
+``<out>/table_reference.png`` (the depth-16 reference in sRGB, with our display exposure;
+``table_reference_surfaces_only.png`` without the objects).
 """
 
 from __future__ import annotations
