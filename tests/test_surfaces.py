@@ -306,3 +306,55 @@ def test_live_relight(tmp_path):
     clipped[shade] = 255
     lit = np.asarray(relight(clipped, np.maximum(ratio, 1.0) * 1.1, camera))
     np.testing.assert_array_equal(lit[shade], 255)  # never brightened past what is known
+
+
+def _change(field, half=0.2, cells=16):
+    """A TableChange over the square [−half, half]² of the plane y = 0 (t1 = +x, t2 = −z as
+    the module builds them for a +Y normal) with the fine change ``field`` (T, T, 1)."""
+    import jax.numpy as jnp
+
+    from spectral_fit.rendering import TableChange
+    from spectral_fit.rendering._surfaces import _plane_axes
+
+    axes = _plane_axes(np.array([0.0, 1.0, 0.0]))
+    t = field.shape[0]
+    g = cells
+    coarse = field.reshape(g, t // g, g, t // g, -1).mean(axis=(1, 3)).reshape(g * g, -1)
+    c = (np.arange(g) + 0.5) * 2.0 / g - 1.0
+    u, v = np.tile(c, g), -np.repeat(c, g)
+    centres = half * (u[:, None] * axes[0] + v[:, None] * axes[1])
+    return TableChange(fine=jnp.asarray(field, jnp.float32), coarse=jnp.asarray(coarse,
+                       jnp.float32), centres=jnp.asarray(centres, jnp.float32),
+                       area=jnp.float32((2 * half / g) ** 2), origin=jnp.zeros(3),
+                       axes=jnp.asarray(axes, jnp.float32), half=jnp.float32(half)), axes
+
+
+def test_table_change_seen_from_above():
+    """What a point sees of the table's change: a uniform change ΔL over the square region,
+    seen from heights h above its centre by a point facing down, gives π ΔL F with F the
+    square's form factor from a point on its axis (four corner rectangles, Howell's
+    catalogue C-11); the mirrored change is the field at the mirror ray's hit point."""
+    half = 0.2
+    ch, axes = _change(np.full((64, 64, 1), -0.3), half=half)
+    for h in (0.03, 0.08, 0.2):
+        a = b = half / h
+        corner = (a / np.sqrt(1 + a * a) * np.arctan(b / np.sqrt(1 + a * a))
+                  + b / np.sqrt(1 + b * b) * np.arctan(a / np.sqrt(1 + b * b))) / (2 * np.pi)
+        want = np.pi * (-0.3) * 4 * corner
+        got = float(ch.diffuse(np.array([[0.0, h, 0.0]], np.float32),
+                               np.array([[0.0, -1.0, 0.0]], np.float32))[0, 0])
+        assert abs(got - want) < 0.02 * abs(want), (h, got, want)
+    # a field linear in the plane's u: the mirror ray from (0.05, 0.1, 0) seen from above at
+    # 45° meets the plane at x = 0.15, u = 0.15/half
+    t = 64
+    col = (np.arange(t) + 0.5) * 2.0 / t - 1.0
+    field = np.broadcast_to(col[None, :, None], (t, t, 1)).copy()
+    ch, axes = _change(field, half=half)
+    p = np.array([[0.05, 0.1, 0.0]], np.float32)
+    n = np.array([[0.0, 1.0, 0.0]], np.float32)
+    v = np.array([[-1.0, 1.0, 0.0]], np.float32) / np.sqrt(2.0)
+    hit_x = 0.05 + 0.1  # reflected direction (1, −1, 0)/√2 from height 0.1
+    want = (np.array([hit_x, 0.0, 0.0]) @ axes[0]) / half
+    got = float(ch.mirrored(p, n, v)[0, 0])
+    assert abs(got - want) < 0.02
+    assert float(ch.mirrored(p, n, np.array([[1.0, 0.0, 0.0]], np.float32))[0, 0]) == 0.0

@@ -168,6 +168,11 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                                                          spec_seen)
     if occ is not None:
         radiance = radiance + jnp.where(pix.valid[:, None], vals[:, 6:], 0.0)
+    if prep.surface_changes:  # what they see of the table's own change (their shadows)
+        from ._surfaces import surface_pixels
+
+        with jax.named_scope("surfaces"):
+            radiance = radiance + surface_pixels(prep, prep.surface_changes, mats, gb, to_out)
     # (in the output channels: the receivers' side of the gather works in those)
     if senders is not None:
         from .interreflection._gather import gather_receivers

@@ -352,7 +352,7 @@ def prepare(
         from ._surfaces import surface_transfer
 
         planes = surface_transfer(scene.surfaces, env, ir_mesh, model)
-    return Prepared(
+    prep = Prepared(
         mesh=mesh, ir_mesh=ir_mesh, model=jnp.asarray(model), materials=mats,
         camera=PreparedCamera(
             view=jnp.asarray(view), projection=jnp.asarray(proj),
@@ -377,6 +377,13 @@ def prepare(
         occlusion=occ,
         surfaces=planes,
     )
+    if planes:  # what the objects see of the table's change under them (their shadows)
+        import dataclasses
+
+        from ._surfaces import table_changes
+
+        prep = dataclasses.replace(prep, surface_changes=table_changes(prep))
+    return prep
 
 
 

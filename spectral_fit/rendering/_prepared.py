@@ -52,7 +52,7 @@ TRACE_COUNT = {"render_frame": 0, "ir_senders": 0}
 #: version of :class:`Prepared`'s layout (its parts and their fields), part of the
 #: prepared-scene cache's keys: an entry pickled with another layout is never loaded
 #: (1: one flat class; 2: the named parts)
-PREPARED_LAYOUT = 5
+PREPARED_LAYOUT = 6
 
 
 class SceneMeshes(eqx.Module):
@@ -230,6 +230,9 @@ class Prepared(eqx.Module):
         surfaces: one :class:`~spectral_fit.rendering.SurfaceTransfer` per ``[[surfaces]]``
             plane of the config, for the prepared poses (the objects' shadows and light on
             it; :func:`~spectral_fit.rendering.surface_layer`), or ().
+        surface_changes: per plane, what the objects see of its change under them
+            (:func:`~spectral_fit.rendering.table_changes` at the config's materials), added
+            to their pixels by the frame, or ().
     """
 
     mesh: SceneMeshes
@@ -244,6 +247,7 @@ class Prepared(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     occlusion: Any = None
     surfaces: tuple = ()
+    surface_changes: tuple = ()
 
     @property
     def num_objects(self) -> int:

@@ -57,7 +57,8 @@ import numpy as np
 from .._runtime.errors import InputError
 
 __all__ = ["SurfaceLayer", "SurfaceTexture", "SurfaceTransfer", "build_surface_transfer",
-           "draw_surfaces", "surface_layer", "surface_ratio", "surface_texels",
+           "TableChange", "draw_surfaces", "surface_layer", "surface_pixels",
+           "surface_ratio", "surface_texels", "table_changes",
            "surface_textures", "surface_transfer"]
 
 #: cosine-weighted directions over each plane's hemisphere (their cells carry the environment)
@@ -350,11 +351,13 @@ def surface_transfer(surfaces: Any, env: Any, ir_mesh: Any, model: Any, *,
                  for s in surfaces)
 
 
-def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Array
-                   ) -> jax.Array:
+def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Array, *,
+                   passes: int = 2) -> jax.Array:
     """The plane's irradiance E(x) (T², C) in the environment's channels with the objects at
     ``model`` (their radiance from their materials; the hidden environment from ``st``'s
-    poses)."""
+    poses). ``passes`` 2: the objects' radiance towards the plane is computed again with
+    what they see of the plane's own change (:func:`table_change_at`: a sphere's underside
+    over its contact shadow is darker than over a uniform table); 1: over a uniform table."""
     from ._materials import _as_stacked
     from ._shading import _filtered_irradiance, _irradiance_at, _lut_env, specular_at
 
@@ -366,25 +369,159 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     rot = model[mesh.vertex_object][:, :3, :3]
     nrm = jnp.einsum("vij,vj->vi", rot, mesh.normals)
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
-    e = _irradiance_at(env, table, nrm)
-    rad = []
-    for i, (a, b) in enumerate(mesh.object_slices):
-        m = mats[i]
-        rad.append((m.alpha / math.pi) * _filtered_irradiance(m, env, e[a:b]))
-    diffuse = jnp.concatenate(rad, axis=0)  # (V, C)
-    # each (vertex, direction) pair's radiance towards the plane: its diffuse light and its
-    # gloss and mirror along that direction (each object's material on its own pairs)
-    light = diffuse[st.pair_vertex]
+    world = jnp.einsum("vij,vj->vi", rot, mesh.vertices) + model[mesh.vertex_object][:, :3, 3]
+    e_map = _irradiance_at(env, table, nrm)
     n_pair = nrm[st.pair_vertex]
     lt = prep.lighting
-    for i, m in enumerate(mats):
-        spec = specular_at(m, env, n_pair, st.pair_view, quality=lt.quality,
-                           split_map=lt.split_map, split_settings=lt.split_settings)
-        light = light + jnp.where((st.pair_object == i)[:, None], spec, 0.0)
+    spec = [specular_at(m, env, n_pair, st.pair_view, quality=lt.quality,
+                        split_map=lt.split_map, split_settings=lt.split_settings)
+            for m in mats]
     t2 = st.resolution * st.resolution
-    seen = jax.ops.segment_sum(st.hit_weight[:, None] * light[st.hit_pair], st.hit_texel,
-                               num_segments=t2)
-    return st.upper[None, :] + seen - st.hidden
+    e = jnp.broadcast_to(st.upper, (t2, st.upper.shape[0]))
+    change = None
+    for _ in range(max(int(passes), 1)):
+        e_v, dl_r = e_map, None
+        if change is not None:  # what the vertices see of the plane's change
+            d_e, dl_r = change.at(world, nrm, st.pair_vertex, st.pair_view)
+            e_v = e_map + d_e
+        # each (vertex, direction) pair's radiance towards the plane: its diffuse light and
+        # its gloss and mirror along that direction (each object's material on its pairs)
+        light = jnp.zeros((st.pair_vertex.shape[0], e_v.shape[1]), jnp.float32)
+        for i, ((a, b), m) in enumerate(zip(mesh.object_slices, mats, strict=True)):
+            diffuse = jnp.zeros_like(e_v).at[a:b].set(
+                (m.alpha / math.pi) * _filtered_irradiance(m, env, e_v[a:b]))
+            own = diffuse[st.pair_vertex] + spec[i]
+            if dl_r is not None:
+                own = own + change.reflected(m, n_pair, st.pair_view, dl_r)
+            light = light + jnp.where((st.pair_object == i)[:, None], own, 0.0)
+        seen = jax.ops.segment_sum(st.hit_weight[:, None] * light[st.hit_pair], st.hit_texel,
+                                   num_segments=t2)
+        e = st.upper[None, :] + seen - st.hidden
+        change = TableChange.of(st, e, env)
+    return e
+
+
+class TableChange(eqx.Module):
+    """What a point above the plane sees of the plane's change L(x) − ρ E_up/π (the
+    objects' shadows and light on it), which the grounded environment does not carry.
+
+    Attributes:
+        fine: (T, T, C) the change of radiance over the region (environment channels).
+        coarse: (G², C) the same averaged over G × G cells, and ``centres`` (G², 3) their
+            world centres, ``area`` () their area (m²): the diffuse sum.
+        origin, axes, half: the region (as :class:`SurfaceTransfer`).
+    """
+
+    fine: jax.Array
+    coarse: jax.Array
+    centres: jax.Array
+    area: jax.Array
+    origin: jax.Array
+    axes: jax.Array
+    half: jax.Array
+
+    @staticmethod
+    def of(st: SurfaceTransfer, e: jax.Array, env: Any, cells: int = 16) -> TableChange:
+        """From the plane's irradiance ``e`` (T², C) (bands: ρ applies per channel; in basis
+        coefficients the change is not carried, zero)."""
+        t = st.resolution
+        g = min(int(cells), t)
+        while t % g:
+            g -= 1
+        if env.product_tensor is None:
+            dl = (e - st.upper[None, :]) * (st.reflectance / math.pi)[None, :]
+        else:
+            dl = jnp.zeros_like(e)
+        fine = dl.reshape(t, t, -1)
+        f = t // g
+        coarse = fine.reshape(g, f, g, f, -1).mean(axis=(1, 3)).reshape(g * g, -1)
+        c = (jnp.arange(g, dtype=jnp.float32) + 0.5) * 2.0 / g - 1.0
+        u = jnp.tile(c, g)  # column index fastest, row 0 at +t2
+        v = -jnp.repeat(c, g)
+        centres = st.origin + st.half * (u[:, None] * st.axes[0] + v[:, None] * st.axes[1])
+        return TableChange(fine=fine, coarse=coarse, centres=centres,
+                           area=(2.0 * st.half / g) ** 2, origin=st.origin, axes=st.axes,
+                           half=st.half)
+
+    def diffuse(self, points: jax.Array, normals: jax.Array) -> jax.Array:
+        """The change (N, C) of the irradiance at ``points`` (N, 3) with ``normals`` (N, 3):
+        Σ_cells ΔL cosθ_p cosθ_x A / d² over the cells in front of the point's tangent plane
+        (d² at least A/π: no singularity at the contact)."""
+        rel = self.centres[None, :, :] - points[:, None, :]  # (N, G², 3)
+        d2 = jnp.maximum(jnp.sum(rel * rel, -1), self.area / math.pi)
+        inv = jax.lax.rsqrt(d2)
+        cos_p = jnp.maximum(jnp.sum(rel * normals[:, None, :], -1), 0.0) * inv
+        cos_x = jnp.maximum(-(rel @ self.axes[2]), 0.0) * inv
+        return (cos_p * cos_x * (self.area / d2)) @ self.coarse
+
+    def mirrored(self, points: jax.Array, normals: jax.Array, views: jax.Array) -> jax.Array:
+        """The change (N, C) of the radiance along each point's mirror direction (where it
+        meets the plane inside the region; else 0)."""
+        nv = jnp.sum(normals * views, -1, keepdims=True)
+        r = 2.0 * nv * normals - views
+        down = r @ self.axes[2]
+        t = ((self.origin - points) @ self.axes[2]) / jnp.where(down < -1e-6, down, -1e-6)
+        hit = points + t[:, None] * r
+        uv = ((hit - self.origin) @ self.axes[:2].T) / self.half
+        zero = jnp.zeros((self.fine.shape[-1],), jnp.float32)
+        val = _bilinear(self.fine, uv, zero)
+        return jnp.where(((down < -1e-6) & (t > 0.0))[:, None], val, 0.0)
+
+    def at(self, world: jax.Array, nrm: jax.Array, pair_vertex: jax.Array,
+           pair_view: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(the diffuse change (V, C) at every vertex, the mirrored change (U, C) of every
+        (vertex, direction) pair)."""
+        return (self.diffuse(world, nrm),
+                self.mirrored(world[pair_vertex], nrm[pair_vertex], pair_view))
+
+    @staticmethod
+    def reflected(m: Any, normals: jax.Array, views: jax.Array, change: jax.Array
+                  ) -> jax.Array:
+        """β A(θ) + χ F(θ) times the mirrored change (N, C): what the gloss and mirror of
+        material ``m`` reflect of it (the lobe treated as a whole along its mirror
+        direction)."""
+        from ..lighting import lobe_moment_table
+        from ._materials import mirror_needed
+        from ._shading import lobe_albedo
+
+        moments = lobe_moment_table(m.mu, m.n, distribution=m.distribution,
+                                    geometry=m.geometry)
+        nv = jnp.clip(jnp.sum(normals * views, -1, keepdims=True), 0.0, 1.0)
+        return lobe_albedo(m, moments, nv, mirror=mirror_needed([m])) * change
+
+
+def table_changes(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = None,
+                  materials: Any = None, model: Any = None) -> tuple[TableChange, ...]:
+    """Each plane's :class:`TableChange` for the objects' ``materials`` (default the
+    config's) at ``model`` (default the prepared poses): what :func:`surface_pixels` adds
+    to the objects. :func:`prepare` keeps it for the configured materials
+    (``Prepared.surface_changes``)."""
+    model = jnp.asarray(prep.model if model is None else model, jnp.float32)
+    env = prep.lighting.env
+    return tuple(TableChange.of(st, surface_texels(prep, st, materials, model), env)
+                 for st in (prep.surfaces if transfers is None else transfers))
+
+
+def surface_pixels(prep: Any, changes: tuple[TableChange, ...], mats: list[Any], gb: Any,
+                   to_out: jax.Array) -> jax.Array:
+    """The change (N, D) of the covered pixels' radiance (G-buffer ``gb``) in the output
+    channels ``to_out`` (C, D) from what they see of the planes' ``changes`` under and
+    around the objects: their diffuse light (the cells of the change,
+    :meth:`TableChange.diffuse`) and their gloss and mirror where the mirror direction meets
+    the plane. Differentiable in ``mats`` through the pixels' own reflection; the change
+    itself is that of the materials it was computed with (a second-order term)."""
+    from ._shading import _filtered_irradiance
+
+    env = prep.lighting.env
+    out = jnp.zeros((gb.position.shape[0], to_out.shape[1]), jnp.float32)
+    for change in changes:
+        d_e = change.diffuse(gb.position, gb.normal)
+        d_r = change.mirrored(gb.position, gb.normal, gb.view)
+        for i, m in enumerate(mats):
+            own = ((m.alpha / math.pi) * _filtered_irradiance(m, env, d_e)
+                   + TableChange.reflected(m, gb.normal, gb.view, d_r))
+            out = out + jnp.where((gb.object == i)[:, None], own @ to_out, 0.0)
+    return out
 
 
 def _pixel_rays(prep: Any, view: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -20,6 +20,8 @@ call, ``median_ms`` the steady state.
   ~9,600 covered pixels, the benchmark's camera, environment and 31 bands), gather: the general
   path with both objects' self-visibility (``prepare_s`` includes its precomputation);
   ``frame_any_shape_plain``: the same scene prepared with ``occlusion=False``;
+* ``frame_table``: ``configs/on_table.toml`` (the spheres and a cup on a table plane): the
+  frame, the table's layer and one placement's precomputation (:func:`frame_table`);
 * ``cold_start_s``: fresh Python processes (import + prepare + compile + first frame of the
   paper scene) with caches in a temporary folder: first run (cold caches) and second run (warm
   caches), for the cached path of :mod:`spectral_fit.rendering` (the headline figures) and for
@@ -47,6 +49,7 @@ from .._harness import BenchOptions, measure
 ROOT = REPO_ROOT
 CONFIG = ROOT / "configs" / "benchmark.toml"
 ANY_SHAPE = ROOT / "configs" / "any_shape.toml"
+ON_TABLE = ROOT / "configs" / "on_table.toml"
 
 __all__ = ["CASES", "benchmark_scene"]
 
@@ -224,6 +227,47 @@ def frame_any_shape_plain(opts: BenchOptions) -> dict[str, Any]:
     return _any_shape_case(opts, occlusion=False)
 
 
+def frame_table(opts: BenchOptions) -> dict[str, Any]:
+    """``configs/on_table.toml`` (the benchmark's spheres and a cup on a table plane): the
+    frame (``median_ms``, ``compile_s``), the table's layer with the objects' shadows and
+    light drawn into it (``surface_ms`` / ``surface_compile_s``: textures from the materials
+    and the per-pixel lookup, jit-compiled), and one placement's precomputation
+    (``surface_build_ms``: the projected rasters and the hits, median of 3)."""
+    import time
+
+    import jax
+
+    from ...io import load_scene
+    from ...rendering import prepare, render_frame, surface_layer, surface_transfer
+
+    if not opts.quick:
+        jax.clear_caches()
+    size = (180, 120) if opts.quick else None
+    t0 = time.perf_counter()
+    prep = prepare(ON_TABLE, size=size, mode="none" if opts.quick else "gather",
+                   occlusion_resolution=8 if opts.quick else 24)
+    prepare_s = time.perf_counter() - t0
+    out = measure(lambda: render_frame(prep).rgb, repeats=opts.repeats)
+    import equinox as eqx
+
+    layer = eqx.filter_jit(lambda p: surface_layer(p).radiance)
+    lay = measure(lambda: layer(prep), repeats=opts.repeats)
+    scene = load_scene(ON_TABLE)
+    builds = []
+    for _ in range(1 if opts.quick else 3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(surface_transfer(scene.surfaces, prep.lighting.env,
+                                               prep.ir_mesh, prep.model))
+        builds.append((time.perf_counter() - t0) * 1e3)
+    st = prep.surfaces[0]
+    out.update(prepare_s=prepare_s, surface_ms=lay["median_ms"],
+               surface_compile_s=lay["compile_s"], surface_build_ms=sorted(builds)[
+                   len(builds) // 2], surface_texels=st.resolution ** 2,
+               surface_hits=int(st.hit_texel.shape[0]),
+               size=[prep.camera.shape[1], prep.camera.shape[0]])
+    return out
+
+
 def frame_paper(opts: BenchOptions) -> dict[str, Any]:
     return _case(opts, mode="gather")
 
@@ -272,5 +316,6 @@ CASES = {
     "frame_closeup_none": frame_closeup_none,
     "frame_any_shape": frame_any_shape,
     "frame_any_shape_plain": frame_any_shape_plain,
+    "frame_table": frame_table,
     "cold_start_s": cold_start_s,
 }
