@@ -278,10 +278,13 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     y0 = y_start(problem, vals0, scale0)
     starts = _starts(problem, y0, opts.starts, opts.seed)
     dt = problem.values.dtype
-    solver = make_solver(opts, progress is not None)
+    # the compact solver records its cost per step and the lines are printed after the solve
+    # (no host callback in the program: JAX's persistent cache can keep it between runs)
+    live = progress is not None and opts.solver != "compact"
+    solver = make_solver(opts, live)
     say(f"solving: {F} unknowns, {int(use.sum())} readings x {L} bands, {opts.starts} starts "
         f"(Levenberg-Marquardt, {opts.solver}) ...")
-    if progress is not None:
+    if live:
         _PROGRESS.append(lambda s, c: say(f"  step {int(np.max(s)):3d}  "
                                           f"best cost {float(np.min(c)):.6g}"))
     t1 = time.perf_counter()
@@ -291,9 +294,13 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                            opts.max_steps)
         out = {k: np.asarray(v) for k, v in out.items()}
     finally:
-        if progress is not None:
+        if live:
             _PROGRESS.pop()
     t_solve = time.perf_counter() - t1
+    if progress is not None and "history" in out:
+        for hist, n in zip(out["history"], out["steps"], strict=True):
+            for k in range(int(n)):
+                say(f"  step {k:3d}  best cost {float(hist[k]):.6g}")
     costs = out["cost"].astype(np.float64)
     best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
     # the starts as solved (reported, and compared for local minima)
@@ -522,9 +529,13 @@ def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndar
     obj_only = np.array([u if r.kind == "object" else 0.0 for u, r in
                          zip(use, s.readings, strict=True)])
     dt = problem.values.dtype
+    # one solve from the fit's optimum; the batch has the fit's size (the same compiled
+    # program), its other rows weigh no reading and stop within a few steps
     S = max(1, opts.starts)
-    o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
-                     jnp.asarray(np.tile(obj_only, (S, 1)), dt), solver, opts.max_steps)
+    rw = np.zeros((S, obj_only.size))
+    rw[0] = obj_only
+    o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt), jnp.asarray(rw, dt), solver,
+                    opts.max_steps)
     yh = np.asarray(o["y"])[0]
     vals, scale = physical_from_y(problem, jnp.asarray(yh, dt))
     pred = np.asarray(o["predicted"][0], np.float64)
