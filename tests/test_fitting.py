@@ -674,3 +674,91 @@ def test_priors_and_bounds_against_the_gaussian_update(small):
     _, res = with_objects(red=dict(bounds={"mu": (None, 0.15)}))
     assert 0.15 - 2e-4 <= res.params["red"]["mu"] <= 0.15
     assert any("red.mu is at its bound 0.15" in w for w in res.warnings), res.warnings
+
+
+def _edit_one_value(csv):
+    """Change one reading value in ``csv`` in place, keeping its size and modification time
+    (only the content differs): the leading digit of the first non-zero value."""
+    import os
+    import re
+
+    st = csv.stat()
+    lines = csv.read_text().splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        if line[:1].isdigit() and "," in line:
+            wl_text, value = line.split(",", 1)
+            lead = re.search(r"[1-9]", value.split("e")[0])
+            if lead is not None:
+                j = lead.start()
+                digit = "5" if value[j] != "5" else "6"
+                lines[i] = f"{wl_text},{value[:j]}{digit}{value[j + 1:]}"
+                break
+    else:
+        raise AssertionError(f"no value to change in {csv}")
+    csv.write_text("".join(lines))
+    os.utime(csv, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert csv.stat().st_size == st.st_size
+
+
+def test_prepare_cache_hit_equals_fresh_and_misses_on_change(small, tmp_path):
+    """The fit's disk cache (``fit(..., cache_dir=...)``): a hit gives the fresh result (the
+    preparation and the aim-shifted problems loaded); one reading value changed in the session
+    (same files, same sizes and modification times) misses and changes the result."""
+    from spectral_fit.fitting import FitOptions
+
+    scene, session, prep, env, clean = small
+    m = write_session(tmp_path / "sess", scene.path, clean, scene.wavelengths)
+    cache = tmp_path / "cache"
+    opts = FitOptions(spot_resolution=RES, starts=1, holdout=False, aim_step_m=5e-4)
+
+    def run(cache_dir):
+        s = load_session(m, scene=scene)
+        return fitting.fit(scene, s, options=opts, cache_dir=cache_dir)
+
+    fresh = run(None)
+    first = run(cache)
+    again = run(cache)
+    assert fresh.timings["caches"]["preparation"] == "off"
+    assert first.timings["caches"]["preparation"] == "miss"
+    assert first.timings["caches"]["aim_preparation"] == "miss"
+    assert again.timings["caches"]["preparation"] == "hit"
+    assert again.timings["caches"]["aim_preparation"] == "hit"
+    for res in (first, again):
+        for obj, p in fresh.params.items():
+            for k, v in p.items():
+                assert res.params[obj][k] == pytest.approx(v, rel=1e-6, abs=1e-9)
+        np.testing.assert_allclose(res.fitted, fresh.fitted, rtol=1e-6)
+        for a, b in zip(res.readings, fresh.readings, strict=True):
+            assert a["aim_sensitivity"] == pytest.approx(b["aim_sensitivity"], rel=1e-6)
+    csv = sorted((m.parent / "readings").glob("*.csv"))[0]
+    _edit_one_value(csv)
+    changed = run(cache)
+    assert changed.timings["caches"]["preparation"] == "miss"
+    assert changed.timings["caches"]["aim_preparation"] == "miss"
+    assert not np.array_equal(changed.measured, fresh.measured)
+    assert np.max(np.abs(changed.fitted - fresh.fitted)) > 0
+    # the edited session's entries are used from then on
+    assert run(cache).timings["caches"]["preparation"] == "hit"
+
+
+def test_prepare_reads_only_the_keyed_options(small):
+    """``prepare_fit`` reads only the options that key its disk cache (``PREPARE_FIELDS``):
+    an option it read but the key left out would load a stale preparation."""
+    from spectral_fit.fitting import FitOptions
+    from spectral_fit.fitting._prepare_cache import PREPARE_FIELDS
+
+    scene, session, prep, env, clean = small
+    read = set()
+
+    class Recorder:
+        def __init__(self, opts):
+            self._opts = opts
+
+        def __getattr__(self, name):
+            read.add(name)
+            return getattr(self._opts, name)
+
+    fitting.prepare_fit(scene, session, options=Recorder(FitOptions(spot_resolution=RES)),
+                        env=env)
+    assert read and read <= set(PREPARE_FIELDS), read - set(PREPARE_FIELDS)
+

@@ -28,7 +28,6 @@ import dataclasses
 import math
 import os
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -39,11 +38,12 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from ..io import PARAMETERS, Scene, Session
+from ..rendering._cache import compilation_counts
 from ._model import _predict_jit
 from ._model_error import estimate_model_error, with_model_error
 from ._options import FitOptions, _fit_options
 from ._params import _SQUARED, LOWER, _dp_dy, _starts, physical_from_y, unknowns, y_start
-from ._prepare import prepare_fit
+from ._prepare_cache import aim_problems_cached, prepare_fit_cached
 from ._problem import FitProblem, PreparedFit
 from ._profile import STEPS, profile_intervals
 from ._solver import _PROGRESS, _solve_measured, make_solver, solve_batch
@@ -214,7 +214,7 @@ def _identifiability(labels: list[str], corr: np.ndarray, jtj: np.ndarray) -> li
 def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathLike[str], *,
         options: FitOptions | None = None,
         progress: Callable[[str], None] | None = None, prepared: PreparedFit | None = None,
-        **kwargs: Any) -> FitResult:
+        cache_dir: str | os.PathLike[str] | None = None, **kwargs: Any) -> FitResult:
     """Fit the reflection-model parameters of the measured objects (stable API ``fit``).
 
     Args:
@@ -224,6 +224,11 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
             (``starts=8``, ``bootstrap=50``, ``kinds=("object",)``, ...).
         progress: called with one line of text per stage and per solver iteration.
         prepared: a :func:`prepare_fit` result to reuse (benchmarks).
+        cache_dir: keep the preparation (and the aim-shifted problems of the aiming
+            sensitivity) on disk under this folder and load it from there when every input is
+            unchanged (:func:`~spectral_fit.fitting.prepare_fit_cached`; the CLI passes
+            ``~/.cache/spectral_fit`` or ``$SPECTRAL_FIT_CACHE``); None (default): no disk
+            cache.
 
     Returns:
         :class:`FitResult`.
@@ -239,9 +244,12 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         session = load_session(session, scene=scene)
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
+    programs0 = compilation_counts()
     if prepared is None:
         say(f"rasterising {len(session.readings)} measuring fields ...")
-        prepared = prepare_fit(scene, session, options=opts)
+        prepared = prepare_fit_cached(scene, session, options=opts, cache_dir=cache_dir)
+        if prepared.cached == "hit":
+            say("preparation loaded from the disk cache")
     prep = prepared
     problem = prep.problem
     names = list(prep.objects)
@@ -437,6 +445,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         say(f"bootstrap over readings: {opts.bootstrap} resamples ...")
         boot = _bootstrap(problem, y, use, opts, solver, names)
     t_boot = time.perf_counter() - t3
+    t5 = time.perf_counter()
     # hold-out -----------------------------------------------------------------------------
     holdout = None
     kinds_present = {r.kind for r in session.readings if use[session.readings.index(r)] > 0}
@@ -453,12 +462,18 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     elif opts.holdout and {"object", "interreflection"} <= kinds_present:
         say("hold-out: fit on object-colour readings, predict interreflection readings ...")
         holdout = _holdout(problem, prep, y, use, opts, solver, white)
+    t_hold = time.perf_counter() - t5
     # aiming sensitivity ------------------------------------------------------------------
+    t6 = time.perf_counter()
+    aim_cache = "off"
     if opts.aim_step_m > 0:
         say("aiming sensitivity ...")
-        sens = _aim_sensitivity(scene, prep, vals, scale, opts, white, fitted)
+        sens, aim_cache = _aim_sensitivity(scene, prep, vals, scale, opts, white, fitted,
+                                           cache_dir)
         for b in range(B):
             table[b]["aim_sensitivity"] = sens[b]
+    t_aim = time.perf_counter() - t6
+    programs = compilation_counts()
     steps_best = int(steps[best])
     if status != "converged":
         warn.append(f"the best start did not converge in {opts.max_steps} steps")
@@ -475,8 +490,12 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         calibration_mode=session.calibration,
         timings={"prepare_s": prep.seconds,
                  "solve_s": t_solve, "uncertainty_s": t_unc, "profile_s": t_prof,
-                 "bootstrap_s": t_boot,
-                 "total_s": time.perf_counter() - t0},
+                 "bootstrap_s": t_boot, "holdout_s": t_hold, "aim_sensitivity_s": t_aim,
+                 "total_s": time.perf_counter() - t0,
+                 "caches": {"preparation": prep.cached,
+                            "aim_preparation": aim_cache if opts.aim_step_m > 0 else "skipped",
+                            **{f"programs_{k}": programs[k] - programs0[k]
+                               for k in programs}}},
         iterations=steps_best, values=vals, profile=profile, model_error=model_error,
         constraints=_constraints(session, names, problem, labels))
 
@@ -556,10 +575,12 @@ def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndar
 
 
 def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: float,
-                     opts: FitOptions, white: np.ndarray, fitted: np.ndarray
-                     ) -> list[dict[str, Any]]:
+                     opts: FitOptions, white: np.ndarray, fitted: np.ndarray,
+                     cache_dir: str | os.PathLike[str] | None = None
+                     ) -> tuple[list[dict[str, Any]], str]:
     """ΔE00 and relative radiance change per mm of aiming error, per reading (finite
-    differences over aim shifts of ``aim_step_m`` in two directions across the axis)."""
+    differences over aim shifts of ``aim_step_m`` in two directions across the axis), and
+    whether the shifted problems came from the disk cache ("hit", "miss", "off")."""
     from ..color import delta_e00, radiance_to_xyz, xyz_to_lab
 
     s = prep.session
@@ -570,6 +591,7 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
     de = np.zeros((len(s.readings), 2))
     rel = np.zeros_like(de)
     dt = prep.problem.values.dtype
+    sessions = []
     for d in range(2):
         shifted = []
         for r in s.readings:
@@ -581,19 +603,18 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
             u = u / np.linalg.norm(u)
             v = np.cross(ax, u)
             shifted.append(dataclasses.replace(r, aim=r.aim + step * (u if d == 0 else v)))
-        ss = s.replace(readings=tuple(shifted))
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                pp = prepare_fit(scene, ss, options=dataclasses.replace(
-                    opts, interreflection="auto" if prep.problem.interreflection else "none"),
-                    env=prep.problem.env, geometries=prep.geometries)
-        except InputError:
+        sessions.append(s.replace(readings=tuple(shifted)))
+    problems, cached = aim_problems_cached(
+        scene, prep, dataclasses.replace(
+            opts, interreflection="auto" if prep.problem.interreflection else "none"),
+        sessions, cache_dir=cache_dir)
+    for d, pp in enumerate(problems):
+        if pp is None:
             de[:, d] = np.nan
             rel[:, d] = np.nan
             continue
-        pred = np.asarray(_predict_jit(pp.problem, jnp.asarray(vals, dt),
-                                       jnp.asarray(scale, dt)), np.float64)
+        pred = np.asarray(_predict_jit(pp, jnp.asarray(vals, dt), jnp.asarray(scale, dt)),
+                          np.float64)
         lab = xyz_to_lab(radiance_to_xyz(pred, wl), xw)
         de[:, d] = delta_e00(lab0, lab)
         rel[:, d] = np.linalg.norm(pred - fitted, axis=1) / np.maximum(
@@ -603,7 +624,7 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
              else None,
              "relative_radiance_per_mm": float(np.nanmax(rel[b]) / mm)
              if np.isfinite(rel[b]).any() else None}
-            for b in range(len(s.readings))]
+            for b in range(len(s.readings))], cached
 
 
 def fit_many(prepared: PreparedFit, measured: Any, *, sigma: Any = None,
