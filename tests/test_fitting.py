@@ -762,3 +762,27 @@ def test_prepare_reads_only_the_keyed_options(small):
                         env=env)
     assert read and read <= set(PREPARE_FIELDS), read - set(PREPARE_FIELDS)
 
+
+def test_report_pictures_cached_by_their_data(small, tmp_path):
+    """``write_report(..., cache_dir=...)``: the same result's pictures are copied from the
+    cache (the same bytes as drawn); a changed result draws them again; the ``timing`` block
+    says which."""
+    import dataclasses
+
+    scene, session, prep, env, clean = small
+    res = fitting.fit(scene, session, prepared=prep, starts=1, holdout=False, aim_step_m=0.0)
+    cache = tmp_path / "cache"
+    a = fitting.write_report(res, tmp_path / "a", scene=scene, render=False, cache_dir=cache)
+    b = fitting.write_report(res, tmp_path / "b", scene=scene, render=False, cache_dir=cache)
+    assert a["timing"]["caches"]["pictures"] == "miss"
+    assert b["timing"]["caches"]["pictures"] == "hit"
+    for name in a["pictures"]:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    other = dataclasses.replace(res, fitted=res.fitted * 1.01)
+    c = fitting.write_report(other, tmp_path / "c", scene=scene, render=False, cache_dir=cache)
+    assert c["timing"]["caches"]["pictures"] == "miss"
+    assert (tmp_path / "c" / "spectra.png").read_bytes() != (
+        tmp_path / "a" / "spectra.png").read_bytes()
+    t = b["timing"]
+    for k in ("preparation_s", "compile_and_solve_s", "report_s", "total_s"):
+        assert t[k] >= 0

@@ -10,8 +10,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import time
 
 from .._runtime.errors import SpectralFitError
+
+#: ``time.perf_counter()`` when the command-line interface was imported (the command's start,
+#: for the timings that commands report)
+STARTED = time.perf_counter()
 
 #: subcommand name -> module under spectral_fit.cli.commands
 COMMANDS: dict[str, str] = {
