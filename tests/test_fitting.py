@@ -786,3 +786,32 @@ def test_report_pictures_cached_by_their_data(small, tmp_path):
     t = b["timing"]
     for k in ("preparation_s", "compile_and_solve_s", "report_s", "total_s"):
         assert t[k] >= 0
+
+
+def test_stored_programs_give_the_direct_result(small, tmp_path):
+    """``_programs.stored_call``: the exported program stored on disk, and loaded back by a
+    process that has not traced it, gives the function's own result; another shape is
+    another entry."""
+    import jax.numpy as jnp
+
+    from spectral_fit.fitting import _programs
+    from spectral_fit.fitting._model import _predict_jit
+
+    scene, session, prep, env, clean = small
+    pr = prep.problem
+    vals = jnp.asarray(np.asarray(pr.values) * 1.05, pr.values.dtype)
+    scale = jnp.asarray(1.0, pr.values.dtype)
+    direct = np.asarray(_predict_jit(pr, vals, scale))
+    stats = dict(_programs.PROGRAM_STATS)
+    first = np.asarray(_programs.stored_call(_predict_jit, pr, vals, scale, cache_dir=tmp_path))
+    assert _programs.PROGRAM_STATS["stored"] == stats["stored"] + 1
+    _programs._MEMORY.clear()  # as a new process: loaded from disk
+    again = np.asarray(_programs.stored_call(_predict_jit, pr, vals, scale, cache_dir=tmp_path))
+    assert _programs.PROGRAM_STATS["loaded"] == stats["loaded"] + 1
+    assert _programs.PROGRAM_STATS["direct"] == stats["direct"]
+    np.testing.assert_allclose(first, direct, rtol=1e-6)
+    np.testing.assert_array_equal(again, first)
+    fewer = fitting.prepare_fit(scene, session.replace(readings=session.readings[:4]),
+                                options=fitting.FitOptions(spot_resolution=RES), env=env)
+    _programs.stored_call(_predict_jit, fewer.problem, vals, scale, cache_dir=tmp_path)
+    assert len(list((tmp_path / "fit_programs").glob("*.pkl"))) == 2

@@ -46,6 +46,7 @@ from ._params import _SQUARED, LOWER, _dp_dy, _starts, physical_from_y, unknowns
 from ._prepare_cache import aim_problems_cached, prepare_fit_cached
 from ._problem import FitProblem, PreparedFit
 from ._profile import STEPS, profile_intervals
+from ._programs import stored_call
 from ._solver import _PROGRESS, _solve_measured, make_solver, solve_batch
 
 __all__ = ["FitResult", "fit", "fit_many"]
@@ -297,9 +298,9 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                                           f"best cost {float(np.min(c)):.6g}"))
     t1 = time.perf_counter()
     try:
-        out = solve_batch(problem, jnp.asarray(starts, dt),
+        out = stored_call(solve_batch, problem, jnp.asarray(starts, dt),
                            jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
-                           opts.max_steps)
+                           opts.max_steps, cache_dir=cache_dir)
         out = {k: np.asarray(v) for k, v in out.items()}
     finally:
         if live:
@@ -335,10 +336,10 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
             sig_new = np.maximum(with_model_error(sig0, meas_, reading_kinds, est), 1e-12)
             problem = eqx.tree_at(lambda q: q.readings.sigma, problem,
                                   jnp.asarray(sig_new, dt))
-            again = solve_batch(problem,
+            again = stored_call(solve_batch, problem,
                                 jnp.asarray(np.tile(out["y"][best], (len(starts), 1)), dt),
                                 jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
-                                opts.max_steps)
+                                opts.max_steps, cache_dir=cache_dir)
             out = {k: np.asarray(v) for k, v in again.items()}
             costs = out["cost"].astype(np.float64)
             best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
@@ -443,7 +444,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     t3 = time.perf_counter()
     if opts.bootstrap > 0:
         say(f"bootstrap over readings: {opts.bootstrap} resamples ...")
-        boot = _bootstrap(problem, y, use, opts, solver, names)
+        boot = _bootstrap(problem, y, use, opts, solver, names, cache_dir)
     t_boot = time.perf_counter() - t3
     t5 = time.perf_counter()
     # hold-out -----------------------------------------------------------------------------
@@ -461,7 +462,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                    "max_delta_e00": float(np.max(des))}
     elif opts.holdout and {"object", "interreflection"} <= kinds_present:
         say("hold-out: fit on object-colour readings, predict interreflection readings ...")
-        holdout = _holdout(problem, prep, y, use, opts, solver, white)
+        holdout = _holdout(problem, prep, y, use, opts, solver, white, cache_dir)
     t_hold = time.perf_counter() - t5
     # aiming sensitivity ------------------------------------------------------------------
     t6 = time.perf_counter()
@@ -516,7 +517,8 @@ def _constraints(session: Session, names: list[str], problem: FitProblem,
 
 
 def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOptions,
-               solver: Any, names: list[str]) -> dict[str, dict[str, float]]:
+               solver: Any, names: list[str], cache_dir: str | os.PathLike[str] | None = None
+               ) -> dict[str, dict[str, float]]:
     rng = np.random.default_rng(opts.seed + 1)
     idx = np.flatnonzero(use > 0)
     S = max(1, opts.starts)
@@ -528,8 +530,9 @@ def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOpt
     dt = problem.values.dtype
     got = []
     for c in range(0, n, S):
-        o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
-                         jnp.asarray(ws[c:c + S], dt), solver, opts.max_steps)
+        o = stored_call(solve_batch, problem, jnp.asarray(np.tile(y, (S, 1)), dt),
+                        jnp.asarray(ws[c:c + S], dt), solver, opts.max_steps,
+                        cache_dir=cache_dir)
         for yi, ci in zip(np.asarray(o["y"]), np.asarray(o["cost"]), strict=True):
             if np.isfinite(ci):
                 got.append(np.asarray(physical_from_y(problem, jnp.asarray(yi, dt))[0]))
@@ -543,7 +546,8 @@ def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOpt
 
 
 def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndarray,
-             opts: FitOptions, solver: Any, white: np.ndarray) -> dict[str, Any]:
+             opts: FitOptions, solver: Any, white: np.ndarray,
+             cache_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     s = prep.session
     obj_only = np.array([u if r.kind == "object" else 0.0 for u, r in
                          zip(use, s.readings, strict=True)])
@@ -553,8 +557,8 @@ def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndar
     S = max(1, opts.starts)
     rw = np.zeros((S, obj_only.size))
     rw[0] = obj_only
-    o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt), jnp.asarray(rw, dt), solver,
-                    opts.max_steps)
+    o = stored_call(solve_batch, problem, jnp.asarray(np.tile(y, (S, 1)), dt),
+                    jnp.asarray(rw, dt), solver, opts.max_steps, cache_dir=cache_dir)
     yh = np.asarray(o["y"])[0]
     vals, scale = physical_from_y(problem, jnp.asarray(yh, dt))
     pred = np.asarray(o["predicted"][0], np.float64)
@@ -613,8 +617,8 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
             de[:, d] = np.nan
             rel[:, d] = np.nan
             continue
-        pred = np.asarray(_predict_jit(pp, jnp.asarray(vals, dt), jnp.asarray(scale, dt)),
-                          np.float64)
+        pred = np.asarray(stored_call(_predict_jit, pp, jnp.asarray(vals, dt),
+                                      jnp.asarray(scale, dt), cache_dir=cache_dir), np.float64)
         lab = xyz_to_lab(radiance_to_xyz(pred, wl), xw)
         de[:, d] = delta_e00(lab0, lab)
         rel[:, d] = np.linalg.norm(pred - fitted, axis=1) / np.maximum(
