@@ -75,7 +75,12 @@ class FitResult:
         holdout: fit on object-colour readings only, prediction of the others (or None).
         wavelengths, measured, fitted, sigma: (L,), (B, L) ×3 spectra.
         calibration: (L,) the environment calibration k(λ) applied.
-        timings: seconds of preparation, compile + first solve, steady solve, uncertainty.
+        timings: seconds of the preparation (``prepare_s``), the starts' solve with its
+            compile or load (``solve_s``), the uncertainty, profile, bootstrap, hold-out and
+            aiming sensitivity, ``total_s``; ``caches``: where the preparation and the
+            aim-shifted problems came from ("hit", "miss", "off"; "skipped" without an aiming
+            sensitivity) and the programs loaded from or compiled into JAX's persistent
+            cache during the fit.
         model_error: {kind: relative error of the model} added to the readings' σ in
             quadrature (stated in the session's ``[model_error]``, or estimated there with
             "auto"; :mod:`spectral_fit.fitting._model_error`).
@@ -109,7 +114,7 @@ class FitResult:
     sigma: np.ndarray
     calibration: np.ndarray
     calibration_mode: str
-    timings: dict[str, float]
+    timings: dict[str, Any]
     iterations: int = 0
     values: np.ndarray | None = None  # (O, 6)
     profile: dict[str, dict[str, Any]] | None = None

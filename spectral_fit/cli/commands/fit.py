@@ -8,6 +8,10 @@ import sys
 
 HELP = "fit alpha, beta, chi, mu, n (gamma) of the scene's objects to a measurement session"
 
+#: run as a program, the command ends its process without the interpreter's teardown (its
+#: report files are written atomically and synced before it returns; see ``cli._main``)
+FAST_EXIT = True
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="scene config (TOML)")
