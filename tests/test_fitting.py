@@ -815,3 +815,32 @@ def test_stored_programs_give_the_direct_result(small, tmp_path):
                                 options=fitting.FitOptions(spot_resolution=RES), env=env)
     _programs.stored_call(_predict_jit, fewer.problem, vals, scale, cache_dir=tmp_path)
     assert len(list((tmp_path / "fit_programs").glob("*.pkl"))) == 2
+
+
+@pytest.mark.slow
+def test_cli_fit_as_a_program_rerun_loads_its_caches(small, tmp_path):
+    """``python -m spectral_fit fit`` twice on the same session (fresh processes, caches in a
+    temporary folder): both print their whole JSON and write the report (the command ends its
+    process without the interpreter's teardown); the second loads the preparation, the
+    pictures and every program, and reports the same fit."""
+    scene, session, prep, env, clean = small
+    cache = tmp_path / "cache"
+    runs = []
+    for i in range(2):
+        out = tmp_path / f"o{i}"
+        r = subprocess.run(
+            [sys.executable, "-m", "spectral_fit", "fit", str(scene.path), str(session.path),
+             "-o", str(out), "--json", "--spot-resolution", str(RES), "--no-render",
+             "--starts", "1"],
+            capture_output=True, text=True, timeout=900,
+            env=subprocess_env(SPECTRAL_FIT_CACHE=str(cache)))
+        assert r.returncode == 0, r.stderr[-2000:]
+        js = json.loads(r.stdout)
+        assert json.loads((out / "fit.json").read_text())["params"] == js["params"]
+        assert "time:" in r.stderr
+        runs.append(js)
+    first, again = runs
+    assert first["timing"]["caches"]["preparation"] == "miss"
+    assert again["timing"]["warm"] is True
+    assert again["timing"]["caches"]["programs_compiled"] == 0
+    assert again["params"] == first["params"] and again["readings"] == first["readings"]
