@@ -25,8 +25,8 @@ __all__ = ["stored_call", "PROGRAM_STATS"]
 #: entries loaded from disk, exported and stored, and calls that fell back to the function
 PROGRAM_STATS: dict[str, int] = {"loaded": 0, "stored": 0, "direct": 0}
 
-# (key) -> jitted call of the exported program, for the process's later calls
-_MEMORY: dict[str, Any] = {}
+# (folder, key) -> jitted call of the exported program, for the process's later calls
+_MEMORY: dict[tuple[str, str], Any] = {}
 
 
 def _key(name: str, treedef: Any, leaves: list[Any]) -> str:
@@ -53,11 +53,11 @@ def stored_call(fn: Callable[..., Any], *args: Any,
         leaves, treedef = jax.tree_util.tree_flatten(args)
         arrays = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array | np.ndarray)]
         key = _key(getattr(fn, "__name__", repr(fn)), treedef, leaves)
-        call = _MEMORY.get(key)
+        folder = Path(cache_dir) / "fit_programs"
+        call = _MEMORY.get((str(folder), key))
         if call is None:
-            call = _load_or_export(fn, args, leaves, treedef, arrays, key,
-                                   Path(cache_dir) / "fit_programs")
-            _MEMORY[key] = call
+            call = _load_or_export(fn, args, leaves, treedef, arrays, key, folder)
+            _MEMORY[(str(folder), key)] = call
         return call(*[leaves[i] for i in arrays])
     except Exception:
         PROGRAM_STATS["direct"] += 1
