@@ -674,3 +674,174 @@ def test_priors_and_bounds_against_the_gaussian_update(small):
     _, res = with_objects(red=dict(bounds={"mu": (None, 0.15)}))
     assert 0.15 - 2e-4 <= res.params["red"]["mu"] <= 0.15
     assert any("red.mu is at its bound 0.15" in w for w in res.warnings), res.warnings
+
+
+def _edit_one_value(csv):
+    """Change one reading value in ``csv`` in place, keeping its size and modification time
+    (only the content differs): the leading digit of the first non-zero value."""
+    import os
+    import re
+
+    st = csv.stat()
+    lines = csv.read_text().splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        if line[:1].isdigit() and "," in line:
+            wl_text, value = line.split(",", 1)
+            lead = re.search(r"[1-9]", value.split("e")[0])
+            if lead is not None:
+                j = lead.start()
+                digit = "5" if value[j] != "5" else "6"
+                lines[i] = f"{wl_text},{value[:j]}{digit}{value[j + 1:]}"
+                break
+    else:
+        raise AssertionError(f"no value to change in {csv}")
+    csv.write_text("".join(lines))
+    os.utime(csv, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert csv.stat().st_size == st.st_size
+
+
+def test_prepare_cache_hit_equals_fresh_and_misses_on_change(small, tmp_path):
+    """The fit's disk cache (``fit(..., cache_dir=...)``): a hit gives the fresh result (the
+    preparation and the aim-shifted problems loaded); one reading value changed in the session
+    (same files, same sizes and modification times) misses and changes the result."""
+    from spectral_fit.fitting import FitOptions
+
+    scene, session, prep, env, clean = small
+    m = write_session(tmp_path / "sess", scene.path, clean, scene.wavelengths)
+    cache = tmp_path / "cache"
+    opts = FitOptions(spot_resolution=RES, starts=1, holdout=False, aim_step_m=5e-4)
+
+    def run(cache_dir):
+        s = load_session(m, scene=scene)
+        return fitting.fit(scene, s, options=opts, cache_dir=cache_dir)
+
+    fresh = run(None)
+    first = run(cache)
+    again = run(cache)
+    assert fresh.timings["caches"]["preparation"] == "off"
+    assert first.timings["caches"]["preparation"] == "miss"
+    assert first.timings["caches"]["aim_preparation"] == "miss"
+    assert again.timings["caches"]["preparation"] == "hit"
+    assert again.timings["caches"]["aim_preparation"] == "hit"
+    for res in (first, again):
+        for obj, p in fresh.params.items():
+            for k, v in p.items():
+                assert res.params[obj][k] == pytest.approx(v, rel=1e-6, abs=1e-9)
+        np.testing.assert_allclose(res.fitted, fresh.fitted, rtol=1e-6)
+        for a, b in zip(res.readings, fresh.readings, strict=True):
+            assert a["aim_sensitivity"] == pytest.approx(b["aim_sensitivity"], rel=1e-6)
+    csv = sorted((m.parent / "readings").glob("*.csv"))[0]
+    _edit_one_value(csv)
+    changed = run(cache)
+    assert changed.timings["caches"]["preparation"] == "miss"
+    assert changed.timings["caches"]["aim_preparation"] == "miss"
+    assert not np.array_equal(changed.measured, fresh.measured)
+    assert np.max(np.abs(changed.fitted - fresh.fitted)) > 0
+    # the edited session's entries are used from then on
+    assert run(cache).timings["caches"]["preparation"] == "hit"
+
+
+def test_prepare_reads_only_the_keyed_options(small):
+    """``prepare_fit`` reads only the options that key its disk cache (``PREPARE_FIELDS``):
+    an option it read but the key left out would load a stale preparation."""
+    from spectral_fit.fitting import FitOptions
+    from spectral_fit.fitting._prepare_cache import PREPARE_FIELDS
+
+    scene, session, prep, env, clean = small
+    read = set()
+
+    class Recorder:
+        def __init__(self, opts):
+            self._opts = opts
+
+        def __getattr__(self, name):
+            read.add(name)
+            return getattr(self._opts, name)
+
+    fitting.prepare_fit(scene, session, options=Recorder(FitOptions(spot_resolution=RES)),
+                        env=env)
+    assert read and read <= set(PREPARE_FIELDS), read - set(PREPARE_FIELDS)
+
+
+def test_report_pictures_cached_by_their_data(small, tmp_path):
+    """``write_report(..., cache_dir=...)``: the same result's pictures are copied from the
+    cache (the same bytes as drawn); a changed result draws them again; the ``timing`` block
+    says which."""
+    import dataclasses
+
+    scene, session, prep, env, clean = small
+    res = fitting.fit(scene, session, prepared=prep, starts=1, holdout=False, aim_step_m=0.0)
+    cache = tmp_path / "cache"
+    a = fitting.write_report(res, tmp_path / "a", scene=scene, render=False, cache_dir=cache)
+    b = fitting.write_report(res, tmp_path / "b", scene=scene, render=False, cache_dir=cache)
+    assert a["timing"]["caches"]["pictures"] == "miss"
+    assert b["timing"]["caches"]["pictures"] == "hit"
+    for name in a["pictures"]:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    other = dataclasses.replace(res, fitted=res.fitted * 1.01)
+    c = fitting.write_report(other, tmp_path / "c", scene=scene, render=False, cache_dir=cache)
+    assert c["timing"]["caches"]["pictures"] == "miss"
+    assert (tmp_path / "c" / "spectra.png").read_bytes() != (
+        tmp_path / "a" / "spectra.png").read_bytes()
+    t = b["timing"]
+    for k in ("preparation_s", "compile_and_solve_s", "report_s", "total_s"):
+        assert t[k] >= 0
+
+
+def test_stored_programs_give_the_direct_result(small, tmp_path):
+    """``_programs.stored_call``: the exported program stored on disk, and loaded back by a
+    process that has not traced it, gives the function's own result; another shape is
+    another entry."""
+    import jax.numpy as jnp
+
+    from spectral_fit.fitting import _programs
+    from spectral_fit.fitting._model import _predict_jit
+
+    scene, session, prep, env, clean = small
+    pr = prep.problem
+    vals = jnp.asarray(np.asarray(pr.values) * 1.05, pr.values.dtype)
+    scale = jnp.asarray(1.0, pr.values.dtype)
+    direct = np.asarray(_predict_jit(pr, vals, scale))
+    _programs._MEMORY.clear()  # what earlier tests of this process kept
+    stats = dict(_programs.PROGRAM_STATS)
+    first = np.asarray(_programs.stored_call(_predict_jit, pr, vals, scale, cache_dir=tmp_path))
+    assert _programs.PROGRAM_STATS["stored"] == stats["stored"] + 1
+    _programs._MEMORY.clear()  # as a new process: loaded from disk
+    again = np.asarray(_programs.stored_call(_predict_jit, pr, vals, scale, cache_dir=tmp_path))
+    assert _programs.PROGRAM_STATS["loaded"] == stats["loaded"] + 1
+    assert _programs.PROGRAM_STATS["direct"] == stats["direct"]
+    np.testing.assert_allclose(first, direct, rtol=1e-6)
+    np.testing.assert_array_equal(again, first)
+    fewer = fitting.prepare_fit(scene, session.replace(readings=session.readings[:4]),
+                                options=fitting.FitOptions(spot_resolution=RES), env=env)
+    _programs.stored_call(_predict_jit, fewer.problem, vals, scale, cache_dir=tmp_path)
+    assert len(list((tmp_path / "fit_programs").glob("*.pkl"))) == 2
+
+
+@pytest.mark.slow
+def test_cli_fit_as_a_program_rerun_loads_its_caches(small, tmp_path):
+    """``python -m spectral_fit fit`` twice on the same session (fresh processes, caches in a
+    temporary folder): both print their whole JSON and write the report (the command ends its
+    process without the interpreter's teardown); the second loads the preparation, the
+    pictures and every program, and reports the same fit."""
+    scene, session, prep, env, clean = small
+    cache = tmp_path / "cache"
+    runs = []
+    for i in range(2):
+        out = tmp_path / f"o{i}"
+        r = subprocess.run(
+            [sys.executable, "-m", "spectral_fit", "fit", str(scene.path), str(session.path),
+             "-o", str(out), "--json", "--spot-resolution", str(RES), "--no-render",
+             "--starts", "1"],
+            capture_output=True, text=True, timeout=900,
+            env=subprocess_env(SPECTRAL_FIT_CACHE=str(cache)))
+        assert r.returncode == 0, r.stderr[-2000:]
+        js = json.loads(r.stdout)
+        assert json.loads((out / "fit.json").read_text())["params"] == js["params"]
+        assert "time:" in r.stderr
+        runs.append(js)
+    first, again = runs
+    assert first["timing"]["caches"]["preparation"] == "miss"
+    assert again["timing"]["warm"] is True
+    assert again["timing"]["caches"]["programs_compiled"] == 0
+    assert again["params"] == first["params"] and again["readings"] == first["readings"]

@@ -53,6 +53,7 @@ _EXPORTS: dict[str, str] = {
     "predict": "_model",
     "prepare_candidates": "_plan_information",
     "prepare_fit": "_prepare",
+    "prepare_fit_cached": "_prepare_cache",
     "probe_radiance": "_cache_model",
     "reading_information": "_plan_design",
     "reading_sensitivity": "_plan_design",

@@ -28,7 +28,6 @@ import dataclasses
 import math
 import os
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -39,13 +38,15 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from ..io import PARAMETERS, Scene, Session
+from ..rendering._cache import compilation_counts
 from ._model import _predict_jit
 from ._model_error import estimate_model_error, with_model_error
 from ._options import FitOptions, _fit_options
 from ._params import _SQUARED, LOWER, _dp_dy, _starts, physical_from_y, unknowns, y_start
-from ._prepare import prepare_fit
+from ._prepare_cache import aim_problems_cached, prepare_fit_cached
 from ._problem import FitProblem, PreparedFit
 from ._profile import STEPS, profile_intervals
+from ._programs import stored_call
 from ._solver import _PROGRESS, _solve_measured, make_solver, solve_batch
 
 __all__ = ["FitResult", "fit", "fit_many"]
@@ -74,7 +75,12 @@ class FitResult:
         holdout: fit on object-colour readings only, prediction of the others (or None).
         wavelengths, measured, fitted, sigma: (L,), (B, L) ×3 spectra.
         calibration: (L,) the environment calibration k(λ) applied.
-        timings: seconds of preparation, compile + first solve, steady solve, uncertainty.
+        timings: seconds of the preparation (``prepare_s``), the starts' solve with its
+            compile or load (``solve_s``), the uncertainty, profile, bootstrap, hold-out and
+            aiming sensitivity, ``total_s``; ``caches``: where the preparation and the
+            aim-shifted problems came from ("hit", "miss", "off"; "skipped" without an aiming
+            sensitivity) and the programs loaded from or compiled into JAX's persistent
+            cache during the fit.
         model_error: {kind: relative error of the model} added to the readings' σ in
             quadrature (stated in the session's ``[model_error]``, or estimated there with
             "auto"; :mod:`spectral_fit.fitting._model_error`).
@@ -108,7 +114,7 @@ class FitResult:
     sigma: np.ndarray
     calibration: np.ndarray
     calibration_mode: str
-    timings: dict[str, float]
+    timings: dict[str, Any]
     iterations: int = 0
     values: np.ndarray | None = None  # (O, 6)
     profile: dict[str, dict[str, Any]] | None = None
@@ -214,7 +220,7 @@ def _identifiability(labels: list[str], corr: np.ndarray, jtj: np.ndarray) -> li
 def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathLike[str], *,
         options: FitOptions | None = None,
         progress: Callable[[str], None] | None = None, prepared: PreparedFit | None = None,
-        **kwargs: Any) -> FitResult:
+        cache_dir: str | os.PathLike[str] | None = None, **kwargs: Any) -> FitResult:
     """Fit the reflection-model parameters of the measured objects (stable API ``fit``).
 
     Args:
@@ -224,6 +230,11 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
             (``starts=8``, ``bootstrap=50``, ``kinds=("object",)``, ...).
         progress: called with one line of text per stage and per solver iteration.
         prepared: a :func:`prepare_fit` result to reuse (benchmarks).
+        cache_dir: keep the preparation (and the aim-shifted problems of the aiming
+            sensitivity) on disk under this folder and load it from there when every input is
+            unchanged (:func:`~spectral_fit.fitting.prepare_fit_cached`; the CLI passes
+            ``~/.cache/spectral_fit`` or ``$SPECTRAL_FIT_CACHE``); None (default): no disk
+            cache.
 
     Returns:
         :class:`FitResult`.
@@ -239,9 +250,12 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         session = load_session(session, scene=scene)
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
+    programs0 = compilation_counts()
     if prepared is None:
         say(f"rasterising {len(session.readings)} measuring fields ...")
-        prepared = prepare_fit(scene, session, options=opts)
+        prepared = prepare_fit_cached(scene, session, options=opts, cache_dir=cache_dir)
+        if prepared.cached == "hit":
+            say("preparation loaded from the disk cache")
     prep = prepared
     problem = prep.problem
     names = list(prep.objects)
@@ -278,22 +292,29 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     y0 = y_start(problem, vals0, scale0)
     starts = _starts(problem, y0, opts.starts, opts.seed)
     dt = problem.values.dtype
-    solver = make_solver(opts, progress is not None)
+    # the compact solver records its cost per step and the lines are printed after the solve
+    # (no host callback in the program: JAX's persistent cache can keep it between runs)
+    live = progress is not None and opts.solver != "compact"
+    solver = make_solver(opts, live)
     say(f"solving: {F} unknowns, {int(use.sum())} readings x {L} bands, {opts.starts} starts "
         f"(Levenberg-Marquardt, {opts.solver}) ...")
-    if progress is not None:
+    if live:
         _PROGRESS.append(lambda s, c: say(f"  step {int(np.max(s)):3d}  "
                                           f"best cost {float(np.min(c)):.6g}"))
     t1 = time.perf_counter()
     try:
-        out = solve_batch(problem, jnp.asarray(starts, dt),
+        out = stored_call(solve_batch, problem, jnp.asarray(starts, dt),
                            jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
-                           opts.max_steps)
+                           opts.max_steps, cache_dir=cache_dir)
         out = {k: np.asarray(v) for k, v in out.items()}
     finally:
-        if progress is not None:
+        if live:
             _PROGRESS.pop()
     t_solve = time.perf_counter() - t1
+    if progress is not None and "history" in out:
+        for hist, n in zip(out["history"], out["steps"], strict=True):
+            for k in range(int(n)):
+                say(f"  step {k:3d}  best cost {float(hist[k]):.6g}")
     costs = out["cost"].astype(np.float64)
     best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
     # the starts as solved (reported, and compared for local minima)
@@ -320,10 +341,10 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
             sig_new = np.maximum(with_model_error(sig0, meas_, reading_kinds, est), 1e-12)
             problem = eqx.tree_at(lambda q: q.readings.sigma, problem,
                                   jnp.asarray(sig_new, dt))
-            again = solve_batch(problem,
+            again = stored_call(solve_batch, problem,
                                 jnp.asarray(np.tile(out["y"][best], (len(starts), 1)), dt),
                                 jnp.asarray(np.tile(use, (len(starts), 1)), dt), solver,
-                                opts.max_steps)
+                                opts.max_steps, cache_dir=cache_dir)
             out = {k: np.asarray(v) for k, v in again.items()}
             costs = out["cost"].astype(np.float64)
             best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
@@ -428,8 +449,9 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     t3 = time.perf_counter()
     if opts.bootstrap > 0:
         say(f"bootstrap over readings: {opts.bootstrap} resamples ...")
-        boot = _bootstrap(problem, y, use, opts, solver, names)
+        boot = _bootstrap(problem, y, use, opts, solver, names, cache_dir)
     t_boot = time.perf_counter() - t3
+    t5 = time.perf_counter()
     # hold-out -----------------------------------------------------------------------------
     holdout = None
     kinds_present = {r.kind for r in session.readings if use[session.readings.index(r)] > 0}
@@ -445,13 +467,19 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                    "max_delta_e00": float(np.max(des))}
     elif opts.holdout and {"object", "interreflection"} <= kinds_present:
         say("hold-out: fit on object-colour readings, predict interreflection readings ...")
-        holdout = _holdout(problem, prep, y, use, opts, solver, white)
+        holdout = _holdout(problem, prep, y, use, opts, solver, white, cache_dir)
+    t_hold = time.perf_counter() - t5
     # aiming sensitivity ------------------------------------------------------------------
+    t6 = time.perf_counter()
+    aim_cache = "off"
     if opts.aim_step_m > 0:
         say("aiming sensitivity ...")
-        sens = _aim_sensitivity(scene, prep, vals, scale, opts, white, fitted)
+        sens, aim_cache = _aim_sensitivity(scene, prep, vals, scale, opts, white, fitted,
+                                           cache_dir)
         for b in range(B):
             table[b]["aim_sensitivity"] = sens[b]
+    t_aim = time.perf_counter() - t6
+    programs = compilation_counts()
     steps_best = int(steps[best])
     if status != "converged":
         warn.append(f"the best start did not converge in {opts.max_steps} steps")
@@ -468,8 +496,12 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         calibration_mode=session.calibration,
         timings={"prepare_s": prep.seconds,
                  "solve_s": t_solve, "uncertainty_s": t_unc, "profile_s": t_prof,
-                 "bootstrap_s": t_boot,
-                 "total_s": time.perf_counter() - t0},
+                 "bootstrap_s": t_boot, "holdout_s": t_hold, "aim_sensitivity_s": t_aim,
+                 "total_s": time.perf_counter() - t0,
+                 "caches": {"preparation": prep.cached,
+                            "aim_preparation": aim_cache if opts.aim_step_m > 0 else "skipped",
+                            **{f"programs_{k}": programs[k] - programs0[k]
+                               for k in programs}}},
         iterations=steps_best, values=vals, profile=profile, model_error=model_error,
         constraints=_constraints(session, names, problem, labels))
 
@@ -490,7 +522,8 @@ def _constraints(session: Session, names: list[str], problem: FitProblem,
 
 
 def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOptions,
-               solver: Any, names: list[str]) -> dict[str, dict[str, float]]:
+               solver: Any, names: list[str], cache_dir: str | os.PathLike[str] | None = None
+               ) -> dict[str, dict[str, float]]:
     rng = np.random.default_rng(opts.seed + 1)
     idx = np.flatnonzero(use > 0)
     S = max(1, opts.starts)
@@ -502,8 +535,9 @@ def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOpt
     dt = problem.values.dtype
     got = []
     for c in range(0, n, S):
-        o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
-                         jnp.asarray(ws[c:c + S], dt), solver, opts.max_steps)
+        o = stored_call(solve_batch, problem, jnp.asarray(np.tile(y, (S, 1)), dt),
+                        jnp.asarray(ws[c:c + S], dt), solver, opts.max_steps,
+                        cache_dir=cache_dir)
         for yi, ci in zip(np.asarray(o["y"]), np.asarray(o["cost"]), strict=True):
             if np.isfinite(ci):
                 got.append(np.asarray(physical_from_y(problem, jnp.asarray(yi, dt))[0]))
@@ -517,14 +551,19 @@ def _bootstrap(problem: FitProblem, y: np.ndarray, use: np.ndarray, opts: FitOpt
 
 
 def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndarray,
-             opts: FitOptions, solver: Any, white: np.ndarray) -> dict[str, Any]:
+             opts: FitOptions, solver: Any, white: np.ndarray,
+             cache_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     s = prep.session
     obj_only = np.array([u if r.kind == "object" else 0.0 for u, r in
                          zip(use, s.readings, strict=True)])
     dt = problem.values.dtype
+    # one solve from the fit's optimum; the batch has the fit's size (the same compiled
+    # program), its other rows weigh no reading and stop within a few steps
     S = max(1, opts.starts)
-    o = solve_batch(problem, jnp.asarray(np.tile(y, (S, 1)), dt),
-                     jnp.asarray(np.tile(obj_only, (S, 1)), dt), solver, opts.max_steps)
+    rw = np.zeros((S, obj_only.size))
+    rw[0] = obj_only
+    o = stored_call(solve_batch, problem, jnp.asarray(np.tile(y, (S, 1)), dt),
+                    jnp.asarray(rw, dt), solver, opts.max_steps, cache_dir=cache_dir)
     yh = np.asarray(o["y"])[0]
     vals, scale = physical_from_y(problem, jnp.asarray(yh, dt))
     pred = np.asarray(o["predicted"][0], np.float64)
@@ -545,10 +584,12 @@ def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndar
 
 
 def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: float,
-                     opts: FitOptions, white: np.ndarray, fitted: np.ndarray
-                     ) -> list[dict[str, Any]]:
+                     opts: FitOptions, white: np.ndarray, fitted: np.ndarray,
+                     cache_dir: str | os.PathLike[str] | None = None
+                     ) -> tuple[list[dict[str, Any]], str]:
     """ΔE00 and relative radiance change per mm of aiming error, per reading (finite
-    differences over aim shifts of ``aim_step_m`` in two directions across the axis)."""
+    differences over aim shifts of ``aim_step_m`` in two directions across the axis), and
+    whether the shifted problems came from the disk cache ("hit", "miss", "off")."""
     from ..color import delta_e00, radiance_to_xyz, xyz_to_lab
 
     s = prep.session
@@ -559,6 +600,7 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
     de = np.zeros((len(s.readings), 2))
     rel = np.zeros_like(de)
     dt = prep.problem.values.dtype
+    sessions = []
     for d in range(2):
         shifted = []
         for r in s.readings:
@@ -570,19 +612,18 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
             u = u / np.linalg.norm(u)
             v = np.cross(ax, u)
             shifted.append(dataclasses.replace(r, aim=r.aim + step * (u if d == 0 else v)))
-        ss = s.replace(readings=tuple(shifted))
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                pp = prepare_fit(scene, ss, options=dataclasses.replace(
-                    opts, interreflection="auto" if prep.problem.interreflection else "none"),
-                    env=prep.problem.env, geometries=prep.geometries)
-        except InputError:
+        sessions.append(s.replace(readings=tuple(shifted)))
+    problems, cached = aim_problems_cached(
+        scene, prep, dataclasses.replace(
+            opts, interreflection="auto" if prep.problem.interreflection else "none"),
+        sessions, cache_dir=cache_dir)
+    for d, pp in enumerate(problems):
+        if pp is None:
             de[:, d] = np.nan
             rel[:, d] = np.nan
             continue
-        pred = np.asarray(_predict_jit(pp.problem, jnp.asarray(vals, dt),
-                                       jnp.asarray(scale, dt)), np.float64)
+        pred = np.asarray(stored_call(_predict_jit, pp, jnp.asarray(vals, dt),
+                                      jnp.asarray(scale, dt), cache_dir=cache_dir), np.float64)
         lab = xyz_to_lab(radiance_to_xyz(pred, wl), xw)
         de[:, d] = delta_e00(lab0, lab)
         rel[:, d] = np.linalg.norm(pred - fitted, axis=1) / np.maximum(
@@ -592,7 +633,7 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
              else None,
              "relative_radiance_per_mm": float(np.nanmax(rel[b]) / mm)
              if np.isfinite(rel[b]).any() else None}
-            for b in range(len(s.readings))]
+            for b in range(len(s.readings))], cached
 
 
 def fit_many(prepared: PreparedFit, measured: Any, *, sigma: Any = None,

@@ -128,7 +128,12 @@ class FitProblem(eqx.Module):
 
 @dataclasses.dataclass
 class PreparedFit:
-    """Host-side companions of a :class:`FitProblem`."""
+    """Host-side companions of a :class:`FitProblem`.
+
+    ``seconds`` is the time the preparation took (or its load from the disk cache);
+    ``cached`` says where it came from: "off" (prepared, no disk cache), "miss" (prepared and
+    stored) or "hit" (loaded; :func:`~spectral_fit.fitting.prepare_fit_cached`).
+    """
 
     problem: FitProblem
     session: Session
@@ -137,3 +142,4 @@ class PreparedFit:
     coverage: np.ndarray  # (B,) fraction of the field on the named object
     warnings: list[str]
     seconds: float
+    cached: str = "off"

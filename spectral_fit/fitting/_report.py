@@ -25,17 +25,20 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import hashlib
 import json
 import math
 import os
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .._runtime.fileio import atomic_path, atomic_write_text
+from .._runtime.fileio import atomic_path, atomic_write_bytes, atomic_write_text
 from .._runtime.paths import REPO_ROOT
 from ..io import PARAMETERS, Scene, Session
 from ._fit import FitResult
@@ -230,11 +233,69 @@ def _render(scene: Scene, result: FitResult, path: Path) -> str | None:
         return f"render failed: {type(exc).__name__}: {exc}"
 
 
-def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: Scene,
-                 session: Session | None = None, render: bool = True) -> dict[str, Any]:
-    """Write the report files (see the module docstring); returns the JSON summary."""
-    from ..color import chromaticity_diagram
+# pictures kept per cache folder (oldest removed first)
+_MAX_PICTURES = 48
 
+
+def _picture_digest(*parts: str) -> str:
+    """SHA-256 over the package sources, library versions and backend (the rendering
+    caches' environment digest), matplotlib's and Pillow's versions and ``parts``."""
+    from ..rendering._keys import _environment_digest, _version
+
+    h = hashlib.sha256()
+    for part in (_environment_digest(), f"matplotlib={_version('matplotlib')}",
+                 f"pillow={_version('pillow')}", *parts):
+        h.update(part.encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def _cached_picture(folder: Path | None, key: str | None, path: Path,
+                    draw: Callable[[Path], str | None]) -> tuple[str | None, str]:
+    """Write the picture ``path`` by ``draw`` (returns None, or a note when it could not draw),
+    or copy it from ``folder/<key>.png`` where an earlier report drew it from the same data.
+    Returns (the note, "hit" | "miss" | "off")."""
+    if folder is None or key is None:
+        return draw(path), "off"
+    entry = folder / f"{key[:40]}.png"
+    with contextlib.suppress(OSError):
+        data = entry.read_bytes()
+        if data.startswith(b"\x89PNG\r\n\x1a\n"):
+            atomic_write_bytes(path, data)
+            return None, "hit"
+    note = draw(path)
+    if note is None:
+        with contextlib.suppress(OSError):  # a cache that cannot be written is skipped
+            atomic_write_bytes(entry, path.read_bytes())
+            kept = sorted(folder.glob("*.png"), key=lambda q: q.stat().st_mtime_ns)
+            for old in kept[:-_MAX_PICTURES]:
+                with contextlib.suppress(OSError):
+                    old.unlink()
+    return note, "miss"
+
+
+def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: Scene,
+                 session: Session | None = None, render: bool = True,
+                 cache_dir: str | os.PathLike[str] | None = None,
+                 timing: Mapping[str, float] | None = None,
+                 started: float | None = None) -> dict[str, Any]:
+    """Write the report files (see the module docstring); returns the JSON summary.
+
+    Args:
+        result, scene, session: the fit, its scene and session.
+        out_dir: the report's folder (created).
+        render: also write ``render.png`` (the scene with the fitted materials).
+        cache_dir: keep the pictures under ``<cache_dir>/fit_report``, keyed by the data they
+            show (every value of the summary but its timings; for ``render.png`` the scene and
+            the fitted parameters) with the package sources and the library versions; a later
+            report of the same data copies them instead of drawing again. None: no cache.
+        timing: seconds of stages before the fit (e.g. ``startup_s``, ``load_s``), put into
+            the summary's ``timing`` block.
+        started: ``time.perf_counter()`` when the work began (the command's start): the
+            block's ``total_s`` is measured from it; default the fit's and the report's
+            seconds.
+    """
+    t_report = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = result.to_json()
@@ -247,19 +308,44 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
         "sigma": result.sigma.tolist(), "calibration": result.calibration.tolist(),
     }
     pictures = ["chromaticity.png", "spectra.png", "residuals.png"]
-    xy_m = np.array([r["xy_measured"] for r in result.readings])
-    xy_f = np.array([r["xy_fitted"] for r in result.readings])
-    chromaticity_diagram(out / "chromaticity.png",
-                         {"measured": xy_m, "rendered (fit)": xy_f},
-                         markers={"measured": "+", "rendered (fit)": "x"},
-                         title="Spectroradiometer spots: measured (+) vs fitted render (×)")
-    _spectra_plot(result, out / "spectra.png")
-    _residual_plot(result, out / "residuals.png")
+    folder = None if cache_dir is None else Path(cache_dir) / "fit_report"
+    data_digest = None
+    if folder is not None:  # what the pictures show: everything but the timings
+        shown = {k: v for k, v in summary.items() if k not in ("timings", "scene", "session")}
+        data_digest = _picture_digest(json.dumps(shown, sort_keys=True, allow_nan=True))
+
+    def key(name: str) -> str | None:
+        return None if data_digest is None else _picture_digest(data_digest, name)
+
+    def chromaticity(path: Path) -> None:
+        from ..color import chromaticity_diagram
+
+        xy_m = np.array([r["xy_measured"] for r in result.readings])
+        xy_f = np.array([r["xy_fitted"] for r in result.readings])
+        chromaticity_diagram(path, {"measured": xy_m, "rendered (fit)": xy_f},
+                             markers={"measured": "+", "rendered (fit)": "x"},
+                             title="Spectroradiometer spots: measured (+) vs fitted render (×)")
+
+    drawers: list[tuple[str, Callable[[Path], None]]] = [
+        ("chromaticity.png", chromaticity),
+        ("spectra.png", lambda p: _spectra_plot(result, p)),
+        ("residuals.png", lambda p: _residual_plot(result, p))]
     if result.profile:
-        _profile_plot(result, out / "profile.png")
+        drawers.append(("profile.png", lambda p: _profile_plot(result, p)))
         pictures.append("profile.png")
+    hits = []
+    for name, draw in drawers:
+        hits.append(_cached_picture(folder, key(name), out / name,
+                                    lambda p, d=draw: d(p))[1])
     if render:
-        note = _render(scene, result, out / "render.png")
+        from ..rendering._keys import _scene_text
+
+        scene_text = _scene_text(scene) if folder is not None else None
+        render_key = None if scene_text is None else _picture_digest(
+            "render.png", scene_text, json.dumps(result.params, sort_keys=True))
+        note, hit = _cached_picture(folder, render_key, out / "render.png",
+                                    lambda p: _render(scene, result, p))
+        hits.append(hit)
         if note is None:
             pictures.append("render.png")
         else:
@@ -269,8 +355,37 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
                       json.dumps(materials_json(result, scene), indent=2) + "\n")
     atomic_write_text(out / "materials_mitsuba.xml", mitsuba_snippet(result, scene))
     summary["files"] = pictures + ["fit.json", "materials.json", "materials_mitsuba.xml"]
+    summary["timing"] = _timing_block(result, timing, started, time.perf_counter() - t_report,
+                                      hits)
     atomic_write_text(out / "fit.json", json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _timing_block(result: FitResult, before: Mapping[str, float] | None,
+                  started: float | None, report_s: float, pictures: list[str]
+                  ) -> dict[str, Any]:
+    """The report's ``timing``: seconds per stage and where the disk caches were hit."""
+    t = result.timings
+    caches = dict(t.get("caches", {}))
+    caches["pictures"] = ("off" if not pictures or all(h == "off" for h in pictures) else
+                          "hit" if all(h == "hit" for h in pictures) else
+                          "miss" if all(h != "hit" for h in pictures) else "partial")
+    out: dict[str, Any] = {k: float(v) for k, v in (before or {}).items()}
+    out.update({
+        "preparation_s": float(t.get("prepare_s", 0.0)),
+        "compile_and_solve_s": float(t.get("solve_s", 0.0)),
+        "holdout_s": float(t.get("holdout_s", 0.0)),
+        "aim_sensitivity_s": float(t.get("aim_sensitivity_s", 0.0)),
+        "fit_s": float(t.get("total_s", 0.0)),
+        "report_s": float(report_s),
+    })
+    out["total_s"] = (time.perf_counter() - started if started is not None
+                      else out["fit_s"] + out["report_s"])
+    used = [v for k, v in caches.items() if not k.startswith("programs_")]
+    out["warm"] = (all(v in ("hit", "skipped") for v in used)
+                   and caches.get("programs_compiled", 0) == 0)
+    out["caches"] = caches
+    return out
 
 
 def recovery_table(result: FitResult, truth: dict[str, dict[str, float]]) -> list[dict]:

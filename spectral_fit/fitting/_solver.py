@@ -62,7 +62,10 @@ class CompactLM(eqx.Module):
 
     Attributes:
         rtol, atol: termination tolerances on y and on the residuals.
-        verbose: report (step, cost) per iteration through the progress callback.
+        verbose: report (step, cost) per iteration through a host callback while solving
+            (a program with a host callback is never stored by JAX's persistent
+            compilation cache; :func:`~spectral_fit.fitting.fit` leaves it off and prints
+            the solve's ``history`` instead).
     """
 
     rtol: float = eqx.field(static=True)
@@ -119,7 +122,8 @@ def _residuals_jacobian(y: jax.Array, problem: FitProblem, reading_weights: jax.
 def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: CompactLM,
                 max_steps: int, frozen: jax.Array | None = None) -> dict[str, jax.Array]:
     """:class:`CompactLM` from ``y0`` (see there); returns the final state's y, residuals,
-    Jacobian, predicted readings, step count and whether it terminated (converged).
+    Jacobian, predicted readings, step count, whether it terminated (converged) and the
+    cost ½|r|² after each step (``history`` (max_steps,), NaN beyond the last step).
     ``frozen`` (F,) bool: unknowns held at their start value (their rows and columns of the
     normal equations replaced by the identity's, their gradient by 0: every step leaves them
     where they are), for profile likelihoods."""
@@ -159,6 +163,7 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
         pred = jnp.where(accept, p_e, s["pred"])
         if solver.verbose:
             jax.debug.callback(_emit, s["steps"], 0.5 * jnp.sum(r * r))
+        history = s["history"].at[s["steps"]].set(0.5 * jnp.sum(r * r).astype(rdt))
         A = (J.T @ J).astype(dt)
         g = (J.T @ r).astype(dt)
         if frozen is not None:
@@ -177,11 +182,12 @@ def _compact_lm(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Compac
         return {"y": y, "y_eval": y - delta, "r": r, "J": J, "pred": pred, "lam": lam,
                 "dmax": dmax, "first": jnp.zeros((), bool),
                 "done": (accept & jnp.logical_not(first) & y_ok & r_ok) | small,
-                "steps": s["steps"] + 1}
+                "steps": s["steps"] + 1, "history": history}
 
     s0 = {"y": y0, "y_eval": y0, "r": r0, "J": j0, "pred": p0,
           "lam": jnp.asarray(1.0, dt), "dmax": jnp.zeros((), dt), "first": jnp.ones((), bool),
-          "done": jnp.zeros((), bool), "steps": jnp.zeros((), jnp.int32)}
+          "done": jnp.zeros((), bool), "steps": jnp.zeros((), jnp.int32),
+          "history": jnp.full((max_steps,), jnp.nan, rdt)}
     return jax.lax.while_loop(cond, body, s0)
 
 
@@ -193,7 +199,10 @@ def solve_batch(problem: FitProblem, y0: jax.Array, rw: jax.Array, solver: Any,
 
     Returns a dict of (S, ...) arrays: y, cost, converged, steps, the residuals, their
     Jacobian w.r.t. y (from the solver's last accepted step, so no second trace of the model
-    is compiled) and the predicted readings (B, L) at y.
+    is compiled), the predicted readings (B, L) at y and, with :class:`CompactLM`, the cost
+    after each step (``history`` (S, max_steps), NaN beyond a start's last step: the
+    progress lines are printed from it after the solve, so the compiled program has no host
+    callback and JAX's persistent compilation cache can store it).
     """
     def one(args: tuple[jax.Array, jax.Array]) -> dict[str, jax.Array]:
         return _solve_one(problem, args[0], args[1], solver, max_steps)
@@ -216,7 +225,7 @@ def _solve_one(problem: FitProblem, y0: jax.Array, w: jax.Array, solver: Any,
         fin = jnp.isfinite(cost)
         return {"y": s["y"], "cost": jnp.where(fin, cost, jnp.inf),
                 "converged": s["done"] & fin, "steps": s["steps"], "residual": r,
-                "jacobian": s["J"], "predicted": s["pred"]}
+                "jacobian": s["J"], "predicted": s["pred"], "history": s["history"]}
     import optimistix as optx
 
     sol = optx.least_squares(lambda y, ww: _residuals_aux(y, problem, ww), solver, y0,

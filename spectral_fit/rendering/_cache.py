@@ -55,6 +55,7 @@ from ._keys import library_versions_tag
 __all__ = [
     "cache_root",
     "enable_compilation_cache",
+    "compilation_counts",
     "CACHE_STATS",
 ]
 
@@ -107,6 +108,7 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None, *,
                                            "jax"))
     if not path:
         return None
+    compilation_counts()  # count its hits from here on
     path = os.path.join(os.fspath(path), library_versions_tag())
     try:
         os.makedirs(path, exist_ok=True)
@@ -117,6 +119,38 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None, *,
     except Exception:  # a cache must never stop the application
         return None
     return path
+
+
+# JAX's events of its persistent compilation cache, counted from the first call of
+# compilation_counts (or enable_compilation_cache) on
+_COMPILE_EVENTS = {"/jax/compilation_cache/compile_requests_use_cache": "requested",
+                   "/jax/compilation_cache/cache_hits": "loaded"}
+_COMPILE_COUNTS: dict[str, int] = {"requested": 0, "loaded": 0}
+_LISTENING: list[bool] = []
+
+
+def _count_compile_event(event: str, **_kwargs: Any) -> None:
+    name = _COMPILE_EVENTS.get(event)
+    if name is not None:
+        _COMPILE_COUNTS[name] += 1
+
+
+def compilation_counts() -> dict[str, int]:
+    """Programs XLA was asked for through JAX's persistent compilation cache in this process,
+    since the first call of this function or of :func:`enable_compilation_cache`:
+    ``{"loaded": n, "compiled": m}`` (loaded from the cache, compiled and stored). Both stay 0
+    while the cache is off; programs found in the process's own memory count in neither.
+    Take the difference of two calls for one stage."""
+    if not _LISTENING:
+        try:
+            import jax.monitoring
+
+            jax.monitoring.register_event_listener(_count_compile_event)
+        except Exception:  # no events: the counts stay 0
+            pass
+        _LISTENING.append(True)
+    return {"loaded": _COMPILE_COUNTS["loaded"],
+            "compiled": _COMPILE_COUNTS["requested"] - _COMPILE_COUNTS["loaded"]}
 
 
 # --------------------------------------------------------------------------------------------

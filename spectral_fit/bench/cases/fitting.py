@@ -9,6 +9,15 @@ per start (forward model and exact Jacobian inside), with the default compact so
 threads; on a shared machine the CPU time is the steadier figure). The preparation
 (environment prefiltering, ray casting of the measuring fields, the radiance cache with its
 interreflection probes) runs once before and is reported as ``prepare_s`` / ``prepare_cpu_s``.
+
+``fit_cli``: ``spectral-fit fit`` of the bundled session from the shell, end to end with its
+report (each run a fresh ``python -m spectral_fit fit`` process): first runs, each on empty
+caches (the preparation, the report's pictures, the render's scene and program, JAX's compiled
+programs, all in a temporary folder), then re-runs on the caches the last first run left.
+``median_ms`` / ``min_ms`` / ``max_ms`` are the re-runs' wall times, ``compile_s`` the first
+runs' median; ``first_run_s`` / ``rerun_s`` (and ``*_cpu_s``, the processes' CPU time) the
+medians of each, ``first_run_timing`` / ``rerun_timing`` the report's ``timing`` block of
+one run of each.
 """
 
 from __future__ import annotations
@@ -104,4 +113,65 @@ def fit_demo_optimistix(opts: BenchOptions) -> dict[str, Any]:
     return _fit_demo(opts, "optimistix")
 
 
-CASES = {"fit_demo": fit_demo, "fit_demo_optimistix": fit_demo_optimistix}
+def _fit_process(cache: str, out: str, quick: bool) -> dict[str, Any]:
+    """One ``python -m spectral_fit fit`` of the bundled session with its caches in ``cache``:
+    wall and CPU seconds of the process and the report's ``timing`` block."""
+    import json
+    import os
+    import resource
+    import subprocess
+    import sys
+    import time
+
+    from ..._runtime.paths import REPO_ROOT
+    from ...fitting import DEMO_CONFIG, DEMO_SESSION
+
+    env = dict(os.environ)
+    env["SPECTRAL_FIT_CACHE"] = cache
+    env["SPECTRAL_FIT_JAX_CACHE"] = os.path.join(cache, "jax")
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")])
+    cmd = [sys.executable, "-m", "spectral_fit", "fit", str(DEMO_CONFIG), str(DEMO_SESSION),
+           "-o", out]
+    if quick:
+        cmd += ["--spot-resolution", "4", "--starts", "1", "--no-render"]
+    c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run(cmd, capture_output=True, text=True, env=env, check=True, timeout=1200)
+    wall = time.perf_counter() - t0
+    c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
+    with open(os.path.join(out, "fit.json")) as fh:
+        timing = json.load(fh)["timing"]
+    return {"wall_s": wall, "cpu_s": cpu, "timing": timing}
+
+
+def fit_cli(opts: BenchOptions) -> dict[str, Any]:
+    """``spectral-fit fit`` of the bundled session end to end, first runs on empty caches and
+    re-runs on warm ones (fresh processes; see the module docstring)."""
+    import os
+    import statistics
+    import tempfile
+
+    n_first = 1 if opts.quick else max(1, min(opts.repeats, 2))
+    n_again = 2 if opts.quick else max(3, min(opts.repeats, 5))
+    first, again = [], []
+    with tempfile.TemporaryDirectory(prefix="sf_fit_cli_") as tmp:
+        for i in range(n_first):
+            cache = os.path.join(tmp, f"cache{i}")
+            first.append(_fit_process(cache, os.path.join(tmp, f"first{i}"), opts.quick))
+        for i in range(n_again):
+            again.append(_fit_process(cache, os.path.join(tmp, f"again{i}"), opts.quick))
+    walls = [r["wall_s"] for r in again]
+    med = statistics.median
+    return {
+        "median_ms": med(walls) * 1e3, "min_ms": min(walls) * 1e3, "max_ms": max(walls) * 1e3,
+        "compile_s": med([r["wall_s"] for r in first]), "n": len(walls),
+        "first_run_s": med([r["wall_s"] for r in first]),
+        "first_run_cpu_s": med([r["cpu_s"] for r in first]),
+        "rerun_s": med(walls), "rerun_cpu_s": med([r["cpu_s"] for r in again]),
+        "first_runs": len(first), "first_run_timing": first[-1]["timing"],
+        "rerun_timing": again[-1]["timing"],
+    }
+
+
+CASES = {"fit_demo": fit_demo, "fit_demo_optimistix": fit_demo_optimistix, "fit_cli": fit_cli}

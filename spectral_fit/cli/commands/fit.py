@@ -8,6 +8,10 @@ import sys
 
 HELP = "fit alpha, beta, chi, mu, n (gamma) of the scene's objects to a measurement session"
 
+#: run as a program, the command ends its process without the interpreter's teardown (its
+#: report files are written atomically and synced before it returns; see ``cli._main``)
+FAST_EXIT = True
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="scene config (TOML)")
@@ -44,16 +48,21 @@ def enable_compilation_cache() -> str | None:
     """Keep XLA's compiled programs between runs (compiling the fit's solver is most of its
     first call): ``$SPECTRAL_FIT_JAX_CACHE`` or
     ``~/.cache/spectral_fit/jax``; set the variable to an empty string to disable.
+    Every program is kept, however quickly it compiled (a second run compiles nothing).
     Applications (this CLI) opt in; the library never does."""
     from ...rendering import enable_compilation_cache as enable
 
-    return enable(min_compile_time_s=1.0)
+    return enable(min_compile_time_s=0.0)
 
 
 def run(args: argparse.Namespace) -> int:
+    import time
+
     from ..._runtime.errors import InputError
     from ...fitting import fit, write_report
     from ...io import KINDS, load_scene, load_session
+    from ...rendering import cache_root
+    from .._main import STARTED
 
     kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
     bad = [k for k in kinds if k not in KINDS]
@@ -67,16 +76,20 @@ def run(args: argparse.Namespace) -> int:
     if not (args.aim_step_mm >= 0):
         raise InputError(f"must be >= 0, got {args.aim_step_mm}", field="--aim-step-mm")
     enable_compilation_cache()
+    t_load = time.perf_counter()
     scene = load_scene(args.config)
     session = load_session(args.session, scene=scene)
+    before = {"startup_s": t_load - STARTED, "load_s": time.perf_counter() - t_load}
     _say(f"{len(session.readings)} readings of {sorted({r.object for r in session.readings})}, "
          f"calibration {session.calibration}, noise {session.noise.source}")
     res = fit(scene, session, progress=_say, starts=args.starts, bootstrap=args.bootstrap,
               kinds=kinds, spot_resolution=args.spot_resolution, max_steps=args.max_steps,
               holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3,
-              interreflection=args.interreflection, profile=args.profile)
+              interreflection=args.interreflection, profile=args.profile,
+              cache_dir=cache_root())
     summary = write_report(res, args.output, scene=scene, session=session,
-                           render=not args.no_render)
+                           render=not args.no_render, cache_dir=cache_root(), timing=before,
+                           started=STARTED)
     for w in res.warnings:
         _say(f"warning: {w}")
     _say(f"{res.status} after {res.iterations} iterations; chi2/dof {res.chi2_red:.3g}")
@@ -92,6 +105,14 @@ def run(args: argparse.Namespace) -> int:
                 _say(f"    {k} profile interval {iv['lower']:.4g}{ends[0]} .. "
                      f"{iv['upper']:.4g}{ends[1]}")
     _say(f"report in {args.output}/ ({', '.join(summary['files'])})")
+    tm = summary["timing"]
+    hit = {k: v for k, v in tm["caches"].items() if not k.startswith("programs_")}
+    _say(f"time: {tm['total_s']:.1f} s (start-up {tm['startup_s']:.1f}, preparation "
+         f"{tm['preparation_s']:.1f}, compile + solve {tm['compile_and_solve_s']:.1f}, "
+         f"report {tm['report_s']:.1f}); caches: "
+         + ", ".join(f"{k} {v}" for k, v in hit.items())
+         + f"; programs loaded {tm['caches'].get('programs_loaded', 0)}, compiled "
+         f"{tm['caches'].get('programs_compiled', 0)}")
     if args.json:
         slim = {k: v for k, v in summary.items() if k != "spectra"}
         print(json.dumps(slim, indent=2))
