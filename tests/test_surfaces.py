@@ -326,7 +326,8 @@ def _change(field, half=0.2, cells=16):
     return TableChange(fine=jnp.asarray(field, jnp.float32), coarse=jnp.asarray(coarse,
                        jnp.float32), centres=jnp.asarray(centres, jnp.float32),
                        area=jnp.float32((2 * half / g) ** 2), origin=jnp.zeros(3),
-                       axes=jnp.asarray(axes, jnp.float32), half=jnp.float32(half)), axes
+                       axes=jnp.asarray(axes, jnp.float32), half=jnp.float32(half),
+                       spheres=jnp.zeros((1, 4))), axes
 
 
 def test_table_change_seen_from_above():

@@ -87,6 +87,7 @@ class SurfaceTransfer(eqx.Module):
         pair_vertex: (U,) int32 interreflection-mesh vertex of each pair seen.
         pair_view: (U, 3) float32 world direction from that vertex back to the plane.
         pair_object: (U,) int32 its object (−1: padding).
+        spheres: (O, 4) the objects' bounding spheres (centre, radius; 0: not present).
         resolution: T, texels per side (static).
     """
 
@@ -102,6 +103,7 @@ class SurfaceTransfer(eqx.Module):
     pair_vertex: jax.Array
     pair_view: jax.Array
     pair_object: jax.Array
+    spheres: jax.Array
     resolution: int = eqx.field(static=True)
 
 
@@ -205,7 +207,7 @@ def _cells(env: Any, dirs: np.ndarray, src_dirs: np.ndarray, src_flux: np.ndarra
 def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles: np.ndarray,
                            slices: tuple[tuple[int, int], ...], *,
                            directions: int = DIRECTIONS, capacity: int | None = None,
-                           progress: Any = None) -> SurfaceTransfer:
+                           spheres: Any = None, progress: Any = None) -> SurfaceTransfer:
     """Precompute what the objects hide from, and show to, a plane (see the module docstring).
 
     Args:
@@ -216,7 +218,10 @@ def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles:
         vertices: (V, 3) the objects' interreflection-mesh vertices in the WORLD (posed).
         triangles: (T, 3) int vertex indices; ``slices`` the vertex range of each object.
         directions: K, cosine-weighted directions over the hemisphere.
-        capacity: pair capacity (default: the count on the capacity ladder).
+        capacity: hit capacity (default: the count on the capacity ladder).
+        spheres: (O, 4) every object's bounding sphere (centre, radius; radius 0: not
+            present), for what the objects hide of the plane from each other
+            (:class:`TableChange`); default: those of ``slices``.
         progress: optional callable(done, total) after each batch of views.
 
     Returns:
@@ -325,7 +330,19 @@ def build_surface_transfer(spec: Any, env: Any, vertices: np.ndarray, triangles:
         pair_vertex=jnp.asarray(u_vertex, jnp.int32),
         pair_view=jnp.asarray(u_view, jnp.float32),
         pair_object=jnp.asarray(u_object, jnp.int32),
+        spheres=jnp.asarray(_spheres(world, slices) if spheres is None else spheres,
+                            jnp.float32),
         resolution=t)
+
+
+def _spheres(world: np.ndarray, slices: Any) -> np.ndarray:
+    """(O, 4) bounding spheres (centre of the box, largest distance) of the slices."""
+    out = np.zeros((len(slices), 4))
+    for i, (a, b) in enumerate(slices):
+        v = world[a:b]
+        c = 0.5 * (v.min(0) + v.max(0))
+        out[i] = (*c, float(np.linalg.norm(v - c, axis=1).max()))
+    return out
 
 
 def surface_transfer(surfaces: Any, env: Any, ir_mesh: Any, model: Any, *,
@@ -347,8 +364,11 @@ def surface_transfer(surfaces: Any, env: Any, ir_mesh: Any, model: Any, *,
         keep = np.asarray(visible, bool)
         tris = tris[keep[np.asarray(ir_mesh.tri_object)]]
         slices = tuple(sl for sl, k in zip(slices, keep, strict=True) if k)
-    return tuple(build_surface_transfer(s, env, world, tris, slices, progress=progress)
-                 for s in surfaces)
+    spheres = _spheres(world, ir_mesh.object_slices)
+    if visible is not None:
+        spheres[~np.asarray(visible, bool), 3] = 0.0
+    return tuple(build_surface_transfer(s, env, world, tris, slices, spheres=spheres,
+                                        progress=progress) for s in surfaces)
 
 
 def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Array, *,
@@ -382,7 +402,8 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     for _ in range(max(int(passes), 1)):
         e_v, dl_r = e_map, None
         if change is not None:  # what the vertices see of the plane's change
-            d_e, dl_r = change.at(world, nrm, st.pair_vertex, st.pair_view)
+            d_e, dl_r = change.at(world, nrm, mesh.vertex_object, st.pair_vertex,
+                                  st.pair_view)
             e_v = e_map + d_e
         # each (vertex, direction) pair's radiance towards the plane: its diffuse light and
         # its gloss and mirror along that direction (each object's material on its pairs)
@@ -410,6 +431,8 @@ class TableChange(eqx.Module):
         coarse: (G², C) the same averaged over G × G cells, and ``centres`` (G², 3) their
             world centres, ``area`` () their area (m²): the diffuse sum.
         origin, axes, half: the region (as :class:`SurfaceTransfer`).
+        spheres: (O, 4) the objects' bounding spheres: a cell behind another object than
+            the point's own is hidden from it (exact for spheres).
     """
 
     fine: jax.Array
@@ -419,6 +442,7 @@ class TableChange(eqx.Module):
     origin: jax.Array
     axes: jax.Array
     half: jax.Array
+    spheres: jax.Array
 
     @staticmethod
     def of(st: SurfaceTransfer, e: jax.Array, env: Any, cells: int = 16) -> TableChange:
@@ -441,18 +465,32 @@ class TableChange(eqx.Module):
         centres = st.origin + st.half * (u[:, None] * st.axes[0] + v[:, None] * st.axes[1])
         return TableChange(fine=fine, coarse=coarse, centres=centres,
                            area=(2.0 * st.half / g) ** 2, origin=st.origin, axes=st.axes,
-                           half=st.half)
+                           half=st.half, spheres=st.spheres)
 
-    def diffuse(self, points: jax.Array, normals: jax.Array) -> jax.Array:
+    def diffuse(self, points: jax.Array, normals: jax.Array, owner: jax.Array | None = None
+                ) -> jax.Array:
         """The change (N, C) of the irradiance at ``points`` (N, 3) with ``normals`` (N, 3):
-        Σ_cells ΔL cosθ_p cosθ_x A / d² over the cells in front of the point's tangent plane
-        (d² at least A/π: no singularity at the contact)."""
+        Σ_cells ΔL cosθ_p cosθ_x A / max(d², A/π) over the cells in front of the point's
+        tangent plane (a point on a cell sees it as its hemisphere: no singularity at the
+        contact), cells behind an object other than the point's ``owner`` (N,) int left
+        out."""
         rel = self.centres[None, :, :] - points[:, None, :]  # (N, G², 3)
-        d2 = jnp.maximum(jnp.sum(rel * rel, -1), self.area / math.pi)
-        inv = jax.lax.rsqrt(d2)
+        dist2 = jnp.sum(rel * rel, -1)
+        inv = jax.lax.rsqrt(jnp.maximum(dist2, 1e-12))
         cos_p = jnp.maximum(jnp.sum(rel * normals[:, None, :], -1), 0.0) * inv
         cos_x = jnp.maximum(-(rel @ self.axes[2]), 0.0) * inv
-        return (cos_p * cos_x * (self.area / d2)) @ self.coarse
+        k = cos_p * cos_x * (self.area / jnp.maximum(dist2, self.area / math.pi))
+        if owner is not None:
+            for j in range(self.spheres.shape[0]):
+                c, r = self.spheres[j, :3], self.spheres[j, 3]
+                # the segment p → x against sphere j: its closest point to the centre
+                pc = c - points  # (N, 3)
+                s_ = jnp.clip(jnp.einsum("ngk,nk->ng", rel, pc) / jnp.maximum(dist2, 1e-12),
+                              0.0, 1.0)
+                q = points[:, None, :] + s_[..., None] * rel - c
+                hit = (jnp.sum(q * q, -1) < r * r) & (owner != j)[:, None]
+                k = jnp.where(hit, 0.0, k)
+        return k @ self.coarse
 
     def mirrored(self, points: jax.Array, normals: jax.Array, views: jax.Array) -> jax.Array:
         """The change (N, C) of the radiance along each point's mirror direction (where it
@@ -467,11 +505,11 @@ class TableChange(eqx.Module):
         val = _bilinear(self.fine, uv, zero)
         return jnp.where(((down < -1e-6) & (t > 0.0))[:, None], val, 0.0)
 
-    def at(self, world: jax.Array, nrm: jax.Array, pair_vertex: jax.Array,
+    def at(self, world: jax.Array, nrm: jax.Array, owner: jax.Array, pair_vertex: jax.Array,
            pair_view: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(the diffuse change (V, C) at every vertex, the mirrored change (U, C) of every
         (vertex, direction) pair)."""
-        return (self.diffuse(world, nrm),
+        return (self.diffuse(world, nrm, owner),
                 self.mirrored(world[pair_vertex], nrm[pair_vertex], pair_view))
 
     @staticmethod
@@ -515,7 +553,7 @@ def surface_pixels(prep: Any, changes: tuple[TableChange, ...], mats: list[Any],
     env = prep.lighting.env
     out = jnp.zeros((gb.position.shape[0], to_out.shape[1]), jnp.float32)
     for change in changes:
-        d_e = change.diffuse(gb.position, gb.normal)
+        d_e = change.diffuse(gb.position, gb.normal, gb.object)
         d_r = change.mirrored(gb.position, gb.normal, gb.view)
         for i, m in enumerate(mats):
             own = ((m.alpha / math.pi) * _filtered_irradiance(m, env, d_e)
