@@ -179,7 +179,7 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         self.surface_reuse_deg = 1.0
         self.surface_builds = 0
         self._surface_state: tuple[Any, Any, Any] | None = None  # (visible, model, textures)
-        self._surface_next: tuple[Any, Any, Any] | None = None  # a background build's result
+        self._surface_next: tuple[Any, Any, Any, Any] | None = None  # a background build
         self._surface_thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------ preparation
@@ -371,9 +371,10 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         if self._grown is not None:
             self._adopt_grown()
         dev = _device_of(bg, self.devices)
+        textures = self.surface_textures_for(poses)  # may renew self.prep's table change
         prep, camera = self._placed(dev)
         return live_step(prep, prep.materials, *inputs, bg, camera, self._mirror,
-                         self._senders_for(poses, inputs, dev), self.surface_textures_for(poses))
+                         self._senders_for(poses, inputs, dev), textures)
 
     def surface_textures_for(self, poses: Any, *, rebuild: bool = False) -> Any:
         """The ``[[surfaces]]`` planes' textures (camera channels) for the visible objects at
@@ -390,10 +391,11 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
             return None
         model = np.asarray(poses.model, np.float64)
         if self._surface_next is not None:  # a background build finished
-            self._surface_state, self._surface_next = self._surface_next, None
+            self._adopt_surfaces(self._surface_next)
+            self._surface_next = None
         st = self._surface_state
         if st is None or rebuild or not np.array_equal(st[0], vis):
-            self._surface_state = self._build_surfaces(vis, model)
+            self._adopt_surfaces(self._build_surfaces(vis, model))
             return self._surface_state[2]
         moved = np.linalg.norm(model[vis, :3, 3] - st[1][vis, :3, 3], axis=1).max()
         rot = np.einsum("oij,oik->ojk", model[vis, :3, :3], st[1][vis, :3, :3])
@@ -411,17 +413,28 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
                 self._surface_thread.start()
         return st[2]
 
-    def _build_surfaces(self, vis: np.ndarray, model: np.ndarray) -> tuple[Any, Any, Any]:
-        """(visible, model, the planes' textures in the camera's linear RGB)."""
-        from ..rendering import surface_textures, surface_transfer
+    def _build_surfaces(self, vis: np.ndarray, model: np.ndarray
+                        ) -> tuple[Any, Any, Any, Any]:
+        """(visible, model, the planes' textures in the camera's linear RGB, what the
+        objects see of the planes' change)."""
+        from ..rendering import surface_textures, surface_transfer, table_changes
 
         prep = self.prep
         transfers = surface_transfer(self.scene.surfaces, prep.lighting.env, prep.ir_mesh,
                                      model, visible=vis)
         textures = surface_textures(prep, transfers, prep.materials, model=model,
                                     out=camera_spectral_matrix(prep, self.camera))
+        changes = table_changes(prep, transfers, prep.materials, model)
         self.surface_builds += 1
-        return vis, model, jax.block_until_ready(textures)
+        return vis, model, jax.block_until_ready(textures), jax.block_until_ready(changes)
+
+    def _adopt_surfaces(self, built: tuple[Any, Any, Any, Any]) -> None:
+        """Use a build: its textures for the frames, its change in the prepared scene (the
+        objects' pixels see it; same shapes from one build to the next: no recompile)."""
+        import dataclasses
+
+        self._surface_state = built[:3]
+        self.prep = dataclasses.replace(self.prep, surface_changes=built[3])
 
 
 def _planned_clusters(prep: Prepared, poses: Any, headroom: float
