@@ -492,9 +492,11 @@ class TableChange(eqx.Module):
                 k = jnp.where(hit, 0.0, k)
         return k @ self.coarse
 
-    def mirrored(self, points: jax.Array, normals: jax.Array, views: jax.Array) -> jax.Array:
-        """The change (N, C) of the radiance along each point's mirror direction (where it
-        meets the plane inside the region; else 0)."""
+    def mirrored(self, points: jax.Array, normals: jax.Array, views: jax.Array,
+                 owner: jax.Array | None = None) -> jax.Array:
+        """The change (N, C) of the radiance along each point's mirror direction where it
+        meets the plane inside the region (else 0, and 0 where the ray passes through
+        another object than the point's ``owner`` (N,) first)."""
         nv = jnp.sum(normals * views, -1, keepdims=True)
         r = 2.0 * nv * normals - views
         down = r @ self.axes[2]
@@ -503,14 +505,23 @@ class TableChange(eqx.Module):
         uv = ((hit - self.origin) @ self.axes[:2].T) / self.half
         zero = jnp.zeros((self.fine.shape[-1],), jnp.float32)
         val = _bilinear(self.fine, uv, zero)
-        return jnp.where(((down < -1e-6) & (t > 0.0))[:, None], val, 0.0)
+        seen = (down < -1e-6) & (t > 0.0)
+        if owner is not None:
+            for j in range(self.spheres.shape[0]):
+                pc = self.spheres[j, :3] - points
+                along = jnp.clip(jnp.sum(pc * r, -1), 0.0, jnp.maximum(t, 0.0))
+                q = pc - along[:, None] * r
+                blocked = (jnp.sum(q * q, -1) < self.spheres[j, 3] ** 2) & (owner != j)
+                seen = seen & ~blocked
+        return jnp.where(seen[:, None], val, 0.0)
 
     def at(self, world: jax.Array, nrm: jax.Array, owner: jax.Array, pair_vertex: jax.Array,
            pair_view: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(the diffuse change (V, C) at every vertex, the mirrored change (U, C) of every
         (vertex, direction) pair)."""
         return (self.diffuse(world, nrm, owner),
-                self.mirrored(world[pair_vertex], nrm[pair_vertex], pair_view))
+                self.mirrored(world[pair_vertex], nrm[pair_vertex], pair_view,
+                              owner[pair_vertex]))
 
     @staticmethod
     def reflected(m: Any, normals: jax.Array, views: jax.Array, change: jax.Array
@@ -554,7 +565,7 @@ def surface_pixels(prep: Any, changes: tuple[TableChange, ...], mats: list[Any],
     out = jnp.zeros((gb.position.shape[0], to_out.shape[1]), jnp.float32)
     for change in changes:
         d_e = change.diffuse(gb.position, gb.normal, gb.object)
-        d_r = change.mirrored(gb.position, gb.normal, gb.view)
+        d_r = change.mirrored(gb.position, gb.normal, gb.view, gb.object)
         for i, m in enumerate(mats):
             own = ((m.alpha / math.pi) * _filtered_irradiance(m, env, d_e)
                    + TableChange.reflected(m, gb.normal, gb.view, d_r))
