@@ -49,6 +49,7 @@ _EXPORTS: dict[str, str] = {
     "scene_materials": "_materials",
     "surface_layer": "_surfaces",
     "surface_pixels": "_surfaces",
+    "surface_vertices": "_surfaces",
     "table_changes": "_surfaces",
     "TableChange": "_surfaces",
     "surface_ratio": "_surfaces",

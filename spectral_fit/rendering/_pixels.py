@@ -124,6 +124,10 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                 quality=prep.lighting.quality, split_map=prep.lighting.split_map,
                 split_settings=prep.lighting.split_settings)
         attrs.append(corr)
+    if prep.surface_changes:  # the table's change under the objects, as they see it
+        from ._surfaces import surface_vertices
+
+        attrs.append(surface_vertices(prep, prep.surface_changes, mats, to_out))
     vals = interpolate_pixels(jnp.concatenate(attrs, axis=1), pix, tris, clip)
     pos = vals[:, :3]
     nrm = vals[:, 3:6]
@@ -166,9 +170,10 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
             if spec_seen is not None:
                 radiance = radiance + own_reflection_out(mats, gb, prep.buffers.pixel_capacity,
                                                          spec_seen)
-    if occ is not None:
-        radiance = radiance + jnp.where(pix.valid[:, None], vals[:, 6:], 0.0)
-    if prep.surface_changes:  # what they see of the table's own change (their shadows)
+    if occ is not None or prep.surface_changes:  # the interpolated vertex changes
+        radiance = radiance + jnp.where(pix.valid[:, None], vals[:, 6:].reshape(
+            vals.shape[0], -1, radiance.shape[1]).sum(axis=1), 0.0)
+    if prep.surface_changes:  # what their gloss and mirror see of the table's change
         from ._surfaces import surface_pixels
 
         with jax.named_scope("surfaces"):

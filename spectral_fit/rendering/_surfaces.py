@@ -57,7 +57,7 @@ import numpy as np
 from .._runtime.errors import InputError
 
 __all__ = ["SurfaceLayer", "SurfaceTexture", "SurfaceTransfer", "build_surface_transfer",
-           "TableChange", "draw_surfaces", "surface_layer", "surface_pixels",
+           "TableChange", "draw_surfaces", "surface_layer", "surface_pixels", "surface_vertices",
            "surface_ratio", "surface_texels", "table_changes",
            "surface_textures", "surface_transfer"]
 
@@ -433,6 +433,8 @@ class TableChange(eqx.Module):
         origin, axes, half: the region (as :class:`SurfaceTransfer`).
         spheres: (O, 4) the objects' bounding spheres: a cell behind another object than
             the point's own is hidden from it (exact for spheres).
+        vertex_irradiance: (V, C) the diffuse change at the camera mesh's vertices at the
+            poses it was built for (:func:`table_changes`), or None.
     """
 
     fine: jax.Array
@@ -443,6 +445,7 @@ class TableChange(eqx.Module):
     axes: jax.Array
     half: jax.Array
     spheres: jax.Array
+    vertex_irradiance: jax.Array | None = None
 
     @staticmethod
     def of(st: SurfaceTransfer, e: jax.Array, env: Any, cells: int = 16) -> TableChange:
@@ -542,33 +545,55 @@ class TableChange(eqx.Module):
 def table_changes(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = None,
                   materials: Any = None, model: Any = None) -> tuple[TableChange, ...]:
     """Each plane's :class:`TableChange` for the objects' ``materials`` (default the
-    config's) at ``model`` (default the prepared poses): what :func:`surface_pixels` adds
-    to the objects. :func:`prepare` keeps it for the configured materials
+    config's) at ``model`` (default the prepared poses), with its diffuse part at the
+    camera mesh's vertices: what :func:`surface_vertices` and :func:`surface_pixels` add to
+    the objects. :func:`prepare` keeps it for the configured materials
     (``Prepared.surface_changes``)."""
     model = jnp.asarray(prep.model if model is None else model, jnp.float32)
     env = prep.lighting.env
-    return tuple(TableChange.of(st, surface_texels(prep, st, materials, model), env)
-                 for st in (prep.surfaces if transfers is None else transfers))
+    mesh = prep.mesh
+    m = model[mesh.vertex_object]
+    world = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.vertices) + m[:, :3, 3]
+    nrm = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.normals)
+    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
+    out = []
+    for st in (prep.surfaces if transfers is None else transfers):
+        ch = TableChange.of(st, surface_texels(prep, st, materials, model), env)
+        parts = [ch.diffuse(world[a:a + 4096], nrm[a:a + 4096], mesh.vertex_object[a:a + 4096])
+                 for a in range(0, world.shape[0], 4096)]
+        out.append(eqx.tree_at(lambda c: c.vertex_irradiance, ch,
+                               jnp.concatenate(parts, axis=0),
+                               is_leaf=lambda x: x is None))
+    return tuple(out)
+
+
+def surface_vertices(prep: Any, changes: tuple[TableChange, ...], mats: list[Any],
+                     to_out: jax.Array) -> jax.Array:
+    """The change (V, D) of the camera mesh's vertices' diffuse radiance in the output
+    channels ``to_out`` (C, D) from the planes' ``changes`` (their ``vertex_irradiance``):
+    interpolated over the triangles with the geometry, as the self-occlusion's change."""
+    from ._shading import _filtered_irradiance
+
+    env = prep.lighting.env
+    e = sum(c.vertex_irradiance for c in changes)  # (V, C)
+    out = []
+    for (a, b), m in zip(prep.mesh.object_slices, mats, strict=True):
+        out.append(((m.alpha / math.pi) * _filtered_irradiance(m, env, e[a:b])) @ to_out)
+    return jnp.concatenate(out, axis=0)
 
 
 def surface_pixels(prep: Any, changes: tuple[TableChange, ...], mats: list[Any], gb: Any,
                    to_out: jax.Array) -> jax.Array:
-    """The change (N, D) of the covered pixels' radiance (G-buffer ``gb``) in the output
-    channels ``to_out`` (C, D) from what they see of the planes' ``changes`` under and
-    around the objects: their diffuse light (the cells of the change,
-    :meth:`TableChange.diffuse`) and their gloss and mirror where the mirror direction meets
-    the plane. Differentiable in ``mats`` through the pixels' own reflection; the change
-    itself is that of the materials it was computed with (a second-order term)."""
-    from ._shading import _filtered_irradiance
-
-    env = prep.lighting.env
+    """The change (N, D) of the covered pixels' gloss and mirror (G-buffer ``gb``) in the
+    output channels ``to_out`` (C, D) where their mirror direction meets a plane's
+    ``changes`` (their diffuse part: :func:`surface_vertices`). Differentiable in ``mats``
+    through the pixels' own reflection; the change itself is that of the materials it was
+    computed with (a second-order term)."""
     out = jnp.zeros((gb.position.shape[0], to_out.shape[1]), jnp.float32)
     for change in changes:
-        d_e = change.diffuse(gb.position, gb.normal, gb.object)
         d_r = change.mirrored(gb.position, gb.normal, gb.view, gb.object)
         for i, m in enumerate(mats):
-            own = ((m.alpha / math.pi) * _filtered_irradiance(m, env, d_e)
-                   + TableChange.reflected(m, gb.normal, gb.view, d_r))
+            own = TableChange.reflected(m, gb.normal, gb.view, d_r)
             out = out + jnp.where((gb.object == i)[:, None], own @ to_out, 0.0)
     return out
 
