@@ -163,15 +163,11 @@ def _region(spec: Any, axes: np.ndarray, world: np.ndarray,
     """Centre (3,) on the plane and half side of the square region around the objects'
     footprints, ``spec.margin`` bounding radii beyond them."""
     p0 = np.asarray(spec.point, np.float64)
-    lo, hi, rmax = np.full(2, np.inf), np.full(2, -np.inf), 0.0
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for a, b in slices:
-        v = world[a:b]
-        c = 0.5 * (v.min(0) + v.max(0))
-        r = float(np.linalg.norm(v - c, axis=1).max())
-        rmax = max(rmax, r)
-        uv = (v - p0) @ axes[:2].T
+        uv = (world[a:b] - p0) @ axes[:2].T
         lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
-    pad = spec.margin * rmax
+    pad = spec.margin * float(_spheres(world, slices)[:, 3].max())
     lo, hi = lo - pad, hi + pad
     mid = 0.5 * (lo + hi)
     return p0 + mid @ axes[:2], float(0.5 * np.max(hi - lo))
