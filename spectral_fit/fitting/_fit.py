@@ -38,7 +38,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from ..io import PARAMETERS, Scene, Session
-from ..rendering._cache import compilation_counts
+from ..rendering import compilation_counts
 from ._model import _predict_jit
 from ._model_error import estimate_model_error, with_model_error
 from ._options import FitOptions, _fit_options

@@ -8,7 +8,7 @@ sensitivity.
 An entry's key is a SHA-256 of everything the preparation depends on:
 
 * the package's source files, the library versions, backend, device, ``XLA_FLAGS`` and the
-  JAX settings that change results (the rendering caches' ``_environment_digest``);
+  JAX settings that change results (the rendering caches' ``environment_digest``);
 * :data:`FIT_PREPARED_LAYOUT` (the layout of what is stored);
 * the scene and the session as deterministic text of every field (arrays by dtype, shape and
   a SHA-256 of their bytes: every reading, repeat, dark, white and reflectance value; every
@@ -57,12 +57,12 @@ FIT_CACHE_STATS: dict[str, int] = {"prepared_hit": 0, "prepared_miss": 0, "aim_h
 
 
 def _options_text(opts: FitOptions) -> str | None:
-    from ..rendering._keys import _plain_repr
+    from ..rendering import plain_repr
 
     parts = []
     for name in PREPARE_FIELDS:
         v = getattr(opts, name)
-        text = np.dtype(v).name if name == "dtype" else _plain_repr(v)
+        text = np.dtype(v).name if name == "dtype" else plain_repr(v)
         if text is None:
             return None
         parts.append(f"{name}={text}")
@@ -73,16 +73,16 @@ def fit_prepare_key(scene: Scene, session: Session, opts: FitOptions, *extra: st
                     ) -> str | None:
     """The cache key (40 hex digits) of the preparation of ``scene`` and ``session`` with
     ``opts`` (and ``extra`` texts), or None when an input has no deterministic text."""
-    from ..rendering._keys import _environment_digest, _scene_text
+    from ..rendering import environment_digest, scene_text
 
-    scene_text = _scene_text(scene)
-    session_text = _scene_text(session)
-    options_text = _options_text(opts)
-    if scene_text is None or session_text is None or options_text is None:
+    scene_part = scene_text(scene)
+    session_part = scene_text(session)
+    options_part = _options_text(opts)
+    if scene_part is None or session_part is None or options_part is None:
         return None
     h = hashlib.sha256()
-    for part in (_environment_digest(), f"fit_layout={FIT_PREPARED_LAYOUT}", scene_text,
-                 session_text, options_text, *extra):
+    for part in (environment_digest(), f"fit_layout={FIT_PREPARED_LAYOUT}", scene_part,
+                 session_part, options_part, *extra):
         h.update(part.encode())
         h.update(b"\0")
     return h.hexdigest()[:40]
@@ -111,7 +111,7 @@ def prepare_fit_cached(scene: Scene, session: Session, *, options: FitOptions | 
     Raises:
         InputError: as ``prepare_fit`` (bad inputs are never stored).
     """
-    from ..rendering._cache import _read_entry, _write_entry
+    from ..rendering import read_cache_entry, write_cache_entry
     from ._options import FitOptions
     from ._prepare import prepare_fit
 
@@ -121,7 +121,7 @@ def prepare_fit_cached(scene: Scene, session: Session, *, options: FitOptions | 
     key = None if folder is None else fit_prepare_key(scene, session, opts, "prepared")
     if key is None:
         return dataclasses.replace(prepare_fit(scene, session, options=opts), cached="off")
-    hit = _read_entry(folder, key)
+    hit = read_cache_entry(folder, key)
     if hit is not None:
         FIT_CACHE_STATS["prepared_hit"] += 1
         for w in hit.warnings:
@@ -131,7 +131,7 @@ def prepare_fit_cached(scene: Scene, session: Session, *, options: FitOptions | 
     FIT_CACHE_STATS["prepared_miss"] += 1
     prep = prepare_fit(scene, session, options=opts)
     # the session is the caller's (equal by the key); stored without it
-    _write_entry(folder, key, dataclasses.replace(prep, session=None))
+    write_cache_entry(folder, key, dataclasses.replace(prep, session=None))
     return dataclasses.replace(prep, cached="miss", seconds=time.perf_counter() - t0)
 
 
@@ -150,7 +150,7 @@ def aim_problems_cached(scene: Scene, prep: PreparedFit, opts: FitOptions, shift
     import equinox as eqx
 
     from .._runtime.errors import InputError
-    from ..rendering._cache import _read_entry, _write_entry
+    from ..rendering import read_cache_entry, write_cache_entry
     from ._prepare import prepare_fit
 
     folder = _folder(cache_dir)
@@ -167,7 +167,7 @@ def aim_problems_cached(scene: Scene, prep: PreparedFit, opts: FitOptions, shift
             key = hashlib.sha256("\n".join(texts).encode()).hexdigest()[:40]
     env = prep.problem.env
     if key is not None:
-        hit = _read_entry(folder, key)
+        hit = read_cache_entry(folder, key)
         if isinstance(hit, list) and len(hit) == len(shifted):
             FIT_CACHE_STATS["aim_hit"] += 1
             return [None if p is None else eqx.tree_at(lambda q: q.env, p, env,
@@ -185,6 +185,6 @@ def aim_problems_cached(scene: Scene, prep: PreparedFit, opts: FitOptions, shift
     if key is None:
         return out, "off"
     FIT_CACHE_STATS["aim_miss"] += 1
-    _write_entry(folder, key, [None if p is None else eqx.tree_at(lambda q: q.env, p, None)
+    write_cache_entry(folder, key, [None if p is None else eqx.tree_at(lambda q: q.env, p, None)
                                for p in out])
     return out, "miss"

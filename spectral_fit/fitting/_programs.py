@@ -7,7 +7,7 @@ and lowers it before the cache is consulted. An exported program is the lowered 
 itself: loading it is a parse, and its compile is then found in JAX's persistent cache (when
 that is on). Entries (pickled ``jax.export.Exported``) live in ``<cache_dir>/fit_programs``,
 keyed by the package's source files, the library versions, the backend and the JAX settings
-(the rendering caches' ``_environment_digest``), the function's name, the arguments' tree
+(the rendering caches' ``environment_digest``), the function's name, the arguments' tree
 structure with every static value and every array's shape and dtype. Anything that fails (a
 JAX without ``jax.export``, a program it cannot serialise, a damaged entry) falls back to
 calling the function directly.
@@ -32,9 +32,9 @@ _MEMORY: dict[tuple[str, str], Any] = {}
 def _key(name: str, treedef: Any, leaves: list[Any]) -> str:
     import hashlib
 
-    from ..rendering._keys import _program_key
+    from ..rendering import program_key
 
-    text = f"fit_program={name}\n{_program_key(treedef, leaves, False, None)}"
+    text = f"fit_program={name}\n{program_key(treedef, leaves, False, None)}"
     return hashlib.sha256(text.encode()).hexdigest()[:40]
 
 
@@ -74,9 +74,9 @@ def _load_or_export(fn: Callable[..., Any], args: tuple[Any, ...], leaves: list[
     import jax
     from jax import export
 
-    from ..rendering._cache import _read_entry, _write_entry
+    from ..rendering import read_cache_entry, write_cache_entry
 
-    exported = _read_entry(folder, key)
+    exported = read_cache_entry(folder, key)
     if isinstance(exported, export.Exported):
         PROGRAM_STATS["loaded"] += 1
     else:
@@ -88,6 +88,6 @@ def _load_or_export(fn: Callable[..., Any], args: tuple[Any, ...], leaves: list[
 
         specs = [jax.ShapeDtypeStruct(leaves[i].shape, leaves[i].dtype) for i in arrays]
         exported = export.export(jax.jit(on_arrays))(*specs)
-        _write_entry(folder, key, dataclasses.replace(exported, _get_vjp=None))
+        write_cache_entry(folder, key, dataclasses.replace(exported, _get_vjp=None))
         PROGRAM_STATS["stored"] += 1
     return jax.jit(exported.call)

@@ -240,11 +240,11 @@ _MAX_PICTURES = 48
 def _picture_digest(*parts: str) -> str:
     """SHA-256 over the package sources, library versions and backend (the rendering
     caches' environment digest), matplotlib's and Pillow's versions and ``parts``."""
-    from ..rendering._keys import _environment_digest, _version
+    from ..rendering import distribution_version, environment_digest
 
     h = hashlib.sha256()
-    for part in (_environment_digest(), f"matplotlib={_version('matplotlib')}",
-                 f"pillow={_version('pillow')}", *parts):
+    for part in (environment_digest(), f"matplotlib={distribution_version('matplotlib')}",
+                 f"pillow={distribution_version('pillow')}", *parts):
         h.update(part.encode())
         h.update(b"\0")
     return h.hexdigest()
@@ -338,11 +338,11 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
         hits.append(_cached_picture(folder, key(name), out / name,
                                     lambda p, d=draw: d(p))[1])
     if render:
-        from ..rendering._keys import _scene_text
+        from ..rendering import scene_text
 
-        scene_text = _scene_text(scene) if folder is not None else None
-        render_key = None if scene_text is None else _picture_digest(
-            "render.png", scene_text, json.dumps(result.params, sort_keys=True))
+        scene_part = scene_text(scene) if folder is not None else None
+        render_key = None if scene_part is None else _picture_digest(
+            "render.png", scene_part, json.dumps(result.params, sort_keys=True))
         note, hit = _cached_picture(folder, render_key, out / "render.png",
                                     lambda p: _render(scene, result, p))
         hits.append(hit)

@@ -56,6 +56,8 @@ __all__ = [
     "cache_root",
     "enable_compilation_cache",
     "compilation_counts",
+    "read_cache_entry",
+    "write_cache_entry",
     "CACHE_STATS",
 ]
 
@@ -183,3 +185,9 @@ def _write_entry(folder: Path, key: str, value: Any) -> None:
                 old.unlink()
     except Exception:  # a cache that cannot be written must not stop the application
         return
+
+
+#: one entry of a disk cache folder, read (None on a miss) and written atomically, for the
+#: other layers' disk caches (the fit's)
+read_cache_entry = _read_entry
+write_cache_entry = _write_entry

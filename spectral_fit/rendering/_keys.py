@@ -25,8 +25,13 @@ from typing import Any
 from .._runtime.paths import PACKAGE_DIR
 
 __all__ = [
+    "distribution_version",
+    "environment_digest",
     "library_versions",
     "library_versions_tag",
+    "plain_repr",
+    "program_key",
+    "scene_text",
 ]
 
 
@@ -226,3 +231,17 @@ def _program_key(treedef: Any, leaves: list[Any], spectral: bool,
             else:
                 parts.append("static:" + repr(x))
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:40]
+
+
+# the keys' parts as the other layers' disk caches use them (the fit's preparation, programs
+# and report pictures): the same texts, so one change of code or libraries misses them all
+#: every value of a scene (or part of one), files by path, size and modification time
+scene_text = _scene_text
+#: plain values only (None for anything else)
+plain_repr = _plain_repr
+#: the package's sources, library versions, backend and numerics flags
+environment_digest = _environment_digest
+#: an installed distribution's version ("-" when absent)
+distribution_version = _version
+#: a compiled program's key: its arguments' structure, static values, shapes and dtypes
+program_key = _program_key
