@@ -104,14 +104,17 @@ def test_ground_plane_closed_form():
 
 def test_objects_see_the_plane(tmp_path):
     """A white plane (ρ = 1) under a uniform sky makes the objects' environment uniform: the
-    prepared map equals the sky everywhere; ρ = 0.25 darkens the lower half to 0.25 L0."""
+    map the renderer prepares from equals the sky everywhere; ρ = 0.25 darkens the lower half
+    to 0.25 L0."""
+    from spectral_fit.io import load_scene
+    from spectral_fit.rendering import ground_surfaces, load_environment
+
     sky = np.ones((16, 32, WL.size))
-    prep = prepare(_scene(tmp_path, sky, h=R, alpha=1.0, rho=1.0), occlusion=False)
-    np.testing.assert_allclose(np.asarray(prep.lighting.env.texels), 1.0, rtol=2e-3)
-    prep = prepare(_scene(tmp_path, sky, h=R, alpha=1.0, rho=0.25), occlusion=False)
-    tex = np.asarray(prep.lighting.env.texels)
-    np.testing.assert_allclose(tex[:8], 1.0, rtol=1e-5)
-    np.testing.assert_allclose(tex[8:], 0.25, rtol=2e-3)
+    for rho, lower in ((1.0, 1.0), (0.25, 0.25)):
+        scene = load_scene(_scene(tmp_path, sky, h=R, alpha=1.0, rho=rho))
+        tex = ground_surfaces(scene, load_environment(scene, scene.wavelengths))
+        np.testing.assert_allclose(tex[:8], 1.0, rtol=1e-5)
+        np.testing.assert_allclose(tex[8:], lower, rtol=2e-3)
 
 
 def test_sphere_form_factor_from_plane(tmp_path):
@@ -224,6 +227,8 @@ def test_layer_sees_the_plane_through_the_camera(tmp_path):
     down at it), and far from the sphere the radiance equals the plane's without objects."""
     prep = prepare(_scene(tmp_path, np.ones((32, 64, WL.size)), h=R, alpha=0.0, rho=0.5),
                    occlusion=False)
+    tex = np.asarray(prep.lighting.env.texels)  # prepared under the plane: ρ L0 below
+    np.testing.assert_allclose(tex[16:], 0.5, rtol=2e-3)
     lay = surface_layer(prep, prep.surfaces)
     mask = np.asarray(lay.mask)
     assert mask.mean() > 0.9
