@@ -356,13 +356,12 @@ def surface_transfer(surfaces: Any, env: Any, ir_mesh: Any, model: Any, *,
     world = np.einsum("vij,vj->vi", m[obj][:, :3, :3], v) + m[obj][:, :3, 3]
     tris = np.asarray(ir_mesh.triangles)
     slices = tuple(ir_mesh.object_slices)
+    spheres = _spheres(world, slices)
     if visible is not None:
         keep = np.asarray(visible, bool)
         tris = tris[keep[np.asarray(ir_mesh.tri_object)]]
         slices = tuple(sl for sl, k in zip(slices, keep, strict=True) if k)
-    spheres = _spheres(world, ir_mesh.object_slices)
-    if visible is not None:
-        spheres[~np.asarray(visible, bool), 3] = 0.0
+        spheres[~keep, 3] = 0.0
     return tuple(build_surface_transfer(s, env, world, tris, slices, spheres=spheres,
                                         progress=progress) for s in surfaces)
 
@@ -372,7 +371,7 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     """The plane's irradiance E(x) (T², C) in the environment's channels with the objects at
     ``model`` (their radiance from their materials; the hidden environment from ``st``'s
     poses). ``passes`` 2: the objects' radiance towards the plane is computed again with
-    what they see of the plane's own change (:func:`table_change_at`: a sphere's underside
+    what they see of the plane's own change (:class:`TableChange`: a sphere's underside
     over its contact shadow is darker than over a uniform table); 1: over a uniform table."""
     from ._materials import _as_stacked
     from ._shading import _filtered_irradiance, _irradiance_at, _lut_env, specular_at
@@ -393,9 +392,8 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
                         split_map=lt.split_map, split_settings=lt.split_settings)
             for m in mats]
     t2 = st.resolution * st.resolution
-    e = jnp.broadcast_to(st.upper, (t2, st.upper.shape[0]))
     change = None
-    for _ in range(max(int(passes), 1)):
+    for step in range(max(int(passes), 1)):
         e_v, dl_r = e_map, None
         if change is not None:  # what the vertices see of the plane's change
             d_e, dl_r = change.at(world, nrm, mesh.vertex_object, st.pair_vertex,
@@ -403,18 +401,20 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
             e_v = e_map + d_e
         # each (vertex, direction) pair's radiance towards the plane: its diffuse light and
         # its gloss and mirror along that direction (each object's material on its pairs)
-        light = jnp.zeros((st.pair_vertex.shape[0], e_v.shape[1]), jnp.float32)
-        for i, ((a, b), m) in enumerate(zip(mesh.object_slices, mats, strict=True)):
-            diffuse = jnp.zeros_like(e_v).at[a:b].set(
-                (m.alpha / math.pi) * _filtered_irradiance(m, env, e_v[a:b]))
-            own = diffuse[st.pair_vertex] + spec[i]
+        diffuse = jnp.concatenate(
+            [(m.alpha / math.pi) * _filtered_irradiance(m, env, e_v[a:b])
+             for (a, b), m in zip(mesh.object_slices, mats, strict=True)], axis=0)
+        light = diffuse[st.pair_vertex]
+        for i, m in enumerate(mats):
+            own = spec[i]
             if dl_r is not None:
                 own = own + change.reflected(m, n_pair, st.pair_view, dl_r)
             light = light + jnp.where((st.pair_object == i)[:, None], own, 0.0)
         seen = jax.ops.segment_sum(st.hit_weight[:, None] * light[st.hit_pair], st.hit_texel,
                                    num_segments=t2)
         e = st.upper[None, :] + seen - st.hidden
-        change = TableChange.of(st, e, env)
+        if step + 1 < passes:  # the next pass sees this one's change
+            change = TableChange.of(st, e, env)
     return e
 
 
