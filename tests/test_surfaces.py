@@ -270,9 +270,14 @@ def test_live_relight(tmp_path):
     import jax.numpy as jnp
 
     from spectral_fit.io import load_scene
-    from spectral_fit.live import camera_spectral_matrix, decode_frame, relight
+    from spectral_fit.live import camera_spectral_matrix, decode_frame, encode_frame, relight
     from spectral_fit.live._scene_camera import scene_camera_model
-    from spectral_fit.rendering import surface_ratio, surface_textures
+    from spectral_fit.rendering import (
+        surface_ratio,
+        surface_ratio_lookup,
+        surface_ratio_textures,
+        surface_textures,
+    )
 
     sky, _ = _source_sky()
     sky = sky + 0.2
@@ -285,6 +290,11 @@ def test_live_relight(tmp_path):
         layer = surface_layer(prep, textures=tex)
         layers.append((np.asarray(layer.radiance), np.asarray(layer.base)))
         ratios.append(np.asarray(surface_ratio(prep, layer, channels="linear")))
+        # the live step's form: the ratio per texel, read per pixel, equals the ratio of the
+        # per-pixel lookups (the plane's base is one value per channel), 1 where it is 1
+        looked = np.asarray(surface_ratio_lookup(prep, surface_ratio_textures(tex)))
+        np.testing.assert_allclose(looked, ratios[-1], rtol=2e-6, atol=2e-7)
+        np.testing.assert_array_equal(looked[ratios[-1] == 1.0], 1.0)
     (true_with, true_base), (off_with, off_base) = layers
     m = true_base[..., 1] > 0
     err_ratio = np.abs(true_base * ratios[1] - true_with)[m] / true_base[m]
@@ -305,6 +315,11 @@ def test_live_relight(tmp_path):
     # the 8-bit step of the curve, relative, at these levels: < 2 %
     np.testing.assert_allclose(lin_out[shade], (lin_in * ratio)[shade], rtol=0.03,
                                atol=2e-3)
+    # the code table against the curve evaluated per pixel (decode, times the ratio,
+    # encode, round): at most one code apart (the ratio's 1/1024 steps), mostly equal
+    exact = np.round(np.asarray(encode_frame(jnp.asarray(lin_in * ratio), camera)) * 255.0)
+    diff = np.abs(out.astype(int) - exact.astype(int))
+    assert diff.max() <= 1 and (diff == 0).mean() > 0.99
     untouched = np.all(ratio == 1.0, axis=-1)
     np.testing.assert_array_equal(out[untouched], frame[untouched])
     clipped = frame.copy()

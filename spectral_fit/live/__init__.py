@@ -44,6 +44,7 @@ _EXPORTS: dict[str, str] = {
     "composite": "_compositing",
     "composite_pixels": "_compositing",
     "relight": "_compositing",
+    "relight_codes": "_compositing",
     "count_frames": "_video",
     "decode_frame": "_compositing",
     "detect_target": "_calibration",

@@ -69,6 +69,7 @@ __all__ = [
     "composite",
     "composite_pixels",
     "relight",
+    "relight_codes",
     "camera_model_from_spec",
     "chart_xyz",
     "ChartCalibration",
@@ -323,25 +324,44 @@ def composite(frame, cg_linear, coverage, model: CameraModel) -> jax.Array:
     return jnp.where(cov > 0, enc, fr)
 
 
-def relight(frame, ratio, model: CameraModel) -> jax.Array:
-    """The objects' shadows and light on a real surface, put into the video frame: each pixel
-    decoded through the model's tone curve (a 256-entry table, exact for uint8), times
-    ``ratio`` (H, W, 3) (the surface's radiance with / without the objects in the frame's
-    linear RGB, :func:`spectral_fit.rendering.surface_ratio`), encoded again. Pixels whose
-    ratio is exactly 1 keep their bytes, so a frame without objects comes back bit for bit.
-    A pixel with a clipped channel (255) holds at least the clip level's light: it is
-    darkened from that level where the objects shade it (a lower bound of its true value,
-    and the same as its unclipped neighbours get: no speckle on white paper), never
+#: the ratio steps of :func:`relight_codes`: ratios in [0, RELIGHT_MAX] at 1 / RELIGHT_STEPS
+RELIGHT_STEPS = 1024
+RELIGHT_MAX = 4
+
+
+def relight_codes(model: CameraModel) -> jax.Array:
+    """(256, RELIGHT_MAX · RELIGHT_STEPS + 1) uint8: the code of a pixel of code c whose
+    linear light is multiplied by the ratio q / RELIGHT_STEPS, through the model's tone
+    curve (decoded, multiplied, encoded, rounded). The column of ratio 1 is the identity
+    (c → c), so a pixel whose ratio rounds to 1 keeps its byte. Depends on the tone curve
+    only: a live session builds it once per camera model (1 M curve evaluations)."""
+    lin = decode_frame(jnp.arange(256, dtype=jnp.float32) / 255.0, model)
+    r = jnp.arange(RELIGHT_MAX * RELIGHT_STEPS + 1, dtype=jnp.float32) / RELIGHT_STEPS
+    codes = jnp.round(encode_frame(lin[:, None] * r[None, :], model) * 255.0)
+    return codes.astype(jnp.uint8).at[:, RELIGHT_STEPS].set(jnp.arange(256, dtype=jnp.uint8))
+
+
+def relight(frame, ratio, model: CameraModel, *, codes: jax.Array | None = None
+            ) -> jax.Array:
+    """The objects' shadows and light on a real surface, put into the video frame: each
+    pixel's linear light (through the model's tone curve) times ``ratio`` (H, W, 3) (the
+    surface's radiance with / without the objects in the frame's linear RGB,
+    :func:`spectral_fit.rendering.surface_ratio`), encoded again. The ratio is rounded to
+    steps of 1/1024 (≤ 0.05 % of the light, below an 8-bit code) and the result read from
+    ``codes`` (:func:`relight_codes`, built here when not given): no tone curve per pixel.
+    Pixels whose ratio rounds to 1 keep their bytes, so a frame without objects comes back
+    bit for bit. A pixel with a clipped channel (255) holds at least the clip level's light:
+    it is darkened from that level where the objects shade it (a lower bound of its true
+    value, and the same as its unclipped neighbours get: no speckle on white paper), never
     brightened (its true light is unknown)."""
     fr = jnp.asarray(frame, jnp.uint8)
     r = jnp.asarray(ratio, jnp.float32)
+    table = relight_codes(model) if codes is None else codes
     clipped = jnp.any(fr == 255, axis=-1, keepdims=True)
     r = jnp.where(clipped, jnp.minimum(r, 1.0), r)
-    lut = decode_frame(jnp.arange(256, dtype=jnp.float32) / 255.0, model)
-    lit = lut[fr.astype(jnp.int32)] * r
-    enc = jnp.round(encode_frame(lit, model) * 255.0).astype(jnp.uint8)
-    keep = jnp.all(r == 1.0, axis=-1, keepdims=True)
-    return jnp.where(keep, fr, enc)
+    q = jnp.round(jnp.clip(r, 0.0, float(RELIGHT_MAX)) * RELIGHT_STEPS).astype(jnp.int32)
+    flat = fr.astype(jnp.int32) * (RELIGHT_MAX * RELIGHT_STEPS + 1) + q
+    return table.reshape(-1).at[flat].get(mode="promise_in_bounds")
 
 
 def composite_pixels(frame, cg_linear, index, valid, model: CameraModel) -> jax.Array:

@@ -48,7 +48,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from ..io import Scene
-from ._compositing import CameraModel
+from ._compositing import CameraModel, relight_codes
 from ._devices import _device_of, _frame_devices, put_on_device
 from ._frames import FramesInFlight, FrameTimings
 from ._grow_ahead import GrowAhead, _pixel_slots
@@ -377,8 +377,9 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
                          self._senders_for(poses, inputs, dev), textures)
 
     def surface_textures_for(self, poses: Any, *, rebuild: bool = False) -> Any:
-        """The ``[[surfaces]]`` planes' textures (camera channels) for the visible objects at
-        ``poses``. Built when an object appears or vanishes (at once: a shadow must not
+        """What the step relights the video with for the visible objects at ``poses``: the
+        ``[[surfaces]]`` planes' ratio textures (camera channels) and the camera's
+        :func:`relight_codes`. Built when an object appears or vanishes (at once: a shadow must not
         outlive its object); when one moves more than ``surface_reuse_mm`` /
         ``surface_reuse_deg``, built again in a background thread while the frames keep the
         last ones (a build takes a second or more on a CPU; the step's program stays the
@@ -415,18 +416,25 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
 
     def _build_surfaces(self, vis: np.ndarray, model: np.ndarray
                         ) -> tuple[Any, Any, Any, Any]:
-        """(visible, model, the planes' textures in the camera's linear RGB, what the
-        objects see of the planes' change)."""
-        from ..rendering import surface_textures, surface_transfer, table_changes
+        """(visible, model, what the step relights the video with (the planes' ratio
+        textures in the camera's linear RGB and :func:`relight_codes`), what the objects see
+        of the planes' change)."""
+        from ..rendering import (
+            surface_ratio_textures,
+            surface_textures,
+            surface_transfer,
+            table_changes,
+        )
 
         prep = self.prep
         transfers = surface_transfer(self.scene.surfaces, prep.lighting.env, prep.ir_mesh,
                                      model, visible=vis)
         textures = surface_textures(prep, transfers, prep.materials, model=model,
                                     out=camera_spectral_matrix(prep, self.camera))
+        relit = (surface_ratio_textures(textures), relight_codes(self.camera))
         changes = table_changes(prep, transfers, prep.materials, model)
         self.surface_builds += 1
-        return vis, model, jax.block_until_ready(textures), jax.block_until_ready(changes)
+        return vis, model, jax.block_until_ready(relit), jax.block_until_ready(changes)
 
     def _adopt_surfaces(self, built: tuple[Any, Any, Any, Any]) -> None:
         """Use a build: its textures for the frames, its change in the prepared scene (the

@@ -52,11 +52,11 @@ def _step_impl(prep: Prepared, materials: Material, model: jax.Array, view: jax.
 
     STEP_TRACES["step"] += 1
     if surfaces is not None:  # the objects' shadows and light on the real table, first
-        from ..rendering import surface_layer, surface_ratio
+        from ..rendering import surface_ratio_lookup
 
-        layer = surface_layer(prep, view=view, textures=surfaces)
-        background = relight(background, surface_ratio(prep, layer, channels="linear"),
-                             camera)
+        textures, codes = surfaces
+        background = relight(background, surface_ratio_lookup(prep, textures, view=view),
+                             camera, codes=codes)
     # only the covered pixels are shaded (in the camera's linear RGB: prep's output matrix),
     # encoded and written into the video frame: no environment background, no full-frame
     # display encoding, no decoding of the video

@@ -61,6 +61,8 @@ _EXPORTS: dict[str, str] = {
     "table_changes": "_surfaces",
     "TableChange": "_surfaces",
     "surface_ratio": "_surfaces",
+    "surface_ratio_lookup": "_surfaces",
+    "surface_ratio_textures": "_surfaces",
     "surface_texels": "_surfaces",
     "surface_textures": "_surfaces",
     "surface_transfer": "_surfaces",

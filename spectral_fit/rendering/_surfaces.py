@@ -58,7 +58,8 @@ from .._runtime.errors import InputError
 
 __all__ = ["SurfaceLayer", "SurfaceTexture", "SurfaceTransfer", "build_surface_transfer",
            "TableChange", "draw_surfaces", "surface_layer", "surface_pixels", "surface_vertices",
-           "surface_ratio", "surface_texels", "table_changes",
+           "surface_ratio", "surface_ratio_lookup", "surface_ratio_textures", "surface_texels",
+           "table_changes",
            "surface_textures", "surface_transfer"]
 
 #: cosine-weighted directions over each plane's hemisphere (their cells carry the environment)
@@ -503,7 +504,7 @@ class TableChange(eqx.Module):
         hit = points + t[:, None] * r
         uv = ((hit - self.origin) @ self.axes[:2].T) / self.half
         zero = jnp.zeros((self.fine.shape[-1],), jnp.float32)
-        val = _bilinear(self.fine, uv, zero)
+        val = _bilinear(self.fine, uv[:, 0], uv[:, 1], zero)
         seen = (down < -1e-6) & (t > 0.0)
         if owner is not None:
             for j in range(self.spheres.shape[0]):
@@ -594,19 +595,21 @@ def surface_pixels(prep: Any, changes: tuple[TableChange, ...], mats: list[Any],
     return out
 
 
-def _pixel_rays(prep: Any, view: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """World-frame ray directions (H·W, 3) of the pixel centres (not normalised) and the
-    eye (3,)."""
+def _pixel_rays(prep: Any, view: jax.Array) -> tuple[tuple[jax.Array, ...], jax.Array]:
+    """The world-frame ray directions of the pixel centres (not normalised) as three
+    components (H·W,) each, and the eye (3,)."""
     from ..geometry import eye_position
     from ._background import _pinhole_ray_components
 
     rays = prep.camera.pixel_rays
-    if rays is not None:
-        d = rays @ view[:3, :3]
+    if rays is not None:  # (H·W, 3) eye-space rays through the lens: rotated to the world
+        rot = view[:3, :3]
+        comp = [rays[:, 0] * rot[0, j] + rays[:, 1] * rot[1, j] + rays[:, 2] * rot[2, j]
+                for j in range(3)]
     else:
-        comp = _pinhole_ray_components(prep, view, jnp.eye(3, dtype=jnp.float32))
-        d = jnp.stack([c.reshape(-1) for c in comp], axis=-1)
-    return d, eye_position(view)
+        comp = [c.reshape(-1) for c in
+                _pinhole_ray_components(prep, view, jnp.eye(3, dtype=jnp.float32))]
+    return tuple(comp), eye_position(view)
 
 
 def surface_textures(prep: Any, transfers: tuple[SurfaceTransfer, ...], materials: Any = None,
@@ -667,42 +670,89 @@ def surface_layer(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = Non
         textures = surface_textures(prep, prep.surfaces if transfers is None else transfers,
                                     materials, model=model, out=out)
     h, w = prep.camera.shape
+    k = textures[0].base.shape[0] if textures else 3
+    rad, base, seen = _plane_lookups(prep, view, textures, k)
+    return SurfaceLayer(radiance=rad.reshape(h, w, k), base=base.reshape(h, w, k),
+                        mask=seen.reshape(h, w))
+
+
+def surface_ratio_textures(textures: tuple[SurfaceTexture, ...]) -> tuple[SurfaceTexture, ...]:
+    """Each plane's texture as the ratio (with / without the objects) per texel and channel,
+    clipped to [0, 4], exactly 1 where the texel's radiance equals the plane's radiance
+    without the objects; ``base`` is 1. The plane's radiance without the objects is one
+    value per channel, so the bilinear lookup of the ratio equals the ratio of the lookups:
+    a live session divides once per placement (T² texels), not per pixel per frame."""
+    out = []
+    for tx in textures:
+        ok = tx.base > 1e-6
+        r = jnp.where(ok, tx.texels / jnp.where(ok, tx.base, 1.0), 1.0)
+        out.append(eqx.tree_at(lambda t: (t.texels, t.base), tx,
+                               (jnp.clip(r, 0.0, 4.0), jnp.ones_like(tx.base))))
+    return tuple(out)
+
+
+def surface_ratio_lookup(prep: Any, textures: tuple[SurfaceTexture, ...], *,
+                         view: Any = None) -> jax.Array:
+    """(H, W, K) the ratio the objects make on the surfaces through each pixel centre, read
+    from :func:`surface_ratio_textures`; exactly 1 where no plane is seen or outside the
+    planes' regions. ``view``: (4, 4) world → eye (default: the config's camera). Equal to
+    :func:`surface_ratio` of :func:`surface_layer` in the layer's own channels, without an
+    object mask."""
+    h, w = prep.camera.shape
+    k = textures[0].base.shape[0]
+    rad, _, seen = _plane_lookups(prep, view, textures, k)
+    return jnp.where(seen[:, None], rad, 1.0).reshape(h, w, k)
+
+
+def _plane_lookups(prep: Any, view: Any, textures: tuple[SurfaceTexture, ...], k: int
+                   ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(texture values (H·W, K) of the nearest plane seen through each pixel centre, that
+    plane's ``base`` (H·W, K), seen (H·W,)); 0 where none is seen. Ray–plane intersections
+    from the rays' three components (H·W,) each, as elementwise sums (no (N, 3) products)."""
     view = jnp.asarray(prep.camera.view if view is None else view, jnp.float32)
     d, eye = _pixel_rays(prep, view)
-    k = textures[0].base.shape[0] if textures else 3
-    best = jnp.full((h * w,), jnp.inf)
-    rad = jnp.zeros((h * w, k), jnp.float32)
+    n_px = d[0].shape[0]
+    best = jnp.full((n_px,), jnp.inf)
+    rad = jnp.zeros((n_px, k), jnp.float32)
     base = jnp.zeros_like(rad)
     for tx in textures:
+        def dot(a: jax.Array) -> jax.Array:
+            return d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
+
         n = tx.axes[2]
-        denom = d @ n
+        denom = dot(n)
         dist = ((tx.origin - eye) @ n) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
         hit = (dist > 0.0) & (denom < 0.0) & (dist < best)
-        p = eye + dist[:, None] * d
-        uv = ((p - tx.origin) @ tx.axes[:2].T) / tx.half  # (N, 2) in [-1, 1] over the region
-        val = _bilinear(tx.texels, uv, tx.base)
+        rel = eye - tx.origin  # p − origin = rel + dist · d
+        u = (rel @ tx.axes[0] + dist * dot(tx.axes[0])) / tx.half
+        v = (rel @ tx.axes[1] + dist * dot(tx.axes[1])) / tx.half
+        val = _bilinear(tx.texels, u, v, tx.base)
         rad = jnp.where(hit[:, None], val, rad)
         base = jnp.where(hit[:, None], tx.base[None, :], base)
         best = jnp.where(hit, dist, best)
-    return SurfaceLayer(radiance=rad.reshape(h, w, k), base=base.reshape(h, w, k),
-                        mask=jnp.isfinite(best).reshape(h, w))
+    return rad, base, jnp.isfinite(best)
 
 
-def _bilinear(tex: jax.Array, uv: jax.Array, outside: jax.Array) -> jax.Array:
-    """Bilinear lookups (N, K) of ``tex`` (T, T, K) at region coordinates ``uv`` (N, 2) in
-    [−1, 1] (the module's texel convention); ``outside`` (K,) beyond the region."""
-    t = tex.shape[0]
-    x = (uv[:, 0] + 1.0) * 0.5 * t - 0.5
-    y = (1.0 - uv[:, 1]) * 0.5 * t - 0.5
+def _bilinear(tex: jax.Array, u: jax.Array, v: jax.Array, outside: jax.Array) -> jax.Array:
+    """Bilinear lookups (N, K) of ``tex`` (T, T, K) at region coordinates ``u``, ``v`` (N,)
+    in [−1, 1] (the module's texel convention); ``outside`` (K,) beyond the region. The
+    four neighbours of every texel are packed side by side ((T − 1)², 4K), one gather per
+    lookup; interpolated as a + f (b − a), so equal neighbours give their value exactly."""
+    t, kc = tex.shape[0], tex.shape[-1]
+    x = (u + 1.0) * 0.5 * t - 0.5
+    y = (1.0 - v) * 0.5 * t - 0.5
     inside = (x > -0.5) & (x < t - 0.5) & (y > -0.5) & (y < t - 0.5)
     x0 = jnp.clip(jnp.floor(x), 0, t - 2)
     y0 = jnp.clip(jnp.floor(y), 0, t - 2)
     fx = jnp.clip(x - x0, 0.0, 1.0)[:, None]
     fy = jnp.clip(y - y0, 0.0, 1.0)[:, None]
-    xi, yi = x0.astype(jnp.int32), y0.astype(jnp.int32)
-    val = ((1 - fy) * ((1 - fx) * tex[yi, xi] + fx * tex[yi, xi + 1])
-           + fy * ((1 - fx) * tex[yi + 1, xi] + fx * tex[yi + 1, xi + 1]))
-    return jnp.where(inside[:, None], val, outside[None, :])
+    packed = jnp.concatenate([tex[:-1, :-1], tex[:-1, 1:], tex[1:, :-1], tex[1:, 1:]],
+                             axis=-1).reshape((t - 1) * (t - 1), 4 * kc)
+    g = packed[y0.astype(jnp.int32) * (t - 1) + x0.astype(jnp.int32)]
+    t00, t01, t10, t11 = (g[:, i * kc:(i + 1) * kc] for i in range(4))
+    top = t00 + fx * (t01 - t00)
+    bottom = t10 + fx * (t11 - t10)
+    return jnp.where(inside[:, None], top + fy * (bottom - top), outside[None, :])
 
 
 def draw_surfaces(prep: Any, frame: Any, layer: SurfaceLayer) -> Any:
