@@ -17,7 +17,10 @@
   ``spectral-fit fit --profile``): each parameter's profile Δχ², its interval and the
   linearised parabola;
 - ``render.png`` — the scene rendered with the fitted materials, when the frame renderer is
-  available.
+  available;
+- ``uncertainty.png`` — beside it, the per-pixel ΔE00 uncertainty of that render from the
+  fit's covariance (:func:`~spectral_fit.fitting.render_uncertainty`; its figures in
+  ``fit.json``'s ``render_uncertainty``).
 
 :func:`run_demo_fit` fits the bundled session and writes its report (used by
 ``spectral-fit demo``).
@@ -233,6 +236,66 @@ def _render(scene: Scene, result: FitResult, path: Path) -> str | None:
         return f"render failed: {type(exc).__name__}: {exc}"
 
 
+def _uncertainty(scene: Scene, result: FitResult, path: Path, folder: Path | None,
+                 key: str | None) -> tuple[dict[str, Any], str]:
+    """``uncertainty.png`` (the fitted render beside its per-pixel RMS ΔE00 from the fit's
+    covariance) and its figures (:meth:`RenderUncertainty.summary`), kept beside the cached
+    picture as ``<key>.json``; ({"note": ...}, hit) when it could not be drawn."""
+    figures: dict[str, Any] = {}
+    side = None if folder is None or key is None else folder / f"{key[:40]}.json"
+    if side is not None:
+        with contextlib.suppress(OSError, ValueError):
+            figures = json.loads(side.read_text())
+
+    def draw(p: Path) -> str | None:
+        try:
+            from ._render_uncertainty import render_uncertainty
+
+            unc = render_uncertainty(scene, result)
+            figures.clear()
+            figures.update(unc.summary([o.name for o in scene.objects]))
+            _uncertainty_plot(unc, figures, p)
+            return None
+        except Exception as exc:  # a failed picture must not lose the fit's report
+            return f"uncertainty failed: {type(exc).__name__}: {exc}"
+
+    note, hit = _cached_picture(folder, key, path, draw)
+    if note is None and hit == "hit" and not figures:  # a kept picture without its figures
+        note, hit = draw(path), "miss"
+    if note is not None:
+        return {"note": note}, hit
+    if side is not None and hit != "hit":
+        with contextlib.suppress(OSError):
+            atomic_write_text(side, json.dumps(figures) + "\n")
+    return figures, hit
+
+
+def _uncertainty_plot(unc: Any, figures: dict[str, Any], path: Path) -> None:
+    """The fitted render and its RMS ΔE00 map side by side, cropped to the objects."""
+    plt = _plt()
+    h, w = unc.mask.shape
+    rows, cols = np.nonzero(unc.mask) if unc.mask.any() else ([0, h - 1], [0, w - 1])
+    pad = max(4, int(0.15 * max(np.ptp(rows), np.ptp(cols))))
+    y0, y1 = max(0, int(np.min(rows)) - pad), min(h, int(np.max(rows)) + pad + 1)
+    x0, x1 = max(0, int(np.min(cols)) - pad), min(w, int(np.max(cols)) + pad + 1)
+    crop = (slice(y0, y1), slice(x0, x1))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    axes[0].imshow(np.clip(unc.rgb[crop], 0.0, 1.0), interpolation="nearest")
+    axes[0].set_title("fitted render", fontsize=9)
+    rms = np.where(unc.mask, unc.rms, np.nan)[crop]
+    vmax = max(float(np.nanpercentile(rms, 99)), 0.1) if unc.mask.any() else 1.0
+    im = axes[1].imshow(rms, cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
+    a = figures.get("all", {})
+    axes[1].set_title(f"ΔE00 uncertainty: RMS over {unc.draws} draws from the fit's "
+                      f"covariance\nmedian {a.get('median', float('nan')):.3f}, "
+                      f"p90 {a.get('p90', float('nan')):.3f}, "
+                      f"max {a.get('max', float('nan')):.3f}", fontsize=9)
+    fig.colorbar(im, ax=axes[1], fraction=0.04, label="ΔE00")
+    for ax in axes:
+        ax.set_axis_off()
+    _save(fig, path)
+
+
 # pictures kept per cache folder (oldest removed first)
 _MAX_PICTURES = 48
 
@@ -348,6 +411,17 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
         hits.append(hit)
         if note is None:
             pictures.append("render.png")
+            unc_key = None if render_key is None else _picture_digest(
+                "uncertainty.png", render_key, json.dumps(
+                    [result.stderr, result.free, np.asarray(result.correlation).tolist()],
+                    sort_keys=True, allow_nan=True))
+            figures, hit = _uncertainty(scene, result, out / "uncertainty.png", folder, unc_key)
+            hits.append(hit)
+            if "note" in figures:
+                summary["render_uncertainty_note"] = figures["note"]
+            else:
+                pictures.append("uncertainty.png")
+                summary["render_uncertainty"] = figures
         else:
             summary["render_note"] = note
     summary["pictures"] = pictures
