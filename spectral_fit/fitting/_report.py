@@ -279,18 +279,17 @@ def _uncertainty_plot(unc: Any, figures: dict[str, Any], path: Path) -> None:
     y0, y1 = max(0, int(np.min(rows)) - pad), min(h, int(np.max(rows)) + pad + 1)
     x0, x1 = max(0, int(np.min(cols)) - pad), min(w, int(np.max(cols)) + pad + 1)
     crop = (slice(y0, y1), slice(x0, x1))
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), layout="constrained")
     axes[0].imshow(np.clip(unc.rgb[crop], 0.0, 1.0), interpolation="nearest")
     axes[0].set_title("fitted render", fontsize=9)
     rms = np.where(unc.mask, unc.rms, np.nan)[crop]
     vmax = max(float(np.nanpercentile(rms, 99)), 0.1) if unc.mask.any() else 1.0
     im = axes[1].imshow(rms, cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
     a = figures.get("all", {})
-    axes[1].set_title(f"ΔE00 uncertainty: RMS over {unc.draws} draws from the fit's "
-                      f"covariance\nmedian {a.get('median', float('nan')):.3f}, "
+    axes[1].set_title(f"ΔE00 uncertainty (RMS, {unc.draws} draws)\nmedian {a.get('median', float('nan')):.3f}, "
                       f"p90 {a.get('p90', float('nan')):.3f}, "
                       f"max {a.get('max', float('nan')):.3f}", fontsize=9)
-    fig.colorbar(im, ax=axes[1], fraction=0.04, label="ΔE00")
+    fig.colorbar(im, ax=list(axes), shrink=0.8, label="ΔE00")
     for ax in axes:
         ax.set_axis_off()
     _save(fig, path)
