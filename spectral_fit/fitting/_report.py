@@ -286,7 +286,8 @@ def _uncertainty_plot(unc: Any, figures: dict[str, Any], path: Path) -> None:
     vmax = max(float(np.nanpercentile(rms, 99)), 0.1) if unc.mask.any() else 1.0
     im = axes[1].imshow(rms, cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
     a = figures.get("all", {})
-    axes[1].set_title(f"ΔE00 uncertainty (RMS, {unc.draws} draws)\nmedian {a.get('median', float('nan')):.3f}, "
+    axes[1].set_title(f"ΔE00 uncertainty (RMS, {unc.draws} draws)\n"
+                      f"median {a.get('median', float('nan')):.3f}, "
                       f"p90 {a.get('p90', float('nan')):.3f}, "
                       f"max {a.get('max', float('nan')):.3f}", fontsize=9)
     fig.colorbar(im, ax=list(axes), shrink=0.8, label="ΔE00")
