@@ -17,9 +17,9 @@ from helpers.fitting import (
     RADIUS,
     TRUE,
     assert_recovered,
+    small_session,
     spots,
     write_session,
-    write_small_scene,
 )
 
 from spectral_fit import fitting
@@ -32,34 +32,11 @@ from spectral_fit.io import load_scene, load_session
 RES = 6  # spot resolution in these tests
 
 
-def k_true(wl):
-    return 1.2 * (1.0 + 0.1 * (wl - 550.0) / 150.0)
-
-
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     """Small scene, noiseless own-model readings of 10 spots under a mis-scaled map, a white
-    standard that calibrates it; returns (scene, session, prepared, env)."""
-    import jax.numpy as jnp
-
-    from spectral_fit.lighting import irradiance_exact
-
-    root = tmp_path_factory.mktemp("fit")
-    cfg = write_small_scene(root)
-    scene = load_scene(cfg)
-    wl = scene.wavelengths
-    env = fitting.scene_environment(scene, compress_tol=3e-3)
-    opts = fitting.FitOptions(spot_resolution=RES)
-    clean = fitting.simulate_readings(scene, spots(), params=TRUE, calibration=k_true(wl),
-                                      env=env, options=opts)
-    n_w = np.array([0.0, 0.0, 1.0])
-    e = np.asarray(irradiance_exact(env, jnp.asarray(n_w, jnp.float32)), np.float64)
-    white = {"reflectance": 0.98, "position": [0.0, 0.0, -0.275], "normal": n_w,
-             "spectra": (k_true(wl) * 0.98 * e / math.pi)[None]}
-    m = write_session(root / "sess", cfg, clean, wl, white=white)
-    session = load_session(m, scene=scene)
-    prep = fitting.prepare_fit(scene, session, options=opts, env=env)
-    return scene, session, prep, env, clean
+    standard that calibrates it; returns (scene, session, prepared, env, clean readings)."""
+    return small_session(tmp_path_factory.mktemp("fit"), resolution=RES)
 
 
 def test_uniform_environment_oracle(tmp_path, small_scene_config):

@@ -11,6 +11,7 @@ from .._runtime.lazy import lazy_exports
 _EXPORTS: dict[str, str] = {
     "CacheOptions": "_radiance_cache",
     "CompactLM": "_solver",
+    "CoverageStudy": "_coverage",
     "DEMO_CONFIG": "_report",
     "DEMO_SESSION": "_report",
     "FitOptions": "_options",
@@ -35,6 +36,8 @@ _EXPORTS: dict[str, str] = {
     "build_radiance_cache": "_cache_build",
     "cached_radiance": "_cache_model",
     "candidate_information": "_plan_information",
+    "clopper_pearson": "_coverage",
+    "coverage_study": "_coverage",
     "default_range": "_plan_design",
     "disc_pixels": "_spots",
     "draws_in_box": "_plan_design",

@@ -58,8 +58,11 @@ class FitResult:
 
     Attributes:
         params: {object: {alpha, beta, chi, mu, n, gamma}} fitted (free) or fixed values.
-        stderr: same shape: Jacobian standard errors (0 for fixed parameters), scaled by
-            √(χ²/dof) when that exceeds 1 (model error larger than the instrument noise).
+        stderr: same shape: standard errors (0 for fixed parameters): the Jacobian's, scaled
+            by √(χ²/dof) when that exceeds 1 (model error larger than the instrument noise),
+            or, where larger (``FitOptions.errors`` "robust", the default), the sandwich's
+            with the readings as clusters (an error shared by a reading's bands counted once
+            per reading).
         status: "converged", "max_steps" (best start hit the iteration limit) or "failed".
         free: labels ``object.parameter`` of the unknowns (and ``scale``).
         correlation: (F, F) correlation matrix of the unknowns.
@@ -148,6 +151,25 @@ class FitResult:
             "profile": self.profile, "model_error": self.model_error,
             "constraints": self.constraints,
         })
+
+
+def _reading_robust_covariance(bread: np.ndarray, J: np.ndarray, r: np.ndarray, B: int,
+                               L: int, use: np.ndarray) -> np.ndarray | None:
+    """The sandwich covariance (F, F) with the readings as clusters (Liang & Zeger 1986,
+    with the small-sample factor B/(B − F)): (JᵀJ)⁻¹ (Σ_b J_bᵀ r_b r_bᵀ J_b) (JᵀJ)⁻¹ over
+    the B used readings (J, r: the weighted Jacobian (B·L + K, F) and residuals, priors'
+    rows last and left out of the middle). An error shared by a reading's bands (a level, a
+    tilt: what a model's error at one spot looks like) then counts once per reading, whatever
+    its structure, where (JᵀJ)⁻¹ counts it once per band. None with fewer than F + 2
+    readings."""
+    F = J.shape[1]
+    rows = np.flatnonzero(np.asarray(use) > 0)
+    if rows.size < F + 2:
+        return None
+    g = np.einsum("blf,bl->bf", J[:B * L].reshape(B, L, F)[rows],
+                  r[:B * L].reshape(B, L)[rows])
+    meat = g.T @ g * (rows.size / (rows.size - F))
+    return bread @ meat @ bread
 
 
 def _colour_table(wl: np.ndarray, measured: np.ndarray, fitted: np.ndarray,
@@ -388,7 +410,13 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     chi2 = float(r @ r)
     chi2_red = chi2 / dof
     jtj = J.T @ J
-    cov = np.linalg.pinv(jtj, rcond=1e-12, hermitian=True) * max(1.0, chi2_red)
+    bread = np.linalg.pinv(jtj, rcond=1e-12, hermitian=True)
+    cov = bread * max(1.0, chi2_red)
+    robust = (_reading_robust_covariance(bread, J, r, B, L, use)
+              if opts.errors == "robust" else None)
+    if robust is not None:  # the larger of the two per parameter, correlations kept
+        grow = np.sqrt(np.maximum(np.diag(robust), 0.0) / np.maximum(np.diag(cov), 1e-300))
+        cov = cov * np.outer(np.maximum(grow, 1.0), np.maximum(grow, 1.0))
     se = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)

@@ -48,6 +48,10 @@ class FitOptions:
             optimistix in one small compiled loop) or "optimistix"
             (``optimistix.LevenbergMarquardt`` with a Cholesky normal-equation solve); both
             reach the same optimum (tested), "compact" compiles in less time.
+        errors: "robust" (default): each standard error the larger of the linearised one,
+            (JᵀJ)⁻¹ · max(1, χ²/dof), and the sandwich with the readings as clusters, which
+            counts an error shared by a reading's bands (the model's level at a spot) once
+            per reading instead of once per band; "linear": the linearised one alone.
 
     The former options ``jacobian`` (the Jacobian is always exact forward-mode autodiff) and
     ``ir_rounds`` (the interreflection term is inside the model, no refresh rounds) were
@@ -70,6 +74,7 @@ class FitOptions:
     cache: Any = None
     solver: str = "compact"
     profile: bool = False
+    errors: str = "robust"
 
 
 _REMOVED_OPTIONS = {
@@ -93,4 +98,6 @@ def _fit_options(options: FitOptions | None, kwargs: dict[str, Any]) -> FitOptio
     if opts.solver not in SOLVERS:
         raise InputError(f"unknown solver {opts.solver!r}; choose one of {SOLVERS}",
                          field="solver")
+    if opts.errors not in ("robust", "linear"):
+        raise InputError(f"must be 'robust' or 'linear', got {opts.errors!r}", field="errors")
     return opts

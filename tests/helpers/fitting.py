@@ -133,3 +133,39 @@ def write_session(folder: Path, scene_path: Path, readings: np.ndarray, wl: np.n
     return ws(folder, scene=scene_ref, wavelengths=wl, readings=rl,
               white=white, noise=noise or {"absolute": 1e-7, "relative": 0.003},
               objects=objects)
+
+
+def k_true(wl):
+    """The small session's true calibration k(λ) of the map (a 20 % brighter room, tilted)."""
+    return 1.2 * (1.0 + 0.1 * (wl - 550.0) / 150.0)
+
+
+def small_session(root: Path, *, resolution: int = 6, objects: dict | None = None):
+    """The small scene (:func:`write_small_scene`) and noiseless own-model readings of
+    :func:`spots` at :data:`TRUE` under a mis-scaled map, with a white standard that
+    calibrates it, written into ``root`` (``objects``: the session's per-object entries, as
+    :func:`write_session`); returns (scene, session, prepared fit, environment,
+    clean readings (B, L))."""
+    import math
+
+    import jax.numpy as jnp
+
+    from spectral_fit import fitting
+    from spectral_fit.io import load_scene, load_session
+    from spectral_fit.lighting import irradiance_exact
+
+    cfg = write_small_scene(root)
+    scene = load_scene(cfg)
+    wl = scene.wavelengths
+    env = fitting.scene_environment(scene, compress_tol=3e-3)
+    opts = fitting.FitOptions(spot_resolution=resolution)
+    clean = fitting.simulate_readings(scene, spots(), params=TRUE, calibration=k_true(wl),
+                                      env=env, options=opts)
+    n_w = np.array([0.0, 0.0, 1.0])
+    e = np.asarray(irradiance_exact(env, jnp.asarray(n_w, jnp.float32)), np.float64)
+    white = {"reflectance": 0.98, "position": [0.0, 0.0, -0.275], "normal": n_w,
+             "spectra": (k_true(wl) * 0.98 * e / math.pi)[None]}
+    m = write_session(root / "sess", cfg, clean, wl, white=white, objects=objects)
+    session = load_session(m, scene=scene)
+    prep = fitting.prepare_fit(scene, session, options=opts, env=env)
+    return scene, session, prep, env, clean

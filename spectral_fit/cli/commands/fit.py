@@ -35,6 +35,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also compute profile-likelihood intervals (the fit repeated with each "
                    "parameter held at 20 values around its estimate and its interval's ends; "
                    "about 2 s per parameter on 2 CPU cores for 18 readings of 81 bands)")
+    p.add_argument("--errors", choices=("robust", "linear"), default="robust",
+                   help="robust (default): each standard error the larger of the linearised "
+                   "one and the sandwich with the readings as clusters (an error shared by a "
+                   "reading's bands counted once per reading); linear: the linearised one")
     p.add_argument("--interreflection", choices=("auto", "none"), default="auto",
                    help="auto: the scene config's interreflection mode; none: fit without "
                    "the interreflection term")
@@ -85,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     res = fit(scene, session, progress=_say, starts=args.starts, bootstrap=args.bootstrap,
               kinds=kinds, spot_resolution=args.spot_resolution, max_steps=args.max_steps,
               holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3,
-              interreflection=args.interreflection, profile=args.profile,
+              interreflection=args.interreflection, profile=args.profile, errors=args.errors,
               cache_dir=cache_root())
     summary = write_report(res, args.output, scene=scene, session=session,
                            render=not args.no_render, cache_dir=cache_root(), timing=before,
