@@ -27,9 +27,11 @@ def test_robust_errors_match_the_scatter_under_a_level_error(small):
     its bands that the model does not know, 0.3 % noise per band: per parameter, the spread
     of the 60 estimates against the median reported standard error. The linearised errors
     count the level once per band and are several times too small (spread / error 1.9-3.3
-    here, > 2 for most parameters); the robust ones count it once per reading: 0.64-1.64
-    here, asserted within a factor 1.8 for every parameter (the sandwich from 10 readings
-    for 6 unknowns is itself uncertain; the spread of 60 draws by ~9 %)."""
+    here, > 2 for most parameters); the robust ones (the readings left out in turn) count
+    it once per reading and cover the spread: 0.27-1.01 here, asserted below 1.2 for every
+    parameter (the spread of 60 draws is uncertain by ~9 %) and above 0.2 (with 10 readings
+    for 6 unknowns leaving one out is conservative: the μ that hang on the two glossy
+    readings get errors up to 3.7 times their spread)."""
     scene, session, prep, env, clean = small
     names = [o.name for o in scene.objects]
     from spectral_fit.io import PARAMETERS
@@ -49,7 +51,7 @@ def test_robust_errors_match_the_scatter_under_a_level_error(small):
         assert all(s == "converged" for s in st.status)
         spread = np.std(st.estimate - st.truth, axis=0, ddof=1)
         ratios[errors] = spread / np.median(st.stderr, axis=0)
-    assert np.all(ratios["robust"] < 1.8) and np.all(ratios["robust"] > 1 / 1.8), ratios
+    assert np.all(ratios["robust"] < 1.2) and np.all(ratios["robust"] > 0.2), ratios
     assert np.mean(ratios["linear"] > 2.0) >= 0.7, ratios["linear"]
 
 

@@ -153,23 +153,28 @@ class FitResult:
         })
 
 
-def _reading_robust_covariance(bread: np.ndarray, J: np.ndarray, r: np.ndarray, B: int,
-                               L: int, use: np.ndarray) -> np.ndarray | None:
-    """The sandwich covariance (F, F) with the readings as clusters (Liang & Zeger 1986,
-    with the small-sample factor B/(B − F)): (JᵀJ)⁻¹ (Σ_b J_bᵀ r_b r_bᵀ J_b) (JᵀJ)⁻¹ over
-    the B used readings (J, r: the weighted Jacobian (B·L + K, F) and residuals, priors'
-    rows last and left out of the middle). An error shared by a reading's bands (a level, a
-    tilt: what a model's error at one spot looks like) then counts once per reading, whatever
-    its structure, where (JᵀJ)⁻¹ counts it once per band. None with fewer than F + 2
+def _reading_robust_covariance(J: np.ndarray, r: np.ndarray, B: int, L: int, use: np.ndarray
+                               ) -> np.ndarray | None:
+    """The covariance (F, F) of the estimate with the readings as clusters, from leaving each
+    reading out: (B − 1)/B · Σ_b Δ_b Δ_bᵀ, Δ_b = (JᵀJ − J_bᵀJ_b)⁺ J_bᵀ r_b the one-step change
+    of the estimate without reading b (the cluster jackknife, "CR3" among the cluster-robust
+    sandwich estimators; MacKinnon & White 1985, Bell & McCaffrey 2002). J, r: the weighted
+    Jacobian (B·L + K, F) and residuals, priors' rows last (kept in JᵀJ). An error shared by
+    a reading's bands (a level, a tilt: what a model's error at one spot looks like) then
+    counts once per reading, whatever its structure, where (JᵀJ)⁻¹ counts it once per band;
+    and a parameter that hangs on a few readings shows it (their residuals, which the fit
+    pulls towards zero, are not taken at face value). None with fewer than F + 2
     readings."""
     F = J.shape[1]
     rows = np.flatnonzero(np.asarray(use) > 0)
     if rows.size < F + 2:
         return None
-    g = np.einsum("blf,bl->bf", J[:B * L].reshape(B, L, F)[rows],
-                  r[:B * L].reshape(B, L)[rows])
-    meat = g.T @ g * (rows.size / (rows.size - F))
-    return bread @ meat @ bread
+    A = J.T @ J
+    Jb = J[:B * L].reshape(B, L, F)[rows]
+    rb = r[:B * L].reshape(B, L)[rows]
+    deltas = np.stack([np.linalg.pinv(A - Jb[i].T @ Jb[i], rcond=1e-10, hermitian=True)
+                       @ (Jb[i].T @ rb[i]) for i in range(rows.size)])
+    return deltas.T @ deltas * ((rows.size - 1) / rows.size)
 
 
 def _colour_table(wl: np.ndarray, measured: np.ndarray, fitted: np.ndarray,
@@ -412,7 +417,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     jtj = J.T @ J
     bread = np.linalg.pinv(jtj, rcond=1e-12, hermitian=True)
     cov = bread * max(1.0, chi2_red)
-    robust = (_reading_robust_covariance(bread, J, r, B, L, use)
+    robust = (_reading_robust_covariance(J, r, B, L, use)
               if opts.errors == "robust" else None)
     if robust is not None:  # the larger of the two per parameter, correlations kept
         grow = np.sqrt(np.maximum(np.diag(robust), 0.0) / np.maximum(np.diag(cov), 1e-300))
