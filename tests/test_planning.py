@@ -24,13 +24,15 @@ REGION = fitting.Region(aims_per_object=12, elevation_steps=2, azimuth_steps=3,
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    """The small two-sphere scene and a plan of 8 readings (1 % noise, no aiming error, so
-    the fit's own σ is the planner's); returns (config path, scene, plan)."""
+    """The small two-sphere scene and a plan of 8 readings (1 % noise, no aiming error and no
+    model level error, so the fit's own σ is the planner's); returns (config path, scene,
+    plan)."""
     root = tmp_path_factory.mktemp("plan")
     cfg = write_small_scene(root)
     scene = load_scene(cfg)
     plan = fitting.plan_measurements(scene, budget=8, region=REGION, noise=0.01,
-                                     sigma_aim_m=0.0, spot_resolution=RES, draws=4)
+                                     sigma_aim_m=0.0, level_error=0.0, spot_resolution=RES,
+                                     draws=4)
     return cfg, scene, plan
 
 
@@ -245,28 +247,35 @@ def test_cli_plan(small, tmp_path, capsys):
 
 
 def test_information_woodbury_matches_direct_inverse():
-    """The information with an aiming error (Woodbury) against Jᵀ C⁻¹ J with the covariance
-    C = diag(σ²) + σ_aim² G Gᵀ inverted directly."""
+    """The information with an aiming error and a level error (Woodbury) against Jᵀ C⁻¹ J
+    with the covariance C = diag(σ²) + σ_aim² G Gᵀ (+ level² m mᵀ) inverted directly."""
     rng = np.random.default_rng(0)
     D, B, L, F = 2, 3, 7, 4
     J = rng.standard_normal((D, B, L, F))
     sigma = 0.1 + rng.random((D, B, L))
     G = rng.standard_normal((D, B, L, 2))
     tol = 0.5 + rng.random((D, F))
+    mean = 1.0 + rng.random((D, B, L))
     got = fitting.reading_information(J, sigma, G, tol, sigma_aim_m=0.3)
+    level = fitting.reading_information(J, sigma, G, tol, sigma_aim_m=0.3, level=0.2,
+                                        mean=mean)
     for d in range(D):
         for b in range(B):
             C = np.diag(sigma[d, b] ** 2) + 0.09 * G[d, b] @ G[d, b].T
             Js = J[d, b] * tol[d]
             np.testing.assert_allclose(got[d, b], Js.T @ np.linalg.solve(C, Js), rtol=1e-9,
                                        atol=1e-12)
+            # and with the model's level error: + level² m mᵀ
+            C = C + 0.04 * np.outer(mean[d, b], mean[d, b])
+            np.testing.assert_allclose(level[d, b], Js.T @ np.linalg.solve(C, Js), rtol=1e-9,
+                                       atol=1e-12)
 
 
 def test_session_information_matches_the_fit(small, tmp_path):
     """With a session (noiseless own-model readings of 10 spots, calibration "global": the
     scale is a nuisance unknown), the plan's standard errors before equal the fit's own
-    (Jacobian) standard errors at its optimum (no aiming error), and the plan lowers the
-    worst one."""
+    (Jacobian) standard errors at its optimum (no aiming error, no model level error), and
+    the plan lowers the worst one."""
     from helpers.fitting import spots, write_session
 
     cfg, scene, _ = small
@@ -276,7 +285,8 @@ def test_session_information_matches_the_fit(small, tmp_path):
                            scene=scene)
     res = fitting.fit(scene, session, options=opts, starts=1, holdout=False, aim_step_m=0.0)
     plan = fitting.plan_measurements(scene, session, budget=2, region=REGION,
-                                     sigma_aim_m=0.0, draws=2, fit_options=opts)
+                                     sigma_aim_m=0.0, level_error=0.0, draws=2,
+                                     fit_options=opts)
     assert plan.unknowns[-1] == "scale" and "yellow.alpha" not in plan.unknowns
     for j, label in enumerate(plan.unknowns[:-1]):
         obj, p = label.split(".")

@@ -137,7 +137,8 @@ def _unknowns(scene: Scene, session: Session | None, region: Region, free_params
 
 def plan_measurements(scene: Scene, session: Session | None = None, *, budget: int,
                       region: Region | None = None, noise: float = 0.01,
-                      sigma_aim_m: float = 1e-3, draws: int = 8, spot_resolution: int = 4,
+                      sigma_aim_m: float = 1e-3, level_error: float = 0.005, draws: int = 8,
+                      spot_resolution: int = 4,
                       free: tuple[str, ...] = DEFAULT_FREE, seed: int = 0, chunk: int = 256,
                       fit_options: FitOptions | None = None,
                       progress: Callable[[str], None] | None = None) -> PlanResult:
@@ -152,6 +153,10 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
         region: where the instrument can stand and aim (default :class:`Region`()).
         noise: relative noise of one planned reading (0.01: 1 %).
         sigma_aim_m: aiming error (metres, 1σ per direction across the measuring axis).
+        level_error: the model's error common to a reading's bands, a fraction of the reading
+            (0.005: the renderer against the path-traced reference at object spots,
+            docs/fitting.md), in every reading's information, planned and measured: a plan
+            does not lean on one reading's level.
         draws: D, parameter draws the criterion takes its worst case over (the centre and a
             Latin hypercube of the ranges).
         spot_resolution: R of the candidates' fields (R×R camera, disc pixels).
@@ -172,7 +177,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     region = (region or Region()).checked()
     if not isinstance(budget, int) or budget < 1:
         raise InputError(f"must be an integer >= 1, got {budget!r}", field="budget")
-    for name, v, lo, hi in (("noise", noise, 1e-6, 1.0), ("sigma_aim_m", sigma_aim_m, 0.0, 0.1)):
+    for name, v, lo, hi in (("noise", noise, 1e-6, 1.0), ("sigma_aim_m", sigma_aim_m, 0.0, 0.1),
+                            ("level_error", level_error, 0.0, 0.5)):
         if not (lo <= v <= hi):
             raise InputError(f"must lie in [{lo:g}, {hi:g}], got {v}", field=name)
     if not 1 <= draws <= 64:
@@ -217,7 +223,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     say(f"{len(cands)} candidates; their sensitivities at {draws} parameter draws ...")
     info = candidate_information(scene, cands, values, free=unknowns, fit_scale=fit_scale,
                                  scale=scale, noise=noise, sigma_aim_m=sigma_aim_m,
-                                 spot_resolution=spot_resolution, session=session, env=env,
+                                 level=level_error, spot_resolution=spot_resolution,
+                                 session=session, env=env,
                                  geometries=geoms, chunk=chunk, progress=say)
     ok = info["coverage"] >= _MIN_COVERAGE
     if not ok.any():
@@ -233,7 +240,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     if prep_s is not None:
         base = base + session_information(prep_s, values, scale=scale, unknowns=unknowns,
                                           fit_scale=fit_scale, tol=tol, sigma_aim_m=sigma_aim_m,
-                                          resolution=fo.spot_resolution)
+                                          resolution=fo.spot_resolution, level=level_error)
 
     # the choice ------------------------------------------------------------------------------
     t1 = time.perf_counter()
@@ -262,6 +269,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
         centre={names[o]: {p: float(values0[o, k]) for k, p in enumerate(PARAMETERS)}
                 for o in sorted({o for o, _ in unknowns})},
         settings={"budget": budget, "noise": noise, "sigma_aim_m": sigma_aim_m,
+                  "level_error": level_error,
                   "draws": draws, "spot_resolution": spot_resolution, "seed": seed,
                   "session": None if session is None else str(session.path),
                   "region": region.path, "interreflection": "none (object readings)"},

@@ -75,7 +75,8 @@ def prepare_candidates(scene: Scene, candidates: list[dict[str, Any]], *,
 def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values: np.ndarray,
                           *, free: tuple[tuple[int, int], ...], fit_scale: bool = False,
                           scale: np.ndarray | None = None, noise: float = 0.01,
-                          sigma_aim_m: float = 1e-3, spot_resolution: int = 4,
+                          sigma_aim_m: float = 1e-3, level: float = 0.0,
+                          spot_resolution: int = 4,
                           session: Session | None = None, env: Any = None,
                           geometries: Any = None, chunk: int = 256,
                           prepared: list[Any] | None = None,
@@ -90,6 +91,7 @@ def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values
         values: (D, O, 6) physical parameters of each draw; ``scale`` (D,) the global scale.
         noise: relative noise of a reading (σ = noise × max(L, 1e-3 × its peak band)).
         sigma_aim_m: aiming error (m, 1σ per direction across the axis).
+        level: the model's error common to a reading's bands (a fraction of it).
         prepared: :func:`prepare_candidates` of these candidates (default: prepared here).
 
     Returns:
@@ -118,7 +120,8 @@ def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values
             spot_resolution=spot_resolution)
         peak = m.max(axis=-1, keepdims=True)
         sigma = noise * np.maximum(m, 1e-3 * np.maximum(peak, 1e-30))
-        info = reading_information(J, sigma, g, tol, sigma_aim_m=sigma_aim_m)
+        info = reading_information(J, sigma, g, tol, sigma_aim_m=sigma_aim_m, level=level,
+                                   mean=m)
         parts["information"].append(np.swapaxes(info, 0, 1)[:n])
         parts["coverage"].append(prep.coverage[:n])
         parts["mean"].append(np.swapaxes(m, 0, 1)[:n])
@@ -130,18 +133,19 @@ def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values
 
 def session_information(prep: Any, values: np.ndarray, *, scale: np.ndarray,
                         unknowns: tuple[tuple[int, int], ...], fit_scale: bool,
-                        tol: np.ndarray, sigma_aim_m: float, resolution: int) -> np.ndarray:
+                        tol: np.ndarray, sigma_aim_m: float, resolution: int,
+                        level: float = 0.0) -> np.ndarray:
     """(D, F, F) information of the session's readings (their standard errors, the same
-    aiming error) and of its priors, in tolerance units."""
+    aiming error and model level error) and of its priors, in tolerance units."""
     pr = prep.problem
     s = prep.session
     dist = np.array([np.linalg.norm(r.aim - r.position) for r in s.readings])
     fields = np.array([r.field_angle_deg for r in s.readings])
-    _, J, g = reading_sensitivity(pr, values, free=unknowns, fit_scale=fit_scale, scale=scale,
+    m, J, g = reading_sensitivity(pr, values, free=unknowns, fit_scale=fit_scale, scale=scale,
                                   aim_distances=dist, field_angles_deg=fields,
                                   spot_resolution=resolution)
     info = reading_information(J, np.asarray(pr.readings.sigma, np.float64), g, tol,
-                               sigma_aim_m=sigma_aim_m).sum(axis=1)
+                               sigma_aim_m=sigma_aim_m, level=level, mean=m).sum(axis=1)
     for j, _, sd in pr.prior:
         jj = unknowns.index(pr.free[j])
         info[:, jj, jj] += (tol[:, jj] / sd) ** 2

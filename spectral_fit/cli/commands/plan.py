@@ -40,6 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="relative noise of one reading (default 0.01)")
     p.add_argument("--aim-sigma-mm", type=float, default=1.0,
                    help="aiming error, mm (1 sigma per direction; default 1)")
+    p.add_argument("--level-error", type=float, default=0.005,
+                   help="the model's error common to a reading's bands, a fraction of it "
+                   "(default 0.005)")
     p.add_argument("--draws", type=int, default=8,
                    help="parameter draws the worst case is taken over (default 8)")
     p.add_argument("--spot-resolution", type=int, default=4,
@@ -115,10 +118,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = plan_measurements(scene, session, budget=args.budget, region=region,
                                 noise=args.noise, sigma_aim_m=args.aim_sigma_mm * 1e-3,
+                                level_error=args.level_error,
                                 draws=args.draws, spot_resolution=args.spot_resolution,
                                 seed=args.seed, progress=_say)
     except InputError as exc:
-        if exc.field in ("budget", "noise", "sigma_aim_m", "draws", "spot_resolution"):
+        if exc.field in ("budget", "noise", "sigma_aim_m", "level_error", "draws",
+                         "spot_resolution"):
             opt = {"sigma_aim_m": "--aim-sigma-mm"}.get(exc.field,
                                                        "--" + exc.field.replace("_", "-"))
             raise InputError(exc.reason, path=exc.path, field=opt) from None
