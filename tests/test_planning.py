@@ -292,3 +292,46 @@ def test_session_information_matches_the_fit(small, tmp_path):
         obj, p = label.split(".")
         assert plan.stderr_before[j] == pytest.approx(res.stderr[obj][p], rel=0.02), label
     assert plan.objective_after < plan.objective_before
+
+
+def test_correlated_groups_are_the_connected_components():
+    """Unknowns joined by |r| > 0.95 form groups through chains (a–b, b–c: one group), a
+    weaker correlation joins nothing, and single unknowns are not groups."""
+    free = ["y.alpha", "y.beta", "y.n", "r.beta", "r.chi", "scale"]
+    c = np.eye(6)
+    for i, j, r in ((1, 2, -0.97), (2, 0, 0.96), (3, 4, -0.99), (0, 5, 0.9)):
+        c[i, j] = c[j, i] = r
+    assert fitting.correlated_groups(free, c) == [["y.alpha", "y.beta", "y.n"],
+                                                  ["r.beta", "r.chi"]]
+    assert fitting.correlated_groups(free, c, threshold=0.98) == [["r.beta", "r.chi"]]
+
+
+def test_cli_fit_suggests_readings(small, tmp_path, capsys):
+    """``spectral-fit fit --suggest 2 --region FILE``: the fit's report names the planned
+    readings (and writes the plan beside it); their predicted standard errors after are
+    those of the plan from that session (the planner's own test checks them), none larger
+    than now, the worst one smaller."""
+    from helpers.fitting import spots, write_session
+
+    from spectral_fit.cli._main import main
+
+    cfg, scene, _ = small
+    opts = fitting.FitOptions(spot_resolution=RES)
+    clean = fitting.simulate_readings(scene, spots(), options=opts)
+    sess = write_session(tmp_path / "s", cfg, clean, scene.wavelengths)
+    region = tmp_path / "region.toml"
+    region.write_text('frame = "world"\nelevation_steps = 2\nazimuth_steps = 3\n'
+                      "aims_per_object = 12\nfield_angles_deg = [1.0]\n")
+    out = tmp_path / "o"
+    rc = main(["fit", str(cfg), str(sess), "-o", str(out), "--json", "--no-render",
+               "--no-holdout", "--aim-step-mm", "0", "--spot-resolution", str(RES),
+               "--suggest", "2", "--region", str(region)])
+    cap = capsys.readouterr()
+    assert rc == 0
+    sug = json.loads(cap.out)["suggested"]
+    assert len(sug["readings"]) == 2 and "suggest: plan_01" in cap.err
+    now = np.array([v["now"] for v in sug["stderr"].values()])
+    after = np.array([v["after"] for v in sug["stderr"].values()])
+    assert np.all(after <= now * (1 + 1e-9)) and after.max() < now.max()
+    assert (out / "suggested" / "session.toml").is_file()
+    assert json.loads((out / "fit.json").read_text())["suggested"]["readings"] == sug["readings"]

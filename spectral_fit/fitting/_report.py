@@ -341,7 +341,8 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
                  session: Session | None = None, render: bool = True,
                  cache_dir: str | os.PathLike[str] | None = None,
                  timing: Mapping[str, float] | None = None,
-                 started: float | None = None) -> dict[str, Any]:
+                 started: float | None = None,
+                 extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Write the report files (see the module docstring); returns the JSON summary.
 
     Args:
@@ -357,6 +358,8 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
         started: ``time.perf_counter()`` when the work began (the command's start): the
             block's ``total_s`` is measured from it; default the fit's and the report's
             seconds.
+        extra: further blocks for ``fit.json`` (e.g. ``suggested``: the readings that would
+            separate what the fit could not, :func:`~spectral_fit.fitting.suggest_readings`).
     """
     t_report = time.perf_counter()
     out = Path(out_dir)
@@ -424,6 +427,7 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
                 summary["render_uncertainty"] = figures
         else:
             summary["render_note"] = note
+    summary.update(extra or {})
     summary["pictures"] = pictures
     atomic_write_text(out / "materials.json",
                       json.dumps(materials_json(result, scene), indent=2) + "\n")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
 HELP = "fit alpha, beta, chi, mu, n (gamma) of the scene's objects to a measurement session"
 
@@ -35,6 +36,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also compute profile-likelihood intervals (the fit repeated with each "
                    "parameter held at 20 values around its estimate and its interval's ends; "
                    "about 2 s per parameter on 2 CPU cores for 18 readings of 81 bands)")
+    p.add_argument("--suggest", type=int, default=0, metavar="K",
+                   help="also plan K more readings from the fitted session (spectral-fit "
+                   "plan's design) and name what they separate: fit.json 'suggested', the "
+                   "plan in OUTPUT/suggested/")
+    p.add_argument("--region", default=None, metavar="FILE",
+                   help="with --suggest: where the instrument can stand and aim (a plan "
+                   "region file; default: plan's default region)")
     p.add_argument("--errors", choices=("robust", "linear"), default="robust",
                    help="robust (default): each standard error the larger of the linearised "
                    "one and the sandwich with the readings as clusters (an error shared by a "
@@ -42,6 +50,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interreflection", choices=("auto", "none"), default="auto",
                    help="auto: the scene config's interreflection mode; none: fit without "
                    "the interreflection term")
+
+
+def _suggest(args: argparse.Namespace, scene: Any, session: Any, res: Any) -> dict:
+    """``--suggest K``: plan K readings from the fitted session, write the plan into
+    OUTPUT/suggested/ and say what they separate."""
+    from pathlib import Path
+
+    from ...fitting import FitOptions, load_region, suggest_readings, write_plan
+
+    region = load_region(args.region) if args.region else None
+    block, plan = suggest_readings(scene, session, res, budget=args.suggest, region=region,
+                                   fit_options=FitOptions(spot_resolution=args.spot_resolution),
+                                   progress=lambda m: _say(f"suggest: {m}"))
+    files = write_plan(plan, Path(args.output) / "suggested", scene=scene,
+                       config_path=args.config)
+    block["files"] = files
+    for group in block["groups"] or [list(block["stderr"])]:
+        _say("suggest: " + ", ".join(
+            f"{label} ± {block['stderr'][label]['now']:.2g} → {block['stderr'][label]['after']:.2g}"
+            for label in group if label in block["stderr"]))
+    for r in block["readings"]:
+        _say(f"suggest: {r['id']}: stand at {_xyz(r['position'])}, aim at {_xyz(r['aim'])}, "
+             f"field {r['field_angle_deg']:g}°")
+    return block
+
+
+def _xyz(v: list[float]) -> str:
+    return "(" + ", ".join(f"{x:.3f}" for x in v) + ") m"
 
 
 def _say(msg: str) -> None:
@@ -91,9 +127,12 @@ def run(args: argparse.Namespace) -> int:
               holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3,
               interreflection=args.interreflection, profile=args.profile, errors=args.errors,
               cache_dir=cache_root())
+    extra = {}
+    if args.suggest:
+        extra["suggested"] = _suggest(args, scene, session, res)
     summary = write_report(res, args.output, scene=scene, session=session,
                            render=not args.no_render, cache_dir=cache_root(), timing=before,
-                           started=STARTED)
+                           started=STARTED, extra=extra)
     for w in res.warnings:
         _say(f"warning: {w}")
     _say(f"{res.status} after {res.iterations} iterations; chi2/dof {res.chi2_red:.3g}")
