@@ -43,7 +43,7 @@ MESH_CONFIGS = {"any_shape": "configs/any_shape.toml", "on_table": "configs/on_t
                 "flat_faces": "configs/flat_faces.toml",
                 "four_objects": "configs/four_objects.toml"}
 MESH_SPP = {"any_shape": 64, "on_table": 64, "flat_faces": 128, "four_objects": 128}
-MESH_PASSES = {"any_shape": 16, "on_table": 8, "flat_faces": 8, "four_objects": 4}
+MESH_PASSES = {"any_shape": 16, "on_table": 8, "flat_faces": 8, "four_objects": 8}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -260,7 +260,8 @@ def mesh_render(name: str, scene, pt: dict, *, spp: int, passes: int, seed: int,
         out = {"grid": np.concatenate([have["grid"], new["grid"]], axis=1),
                "xyz16": have["xyz16"],
                "seconds": have["seconds"] + new["seconds"],
-               "variant": have["variant"] or new["variant"],
+               "variant": have["variant"] or f"{new['variant']} (passes {k0}-{passes - 1}; "
+                                             f"passes 0-{k0 - 1} not recorded)",
                "source": f"{have['source']} (passes 0-{k0 - 1}; time not recorded) + "
                          f"passes {k0}-{passes - 1} rendered by scripts/make_references.py"
                          if not np.isfinite(have["seconds"]) else
