@@ -105,8 +105,9 @@ def validate_scene(reference: str | os.PathLike[str], *,
 
     Returns a JSON-able dict ``{"reference", "config", "layout", "mode", "patches",
     "regions": {region: {n, median, p90, max, targets, pass, ok, reference_noise_de}},
-    "per_object": {name: stats}, "ok", "figure"}``; ``figure`` writes the false-colour
-    ΔE00 picture (:func:`scene_figure`; PNG, PDF or SVG, its name checked first).
+    "per_object": {name: stats}, "ok", "figure", "delta_e": (P,) per patch}``; ``figure``
+    writes the false-colour ΔE00 picture (:func:`scene_figure`; PNG, PDF or SVG, its name
+    checked first).
     """
     from .._runtime.errors import InputError
     from .._runtime.fileio import check_suffix
