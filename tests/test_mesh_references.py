@@ -242,8 +242,9 @@ def test_validate_every_scene(name, tmp_path):
     > 2 % 2.36 / 23.41 / 27.85 (the back slab's face beside the front slab, 3× too bright: the
     front slab's occlusion of the sky is missing); four_objects > 2 % max 3.36
     (the large sphere beside the small one); two_spheres > 2 % p90 1.65 and max 3.37 (the gap
-    sides of both spheres, the yellow one's rim worst). Met today: every other figure, all of benchmark's (the sphere
-    references in gather, their regions split at 2 %). The picture is written where asked."""
+    sides of both spheres, the yellow one's rim worst). Met today: every other figure, all of
+    benchmark's (the sphere references in gather, their regions split at 2 %). The picture is
+    written where asked."""
     import subprocess
     import sys
 
