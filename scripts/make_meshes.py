@@ -1,5 +1,6 @@
 """Write the bundled non-convex test meshes (binary PLY, metres, per-vertex normals) to
-measurements/meshes/: a ring torus and a thick-walled cup, both closed and wound outward.
+measurements/meshes/: a ring torus, a thick-walled cup and boxes (a slab and a cube), all closed
+and wound outward.
 
     python scripts/make_meshes.py [--out measurements/meshes]
 """
@@ -86,6 +87,38 @@ def cup(outer: float = 0.03, wall: float = 0.004, height: float = 0.07, base: fl
     return pts, tris, nrms
 
 
+def box(size: tuple[float, float, float], segments: int = 8):
+    """A closed box of edge lengths ``size`` (x, y, z, metres) centred on the origin, its faces
+    flat (four vertices of its own per face grid point, the face's normal: sharp edges), each face
+    a ``segments`` × ``segments`` grid of quads (so that per-vertex quantities can vary over it)."""
+    half = 0.5 * np.asarray(size, np.float64)
+    t = np.linspace(-1.0, 1.0, segments + 1)
+    uu, vv = np.meshgrid(t, t, indexing="ij")
+    pts, nrms, tris = [], [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            n = np.zeros(3)
+            n[axis] = sign
+            a, b = (axis + 1) % 3, (axis + 2) % 3
+            p = np.zeros((segments + 1, segments + 1, 3))
+            p[..., axis] = sign * half[axis]
+            p[..., a] = uu * half[a]
+            p[..., b] = vv * half[b]
+            base = sum(len(q) for q in pts)
+            pts.append(p.reshape(-1, 3))
+            nrms.append(np.repeat(n[None], p.shape[0] * p.shape[1], axis=0))
+            for i in range(segments):
+                for j in range(segments):
+                    k00 = base + i * (segments + 1) + j
+                    k10, k01, k11 = k00 + segments + 1, k00 + 1, k00 + segments + 2
+                    tris += [[k00, k10, k11], [k00, k11, k01]]
+    pts, nrms, tris = np.concatenate(pts), np.concatenate(nrms), np.asarray(tris)
+    e = np.cross(pts[tris[:, 1]] - pts[tris[:, 0]], pts[tris[:, 2]] - pts[tris[:, 0]])
+    flip = np.sum(e * nrms[tris[:, 0]], axis=1) < 0
+    tris[flip] = tris[flip][:, ::-1]
+    return pts, tris, nrms
+
+
 def write_ply(path: Path, pts, tris, nrms, comment: str) -> None:
     """Binary little-endian PLY: float32 x y z nx ny nz per vertex, uint8-counted int32 faces."""
     header = "\n".join([
@@ -111,6 +144,10 @@ def main() -> None:
               "ring torus, radii 35 mm and 14 mm, 72 x 36 (scripts/make_meshes.py)")
     write_ply(args.out / "cup.ply", *cup(),
               "cup, 60 mm across, 70 mm high, 4 mm wall (scripts/make_meshes.py)")
+    write_ply(args.out / "slab.ply", *box((0.07, 0.09, 0.012)),
+              "slab, 70 x 90 x 12 mm, flat faces (scripts/make_meshes.py)")
+    write_ply(args.out / "cube.ply", *box((0.03, 0.03, 0.03)),
+              "cube, 30 mm, flat faces (scripts/make_meshes.py)")
 
 
 if __name__ == "__main__":

@@ -400,6 +400,38 @@ def test_generator_smoke_run(tmp_path):
     assert ref.metadata["spp"] == 4 and ref.metadata["passes"] == 2
 
 
+def test_mesh_generator_smoke_run_and_extension(tmp_path):
+    """scripts/make_references.py on flat_faces at a tiny size: files written and loadable in the
+    grid layout; a second run with one more pass renders only that pass (the cached passes are
+    kept bit for bit, the new one has the next seed) and the standard errors follow."""
+    from helpers import load_script
+
+    from spectral_fit.validation.reference import load_reference
+
+    mod = load_script("make_references")
+    args = ["--only", "flat_faces", "--size", "180", "120", "--bands", "500", "520", "10",
+            "--spp", "2", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    assert mod.main([*args, "--passes", "2"]) == 0
+    ref = load_reference(tmp_path / "flat_faces.npz")
+    first = np.load(tmp_path / "cache" / "flat_faces.npz")["grid"]
+    assert first.shape[:2] == (2, 2) and first.shape[-1] == 3
+    assert ref.metadata["layout"] == "grid" and ref.metadata["seeds"] == [0, 1]
+    assert ref.num_patches > 5 and set(ref.object_index) == {0, 1}
+    assert np.all(np.isfinite(ref.spectra)) and np.all(ref.spectra > 0)
+    assert (tmp_path / "flat_faces.png").stat().st_size > 100
+    assert mod.main([*args, "--passes", "3"]) == 0
+    ref3 = load_reference(tmp_path / "flat_faces.npz")
+    grid = np.load(tmp_path / "cache" / "flat_faces.npz")["grid"]
+    assert grid.shape[1] == 3 and np.array_equal(grid[:, :2], first)
+    assert not np.array_equal(grid[:, 2], grid[:, 1])
+    assert ref3.metadata["seeds"] == [0, 1, 2]
+    iy, ix = (ref3.boxes[:, 1] - 1) // 5, (ref3.boxes[:, 0] - 1) // 5
+    g = grid[1][:, iy, ix].astype(np.float64)  # (3 passes, P, 3 bands), depth 16
+    assert np.allclose(ref3.spectra, g.mean(axis=0), rtol=2e-3)
+    assert np.allclose(ref3.noise, g.std(axis=0, ddof=1) / np.sqrt(3), rtol=2e-3,
+                       atol=1e-7)
+
+
 # ------------------------------------------------------------------ spectroradiometer
 
 

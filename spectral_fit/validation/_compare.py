@@ -80,7 +80,8 @@ def validate(
 
     Returns a JSON-able dict: ``{"reference", "config", "white_xyz", "patches",
     "modes": {mode: {"interreflection": stats, "direct": stats, "all": stats, "available"}},
-    "none_vs_single_bounce": {...}, "basis_k8_vs_bands": {...}, "targets", "checks"}``;
+    "none_vs_single_bounce": {...}, "basis_k8_vs_bands": {...}, "targets", "checks",
+    "delta_e": {mode: (P,) per patch}}``;
     ``figure`` writes a false-colour ΔE00 picture (one panel per mode; PNG, PDF or SVG by
     its extension, checked before anything is rendered).
     """
@@ -152,6 +153,7 @@ def validate(
         out[f"basis_k{basis_k}_vs_bands"] = {"mode": mode,
                                              **_stats(delta_e_patches(xyz_b, xyz_f, white))}
     out["checks"] = _checks(out, basis_k)
+    out["delta_e"] = {m: [round(float(d), 4) for d in de] for m, de in de_by_mode.items()}
     if figure is not None:
         delta_e_figure(figure, ref, frames, de_by_mode)
         out["figure"] = str(figure)

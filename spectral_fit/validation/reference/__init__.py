@@ -6,6 +6,8 @@
 - :mod:`.export`: a :class:`~spectral_fit.io.Scene` as a Mitsuba scene (meshes, camera,
   environment with our mapping and rotation).
 - :mod:`.render`: spectral renders by the band trick (⌈L/3⌉ rgb renders), patches on spheres.
+- :mod:`.patches`: the frame's 5×5 patch grid labelled by object / table (scenes of any shape).
+- :mod:`.generate`: references from renders (sphere patches; any shape: the patch grid).
 - :mod:`.data`: the committed references (``measurements/reference/*.npz``) and their loader.
 - :mod:`.instrument`: a simulated spectroradiometer (SR-3A-like readings).
 
@@ -36,6 +38,9 @@ _EXPORTS = {
     "SpectralRender": "render",
     "sphere_patches": "render",
     "make_reference": "generate",
+    "make_mesh_reference": "generate",
+    "raster_patches": "generate",
+    "render_grid": "generate",
     "Spectroradiometer": "instrument",
     "simulate_readings": "instrument",
 }

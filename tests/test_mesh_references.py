@@ -1,0 +1,269 @@
+"""The committed references of scenes of any shape (measurements/reference/{any_shape, on_table,
+flat_faces, four_objects}.npz): made from today's configs and meshes, patches where the
+camera sees one object (checked with exact ray casts against the slabs, the spheres and the
+table plane, not with our rasteriser), labels reproduced from the stored spectra, noise as
+recorded; the region report's arithmetic; (slow) `spectral-fit validate` of every scene against
+its targets or, where a target is missed today, against today's figures as a regression bound.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+from helpers import ROOT
+
+from spectral_fit.color import xyz_weights
+from spectral_fit.io import load_scene
+from spectral_fit.validation.reference import load_reference
+from spectral_fit.validation.reference.render import camera_rays, sphere_hits
+
+NAMES = ["any_shape", "on_table", "flat_faces", "four_objects"]
+
+
+@pytest.fixture(scope="module", params=NAMES)
+def ref(request):
+    return load_reference(request.param)
+
+
+def _digest(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_reference_is_of_todays_config_and_meshes(ref):
+    scene = load_scene(ROOT / ref.config)
+    m = ref.metadata
+    assert m["layout"] == "grid"
+    assert m["config_sha256"] == _digest(ROOT / ref.config)
+    assert m["meshes_sha256"] == {o.name: _digest(o.mesh) for o in scene.objects
+                                  if o.mesh is not None}
+    assert np.allclose(ref.wavelengths, scene.wavelengths)
+    assert ref.wavelengths[0] == 400 and ref.wavelengths[-1] == 700 and ref.wavelengths.size == 31
+    assert m["frame"] == [scene.width, scene.height] == [720, 480]
+    assert ref.object_names == tuple(o.name for o in scene.objects)
+    assert m["depths"] == [2, 16] and m["passes"] >= 4 and len(m["seeds"]) == m["passes"]
+    # 5×5 squares of the frame grid from column and row 1 (one-pixel border fits)
+    b = ref.boxes
+    assert np.all(b[:, 2:] - b[:, :2] == 5)
+    assert np.all(b[:, :2] % 5 == 1)
+    assert np.all(b[:, :2] >= 1) and np.all(b[:, 2:] <= [scene.width - 1, scene.height - 1])
+    assert len({tuple(x) for x in b}) == len(b)
+    # every object has patches
+    assert set(ref.object_index[ref.object_index >= 0]) == set(range(len(scene.objects)))
+
+
+def test_labels_and_shares_follow_from_the_stored_spectra(ref):
+    wy = xyz_weights(ref.wavelengths)[:, 1]
+    obj = ref.object_index >= 0
+    y16, y2 = ref.spectra @ wy, ref.direct @ wy
+    frac = (y16 - y2) / y16
+    # float16 storage: shares within 2e-3 of the full-precision ones
+    assert np.allclose(frac[obj], ref.ir_fraction[obj], atol=2e-3)
+    # interreflection only adds light (beyond 4 standard errors)
+    assert np.all(ref.ir_fraction[obj] > -4 * ref.ir_noise[obj] - 2e-3)
+    thr = ref.metadata["threshold"]
+    assert thr == 0.02
+    expect = np.where(~obj, "table", np.where(ref.ir_fraction > thr, "interreflection",
+                                              "direct"))
+    assert np.array_equal(ref.labels, expect)
+    assert ref.metadata["ir_patches"] == int((ref.labels == "interreflection").sum()) > 10
+    assert (ref.labels == "direct").sum() > 50
+    assert np.all(ref.spectra > 0) and np.all(ref.noise[obj] > 0)
+
+
+def test_noise_is_as_recorded_and_below_the_targets(ref):
+    m = ref.metadata
+    assert np.isclose(np.median(ref.noise_de), m["noise_de_median"], rtol=1e-3)
+    # the reference's own ΔE00 noise stays below the tightest median target (0.3)
+    assert m["noise_de_median"] < 0.25
+    rel = ref.noise / ref.spectra
+    assert np.isclose(np.median(rel), m["median_relative_noise"], rtol=2e-2)
+    # the spread of the passes vs the noise expected from the sample count: the standard error
+    # falls as 1/√spp; 256 spp gave 0.9 % median (any_shape), so spp·rel² is of one order
+    assert 0.3 < m["spp"] * m["median_relative_noise"] ** 2 / (256 * 0.009 ** 2) < 3.0
+
+
+def test_preview_agrees_with_the_patch_spectra(ref):
+    """The preview (depth-16 XYZ, block means of step × step pixels) over each patch's box
+    against the patch's XYZ from its spectrum (blocks straddle the patch's one-pixel border,
+    which shows the same object)."""
+    x0, y0, w, h = ref.metadata["crop"]
+    step = ref.metadata["preview_step"]
+    big = np.repeat(np.repeat(ref.preview_xyz, step, axis=0), step, axis=1)
+    assert big.shape == (h, w, 3)
+    sel = ref.object_index >= 0
+    shifted = ref.boxes[sel] - np.array([x0, y0, x0, y0])
+    y = np.array([big[b:d, a:c, 1].mean() for a, b, c, d in shifted])
+    rel = y / ref.xyz()[sel, 1] - 1.0
+    assert np.median(np.abs(rel)) < 0.01 and np.percentile(np.abs(rel), 90) < 0.05
+
+
+def _ray_box(o, d, lo, hi):
+    """Entry distance (N,) of rays o + t d (d (N, 3)) into the axis-aligned box [lo, hi]
+    (inf where missed)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - o) / d, (hi - o) / d
+    tn = np.nanmax(np.minimum(t1, t2), axis=1)
+    tf = np.nanmin(np.maximum(t1, t2), axis=1)
+    return np.where((tf >= tn) & (tf > 0), tn, np.inf)
+
+
+def _corner_rays(scene, boxes):
+    """Rays through the centre and the four corners of each patch's one-pixel border."""
+    pts = [(0.5 * (boxes[:, 0] + boxes[:, 2]), 0.5 * (boxes[:, 1] + boxes[:, 3]))]
+    for cx, cy in ((0, 1), (2, 1), (0, 3), (2, 3)):
+        pts.append((boxes[:, cx] + (-0.5 if cx == 0 else 0.5),
+                    boxes[:, cy] + (-0.5 if cy == 1 else 0.5)))
+    return [camera_rays(scene, x, y) for x, y in pts]
+
+
+def test_flat_faces_patches_see_their_slab_first():
+    """Exact ray casts against the two slabs (axis-aligned boxes, no rotation): the rays
+    through each patch's centre and the corners of its border meet the patch's slab first."""
+    ref = load_reference("flat_faces")
+    scene = load_scene(ROOT / ref.config)
+    half = np.array([0.035, 0.045, 0.006])
+    for o in scene.objects:
+        assert o.rotation_deg == (0.0, 0.0, 0.0) and o.scale == 1.0
+    # the slabs' large faces are parallel and 4 mm apart, overlapping
+    zb, zf = scene.objects[0].position[2], scene.objects[1].position[2]
+    assert (zf - half[2]) - (zb + half[2]) == pytest.approx(0.004, abs=1e-9)
+    for o_ray, d in _corner_rays(scene, ref.boxes):
+        t = np.stack([_ray_box(o_ray, d, np.asarray(o.position) - half,
+                               np.asarray(o.position) + half) for o in scene.objects])
+        assert np.all(np.isfinite(t.min(axis=0)))
+        assert np.array_equal(t.argmin(axis=0), ref.object_index)
+
+
+def test_four_objects_sizes_and_sphere_patches():
+    """Radii differing by ≥ 4× (bounding radii of all four); the small sphere 4 mm from the
+    large one; patches of the two spheres meet their exact sphere (ray cast) before the
+    other's."""
+    from spectral_fit.validation.reference.patches import object_spheres
+
+    ref = load_reference("four_objects")
+    scene = load_scene(ROOT / ref.config)
+    centres, radii = object_spheres(scene)
+    assert radii.max() / radii.min() >= 4.0
+    assert [o.shape for o in scene.objects] == ["uv_sphere", "uv_sphere", "mesh", "mesh"]
+    big, small = scene.objects[:2]
+    gap = np.linalg.norm(np.subtract(big.position, small.position)) - big.radius - small.radius
+    assert gap == pytest.approx(0.004, abs=2e-4)
+    sel = ref.object_index <= 1
+    for o_ray, d in _corner_rays(scene, ref.boxes[sel]):
+        t = np.stack([sphere_hits(o_ray, d, s.position, s.radius) for s in (big, small)])
+        first = t.argmin(axis=0)
+        assert np.all(np.isfinite(t.min(axis=0)))
+        assert np.array_equal(first, ref.object_index[sel])
+    # the small sphere's patches facing the large one gather > 2 % interreflection
+    small_ir = ref.ir_fraction[ref.object_index == 1]
+    assert small_ir.size >= 10 and small_ir.max() > 0.1
+
+
+def test_on_table_patches_lie_near_their_object():
+    """Table patches: the ray through the centre meets the plane y = 0 within 2 bounding radii
+    of the object named by ``near`` (its centre dropped onto the plane), and in front of every
+    sphere; the table's light makes most object patches > 2 %."""
+    from spectral_fit.validation.reference.patches import object_spheres
+
+    ref = load_reference("on_table")
+    scene = load_scene(ROOT / ref.config)
+    table = ref.object_index < 0
+    assert table.sum() > 100 and np.all(ref.near[table] >= 0) and np.all(ref.near[~table] == -1)
+    b = ref.boxes[table]
+    o, d = camera_rays(scene, 0.5 * (b[:, 0] + b[:, 2]), 0.5 * (b[:, 1] + b[:, 3]))
+    t = -o[1] / d[:, 1]
+    p = o + t[:, None] * d
+    assert np.all(t > 0) and np.allclose(p[:, 1], 0.0, atol=1e-12)
+    centres, radii = object_spheres(scene)
+    k = ref.near[table]
+    dist = np.linalg.norm((p - centres[k])[:, [0, 2]], axis=1) / radii[k]
+    assert np.all(dist <= 2.0 + 1e-9)
+    for s in scene.objects[:2]:
+        assert np.all(t < sphere_hits(o, d, s.position, s.radius))
+    obj = ~table
+    assert np.mean(ref.ir_fraction[obj] > 0.02) > 0.5
+
+
+def test_region_report_arithmetic():
+    """Statistics and pass/fail against hand-computed values on a synthetic reference."""
+    from types import SimpleNamespace
+
+    from spectral_fit.validation import SCENE_TARGETS, region_report
+
+    n = 21
+    labels = np.array(["direct"] * 10 + ["interreflection"] * 10 + ["table"])
+    ref = SimpleNamespace(object_index=np.array([0] * 20 + [-1]), labels=labels,
+                          ir_fraction=np.array([0.01] * 10 + [0.05] * 10 + [np.nan]),
+                          noise_de=np.full(n, 0.1), num_patches=n)
+    de = np.concatenate([np.arange(10) * 0.1, np.arange(10) * 0.5, [4.0]])
+    r = region_report(ref, de)
+    low = r["objects, interreflection < 2 %"]
+    # 0.0 … 0.9: median 0.45, p90 0.81 (linear interpolation), max 0.9
+    assert (low["n"], low["median"], low["p90"], low["max"]) == pytest.approx((10, 0.45, 0.81,
+                                                                                0.9))
+    assert low["pass"] == {"median": False, "p90": False, "max": True} and not low["ok"]
+    high = r["objects, interreflection > 2 %"]
+    assert (high["median"], high["max"]) == pytest.approx((2.25, 4.5))
+    tab = r["table near objects"]
+    assert tab["n"] == 1 and tab["max"] == 4.0 and tab["pass"]["median"] is False
+    assert low["targets"] == SCENE_TARGETS["objects, interreflection < 2 %"]
+    assert low["reference_noise_de"]["median"] == pytest.approx(0.1)
+
+
+# --------------------------------------------------------------------------------------------
+# slow: `spectral-fit validate` of every committed scene
+
+#: ΔE00 (median, p90, max) measured on the committed references where a target is missed
+#: (docs/reference.md, "Scenes of any shape"); the regression bound is 1.1 × today + 0.05 for
+#: those statistics, the target for every other one
+MISSED = {
+    "any_shape": {"objects, interreflection < 2 %": (0.11, 0.25, 2.06),
+                  "objects, interreflection > 2 %": (0.44, 1.84, 5.11)},
+    "on_table": {"objects, interreflection > 2 %": (0.15, 0.82, 5.02),
+                 "table near objects": (0.25, 0.78, 3.69)},
+    "flat_faces": {"objects, interreflection < 2 %": (0.08, 1.41, 10.17),
+                   "objects, interreflection > 2 %": (2.36, 23.41, 27.85)},
+    "four_objects": {"objects, interreflection > 2 %": (0.24, 0.62, 3.36)},
+    "two_spheres": {"objects, interreflection > 2 %": (0.21, 1.65, 3.37)},
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", NAMES + ["benchmark", "two_spheres"])
+def test_validate_every_scene(name, tmp_path):
+    """`spectral-fit validate <name> --json -o picture`: each region's median, p90 and max
+    within its target where met today, else within 1.1 × today's figure + 0.05 (MISSED):
+    any_shape objects < 2 % max 2.06 (target 2.0; the cup's rim), > 2 % p90 1.84 and max 5.11
+    (the cup's inside under the lip); on_table objects > 2 % max 5.02 (the cup's inside), table
+    max 3.69 (between the spheres' contact shadows); flat_faces < 2 % p90 1.41 and max 10.17,
+    > 2 % 2.36 / 23.41 / 27.85 (the back slab's face beside the front slab, 3× too bright: the
+    front slab's occlusion of the sky is missing); four_objects > 2 % max 3.36
+    (the large sphere beside the small one); two_spheres > 2 % p90 1.65 and max 3.37 (the gap
+    sides of both spheres, the yellow one's rim worst). Met today: every other figure, all of
+    benchmark's (the sphere references in gather, their regions split at 2 %). The picture is
+    written where asked."""
+    import subprocess
+    import sys
+
+    from helpers import subprocess_env
+
+    fig = tmp_path / f"{name}.png"
+    cmd = [sys.executable, "-m", "spectral_fit", "validate", name, "--json", "-o", str(fig)]
+    if name in ("benchmark", "two_spheres"):
+        cmd += ["--modes", "gather", "--k", "0"]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(),
+                         cwd=tmp_path, timeout=1800)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout)
+    regions = {k: v for k, v in res["regions"].items() if k != "mode"}
+    assert len(regions) >= 2
+    missed = MISSED.get(name, {})
+    for region, s in regions.items():
+        for i, (stat, target) in enumerate(s["targets"].items()):
+            today = missed.get(region, (0.0, 0.0, 0.0))[i]
+            bound = 1.1 * today + 0.05 if today > target else target
+            assert s[stat] <= bound, (name, region, stat, s[stat], bound)
+    assert fig.is_file() and fig.stat().st_size > 10_000
