@@ -14,6 +14,12 @@ composite) and compares each composited frame with the truth:
 * colour: CIEDE2000 per pixel (colour-science), both frames decoded as sRGB, on the object
   pixels and on the table near the objects (their contact shadows included); per frame the
   median, p90 and mean, and over the frames the median and p90 of the per-frame medians;
+* the same on the means of 5 × 5-pixel patches (:data:`PATCH`) lying wholly in each region
+  (as ``spectral-fit validate`` scores): the path tracer's per-pixel noise in the truth, and
+  the video's, mostly average out there;
+* the floor: the same on the rest of the frame ("far": table, markers and chart away from the
+  objects), where the pipeline passes the video's pixels through and the truth is their
+  noise-free, uncompressed source: what the video's own sensor noise and compression cost;
 * markers: each marker's pose (the session's detector) against the true pose, translation
   error (mm) and rotation error (degrees; the angle of R_estᵀ R_true).
 
@@ -35,7 +41,11 @@ import numpy as np
 
 from .._runtime.errors import InputError
 
-__all__ = ["MR_TARGETS", "score_mr", "mr_figure", "pose_errors"]
+__all__ = ["MR_TARGETS", "PATCH", "score_mr", "mr_figure", "pose_errors", "patch_delta_e00"]
+
+#: side (px) of the square patches of the second colour figure (as ``spectral-fit validate``
+#: scores 5×5-pixel patch means): the path tracer's per-pixel noise averages out over a patch
+PATCH = 5
 
 #: the targets: median over frames of the per-frame median ΔE00 on objects and on the table
 #: near them, p90 over frames of the latter, marker translation (mm) and rotation (degrees)
@@ -51,6 +61,33 @@ def pose_errors(r_est, t_est, r_true, t_true) -> tuple[float, float]:
     r = np.asarray(r_est, np.float64).T @ np.asarray(r_true, np.float64)
     c = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
     return dt, math.degrees(math.acos(c))
+
+
+def patch_delta_e00(a: np.ndarray, b: np.ndarray, mask: np.ndarray, size: int = PATCH
+                    ) -> np.ndarray:
+    """CIEDE2000 (N,) between the means, in linear light, of two sRGB-encoded frames ``a``
+    and ``b`` ((H, W, 3) uint8) over the ``size`` × ``size`` squares of the frame's grid that
+    ``mask`` ((H, W) bool) covers entirely (D65 white, colour-science)."""
+    import colour
+
+    h, w = mask.shape
+    ny, nx = h // size, w // size
+
+    def means(img: np.ndarray) -> np.ndarray:
+        lin = colour.cctf_decoding(np.asarray(img, np.float64)[:ny * size, :nx * size] / 255.0,
+                                   function="sRGB")
+        return lin.reshape(ny, size, nx, size, 3).mean(axis=(1, 3))
+
+    full = mask[:ny * size, :nx * size].reshape(ny, size, nx, size).all(axis=(1, 3))
+    if not full.any():
+        return np.zeros(0)
+    wxy = colour.RGB_COLOURSPACES["sRGB"].whitepoint
+
+    def lab(lin: np.ndarray) -> np.ndarray:
+        return colour.XYZ_to_Lab(colour.RGB_to_XYZ(lin, "sRGB"), wxy)
+
+    return np.asarray(colour.delta_E(lab(means(a)[full]), lab(means(b)[full]),
+                                     method="CIE 2000"))
 
 
 def _stats(v: np.ndarray) -> dict[str, float | int]:
@@ -172,8 +209,13 @@ def score_mr(truth: str | Path, *, config: str | Path | None = None,
             ref = _truth_frame(folder, i, size)
             de = frame_delta_e00(comp / 255.0, ref / 255.0, tone="srgb")
             obj = oid[i] >= 0
+            far = (oid[i] == -1) & ~near[i]
             rec: dict[str, Any] = {"frame": i, "objects": _stats(de[obj]),
-                                   "near": _stats(de[near[i]]),
+                                   "near": _stats(de[near[i]]), "far": _stats(de[far]),
+                                   **{f"{k}_{PATCH}x{PATCH}": _stats(patch_delta_e00(
+                                       comp, ref, m)) for k, m in (("objects", obj),
+                                                                   ("near", near[i]),
+                                                                   ("far", far))},
                                    "visible": np.asarray(session.last_poses.visible).tolist(),
                                    "markers": {}}
             dets = detector.detect(frame)
@@ -207,6 +249,12 @@ def score_mr(truth: str | Path, *, config: str | Path | None = None,
                 "max", math.inf) <= MR_TARGETS["translation_mm"],
             "rotation_deg": summary["markers"].get("rotation_deg", {}).get(
                 "max", math.inf) <= MR_TARGETS["rotation_deg"]},
+        "meets_targets_patches": {
+            f"{key}_{PATCH}x{PATCH}": summary[f"{region}_{PATCH}x{PATCH}"].get(
+                stat, math.inf) <= MR_TARGETS[key]
+            for key, region, stat in (("objects_median", "objects", "median_of_medians"),
+                                      ("near_median", "near", "median_of_medians"),
+                                      ("near_p90_over_frames", "near", "p90_of_medians"))},
         "colour": _chart_json(chart),
         "picture_frame": pick,
         "seconds": {"live": round(live_s, 2), "total": round(time.perf_counter() - t_start, 2)},
@@ -225,7 +273,8 @@ def score_mr(truth: str | Path, *, config: str | Path | None = None,
 
 def _summary(per_frame: list[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for region in ("objects", "near"):
+    for region in ("objects", "near", "far",
+                   *(f"{r}_{PATCH}x{PATCH}" for r in ("objects", "near", "far"))):
         med = np.array([f[region].get("median", np.nan) for f in per_frame])
         ok = np.isfinite(med)
         out[region] = ({"frames": int(ok.sum()), "median_of_medians": float(np.median(med[ok])),

@@ -36,7 +36,14 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(res, indent=2))
         return 0
     s = res["summary"]
-    for region, label in (("objects", "objects"), ("near", "table near the objects")):
+    from ...live import PATCH
+
+    p = f"_{PATCH}x{PATCH}"
+    for region, label in (("objects", "objects"), ("near", "table near the objects"),
+                          ("far", "rest of the frame (the video's own noise and compression)"),
+                          ("objects" + p, f"objects, {PATCH}×{PATCH} patch means"),
+                          ("near" + p, f"table near the objects, {PATCH}×{PATCH} patch means"),
+                          ("far" + p, f"rest of the frame, {PATCH}×{PATCH} patch means")):
         r = s[region]
         if r.get("frames"):
             print(f"ΔE00 {label}: per-frame median, over {r['frames']} frames: median "
@@ -50,5 +57,8 @@ def run(args: argparse.Namespace) -> int:
               f"median {r['median']:.2f}°, max {r['max']:.2f}°")
     for key, ok in res["meets_targets"].items():
         print(f"target {key} <= {res['targets'][key]:g}: {'met' if ok else 'NOT met'}")
+    for key, ok in res["meets_targets_patches"].items():
+        print(f"target {key} <= {res['targets'][key.removesuffix(p)]:g}: "
+              f"{'met' if ok else 'NOT met'}")
     print(f"wrote {args.out}/mr_score.json, {res.get('picture')}", file=sys.stderr)
     return 0
