@@ -330,8 +330,7 @@ def mr_figure(path: str | Path, keep: dict[str, np.ndarray], frame: int,
     axes[1].imshow(keep["truth"])
     axes[1].set_title("ground truth (path traced, noise-free)", fontsize=8)
     axes[2].imshow(keep["truth"].mean(-1), cmap="gray", vmin=0, vmax=255 * 1.6)
-    cmap = plt.get_cmap("inferno").copy()
-    cmap.set_bad((0, 0, 0, 0))
+    cmap = plt.get_cmap("inferno").with_extremes(bad=(0, 0, 0, 0))
     im = axes[2].imshow(np.ma.masked_invalid(de), cmap=cmap, vmin=0, vmax=vmax,
                         interpolation="nearest")
     o, nr = rec["objects"], rec["near"]
