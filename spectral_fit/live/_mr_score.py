@@ -17,6 +17,12 @@ composite) and compares each composited frame with the truth:
 * the same on the means of 5 × 5-pixel patches (:data:`PATCH`) lying wholly in each region
   (as ``spectral-fit validate`` scores): the path tracer's per-pixel noise in the truth, and
   the video's, mostly average out there;
+* the bias: the composite's mean linear RGB over each region divided by the truth's
+  (``linear_ratio``; 1 = the same level), which the per-pixel noise does not blur;
+* the same against the truth written with the video's own encoder and read back
+  (``codec_matched``): OpenCV's MPEG-4 round trip shifts the level (about −2.5 of 255 on the
+  table) and the chart calibration carries that shift into the CG, as it should for a
+  composite that must match its video; this comparison leaves the codec's share out;
 * the floor: the same on the rest of the frame ("far": table, markers and chart away from the
   objects), where the pipeline passes the video's pixels through and the truth is their
   noise-free, uncompressed source: what the video's own sensor noise and compression cost;
@@ -88,6 +94,36 @@ def patch_delta_e00(a: np.ndarray, b: np.ndarray, mask: np.ndarray, size: int = 
 
     return np.asarray(colour.delta_E(lab(means(a)[full]), lab(means(b)[full]),
                                      method="CIE 2000"))
+
+
+def _through_codec(folder: Path, n: int, size: tuple[int, int], suffix: str,
+                   fps: float | None) -> list[np.ndarray]:
+    """The first ``n`` truth frames written with the video's encoder (:class:`VideoSink`, by
+    the video's suffix) and read back: the truth as that codec delivers it (its level shift
+    and artefacts included)."""
+    import tempfile
+
+    from ._video import VideoSink, VideoSource
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"truth{suffix or '.mp4'}"
+        with VideoSink(path, fps=fps or 25.0, size=size) as sink:
+            for i in range(n):
+                sink.write(_truth_frame(folder, i, size))
+        with VideoSource(path, field="truth video") as back:
+            return [f for _, f in zip(range(n), back, strict=False)]
+
+
+def _linear_ratio(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> list[float] | None:
+    """(3,) mean linear RGB of sRGB frame ``a`` over ``mask`` divided by ``b``'s (a bias
+    check beside the ΔE00: 1 = the same level), None for an empty mask."""
+    import colour
+
+    if not mask.any():
+        return None
+    la = colour.cctf_decoding(np.asarray(a, np.float64)[mask] / 255.0, function="sRGB")
+    lb = colour.cctf_decoding(np.asarray(b, np.float64)[mask] / 255.0, function="sRGB")
+    return (la.mean(0) / np.maximum(lb.mean(0), 1e-9)).tolist()
 
 
 def _stats(v: np.ndarray) -> dict[str, float | int]:
@@ -201,6 +237,7 @@ def score_mr(truth: str | Path, *, config: str | Path | None = None,
         pick = n // 2 if picture_frame is None else int(picture_frame)
         if not 0 <= pick < n:
             raise InputError(f"must be in [0, {n - 1}], got {pick}", field="--frame")
+        coded = _through_codec(folder, n, size, video.suffix, src.fps)
         t_live = time.perf_counter()
         for i, frame in enumerate(src):
             if i >= n:
@@ -227,6 +264,15 @@ def score_mr(truth: str | Path, *, config: str | Path | None = None,
                 dt, dr = pose_errors(d.rotation, d.translation, true["R"], true["t"])
                 rec["markers"][mid] = {"translation_mm": dt, "rotation_deg": dr,
                                        "distance_m": float(np.linalg.norm(true["t"]))}
+            rec["linear_ratio"] = {k: _linear_ratio(comp, ref, m)
+                                   for k, m in (("objects", obj), ("near", near[i]))}
+            dc = frame_delta_e00(comp / 255.0, coded[i] / 255.0, tone="srgb")
+            rec["codec_matched"] = {
+                "objects": _stats(dc[obj]), "near": _stats(dc[near[i]]),
+                **{f"{k}_{PATCH}x{PATCH}": _stats(patch_delta_e00(comp, coded[i], m))
+                   for k, m in (("objects", obj), ("near", near[i]))},
+                "linear_ratio": {k: _linear_ratio(comp, coded[i], m)
+                                 for k, m in (("objects", obj), ("near", near[i]))}}
             per_frame.append(rec)
             if i == pick:
                 keep = {"composite": comp, "truth": ref, "de": de, "objects": obj,
@@ -283,6 +329,23 @@ def _summary(per_frame: list[dict[str, Any]]) -> dict[str, Any]:
                         "median_of_p90s": float(np.median(
                             [f[region]["p90"] for f in per_frame if f[region].get("n")]))}
                        if ok.any() else {"frames": 0})
+    for region in ("objects", "near"):
+        r = [f["linear_ratio"][region] for f in per_frame if f["linear_ratio"][region]]
+        if r:
+            out[region]["linear_ratio_median"] = np.median(np.asarray(r), axis=0).tolist()
+    cm: dict[str, Any] = {}
+    for region in ("objects", "near", f"objects_{PATCH}x{PATCH}", f"near_{PATCH}x{PATCH}"):
+        med = np.array([f["codec_matched"][region].get("median", np.nan) for f in per_frame])
+        ok = np.isfinite(med)
+        cm[region] = ({"median_of_medians": float(np.median(med[ok])),
+                       "p90_of_medians": float(np.percentile(med[ok], 90))}
+                      if ok.any() else {"frames": 0})
+    for region in ("objects", "near"):
+        r = [f["codec_matched"]["linear_ratio"][region] for f in per_frame
+             if f["codec_matched"]["linear_ratio"][region]]
+        if r:
+            cm[region]["linear_ratio_median"] = np.median(np.asarray(r), axis=0).tolist()
+    out["codec_matched"] = cm
     dts, drs, missed = [], [], 0
     for f in per_frame:
         for v in f["markers"].values():

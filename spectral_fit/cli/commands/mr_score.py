@@ -49,6 +49,20 @@ def run(args: argparse.Namespace) -> int:
             print(f"ΔE00 {label}: per-frame median, over {r['frames']} frames: median "
                   f"{r['median_of_medians']:.2f}, p90 {r['p90_of_medians']:.2f}, max "
                   f"{r['max_of_medians']:.2f}")
+    for region in ("objects", "near"):
+        lr = s[region].get("linear_ratio_median")
+        if lr:
+            print(f"mean linear RGB composite / truth, {region} (median over frames): "
+                  + ", ".join(f"{x:.3f}" for x in lr))
+    cm = s["codec_matched"]
+    for region in ("objects", "near"):
+        a, b = cm[region], cm[f"{region}{p}"]
+        if "median_of_medians" in a:
+            print(f"against the truth through the video's codec, {region}: per pixel "
+                  f"{a['median_of_medians']:.2f} (p90 over frames {a['p90_of_medians']:.2f}), "
+                  f"{PATCH}×{PATCH} patches {b['median_of_medians']:.2f} "
+                  f"({b['p90_of_medians']:.2f}); linear ratio "
+                  + ", ".join(f"{x:.3f}" for x in a.get("linear_ratio_median", [])))
     m = s["markers"]
     if m["detections"]:
         t, r = m["translation_mm"], m["rotation_deg"]
