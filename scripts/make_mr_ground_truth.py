@@ -23,7 +23,7 @@ tracer renders the frame with and without the objects with the same random numbe
 (``M_with``, ``M_without``), and the truth is ``M_with + (1 − cov)·(A − M_without)`` with cov
 the objects' pixel coverage: where the objects change nothing the two renders take the same
 paths and the table is exactly ``A``; near the objects only the light they change is left to
-chance. The window around the objects and the table within ``--radii`` bounding radii of them
+chance. The window around the objects and the table within ``--radii`` + 0.5 bounding radii of them
 is rendered with ``--spp-near`` samples, the rest with ``--spp``. Each frame's Mitsuba
 results are cached in ``--cache`` (keyed by every setting).
 
