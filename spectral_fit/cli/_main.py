@@ -31,6 +31,7 @@ COMMANDS: dict[str, str] = {
     "plan": "plan",
     "live": "live",
     "calibrate-colour": "calibrate_colour",
+    "mr-score": "mr_score",
 }
 
 

@@ -12,6 +12,7 @@ from .._runtime.lazy import lazy_exports
 _EXPORTS: dict[str, str] = {
     "CameraColourSpec": "_scene",
     "CameraSpec": "_scene",
+    "ColourChartSpec": "_scene",
     "DEFAULT_FREE": "_session",
     "DisplaySpec": "_scene",
     "EMISSIVE_UNITS": "_exr",

@@ -49,11 +49,24 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
                        whose frame is the world: marker plane = ground, +Y up), smoothing [0]
                        (exponential pose smoothing in [0, 1)), hold_frames [0] (frames a lost
                        marker's object stays at its last pose before it is masked out),
-                       refine ["edges" | "subpix" | "contour" | "apriltag" | "none"]
+                       refine ["edges" | "subpix" | "contour" | "apriltag" | "none"],
+                       tone ["none" | "srgb" | "gamma"] (the frames' tone curve: "edges"
+                       finds the half-contrast crossing in linear light), gamma [2.2]
     [camera_colour]    (optional; live compositing, from ``spectral-fit calibrate-colour``)
                        matrix (3×3 rows: absolute XYZ → white-balanced linear frame RGB),
                        white_balance [[1, 1, 1]] (per-channel gains after the matrix),
                        tone ["srgb" | "gamma" | "linear"], gamma [2.2]
+    [colour_chart]     (optional; live compositing: a ColorChecker lying in the video, placed
+                       relative to a marker, from which the live session fits the camera's
+                       colour) marker (id), centre [[0,0,0]] (the chart's centre in that
+                       marker's ground frame, m: +Y its normal, −Z its top edge), size
+                       [[0.12, 0.08]] (width × height of the patch area, m: 6 × 4 patches),
+                       rotation_deg [0] (about the ground frame's +Y; 0: patch 1, dark skin,
+                       at the −X, −Z corner), chart ["BabelColor Average"] (colour-science's
+                       reflectances), frames [8] (frames averaged), search_frames [300]
+                       (frames looked through from the start), min_patch_px [6] (smallest
+                       patch side in pixels to use a frame), tone ["srgb" | "gamma" |
+                       "linear" | "fit"], gamma [2.2]
 """
 
 from __future__ import annotations
@@ -82,6 +95,7 @@ __all__ = [
     "MarkerSpec",
     "SurfaceSpec",
     "CameraColourSpec",
+    "ColourChartSpec",
     "MARKER_DICTIONARIES",
     "load_scene",
     "parse_scene",
@@ -245,6 +259,12 @@ class MarkerSpec:
         hold_frames: frames an object keeps its last pose after its marker is lost.
         refine: corner refinement: "edges" (sub-pixel edge lines, unbiased under blur; the
             default), or OpenCV's "subpix", "contour", "apriltag", "none".
+        tone: the frames' tone curve as the "edges" refinement reads them: "none" (default:
+            the half-contrast crossing of the encoded grey levels), "srgb" or "gamma" (with
+            ``gamma``): the crossing in linear light. A camera blurs in linear light (its
+            pixels integrate light); after a tone curve the encoded half level lies on the
+            dark side of the edge, so the black square looks smaller and farther away.
+        gamma: exponent of ``tone = "gamma"``.
     """
 
     dictionary: str = "DICT_5X5_100"
@@ -253,6 +273,8 @@ class MarkerSpec:
     smoothing: float = 0.0
     hold_frames: int = 0
     refine: str = "edges"
+    tone: str = "none"
+    gamma: float = 2.2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -303,6 +325,40 @@ class CameraColourSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class ColourChartSpec:
+    """A ColorChecker lying in the video (the ``[colour_chart]`` table): the live session finds
+    it through a tracked marker and fits the camera's colour from it
+    (:func:`spectral_fit.live.chart_camera_model`).
+
+    Attributes:
+        marker: id of the marker the chart is placed against.
+        centre: (3,) the chart's centre in that marker's ground frame (m; +Y = the marker's
+            normal, −Z = its top edge).
+        size: (width, height) of the chart's patch area (m): its 6 columns run along the
+            ground frame's +X and its 4 rows along +Z before ``rotation_deg``.
+        rotation_deg: rotation about the ground frame's +Y (degrees, counter-clockwise seen
+            from above); at 0 patch 1 (dark skin) is at the −X, −Z corner.
+        chart: colour-science ColorChecker reflectances (``SDS_COLOURCHECKERS`` key).
+        frames: frames whose patch samples are averaged.
+        search_frames: frames looked through from the start of the video.
+        min_patch_px: a frame is used when every patch is at least this many pixels across.
+        tone: the frame's tone curve ("fit": a gamma curve fitted on the neutral patches);
+            gamma: its exponent for "gamma".
+    """
+
+    marker: int
+    centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    size: tuple[float, float] = (0.12, 0.08)
+    rotation_deg: float = 0.0
+    chart: str = "BabelColor Average"
+    frames: int = 8
+    search_frames: int = 300
+    min_patch_px: float = 6.0
+    tone: str = "srgb"
+    gamma: float = 2.2
+
+
+@dataclasses.dataclass(frozen=True)
 class Scene:
     """A validated scene description (see the module docstring for the file format)."""
 
@@ -318,6 +374,7 @@ class Scene:
     markers: MarkerSpec | None = None
     camera_colour: CameraColourSpec | None = None
     surfaces: tuple[SurfaceSpec, ...] = ()
+    colour_chart: ColourChartSpec | None = None
 
     @property
     def wavelengths(self) -> np.ndarray:
@@ -663,10 +720,43 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
         raise root.err("surfaces", f"surface names must be unique: {snames}")
     markers = _markers(root, objects) if "markers" in data else None
     camera_colour = _camera_colour(root) if "camera_colour" in data else None
+    colour_chart = _colour_chart(root, markers) if "colour_chart" in data else None
     root.finish()
     return Scene(path=p, width=width, height=height, camera=camera, environment=environment,
                  display=display, spectral=spectral, interreflection=inter, objects=objects,
-                 markers=markers, camera_colour=camera_colour, surfaces=surfaces)
+                 markers=markers, camera_colour=camera_colour, surfaces=surfaces,
+                 colour_chart=colour_chart)
+
+
+def _colour_chart(root: _Reader, markers: MarkerSpec | None) -> ColourChartSpec:
+    """The ``[colour_chart]`` table; needs ``[markers]`` (its marker id in the dictionary)."""
+    import colour
+
+    cr = root.sub("colour_chart")
+    if markers is None:
+        raise cr.err("marker", "a chart placed by a marker needs a [markers] table")
+    n_ids = MARKER_DICTIONARIES[markers.dictionary]
+    size = cr.vector("size", 2, [0.12, 0.08], bound=MAX_COORD_M)
+    if min(size) <= 0:
+        raise cr.err("size", f"width and height must be > 0, got {list(size)}")
+    chart = cr.string("chart", "BabelColor Average")
+    if chart not in colour.SDS_COLOURCHECKERS:
+        raise cr.err("chart", f"unknown chart {chart!r}; known: "
+                              f"{sorted(colour.SDS_COLOURCHECKERS)}")
+    spec = ColourChartSpec(
+        marker=cr.integer("marker", lo=0, hi=n_ids - 1),
+        centre=cr.vector("centre", 3, [0.0, 0.0, 0.0], bound=MAX_COORD_M),  # type: ignore[arg-type]
+        size=size,  # type: ignore[arg-type]
+        rotation_deg=cr.number("rotation_deg", 0.0, lo=-360.0, hi=360.0),
+        chart=chart,
+        frames=cr.integer("frames", 8, lo=1, hi=10000),
+        search_frames=cr.integer("search_frames", 300, lo=1, hi=1000000),
+        min_patch_px=cr.number("min_patch_px", 6.0, lo=1.0, hi=1000.0),
+        tone=cr.choice("tone", ("srgb", "gamma", "linear", "fit"), "srgb"),
+        gamma=cr.number("gamma", 2.2, lo=0.1, hi=10.0),
+    )
+    cr.finish()
+    return spec
 
 
 def _camera_colour(root: _Reader) -> CameraColourSpec:
@@ -711,6 +801,8 @@ def _markers(root: _Reader, objects: tuple[ObjectSpec, ...]) -> MarkerSpec:
         smoothing=mr.number("smoothing", 0.0, lo=0.0, hi=0.99),
         hold_frames=mr.integer("hold_frames", 0, lo=0, hi=10000),
         refine=mr.choice("refine", ("edges", "subpix", "contour", "apriltag", "none"), "edges"),
+        tone=mr.choice("tone", ("none", "srgb", "gamma"), "none"),
+        gamma=mr.number("gamma", 2.2, lo=0.1, hi=10.0),
     )
     mr.finish()
     for i, o in enumerate(objects):

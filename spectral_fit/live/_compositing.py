@@ -74,6 +74,7 @@ __all__ = [
     "chart_xyz",
     "ChartCalibration",
     "calibrate_colour",
+    "calibrate_colour_samples",
     "frame_delta_e00",
     "colour_config_text",
     "write_colour_config",
@@ -569,10 +570,24 @@ def calibrate_colour(image: np.ndarray, corners, xyz, white_xyz, *, tone: str = 
     h, w = img.shape[:2]
     if np.any(c < 0) or np.any(c[:, 0] > w) or np.any(c[:, 1] > h):
         raise InputError(f"corners must lie inside the {w}x{h} image", field="--corners")
+    return calibrate_colour_samples(sample_chart(img, c) / 255.0, xyz, white_xyz, tone=tone,
+                                    gamma=gamma, hold_out=hold_out)
+
+
+def calibrate_colour_samples(enc, xyz, white_xyz, *, tone: str = "srgb", gamma: float = 2.2,
+                             hold_out=()) -> ChartCalibration:
+    """:func:`calibrate_colour` from the chart's sampled patches: ``enc`` (24, 3) encoded
+    frame values in [0, 1] (e.g. :func:`sample_chart` / 255, or a mean over frames), ``xyz``
+    (24, 3) their absolute XYZ under the scene's light, ``white_xyz`` (3,) that light's
+    white."""
     if tone not in ("srgb", "gamma", "linear", "fit"):
         raise InputError(f"unknown tone curve {tone!r}", field="--tone")
     xyz = np.asarray(xyz, np.float64)
-    enc = sample_chart(img, c) / 255.0
+    enc = np.asarray(enc, np.float64)
+    if enc.shape != (24, 3) or xyz.shape != (24, 3):
+        raise InputError(f"need (24, 3) patch values and XYZ, got {enc.shape} and {xyz.shape}",
+                         field="chart")
+    white_xyz = np.asarray(white_xyz, np.float64)
     if tone == "fit":
         tone, gamma = "gamma", _fit_gamma(xyz, enc)
     keep = np.ones(24, bool)

@@ -121,14 +121,17 @@ def estimate_marker_pose(corners, size: float, k, dist=None
 
 
 def refine_corners_by_edges(grey: np.ndarray, corners, k, dist=None, *, samples: int = 24,
-                            half_width: float = 4.0) -> np.ndarray:
+                            half_width: float = 4.0, levels: np.ndarray | None = None
+                            ) -> np.ndarray:
     """Corners (4, 2) in NORMALISED undistorted coordinates (x/z, y/z) from the marker's four
     outer edges: along each side, the black-to-white crossing at half contrast of a profile
     across the edge (unbiased for a symmetric blur, unlike corner-based refinement, which pulls
     blurred convex corners inwards), undistorted, fitted with a straight line (total least
     squares); adjacent lines intersect at the corners.
 
-    ``grey``: (H, W) image; ``corners``: (4, 2) approximate pixel corners (ArUco order).
+    ``grey``: (H, W) image; ``corners``: (4, 2) approximate pixel corners (ArUco order);
+    ``levels``: (256,) what each grey level of a uint8 ``grey`` stands for (e.g. linear light
+    × 255, to find the crossings in linear light), None: the levels themselves.
     """
     cv2 = _cv2()
     c = np.asarray(corners, np.float64).reshape(4, 2)
@@ -148,7 +151,8 @@ def refine_corners_by_edges(grey: np.ndarray, corners, k, dist=None, *, samples:
               for i, lim in ((0, gw), (1, gh)))
     x1, y1 = (max(int(np.ceil(pts[..., i].max())) + 3, v + 1)
               for i, v in ((0, x0), (1, y0)))
-    g = np.asarray(grey[y0:y1, x0:x1], np.float32)
+    g = (np.asarray(grey[y0:y1, x0:x1], np.float32) if levels is None else
+         np.asarray(levels, np.float32)[grey[y0:y1, x0:x1]])
     flat = (pts.reshape(4 * samples, offs.size, 2) - [x0, y0]).astype(np.float32)
     prof = cv2.remap(g, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
@@ -230,6 +234,7 @@ class MarkerDetector:
         self._last: dict[int, np.ndarray] = {}
         self._grey: np.ndarray | None = None
         self._small: np.ndarray | None = None
+        self._levels = _linear_levels(getattr(spec, "tone", "none"), getattr(spec, "gamma", 2.2))
         method = {
             "none": cv2.aruco.CORNER_REFINE_NONE, "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
             "edges": cv2.aruco.CORNER_REFINE_SUBPIX,
@@ -259,7 +264,8 @@ class MarkerDetector:
         if self.spec.refine == "edges":
             cv2 = _cv2()
             try:
-                norm = refine_corners_by_edges(grey, c, self.k, self.dist)
+                norm = refine_corners_by_edges(grey, c, self.k, self.dist,
+                                               levels=self._levels)
             except ValueError:
                 pass
             else:
@@ -367,6 +373,22 @@ class MarkerDetector:
             out[i] = MarkerDetection(i, c, r, t, err)
         self._last = {i: d.corners for i, d in out.items()}
         return out
+
+
+def _linear_levels(tone: str, gamma: float) -> np.ndarray | None:
+    """(256,) linear light × 255 of each 8-bit level under the tone curve ``tone`` ("srgb"
+    or "gamma"), None for "none"."""
+    v = np.arange(256) / 255.0
+    if tone == "none":
+        return None
+    if tone == "srgb":
+        lin = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    elif tone == "gamma":
+        lin = v ** float(gamma)
+    else:
+        raise InputError(f"must be 'none', 'srgb' or 'gamma', got {tone!r}",
+                         field="markers.tone")
+    return (255.0 * lin).astype(np.float32)
 
 
 def ground_frame(rotation, translation) -> np.ndarray:

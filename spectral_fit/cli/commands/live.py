@@ -26,8 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--k", type=int, default=None, help="basis size for --spectral-mode basis")
     p.add_argument("--sensitivities", default=None,
                    help="camera spectral sensitivities (colour-science name) for colour "
-                   "matching (default: the config's [camera_colour] from "
-                   "'spectral-fit calibrate-colour', else 'Nikon 5100 (NPL)')")
+                   "matching (default: fitted from the config's [colour_chart] in the video, "
+                   "else the config's [camera_colour] from 'spectral-fit calibrate-colour', "
+                   "else 'Nikon 5100 (NPL)')")
     p.add_argument("--white-level", type=float, default=0.85,
                    help="linear frame level of a white sheet on the table (exposure)")
     p.add_argument("--blur-px", type=float, default=None, metavar="SIGMA",
@@ -124,11 +125,17 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     source = VideoSource(args.camera if args.camera is not None else args.video,
                          field="--camera" if args.camera is not None else "--video")
+    chart = None
+    if scene.colour_chart is not None and args.sensitivities is None:
+        # the camera's colour from the chart in the video's first frames (a file is read
+        # once more from its start; a camera's first frames are spent on it)
+        chart = _chart_model(scene, args, source)
     with source:
         session = LiveSession(scene, size=(source.height, source.width), mode=args.mode,
                               spectral_mode=args.spectral_mode, k=args.k,
                               sensitivities=args.sensitivities, white_level=args.white_level,
-                              ir_reuse_mm=args.ir_reuse_mm, lens=args.lens)
+                              ir_reuse_mm=args.ir_reuse_mm, lens=args.lens,
+                              camera=None if chart is None else chart.model)
         in_flight = 1 if pipeline else len(session.devices)  # LiveSession.run's choice
         fps_out = args.fps or (source.fps if source.fps and source.fps > 0 else 25.0)
         total = source.frame_count
@@ -188,7 +195,8 @@ def run(args: argparse.Namespace) -> int:
         "devices": [str(d) for d in session.devices],
         "cg_blur_px": session.camera.blur_px,
         "cg_noise": session.camera.noise,
-        "colour": ("sensitivities " + (args.sensitivities or "Nikon 5100 (NPL)")
+        "colour": (_chart_note(chart) if chart is not None else
+                   "sensitivities " + (args.sensitivities or "Nikon 5100 (NPL)")
                    if args.sensitivities or scene.camera_colour is None
                    else "[camera_colour]"),
     }
@@ -212,6 +220,28 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"wrote {n} frames but {written} read back", path=args.output,
                          field="--output")
     return 0
+
+
+def _chart_model(scene, args: argparse.Namespace, source):
+    """The colour model fitted from the config's ``[colour_chart]`` in the video."""
+    from ...live import VideoSource, chart_camera_model, scene_intrinsics
+
+    k, dist = scene_intrinsics(scene, (source.height, source.width))
+    if args.camera is not None:
+        return chart_camera_model(scene, source, k=k, dist=dist, source=f"camera {args.camera}")
+    with VideoSource(args.video, field="--video") as again:
+        chart = chart_camera_model(scene, again, k=k, dist=dist, source=str(args.video))
+    if not args.quiet:
+        print(f"live: {_chart_note(chart)}", file=sys.stderr)
+    return chart
+
+
+def _chart_note(chart) -> str:
+    cal = chart.calibration
+    de = cal.delta_e00[cal.used]
+    return (f"[colour_chart] in {len(chart.frames)} frames (first {chart.frames[0]}), "
+            f"{int(cal.used.sum())} patches, reproduction ΔE00 mean {de.mean():.2f} "
+            f"max {de.max():.2f}")
 
 
 class _Null:
