@@ -49,6 +49,23 @@ def scene_white_xyz(xyz_map: np.ndarray, rotation_y_deg: float, normal: Any) -> 
     return np.einsum("hw,hwc->c", wgt, xyz_map) / math.pi
 
 
+def reference_scene(reference: str | os.PathLike[str]) -> tuple[Any, Path, Any]:
+    """(the committed reference, its config's path, the config's scene), the reference's
+    wavelengths checked against the config's."""
+    from .._runtime.errors import InputError
+    from ..io import load_scene
+    from .reference import load_reference
+
+    ref = load_reference(reference)
+    cfg = ROOT / ref.config if not os.path.isabs(ref.config) else Path(ref.config)
+    scene = load_scene(cfg)
+    wl = scene.wavelengths
+    if wl.size != ref.wavelengths.size or not np.allclose(wl, ref.wavelengths):
+        raise InputError("the reference's wavelengths differ from its config's", path=cfg,
+                         field="spectral")
+    return ref, cfg, scene
+
+
 def delta_e_patches(xyz: np.ndarray, xyz_ref: np.ndarray, white: np.ndarray) -> np.ndarray:
     """ΔE00 (P,) between patch colours (P, 3) and reference colours (P, 3) (absolute XYZ),
     CIELAB against ``white`` (3,)."""
@@ -91,21 +108,12 @@ def validate(
 
     from .._runtime.fileio import check_suffix
     from ..color import radiance_to_xyz, xyz_weights
-    from ..io import load_scene
     from ..rendering import prepare, render_frame
-    from .reference import load_reference
 
     # the picture is written last: its name is checked before any frame is rendered
     check_suffix(figure, FIGURE_FORMATS, "figure", "the ΔE00 figure is a picture")
-    ref = load_reference(reference)
-    cfg = ROOT / ref.config if not os.path.isabs(ref.config) else Path(ref.config)
-    scene = load_scene(cfg)
+    ref, cfg, scene = reference_scene(reference)
     wl = scene.wavelengths
-    if wl.size != ref.wavelengths.size or not np.allclose(wl, ref.wavelengths):
-        from .._runtime.errors import InputError
-
-        raise InputError("the reference's wavelengths differ from its config's", path=cfg,
-                         field="spectral")
     size = tuple(ref.metadata.get("frame", (scene.width, scene.height)))
     xyz_ref = ref.xyz()
     xyz_ref_direct = ref.xyz(direct=True)

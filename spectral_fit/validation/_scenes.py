@@ -112,19 +112,12 @@ def validate_scene(reference: str | os.PathLike[str], *,
     from .._runtime.errors import InputError
     from .._runtime.fileio import check_suffix
     from ..color import radiance_to_xyz, xyz_weights
-    from ..io import load_scene
     from ..rendering import load_environment
-    from ._compare import FIGURE_FORMATS, delta_e_patches, scene_white_xyz
-    from .reference import load_reference
+    from ._compare import FIGURE_FORMATS, delta_e_patches, reference_scene, scene_white_xyz
 
     check_suffix(figure, FIGURE_FORMATS, "figure", "the ΔE00 figure is a picture")
-    ref = load_reference(reference)
-    cfg = REPO_ROOT / ref.config if not os.path.isabs(ref.config) else Path(ref.config)
-    scene = load_scene(cfg)
+    ref, cfg, scene = reference_scene(reference)
     wl = scene.wavelengths
-    if wl.size != ref.wavelengths.size or not np.allclose(wl, ref.wavelengths):
-        raise InputError("the reference's wavelengths differ from its config's", path=cfg,
-                         field="spectral")
     frame_size = tuple(ref.metadata.get("frame", (scene.width, scene.height)))
     if frame_size != (scene.width, scene.height):
         raise InputError(f"the reference's frame {frame_size} differs from its config's",
