@@ -493,18 +493,27 @@ class TableChange(eqx.Module):
         return k @ self.coarse
 
     def mirrored(self, points: jax.Array, normals: jax.Array, views: jax.Array,
-                 owner: jax.Array | None = None) -> jax.Array:
+                 owner: jax.Array | None = None, table: jax.Array | None = None
+                 ) -> jax.Array:
         """The change (N, C) of the radiance along each point's mirror direction where it
         meets the plane inside the region (else 0, and 0 where the ray passes through
-        another object than the point's ``owner`` (N,) first)."""
+        another object than the point's ``owner`` (N,) first). ``table``: the fine change
+        in other channels (T, T, D), e.g. already in a frame's output channels (then
+        (N, D)). Products of (N, 3) arrays with single vectors as elementwise sums (a
+        matrix product with an inner size of 3 is slow on the CPU)."""
+        def dot(a: jax.Array, b: jax.Array) -> jax.Array:
+            return a[:, 0] * b[0] + a[:, 1] * b[1] + a[:, 2] * b[2]
+
         nv = jnp.sum(normals * views, -1, keepdims=True)
         r = 2.0 * nv * normals - views
-        down = r @ self.axes[2]
-        t = ((self.origin - points) @ self.axes[2]) / jnp.where(down < -1e-6, down, -1e-6)
+        down = dot(r, self.axes[2])
+        t = (self.origin @ self.axes[2] - dot(points, self.axes[2])) / jnp.where(
+            down < -1e-6, down, -1e-6)
         hit = points + t[:, None] * r
-        uv = ((hit - self.origin) @ self.axes[:2].T) / self.half
-        zero = jnp.zeros((self.fine.shape[-1],), jnp.float32)
-        val = _bilinear(self.fine, uv[:, 0], uv[:, 1], zero)
+        u = (dot(hit, self.axes[0]) - self.origin @ self.axes[0]) / self.half
+        v = (dot(hit, self.axes[1]) - self.origin @ self.axes[1]) / self.half
+        fine = self.fine if table is None else table
+        val = _bilinear(fine, u, v, jnp.zeros((fine.shape[-1],), jnp.float32))
         seen = (down < -1e-6) & (t > 0.0)
         if owner is not None:
             for j in range(self.spheres.shape[0]):
@@ -514,14 +523,6 @@ class TableChange(eqx.Module):
                 blocked = (jnp.sum(q * q, -1) < self.spheres[j, 3] ** 2) & (owner != j)
                 seen = seen & ~blocked
         return jnp.where(seen[:, None], val, 0.0)
-
-    def at(self, world: jax.Array, nrm: jax.Array, owner: jax.Array, pair_vertex: jax.Array,
-           pair_view: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(the diffuse change (V, C) at every vertex, the mirrored change (U, C) of every
-        (vertex, direction) pair)."""
-        return (self.diffuse(world, nrm, owner),
-                self.mirrored(world[pair_vertex], nrm[pair_vertex], pair_view,
-                              owner[pair_vertex]))
 
     @staticmethod
     def reflected(m: Any, normals: jax.Array, views: jax.Array, change: jax.Array
@@ -537,6 +538,14 @@ class TableChange(eqx.Module):
                                     geometry=m.geometry)
         nv = jnp.clip(jnp.sum(normals * views, -1, keepdims=True), 0.0, 1.0)
         return lobe_albedo(m, moments, nv, mirror=mirror_needed([m])) * change
+
+    def at(self, world: jax.Array, nrm: jax.Array, owner: jax.Array, pair_vertex: jax.Array,
+           pair_view: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(the diffuse change (V, C) at every vertex, the mirrored change (U, C) of every
+        (vertex, direction) pair)."""
+        return (self.diffuse(world, nrm, owner),
+                self.mirrored(world[pair_vertex], nrm[pair_vertex], pair_view,
+                              owner[pair_vertex]))
 
 
 def table_changes(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = None,
@@ -581,18 +590,31 @@ def surface_vertices(prep: Any, changes: tuple[TableChange, ...], mats: list[Any
 
 def surface_pixels(prep: Any, changes: tuple[TableChange, ...], mats: list[Any], gb: Any,
                    to_out: jax.Array) -> jax.Array:
-    """The change (N, D) of the covered pixels' gloss and mirror (G-buffer ``gb``) in the
-    output channels ``to_out`` (C, D) where their mirror direction meets a plane's
-    ``changes`` (their diffuse part: :func:`surface_vertices`). Differentiable in ``mats``
-    through the pixels' own reflection; the change itself is that of the materials it was
-    computed with (a second-order term)."""
+    """The change (N, D) of the covered pixels' gloss and mirror (G-buffer ``gb``, laid out
+    object after object with ``prep.buffers.pixel_capacity``) in the output channels
+    ``to_out`` (C, D) where their mirror direction meets a plane's ``changes`` (their diffuse
+    part: :func:`surface_vertices`): β A(θ) + χ F(θ) of each object's pixels (one scalar per
+    pixel) times the change looked up in the output channels (the planes' fine change
+    projected first: D channels per lookup, not C). Differentiable in ``mats`` through the
+    pixels' own reflection; the change itself is that of the materials it was computed with
+    (a second-order term)."""
+    from ..lighting import lobe_moment_table
+    from ._materials import mirror_needed
+    from ._shading import _object_slices, lobe_albedo
+
+    caps = prep.buffers.pixel_capacity
+    parts = []
+    for m, (nrm, v) in zip(mats, _object_slices(gb, caps), strict=True):
+        moments = lobe_moment_table(m.mu, m.n, distribution=m.distribution,
+                                    geometry=m.geometry)
+        nv = jnp.clip(jnp.sum(nrm * v, -1, keepdims=True), 0.0, 1.0)
+        parts.append(lobe_albedo(m, moments, nv, mirror=mirror_needed([m])))
+    albedo = jnp.concatenate(parts)  # (N, 1)
     out = jnp.zeros((gb.position.shape[0], to_out.shape[1]), jnp.float32)
     for change in changes:
-        d_r = change.mirrored(gb.position, gb.normal, gb.view, gb.object)
-        for i, m in enumerate(mats):
-            own = TableChange.reflected(m, gb.normal, gb.view, d_r)
-            out = out + jnp.where((gb.object == i)[:, None], own @ to_out, 0.0)
-    return out
+        table = change.fine @ to_out  # (T, T, D)
+        out = out + change.mirrored(gb.position, gb.normal, gb.view, gb.object, table=table)
+    return albedo * out
 
 
 def _pixel_rays(prep: Any, view: jax.Array) -> tuple[tuple[jax.Array, ...], jax.Array]:
