@@ -55,7 +55,7 @@ def test_render_uncertainty_against_linearised_propagation(scene):
     an RMS of 300 draws ≈ 4 %; ΔE00 is not exactly quadratic over the draws' spread)."""
     from spectral_fit.color import delta_e00, xyz_to_lab
     from spectral_fit.fitting import render_uncertainty
-    from spectral_fit.fitting._render_uncertainty import _frame
+    from spectral_fit.fitting._render_uncertainty import fitted_frame
 
     res, sd = _result(scene)
     unc = render_uncertainty(scene, res, draws=300, seed=1)
@@ -65,7 +65,7 @@ def test_render_uncertainty_against_linearised_propagation(scene):
     from spectral_fit.io import PARAMETERS
 
     theta = np.array([[res.params[n][p] for p in PARAMETERS] for n in names])
-    base = _frame(scene, None, theta)
+    base = fitted_frame(scene, theta)
     white = base["white"]
     lab0 = xyz_to_lab(base["xyz"][mask], white)
     cols = []
@@ -76,8 +76,8 @@ def test_render_uncertainty_against_linearised_propagation(scene):
         up, dn = theta.copy(), theta.copy()
         up[i, j] += h
         dn[i, j] -= h
-        lu = xyz_to_lab(_frame(scene, base["prep"], up)["xyz"][mask], white)
-        ld = xyz_to_lab(_frame(scene, base["prep"], dn)["xyz"][mask], white)
+        lu = xyz_to_lab(fitted_frame(scene, up, base["prep"])["xyz"][mask], white)
+        ld = xyz_to_lab(fitted_frame(scene, dn, base["prep"])["xyz"][mask], white)
         cols.append((lu - ld) / (2 * h) * s)  # per unit of the normalised parameter
     jac = np.stack(cols, axis=-1)  # (N, 3, K)
     corr = np.asarray(res.correlation)[:5, :5]

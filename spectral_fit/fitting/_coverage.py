@@ -2,8 +2,9 @@
 
 Each simulated session keeps a measured session's spots (their fields are rasterised once:
 :func:`~spectral_fit.fitting.prepare_fit`) and draws
-- true parameters, uniformly over each one's range (the session's bounds where stated, else
-  :func:`~spectral_fit.fitting.default_range` around the start);
+- true parameters, uniformly over each one's range (the planner's:
+  :func:`~spectral_fit.fitting.default_range` around the start, inside the session's
+  bounds and ± 2σ of its priors);
 - readings from this package's forward model at those parameters, times a **model error**
   the fit does not know: per reading a smooth spectral factor 1 + a + c·(λ − λ̄)/(λ_max −
   λ̄), a and c normal with standard deviations ``level`` and ``tilt`` (what a renderer's
@@ -136,7 +137,7 @@ def coverage_study(scene: Scene, session: Session, *, sessions: int = 200, seed:
     from ._fit import fit
     from ._model import _predict_jit
     from ._options import FitOptions
-    from ._plan_design import default_range
+    from ._plan import _ranges
     from ._prepare import prepare_fit
 
     opts = options or FitOptions(starts=1, holdout=False, aim_step_m=0.0)
@@ -148,11 +149,12 @@ def coverage_study(scene: Scene, session: Session, *, sessions: int = 200, seed:
     labels = problem.names(names)
     free = list(problem.free)
     base = np.asarray(problem.values, np.float64)
-    if truths is None:
+    if truths is None:  # the planner's ranges around the start (no fit to narrow them)
+        lower, upper = _ranges(sess, names, tuple(free),
+                               np.array([base[o, k] for o, k in free]), None, False)
         truths = np.repeat(base[None], sessions, axis=0)
         for j, (o, k) in enumerate(free):
-            lo, hi = _range(problem, j, k, base[o, k], default_range)
-            truths[:, o, k] = rng.uniform(lo, hi, sessions)
+            truths[:, o, k] = rng.uniform(lower[j], upper[j], sessions)
     truths = np.asarray(truths, np.float64)
     wl = np.asarray(sess.wavelengths, np.float64)
     mid = 0.5 * (wl[0] + wl[-1])
@@ -185,15 +187,3 @@ def coverage_study(scene: Scene, session: Session, *, sessions: int = 200, seed:
                          options={"sessions": int(truths.shape[0]), "seed": seed,
                                   "noise": noise, "level": level, "tilt": tilt,
                                   "model_error": dict(sess.model_error)})
-
-
-def _range(problem: Any, j: int, k: int, centre: float, default_range: Any
-           ) -> tuple[float, float]:
-    """The range the truth of unknown ``j`` (parameter index ``k``) is drawn from: the
-    default range around the start, inside the problem's bounds (the session's and the
-    physical limits)."""
-    lo, hi = default_range(PARAMETERS[k], centre)
-    if problem.bounds:
-        b_lo, b_hi = problem.bounds[j]
-        lo, hi = max(lo, b_lo), min(hi, b_hi)
-    return lo, hi

@@ -60,9 +60,9 @@ class FitResult:
         params: {object: {alpha, beta, chi, mu, n, gamma}} fitted (free) or fixed values.
         stderr: same shape: standard errors (0 for fixed parameters): the Jacobian's, scaled
             by √(χ²/dof) when that exceeds 1 (model error larger than the instrument noise),
-            or, where larger (``FitOptions.errors`` "robust", the default), the sandwich's
-            with the readings as clusters (an error shared by a reading's bands counted once
-            per reading).
+            or, where larger (``FitOptions.errors`` "robust", the default), the one from
+            leaving each reading out in turn (an error shared by a reading's bands counted
+            once per reading).
         status: "converged", "max_steps" (best start hit the iteration limit) or "failed".
         free: labels ``object.parameter`` of the unknowns (and ``scale``).
         correlation: (F, F) correlation matrix of the unknowns.

@@ -49,9 +49,10 @@ class FitOptions:
             (``optimistix.LevenbergMarquardt`` with a Cholesky normal-equation solve); both
             reach the same optimum (tested), "compact" compiles in less time.
         errors: "robust" (default): each standard error the larger of the linearised one,
-            (JᵀJ)⁻¹ · max(1, χ²/dof), and the sandwich with the readings as clusters, which
-            counts an error shared by a reading's bands (the model's level at a spot) once
-            per reading instead of once per band; "linear": the linearised one alone.
+            (JᵀJ)⁻¹ · max(1, χ²/dof), and the one from leaving each reading out in turn
+            (the readings as clusters), which counts an error shared by a reading's bands
+            (the model's level at a spot) once per reading instead of once per band;
+            "linear": the linearised one alone.
 
     The former options ``jacobian`` (the Jacobian is always exact forward-mode autodiff) and
     ``ir_rounds`` (the interreflection term is inside the model, no refresh rounds) were

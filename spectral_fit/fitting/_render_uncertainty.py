@@ -92,7 +92,7 @@ def render_uncertainty(scene: Scene, result: Any, *, draws: int = 32, seed: int 
     root = v * np.sqrt(np.clip(w, 0.0, None))  # C = root rootᵀ (C^½ up to a rotation)
     lower = np.array([[PHYSICAL_LOWER[p][0] for p in PARAMETERS]] * len(names))
 
-    fitted = _frame(scene, prep, theta)
+    fitted = fitted_frame(scene, theta, prep)
     mask = np.asarray(fitted["mask"], bool)
     lab0 = _lab(fitted, mask)
     de = np.empty((draws, int(mask.sum())))
@@ -102,7 +102,7 @@ def render_uncertainty(scene: Scene, result: Any, *, draws: int = 32, seed: int 
         for (i, j), zk in zip(varied_index(varied, names), z, strict=True):
             t[i, j] += sd[i, j] * zk
         t = np.maximum(t, lower)
-        frame = _frame(scene, fitted["prep"], t)
+        frame = fitted_frame(scene, t, fitted["prep"])
         de[s] = delta_e00(_lab(frame, mask, white=fitted["white"]), lab0)
     rms = np.full(mask.shape, np.nan)
     p95 = np.full(mask.shape, np.nan)
@@ -151,9 +151,11 @@ def _correlation(result: Any, varied: list[str]) -> np.ndarray:
     return c
 
 
-def _frame(scene: Scene, prep: Any, theta: np.ndarray) -> dict[str, Any]:
-    """The frame of ``scene`` with the materials' parameters ``theta`` (O, P) (the compiled
-    frame program of the prepared scene, kept on disk)."""
+def fitted_frame(scene: Scene, theta: np.ndarray, prep: Any = None) -> dict[str, Any]:
+    """The frame of ``scene`` with the materials' parameters ``theta`` (O, P) (PARAMETERS'
+    order): ``prep`` (default the scene prepared through the disk cache) and its compiled
+    frame program run with them as arguments. Returns {prep, xyz, rgb, mask, object_id,
+    white} as NumPy arrays (``white``: the display white's absolute XYZ)."""
     import jax.numpy as jnp
 
     from ..rendering import prepare_cached, regrow, render_frame_cached

@@ -29,7 +29,6 @@
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import hashlib
 import json
 import math
@@ -211,26 +210,20 @@ def _profile_plot(result: FitResult, path: Path) -> None:
 def _render(scene: Scene, result: FitResult, path: Path) -> str | None:
     """Render the fitted scene when the frame renderer exists; returns a note otherwise."""
     try:
-        from ..rendering import regrow
+        from ..rendering import regrow  # noqa: F401  (the frame renderer is in this build)
     except ImportError:
         return "frame renderer not available in this build"
     try:
-        import jax.numpy as jnp
-
-        from ..rendering import prepare_cached, render_frame_cached
-
         # the config's scene prepared (and kept on disk: nothing in it depends on the
         # materials' parameters) and its frame program run with the fitted parameters as
         # arguments, so a later report loads both instead of preparing and compiling again;
         # the picture is renderer.render of the fitted scene (tests/test_fitting.py)
-        prep = prepare_cached(scene)
-        fitted = {k: jnp.asarray([float(result.params[o.name][k]) for o in scene.objects],
-                                 jnp.float32) for k in PARAMETERS}
-        mats = dataclasses.replace(prep.materials, **fitted)
-        frame = regrow(prep, render_frame_cached(prep, mats), mats, False)
         from ..color import save_png
+        from ._render_uncertainty import fitted_frame
 
-        save_png(path, np.asarray(frame.rgb))
+        theta = np.array([[float(result.params[o.name][k]) for k in PARAMETERS]
+                          for o in scene.objects])
+        save_png(path, fitted_frame(scene, theta)["rgb"])
         return None
     except Exception as exc:  # a failed picture must not lose the fit's report
         return f"render failed: {type(exc).__name__}: {exc}"

@@ -500,18 +500,15 @@ class TableChange(eqx.Module):
         another object than the point's ``owner`` (N,) first). ``table``: the fine change
         in other channels (T, T, D), e.g. already in a frame's output channels (then
         (N, D)). Products of (N, 3) arrays with single vectors as elementwise sums (a
-        matrix product with an inner size of 3 is slow on the CPU)."""
-        def dot(a: jax.Array, b: jax.Array) -> jax.Array:
-            return a[:, 0] * b[0] + a[:, 1] * b[1] + a[:, 2] * b[2]
-
+        matrix product with an inner size of 3 is slow on the CPU: :func:`_dot`)."""
         nv = jnp.sum(normals * views, -1, keepdims=True)
         r = 2.0 * nv * normals - views
-        down = dot(r, self.axes[2])
-        t = (self.origin @ self.axes[2] - dot(points, self.axes[2])) / jnp.where(
+        down = _dot(r.T, self.axes[2])
+        t = (self.origin @ self.axes[2] - _dot(points.T, self.axes[2])) / jnp.where(
             down < -1e-6, down, -1e-6)
         hit = points + t[:, None] * r
-        u = (dot(hit, self.axes[0]) - self.origin @ self.axes[0]) / self.half
-        v = (dot(hit, self.axes[1]) - self.origin @ self.axes[1]) / self.half
+        u = (_dot(hit.T, self.axes[0]) - self.origin @ self.axes[0]) / self.half
+        v = (_dot(hit.T, self.axes[1]) - self.origin @ self.axes[1]) / self.half
         fine = self.fine if table is None else table
         val = _bilinear(fine, u, v, jnp.zeros((fine.shape[-1],), jnp.float32))
         seen = (down < -1e-6) & (t > 0.0)
@@ -530,14 +527,7 @@ class TableChange(eqx.Module):
         """β A(θ) + χ F(θ) times the mirrored change (N, C): what the gloss and mirror of
         material ``m`` reflect of it (the lobe treated as a whole along its mirror
         direction)."""
-        from ..lighting import lobe_moment_table
-        from ._materials import mirror_needed
-        from ._shading import lobe_albedo
-
-        moments = lobe_moment_table(m.mu, m.n, distribution=m.distribution,
-                                    geometry=m.geometry)
-        nv = jnp.clip(jnp.sum(normals * views, -1, keepdims=True), 0.0, 1.0)
-        return lobe_albedo(m, moments, nv, mirror=mirror_needed([m])) * change
+        return _reflecting(m, normals, views) * change
 
     def at(self, world: jax.Array, nrm: jax.Array, owner: jax.Array, pair_vertex: jax.Array,
            pair_view: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -598,23 +588,35 @@ def surface_pixels(prep: Any, changes: tuple[TableChange, ...], mats: list[Any],
     projected first: D channels per lookup, not C). Differentiable in ``mats`` through the
     pixels' own reflection; the change itself is that of the materials it was computed with
     (a second-order term)."""
-    from ..lighting import lobe_moment_table
-    from ._materials import mirror_needed
-    from ._shading import _object_slices, lobe_albedo
+    from ._shading import _object_slices
 
-    caps = prep.buffers.pixel_capacity
-    parts = []
-    for m, (nrm, v) in zip(mats, _object_slices(gb, caps), strict=True):
-        moments = lobe_moment_table(m.mu, m.n, distribution=m.distribution,
-                                    geometry=m.geometry)
-        nv = jnp.clip(jnp.sum(nrm * v, -1, keepdims=True), 0.0, 1.0)
-        parts.append(lobe_albedo(m, moments, nv, mirror=mirror_needed([m])))
-    albedo = jnp.concatenate(parts)  # (N, 1)
+    albedo = jnp.concatenate([_reflecting(m, nrm, v) for m, (nrm, v) in
+                              zip(mats, _object_slices(gb, prep.buffers.pixel_capacity),
+                                  strict=True)])  # (N, 1)
     out = jnp.zeros((gb.position.shape[0], to_out.shape[1]), jnp.float32)
     for change in changes:
         table = change.fine @ to_out  # (T, T, D)
         out = out + change.mirrored(gb.position, gb.normal, gb.view, gb.object, table=table)
     return albedo * out
+
+
+def _reflecting(m: Any, normals: jax.Array, views: jax.Array) -> jax.Array:
+    """β A(θ) + χ F(θ) (N, 1) of material ``m`` at the points' normals and views (N, 3):
+    the share of a change around the mirror direction its gloss and mirror reflect."""
+    from ..lighting import lobe_moment_table
+    from ._materials import mirror_needed
+    from ._shading import lobe_albedo
+
+    moments = lobe_moment_table(m.mu, m.n, distribution=m.distribution, geometry=m.geometry)
+    nv = jnp.clip(jnp.sum(normals * views, -1, keepdims=True), 0.0, 1.0)
+    return lobe_albedo(m, moments, nv, mirror=mirror_needed([m]))
+
+
+def _dot(components: Any, b: jax.Array) -> jax.Array:
+    """Σ_i components[i] · b[i] over three components ((N,) arrays, or the rows of an
+    (N, 3) array's transpose) and a vector (3,): elementwise, where a matrix product with
+    an inner size of 3 is slow on the CPU."""
+    return components[0] * b[0] + components[1] * b[1] + components[2] * b[2]
 
 
 def _pixel_rays(prep: Any, view: jax.Array) -> tuple[tuple[jax.Array, ...], jax.Array]:
@@ -738,16 +740,13 @@ def _plane_lookups(prep: Any, view: Any, textures: tuple[SurfaceTexture, ...], k
     rad = jnp.zeros((n_px, k), jnp.float32)
     base = jnp.zeros_like(rad)
     for tx in textures:
-        def dot(a: jax.Array) -> jax.Array:
-            return d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
-
         n = tx.axes[2]
-        denom = dot(n)
+        denom = _dot(d, n)
         dist = ((tx.origin - eye) @ n) / jnp.where(jnp.abs(denom) > 1e-12, denom, 1e-12)
         hit = (dist > 0.0) & (denom < 0.0) & (dist < best)
         rel = eye - tx.origin  # p − origin = rel + dist · d
-        u = (rel @ tx.axes[0] + dist * dot(tx.axes[0])) / tx.half
-        v = (rel @ tx.axes[1] + dist * dot(tx.axes[1])) / tx.half
+        u = (rel @ tx.axes[0] + dist * _dot(d, tx.axes[0])) / tx.half
+        v = (rel @ tx.axes[1] + dist * _dot(d, tx.axes[1])) / tx.half
         val = _bilinear(tx.texels, u, v, tx.base)
         rad = jnp.where(hit[:, None], val, rad)
         base = jnp.where(hit[:, None], tx.base[None, :], base)

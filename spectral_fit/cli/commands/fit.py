@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "region file; default: plan's default region)")
     p.add_argument("--errors", choices=("robust", "linear"), default="robust",
                    help="robust (default): each standard error the larger of the linearised "
-                   "one and the sandwich with the readings as clusters (an error shared by a "
+                   "one and the one from leaving each reading out (an error shared by a "
                    "reading's bands counted once per reading); linear: the linearised one")
     p.add_argument("--interreflection", choices=("auto", "none"), default="auto",
                    help="auto: the scene config's interreflection mode; none: fit without "
