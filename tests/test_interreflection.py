@@ -580,9 +580,9 @@ def test_gather_on_the_bundled_cup_and_torus_against_brute_force_single_bounce()
         np.testing.assert_allclose(got[k], ref, atol=0.15 * np.abs(ref).max(), err_msg=str(k))
 
 
-def test_marched_coverage_of_a_sphere_is_its_form_factor(gather_geom):
+def test_marched_coverage_of_a_sphere_is_its_form_factor(gather_geom, uniform_env):
     """The projected solid angle of the neighbour that the diffuse transfer's coverage factor
-    marches through its pass-1 depth map (``_march._cone_coverage``), at points of the other
+    marches through its pass-1 depth map (``_march._cover``), at points of the other
     sphere from the facing point to 20° off the axis and at points off the surface (closer
     and farther, off the axis), against the closed form π (r/d)² cosθ of a sphere wholly
     above the tangent plane: within 4 %. The pass-1 raster sees the sphere along the pair's
@@ -598,9 +598,9 @@ def test_marched_coverage_of_a_sphere_is_its_form_factor(gather_geom):
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     want, ok = sphere_form_factor(x, n, C1)
     assert ok.all(), ok
-    got = np.asarray(jax.jit(march._cone_coverage)(
-        gather_geom, jnp.zeros(len(x), jnp.int32), jnp.asarray(x, jnp.float32),
-        jnp.asarray(n, jnp.float32)))
+    got = np.asarray(jax.jit(lambda g, p, nn: march._cover(
+        g, uniform_env, jnp.zeros(len(x), jnp.int32), p, nn, nodes=march._CONE_NODES)[0])(
+            gather_geom, jnp.asarray(x, jnp.float32), jnp.asarray(n, jnp.float32)))
     np.testing.assert_allclose(got, math.pi * want, rtol=0.04)
 
 

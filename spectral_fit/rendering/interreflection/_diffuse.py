@@ -6,8 +6,9 @@ view-independent radiance (C) and a view-dependent one tabulated towards a 3 × 
 directions spanning the receiver's bounding sphere (gloss (9, r) in the map's principal
 channels, mirror (9, C)). The form factor F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²))
 (:func:`_form_factor_block`) weights them into Σ_y F L_y(→x) (:func:`_transfer`); the net
-light subtracts the environment each sample hides, read along the receiver-to-sample
-direction (:func:`_hidden_env`), and the bright sources they hide (:func:`_diffuse_net`).
+light subtracts the environment the neighbours hide, a quadrature over the receiver's
+hemisphere marched through their depth maps (:func:`~._march._cover`), and the bright sources
+they hide (:func:`_diffuse_net`).
 It is evaluated at the samples themselves (:func:`_sample_diffuse_net`, interpolated to
 receivers by :func:`_interpolate_net`) or at every receiver (:func:`_direct_diffuse`).
 
@@ -29,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...lighting import EnvironmentMap, dot3, irradiance, taps_sum
-from ._march import _cone_coverage
+from ._march import _CONE_NODES, _cover
 from ._pass1 import _MIN_COS, IRGeometry, _normalize, pair_list
-from ._shading import _env_blur, _Shading, _source_terms, _specular, _times_reflectance
+from ._shading import _Shading, _source_terms, _specular, _times_reflectance
 
 __all__: list[str] = []
 
@@ -140,45 +141,6 @@ def _transfer(w: jax.Array, tu: list[jax.Array], tv: list[jax.Array], lum: jax.A
     return lsum, jnp.sum(w, -1)
 
 
-#: the environment a neighbour hides is read once per block of this many × this many of
-#: its samples (their form factors summed, the direction to their area-weighted centre):
-#: a lookup per receiver and sample cost a third of the benchmark frame, and blocks of 4 × 4
-#: were too coarse for the cup beside the torus
-_HIDDEN_BLOCK = 2
-
-
-def _block_sums(a: jax.Array, axis: int, g: int, b: int) -> jax.Array:
-    """Sums over blocks of b × b samples of the k grids of g × g samples along ``axis`` of
-    ``a`` (length k·g², rows first): that axis becomes k·(g/b)², in the same order."""
-    gb = g // b
-    k = a.shape[axis] // (g * g)
-    a = a.reshape(*a.shape[:axis], k, gb, b, gb, b, *a.shape[axis + 1:])
-    a = jnp.sum(a, axis=(axis + 2, axis + 4))
-    return a.reshape(*a.shape[:axis], k * gb * gb, *a.shape[axis + 3:])
-
-
-def _hidden_env(x: jax.Array, w: jax.Array, ypos: jax.Array, yarea: jax.Array,
-                env: EnvironmentMap, g: int) -> jax.Array:
-    """Σ_y F(x, y) L_env(ω_xy) (..., R, r) in the map's r channels: the environment the
-    sender samples (``ypos`` (..., S, 3), ``yarea`` (..., S); S = k·g², k grids of g × g)
-    hide from the receivers ``x`` (..., R, 3) (positions in one frame), weighted by their
-    form factors ``w`` (..., R, S) — read along the receiver's line to each block of
-    ``_HIDDEN_BLOCK``² samples (its area-weighted centre), prefiltered to half the block's
-    angular size there: what the neighbour's actual surface hides, not a bounding sphere's
-    cone."""
-    b = _HIDDEN_BLOCK if g % _HIDDEN_BLOCK == 0 else 1
-    n_lead = ypos.ndim - 2
-    area = _block_sums(yarea, n_lead, g, b)
-    pos = _block_sums(ypos * yarea[..., None], n_lead, g, b) / jnp.maximum(area, 1e-30)[..., None]
-    wb = _block_sums(w, w.ndim - 1, g, b)
-    d = pos[..., None, :, :] - x[..., :, None, :]
-    r2 = jnp.maximum(jnp.sum(d * d, -1), 1e-30)
-    inv = jax.lax.rsqrt(r2)
-    sigma = jnp.clip(0.5 * jnp.sqrt(area[..., None, :] / math.pi) * inv, 1e-3, 0.5)
-    lv = _env_blur(env, d * inv[..., None], sigma)
-    return jnp.einsum("...rs,...rsc->...rc", wb, lv)
-
-
 def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: jax.Array
                     ) -> jax.Array | None:
     """(N, S·k) 1 where a bright-source sub-point's direction hits a neighbour's bounding
@@ -201,9 +163,9 @@ def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: ja
 def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, hidden: jax.Array,
                  pos: jax.Array, nrm: jax.Array, o: jax.Array) -> jax.Array:
     """The light the neighbours add at receivers, before the receiver's α S/π (N, C):
-    Σ_y F L_y(→x) (``lsum``) − Σ_y F L_env(ω_xy) (``hidden`` (N, r), :func:`_hidden_env`)
+    Σ_y F L_y(→x) (``lsum``) − (1/π) ∫ hit L_env cos (``hidden`` (N, C), :func:`_covers`)
     − (1/π) Σ hidden sources flux max(0, N·d_s)."""
-    net = lsum - hidden @ env.spectral_basis
+    net = lsum - hidden
     occ = _hidden_sources(geom, env, pos, o)
     if occ is not None:
         sdir, sflux = _source_terms(env)
@@ -212,71 +174,68 @@ def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, hidden:
     return net
 
 
-def _coverage_factor(geom: IRGeometry, pair: jax.Array, x: jax.Array, nx: jax.Array,
-                     w: jax.Array) -> jax.Array:
+def _coverage_factor(omega: jax.Array, w: jax.Array) -> jax.Array:
     """(R, k) the factor that brings receivers' form factors ``w`` (R, k·M) to each of k
-    neighbours (pairs ``pair`` (R, k), M samples each) to the neighbour's projected solid
-    angle from the receiver (:func:`~._march._cone_coverage`, marched through the
-    neighbour's depth map; receivers ``x`` (R, 3) world, unit normals ``nx``) over π Σ F of
+    neighbours (M samples each) to the neighbour's projected solid angle ``omega`` (R, k)
+    (sr; :func:`~._march._cover`, marched through the neighbour's depth map) over π Σ F of
     its samples: the samples are the neighbour seen along the pair's axis, and a point off
     that axis sees parts of it they lack (a quarter of a ring's solid angle from the wall of a
     cup beside it). Within [0, ``_COVERAGE_MAX``]; 1 where Σ F is negligible. Geometry only
     (no gradient)."""
-    r, k = pair.shape
-    omega = _cone_coverage(geom, pair.reshape(-1), jnp.repeat(x, k, axis=0),
-                           jnp.repeat(nx, k, axis=0)).reshape(r, k)
+    r, k = omega.shape
     fsum = math.pi * jnp.sum(jax.lax.stop_gradient(w).reshape(r, k, -1), -1)
     ok = fsum > 1e-3
     return jnp.where(ok, jnp.clip(omega / jnp.where(ok, fsum, 1.0), 0.0, _COVERAGE_MAX), 1.0)
 
 
-def _sample_coverage(geom: IRGeometry) -> jax.Array:
-    """(P, M, n − 1) :func:`_coverage_factor` of the samples towards each neighbour of their
-    object, computed once per block of ``_COVERAGE_BLOCK``² samples (at its area-weighted
-    centre and mean normal; the factor varies slowly over an object, and the march is the
-    costly part) and shared by the block's samples; once per frame (the bounces reuse it)."""
+def _covers(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, x: jax.Array,
+            nx: jax.Array, *, nodes: tuple[int, int] | None = None
+            ) -> tuple[jax.Array, jax.Array]:
+    """:func:`~._march._cover` of the neighbours ``pair`` (R, k) of receivers ``x`` (R, 3)
+    world, unit normals ``nx`` (R, 3): their projected solid angles (R, k) and the
+    environment they hide, summed over the k neighbours, in the map's C channels (R, C): in
+    bands, per channel at most the receiver's whole irradiance/π (what is hidden is part of
+    the sky; a quadrature node that catches a lamp would otherwise take more than there
+    is)."""
+    r, k = pair.shape
+    omega, hidden = _cover(geom, env, pair.reshape(-1), jnp.repeat(x, k, axis=0),
+                           jnp.repeat(nx, k, axis=0), nodes=nodes)
+    hidden = jnp.sum(hidden.reshape(r, k, -1), 1) @ env.spectral_basis
+    if env.product_tensor is None:  # bands (a basis's coefficients may be negative)
+        sky = jax.vmap(lambda n: irradiance(env, n))(jax.lax.stop_gradient(nx)) / math.pi
+        hidden = jnp.clip(hidden, 0.0, jnp.maximum(sky, 0.0))
+    return omega.reshape(r, k), hidden
+
+
+def _sample_coverage(geom: IRGeometry, env: EnvironmentMap) -> tuple[jax.Array, jax.Array]:
+    """At every sample (P, M), towards each neighbour of its object: the neighbour's
+    projected solid angle (P, M, n − 1) (sr), and the environment the neighbours hide
+    (P·M, C) (:func:`_covers`); once per frame (the bounces reuse them)."""
     k_per = geom.n_objects - 1
     p_count, m_count = geom.s_area.shape
-    g = geom.gather_size
-    b = _COVERAGE_BLOCK if g % _COVERAGE_BLOCK == 0 else 1
-    gb = g // b
-    area = _block_sums(geom.s_area, 1, g, b)
-    pos = (_block_sums(geom.s_pos * geom.s_area[..., None], 1, g, b)
-           / jnp.maximum(area, 1e-30)[..., None])
-    pos = jnp.where((area > 0)[..., None], pos, geom.centre_j[:, None])
-    nrm = _normalize(_block_sums(geom.s_nrm * geom.s_area[..., None], 1, g, b)
-                     + jnp.where(area > 0, 0.0, 1.0)[..., None] * geom.frame[:, None, 2])
+    live = (geom.s_area > 0)[..., None]
+    pos = jnp.where(live, geom.s_pos, geom.centre_j[:, None])
+    nrm = jnp.where(live, geom.s_nrm, geom.frame[:, None, 2])
     recv = np.asarray([j for _, j in geom.pairs], np.int32)
     src = recv[:, None] * k_per + np.arange(k_per)[None, :]  # (P, k_per)
-    origin = jnp.mean(geom.centre_j, axis=0)
-    sp = geom.s_pos[src].reshape(p_count, k_per * m_count, 3)
-    zero = jnp.zeros_like(sp)
-    blk = (sp - origin, geom.s_nrm[src].reshape(p_count, -1, 3),
-           geom.s_area[src].reshape(p_count, -1), zero, zero, zero,
-           jnp.ones(sp.shape[:2], sp.dtype))
-    w, _, _ = _form_factor_block(pos - origin, nrm, blk)  # (P, gb², k_per·M)
-    pair = jnp.asarray(np.repeat(src, gb * gb, axis=0))  # (P·gb², k_per)
-    cov = _coverage_factor(geom, pair, pos.reshape(-1, 3), nrm.reshape(-1, 3),
-                           w.reshape(p_count * gb * gb, -1))
-    cov = cov.reshape(p_count, gb, 1, gb, 1, k_per)
-    cov = jnp.broadcast_to(cov, (p_count, gb, b, gb, b, k_per))
-    return cov.reshape(p_count, m_count, k_per)
+    pair = jnp.asarray(np.repeat(src, m_count, axis=0))  # (P·M, k_per)
+    omega, hidden = _covers(geom, env, pair, pos.reshape(-1, 3), nrm.reshape(-1, 3))
+    live = live.reshape(-1, 1)
+    return (jnp.where(live, omega, 0.0).reshape(p_count, m_count, k_per),
+            jnp.where(live, hidden, 0.0))
 
 
-#: the coverage factor is marched once per block of this many × this many samples
-_COVERAGE_BLOCK = 2
-#: the largest coverage factor (:func:`_sample_coverage`)
+#: the largest coverage factor (:func:`_coverage_factor`)
 _COVERAGE_MAX = 2.0
 
 
 def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap,
-                        hidden: jax.Array | None = None, coverage: jax.Array | None = None
-                        ) -> tuple[jax.Array, jax.Array]:
+                        cover: tuple[jax.Array, jax.Array]) -> jax.Array:
     """:func:`_diffuse_net` (P, M, C) at every sample, gathered from all samples of the
     sample's own object's neighbours (dense, batched over pairs: P × M × (n − 1)M form
-    factors, scaled per neighbour by ``coverage`` (P, M, n − 1), :func:`_sample_coverage`),
-    and the environment those hide (P·M, r) (``hidden``: that of an earlier bounce, which
-    depends on the geometry alone)."""
+    factors, scaled per neighbour to its projected solid angle by :func:`_coverage_factor`),
+    less the environment those hide; ``cover`` = (projected solid angles (P, M, n − 1),
+    hidden environment (P·M, C)) from :func:`_sample_coverage`."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
     p_count, m_count = geom.s_area.shape
@@ -291,18 +250,16 @@ def _sample_diffuse_net(geom: IRGeometry, snd: _Senders, env: EnvironmentMap,
     blk = (senders(snd.pos - origin), senders(snd.nrm), senders(snd.area),
            *(senders(f) for f in snd.frames))
     w, tu, tv = _form_factor_block(geom.s_pos - origin, geom.s_nrm, blk)
-    if coverage is not None:
-        w = w * jnp.repeat(coverage, m_count, axis=-1)
+    omega, hidden = cover
+    factor = _coverage_factor(omega.reshape(-1, k_per), w.reshape(p_count * m_count, -1))
+    w = w * jnp.repeat(factor.reshape(p_count, m_count, k_per), m_count, axis=-1)
     lsum, _ = _transfer(w, tu, tv, senders(snd.lum), senders(snd.spec),
                         None if snd.mirror is None else senders(snd.mirror),
                         env.spectral_basis)
-    if hidden is None:
-        hidden = _hidden_env(geom.s_pos - origin, w, blk[0], blk[2], env, geom.gather_size)
-        hidden = hidden.reshape(-1, hidden.shape[-1])
     obj = jnp.asarray(np.repeat(recv, m_count), jnp.int32)
     net = _diffuse_net(geom, env, lsum.reshape(-1, lsum.shape[-1]), hidden,
                        geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3), obj)
-    return net.reshape(p_count, m_count, -1), hidden
+    return net.reshape(p_count, m_count, -1)
 
 
 def _reverse_pairs(n: int) -> np.ndarray:
@@ -326,11 +283,13 @@ def _sphere_form_factor(pos: jax.Array, nrm: jax.Array, centre: jax.Array, radiu
     return sin2 * jnp.where(cos_t >= sin_a, cos_t, jnp.where(cos_t > -sin_a, part, 0.0))
 
 
-def _net_tables(geom: IRGeometry, net: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """The two tables :func:`_interpolate_net` interpolates, from the samples' diffuse net
-    light ``net`` (P, M, C): net × coverage (P·(g + 2)², C) and coverage × the form factor of
-    the neighbour's bounding sphere (P·(g + 2)², 1), each pair's g × g grid with a border of
-    zeros (made once per frame, not per chunk of receivers)."""
+def _net_tables(geom: IRGeometry, net: jax.Array
+                ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The tables :func:`_interpolate_net` interpolates, from the samples' diffuse net light
+    ``net`` (P, M, C): net × coverage (P·(g + 2)², C), coverage × the form factor of the
+    neighbour's bounding sphere (P·(g + 2)², 1) and the samples' normals (P·(g + 2)², 3),
+    each pair's g × g grid with a border of zeros (made once per frame, not per chunk of
+    receivers)."""
     g = geom.gather_size
     p_count = net.shape[0]
     # pair q = (j, i) holds samples on i; the sphere they look at is j's (centre_i[q])
@@ -343,13 +302,24 @@ def _net_tables(geom: IRGeometry, net: jax.Array) -> tuple[jax.Array, jax.Array]
         x = x.reshape(p_count, g, g, x.shape[-1])
         return jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, x.shape[-1])
 
-    # two tables, each tap sum consumed whole (slicing one (N, C + 1) tap sum made XLA gather
-    # every tap of every channel into memory first)
-    return table(net * cov[..., None]), table((cov * ff_s)[..., None])
+    # separate tables, each tap sum consumed whole (slicing one (N, C + 1) tap sum made XLA
+    # gather every tap of every channel into memory first)
+    return (table(net * cov[..., None]), table((cov * ff_s)[..., None]),
+            table(jax.lax.stop_gradient(geom.s_nrm)))
+
+
+#: the interpolation of the samples' net light weights each of its four samples by
+#: (ε + max(0, n_sample · n_receiver))^``_NORMAL_POWER``: on a sharp-edged neighbour the
+#: samples of one grid cell can lie on faces at right angles, whose net light differs many
+#: times over (a slab's face towards its neighbour sees only the neighbour, its side face
+#: half the sky), and a receiver takes it from the samples of its own face; on a smooth
+#: object adjacent samples' normals differ by ~10° (g = 16) and the weights barely change
+_NORMAL_POWER = 4
+_NORMAL_EPS = 1e-3
 
 
 def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nrm: jax.Array,
-                     obj: jax.Array, tables: tuple[jax.Array, jax.Array] | None = None
+                     obj: jax.Array, tables: tuple[jax.Array, ...] | None = None
                      ) -> jax.Array:
     """The samples' diffuse net light (P, M, C) at receivers on the samples' objects (N, C)
     (``tables``: :func:`_net_tables` of ``net``, when made already).
@@ -359,13 +329,15 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nr
     net light to the form factor F_j of j's bounding sphere (:func:`_sphere_form_factor`, the
     geometric part, which varies fast next to j) is interpolated bilinearly, weighted by
     coverage × F_j (so each sample stands for its covered part and samples that barely see j
-    count little), and multiplied by F_j at the receiver. Receivers facing several neighbours
+    count little) and by the agreement of the sample's normal with the receiver's
+    (:data:`_NORMAL_POWER`: across a sharp edge the receiver takes its own face's samples),
+    and multiplied by F_j at the receiver. Receivers facing several neighbours
     blend their grids with weights ∝ N·(c_j − c_i)⁺ (each grid holds the light from all
     neighbours). (What a receiver's own object hides of j — the inside of a cup behind its
     wall — is the renderer's part: its precomputed self-visibility.)"""
     g = geom.gather_size
     k_per = geom.n_objects - 1
-    tex, tex_w = _net_tables(geom, net) if tables is None else tables
+    tex, tex_w, tex_n = _net_tables(geom, net) if tables is None else tables
     c = tex.shape[-1]
     rev = jnp.asarray(_reverse_pairs(geom.n_objects))
     o = jnp.maximum(obj, 0)
@@ -389,6 +361,10 @@ def _interpolate_net(geom: IRGeometry, net: jax.Array | None, pos: jax.Array, nr
         idx = jnp.stack([base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
                          base + y1 * row + x1], -1)
         w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
+        # the samples of the receiver's own face first (:data:`_NORMAL_POWER`)
+        ns = tex_n[idx]  # (N, 4, 3)
+        cos_n = jnp.maximum(sum(ns[..., a] * nrm[:, None, a] for a in range(3)), 0.0)
+        w = w * (_NORMAL_EPS + cos_n) ** _NORMAL_POWER
         ff = _sphere_form_factor(pos, nrm, geom.centre_i[q], geom.radius_i[q])
         lum = taps_sum(tex, idx, w) * (ff / jnp.maximum(taps_sum(tex_w, idx, w)[:, 0],
                                                          1e-30))[:, None]
@@ -443,11 +419,11 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
         w, tu, tv = _form_factor_block(x0, nx, tuple(b[o] for b in blocks))
         pair = jnp.broadcast_to(jnp.arange(k_per, dtype=jnp.int32) + o * k_per,
                                 (x0.shape[0], k_per))
-        w = w * jnp.repeat(_coverage_factor(geom, pair, x0 + origin, nx, w), m_count, axis=-1)
+        omega, hidden = _covers(geom, env, pair, x0 + origin, nx, nodes=_CONE_NODES)
+        w = w * jnp.repeat(_coverage_factor(omega, w), m_count, axis=-1)
         w = jnp.where(sel[:, None], w, 0.0)
         lsum, _ = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else
                             mirror[o], env.spectral_basis)
-        hidden = _hidden_env(x0, w, blocks[0][o], blocks[2][o], env, geom.gather_size)
         net = _diffuse_net(geom, env, lsum, hidden, x0 + origin, nx,
                            jnp.full(x0.shape[:1], o, jnp.int32))
         return jnp.where(sel[:, None], net, 0.0)

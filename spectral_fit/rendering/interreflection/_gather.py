@@ -28,6 +28,7 @@ from ...geometry import GBuffer
 from ...lighting import EnvironmentMap, Material, dot3, taps_sum
 from ._atlas import _build_mips
 from ._diffuse import (
+    _VIEW_GRID,
     _direct_diffuse,
     _interpolate_net,
     _net_tables,
@@ -147,18 +148,23 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
             atlas = (_build_mips(lum * cov, geom.gather_size), geo_atlas)
         return snd, atlas
 
+    centre = len(_VIEW_GRID) ** 2 // 2  # the view grid's direction to the receiver's centre
+    toward = spec[:, :, centre] @ env.spectral_basis
+    if mirror is not None:
+        toward = toward + mirror[:, :, centre]
+    toward = jax.lax.stop_gradient(jnp.maximum(toward, 0.0))
     lum = l0
     snd, atlas = senders_with(lum)
     s_obj = jnp.where(live.reshape(-1), jnp.asarray(np.repeat(senders, m_count), jnp.int32),
                       -1)
     s_pos, s_nrm = geom.s_pos.reshape(-1, 3), geom.s_nrm.reshape(-1, 3)
-    net = hidden = coverage = None
+    net = cover = None
     for b in range(bounces):
         if diffuse_at == "samples" or b < bounces - 1:
             with jax.named_scope("ir_sample_transfer"):
-                if coverage is None:  # geometry alone: once, not per bounce
-                    coverage = _sample_coverage(geom)
-                net, hidden = _sample_diffuse_net(geom, snd, env, hidden, coverage)
+                if cover is None:  # geometry and environment alone: once, not per bounce
+                    cover = _sample_coverage(geom, env)
+                net = _sample_diffuse_net(geom, snd, env, cover)
         if b == bounces - 1:
             break
         with jax.named_scope("ir_sample_bounce"):
@@ -166,6 +172,13 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
                              _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj),
                              s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj)
         lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
+        # the bounce's change of a sample's gloss (the environment its neighbour hides in the
+        # lobe, less the neighbour's light there) is carried by the view-independent part:
+        # where it takes away more than the sample's diffuse light it may cancel at most the
+        # gloss the sample shows towards its neighbour (the view grid's centre), never more:
+        # a sample's radiance towards its receivers stays non-negative, band by band
+        if env.product_tensor is None:  # bands (a basis's coefficients may be negative)
+            lum = jnp.maximum(lum, -toward)
         snd, atlas = senders_with(lum)
     return GatherSenders(geometry=geom, senders=snd, atlas=atlas,
                          net=net if diffuse_at == "samples" else None)
@@ -229,7 +242,7 @@ _RECEIVER_CHUNK = 4096
 
 
 def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
-                         tables: tuple[jax.Array, jax.Array] | None,
+                         tables: tuple[jax.Array, ...] | None,
                          diffuse: jax.Array | None, pos: jax.Array, nrm: jax.Array,
                          view: jax.Array, obj: jax.Array,
                          grid: tuple[jax.Array, tuple[int, int], int] | None) -> jax.Array:

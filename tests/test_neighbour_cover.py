@@ -1,0 +1,155 @@
+"""What a neighbour takes from a point's sky, marched through its pass-1 depth map
+(``_march._cover``): two slabs with large parallel faces 4 mm apart (much closer than their
+size) against the closed-form form factor of a parallel rectangle and a float64 quadrature
+against the exact box; and the gather's senders never radiate negative light towards their
+receivers next to such a neighbour."""
+
+from __future__ import annotations
+
+import importlib
+import math
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers.interreflection import linear_env_texels, make_env, material
+
+from spectral_fit.geometry import ObjectGeometry
+from spectral_fit.io._mesh import load_mesh
+from spectral_fit.rendering.interreflection import gather_senders, prepare_interreflection
+
+SLAB = Path(__file__).resolve().parents[1] / "measurements" / "meshes" / "slab.ply"
+HALF = np.asarray([0.035, 0.045, 0.006])  # the slab's half sizes (70 × 90 × 12 mm)
+BACK = np.asarray([0.0, 0.0, -0.29])
+FRONT = np.asarray([-0.025, -0.02, -0.274])  # the faces 4 mm apart, shifted in the plane
+GAP = (FRONT[2] - HALF[2]) - (BACK[2] + HALF[2])
+
+
+def _slab(position: np.ndarray) -> ObjectGeometry:
+    mesh = load_mesh(SLAB)
+    v = np.asarray(mesh.vertices, np.float32) + position.astype(np.float32)
+    return ObjectGeometry(vertices=jnp.asarray(v), normals=jnp.asarray(mesh.normals, jnp.float32),
+                          triangles=jnp.asarray(mesh.triangles, jnp.int32),
+                          centre=jnp.asarray(position, jnp.float32))
+
+
+@pytest.fixture(scope="module")
+def slabs():
+    return prepare_interreflection([_slab(BACK), _slab(FRONT)], mode="gather")
+
+
+def _rect_ff(a: float, b: float) -> float:
+    """Form factor from a differential area to a parallel rectangle a × b (in units of the
+    distance) with one corner straight above it (e.g. Howell's catalogue, configuration
+    B-3)."""
+    sa, sb = math.sqrt(1 + a * a), math.sqrt(1 + b * b)
+    return (a / sa * math.atan(b / sa) + b / sb * math.atan(a / sb)) / (2 * math.pi)
+
+
+def _face_ff(x: float, y: float, h: float) -> float:
+    """The form factor of the front slab's back face (a parallel rectangle at height h) from a
+    point whose foot (x, y) lies inside it: the sum of the four rectangles around the foot."""
+    x0, x1 = FRONT[0] - HALF[0], FRONT[0] + HALF[0]
+    y0, y1 = FRONT[1] - HALF[1], FRONT[1] + HALF[1]
+    return sum(_rect_ff(dx / h, dy / h) for dx in (x - x0, x1 - x) for dy in (y - y0, y1 - y))
+
+
+def _box_hidden(p: np.ndarray, env, n: int = 400) -> np.ndarray:
+    """(1/π) ∫ cos⁺ hit L dω over the hemisphere of +z at p against the front slab's exact box
+    (float64, an n × 2n midpoint grid in (sin²θ, φ): cosine-weighted cells of equal weight),
+    L our environment lookup at the cell centres; (C,)."""
+    from spectral_fit.lighting import lookup
+
+    u = (np.arange(n) + 0.5) / n
+    phi = (np.arange(2 * n) + 0.5) * math.pi / n
+    st = np.sqrt(u)[:, None]
+    d = np.stack([np.broadcast_to(st * np.cos(phi), (n, 2 * n)),
+                  np.broadcast_to(st * np.sin(phi), (n, 2 * n)),
+                  np.broadcast_to(np.sqrt(1 - u)[:, None], (n, 2 * n))], -1).reshape(-1, 3)
+    lo, hi = FRONT - HALF, FRONT + HALF
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - p) / d, (hi - p) / d
+    near = np.nanmax(np.minimum(t1, t2), -1)
+    far = np.nanmin(np.maximum(t1, t2), -1)
+    hit = far >= np.maximum(near, 0.0)
+    radiance = np.asarray(jax.vmap(lambda w: lookup(env, w))(jnp.asarray(d[hit], jnp.float32)),
+                          np.float64)
+    return radiance.sum(0) / d.shape[0]
+
+
+#: points on the back slab's face (normal +z): under the front slab far from and close to its
+#: edges (feet inside its back face), and beside it (its side faces in view)
+UNDER = np.asarray([[-0.01, -0.01], [0.005, 0.0], [0.009, 0.02], [-0.03, 0.02]])
+BESIDE = np.asarray([[0.0105, 0.0], [0.0125, -0.02], [0.015, 0.01], [0.02, 0.03]])
+
+
+def _points(xy: np.ndarray) -> tuple[jax.Array, jax.Array]:
+    z = BACK[2] + HALF[2]
+    pos = np.concatenate([xy, np.full((len(xy), 1), z)], 1)
+    return jnp.asarray(pos, jnp.float32), jnp.asarray(np.tile([0.0, 0.0, 1.0], (len(xy), 1)),
+                                                      jnp.float32)
+
+
+def test_marched_cover_of_a_parallel_face_is_its_form_factor(slabs):
+    """Points 4 mm under the front slab: the projected solid angle the quadrature finds is
+    π × the closed-form form factor of its face, with 16 × 32 nodes within 3 % far from its
+    edges, 5 % at 5 mm from one and 10 % at 1 mm (the depth map's texel is 1.8 mm here: its
+    silhouette is found to a fraction of that, measured 0.93–0.94 of the truth at 1 mm,
+    0.96–0.99 at 5 mm); the frame's nodes (``_COVER_NODES``) within twice that."""
+    march = importlib.import_module("spectral_fit.rendering.interreflection._march")
+    env = make_env(np.ones((16, 32, 3)))
+    pos, nrm = _points(UNDER)
+    want = np.asarray([math.pi * _face_ff(x, y, GAP) for x, y in UNDER])
+    assert want.min() > 0.5 * math.pi  # a close neighbour: most of the sky
+    pair = jnp.zeros(len(UNDER), jnp.int32)  # pair (back, front): the front slab as sender
+    omega, hidden = jax.jit(lambda p, n: march._cover(slabs, env, pair, p, n, nodes=(16, 32)))(
+        pos, nrm)
+    tol = np.asarray([0.03, 0.05, 0.10, 0.05])  # far, 5 mm, 1 mm and 5 mm from an edge
+    assert np.all(np.abs(np.asarray(omega) / want - 1.0) < tol), np.asarray(omega) / want
+    # a uniform sky of radiance 1: what the neighbour hides is Ω/π
+    got = (np.asarray(hidden) @ np.asarray(env.spectral_basis)) * math.pi / want[:, None]
+    assert np.all(np.abs(got - 1.0) < tol[:, None]), got
+    coarse = np.asarray(jax.jit(lambda p, n: march._cover(slabs, env, pair, p, n)[0])(pos, nrm))
+    assert np.all(np.abs(coarse / want - 1.0) < 2 * tol), coarse / want
+
+
+def test_marched_hidden_environment_beside_a_close_neighbour(slabs):
+    """Points on the back slab's face just beside the front slab (0.5 to 10 mm from its side
+    faces, which stand 4 to 16 mm above them): the environment the front slab hides, from the
+    depth-map march (16 × 32 nodes), against a float64 quadrature of the exact box under a
+    sky that varies with direction: within 6 % of the point's unoccluded irradiance/π."""
+    march = importlib.import_module("spectral_fit.rendering.interreflection._march")
+    from spectral_fit.lighting import irradiance
+
+    env = make_env(linear_env_texels([1.0, 0.8, 0.6], [0.5, 0.2, -0.1]))
+    pos, nrm = _points(BESIDE)
+    pair = jnp.zeros(len(BESIDE), jnp.int32)
+    _, hidden = jax.jit(lambda p, n: march._cover(slabs, env, pair, p, n, nodes=(16, 32)))(
+        pos, nrm)
+    got = np.asarray(hidden) @ np.asarray(env.spectral_basis)
+    sky = np.asarray(irradiance(env, jnp.asarray([0.0, 0.0, 1.0]))) / math.pi
+    for k, p in enumerate(np.asarray(pos, np.float64)):
+        want = _box_hidden(p, env)
+        assert want.mean() > 0.05 * sky.mean(), k  # the neighbour hides a real share
+        np.testing.assert_allclose(got[k], want, atol=0.06 * sky.max(), err_msg=str(k))
+
+
+def test_senders_radiate_no_negative_light_beside_a_close_neighbour(slabs):
+    """Glossy slabs 4 mm apart, two bounces: every live sample's radiance towards its
+    receiver's centre (view-independent part plus its gloss there) is non-negative — the
+    bounce's correction of a sample's gloss for what its neighbour hides may cancel that
+    gloss, not more (without that limit a quarter of the samples radiate negative light here,
+    and the neighbours' gloss reflections of them go far below zero)."""
+    env = make_env(linear_env_texels([1.0, 0.8, 0.6], [0.5, 0.2, -0.1]))
+    mats = [material(alpha=1.0, beta=1.0, mu=0.08, reflectance=(0.9, 0.5, 0.1)),
+            material(alpha=1.0, beta=1.0, mu=0.08, reflectance=(0.1, 0.2, 0.6))]
+    st = jax.jit(lambda g: gather_senders(g, mats, env, bounces=2))(slabs)
+    snd = st.senders
+    centre = 4  # the 3 × 3 view grid's middle: towards the receiver's centre
+    toward = (np.asarray(snd.lum)
+              + np.asarray(snd.spec)[:, :, centre] @ np.asarray(env.spectral_basis))
+    live = np.asarray(st.geometry.s_area) > 0
+    assert live.sum() > 100
+    assert toward[live].min() >= -1e-6 * np.abs(toward[live]).max()
