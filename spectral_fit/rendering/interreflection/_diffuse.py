@@ -189,28 +189,38 @@ def _coverage_factor(omega: jax.Array, w: jax.Array) -> jax.Array:
 
 
 def _covers(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, x: jax.Array,
-            nx: jax.Array, *, nodes: tuple[int, int] | None = None
-            ) -> tuple[jax.Array, jax.Array]:
+            nx: jax.Array, *, nodes: tuple[int, int] | None = None,
+            irr: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """:func:`~._march._cover` of the neighbours ``pair`` (R, k) of receivers ``x`` (R, 3)
     world, unit normals ``nx`` (R, 3): their projected solid angles (R, k) and the
     environment they hide, summed over the k neighbours, in the map's C channels (R, C): in
     bands, per channel at most the receiver's whole irradiance/π (what is hidden is part of
     the sky; a quadrature node that catches a lamp would otherwise take more than there
-    is)."""
+    is). ``irr`` (R, C): that irradiance where the caller has it already."""
     r, k = pair.shape
     omega, hidden = _cover(geom, env, pair.reshape(-1), jnp.repeat(x, k, axis=0),
                            jnp.repeat(nx, k, axis=0), nodes=nodes)
     hidden = jnp.sum(hidden.reshape(r, k, -1), 1) @ env.spectral_basis
     if env.product_tensor is None:  # bands (a basis's coefficients may be negative)
-        sky = jax.vmap(lambda n: irradiance(env, n))(jax.lax.stop_gradient(nx)) / math.pi
-        hidden = jnp.clip(hidden, 0.0, jnp.maximum(sky, 0.0))
+        if irr is None:
+            irr = _irradiance_at(env, nx)
+        sky = jax.lax.stop_gradient(jnp.maximum(irr, 0.0)) / math.pi
+        hidden = jnp.clip(hidden, 0.0, sky)
     return omega.reshape(r, k), hidden
 
 
-def _sample_coverage(geom: IRGeometry, env: EnvironmentMap) -> tuple[jax.Array, jax.Array]:
+def _irradiance_at(env: EnvironmentMap, nrm: jax.Array) -> jax.Array:
+    """(..., C) the environment's irradiance at unit normals ``nrm`` (..., 3)."""
+    e = jax.vmap(lambda n: irradiance(env, n))(nrm.reshape(-1, 3))
+    return e.reshape(*nrm.shape[:-1], -1)
+
+
+def _sample_coverage(geom: IRGeometry, env: EnvironmentMap, irr: jax.Array
+                     ) -> tuple[jax.Array, jax.Array]:
     """At every sample (P, M), towards each neighbour of its object: the neighbour's
     projected solid angle (P, M, n − 1) (sr), and the environment the neighbours hide
-    (P·M, C) (:func:`_covers`); once per frame (the bounces reuse them)."""
+    (P·M, C) (:func:`_covers`; ``irr`` (P, M, C): the samples' irradiance,
+    :func:`_irradiance_at`); once per frame (the bounces reuse them)."""
     k_per = geom.n_objects - 1
     p_count, m_count = geom.s_area.shape
     live = (geom.s_area > 0)[..., None]
@@ -219,7 +229,8 @@ def _sample_coverage(geom: IRGeometry, env: EnvironmentMap) -> tuple[jax.Array, 
     recv = np.asarray([j for _, j in geom.pairs], np.int32)
     src = recv[:, None] * k_per + np.arange(k_per)[None, :]  # (P, k_per)
     pair = jnp.asarray(np.repeat(src, m_count, axis=0))  # (P·M, k_per)
-    omega, hidden = _covers(geom, env, pair, pos.reshape(-1, 3), nrm.reshape(-1, 3))
+    omega, hidden = _covers(geom, env, pair, pos.reshape(-1, 3), nrm.reshape(-1, 3),
+                            irr=irr.reshape(p_count * m_count, -1))
     live = live.reshape(-1, 1)
     return (jnp.where(live, omega, 0.0).reshape(p_count, m_count, k_per),
             jnp.where(live, hidden, 0.0))
@@ -441,12 +452,10 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
     return jnp.zeros((n, c), lum.dtype).at[order].set(res)
 
 
-def _sample_diffuse(geom: IRGeometry, sh: _Shading) -> jax.Array:
-    """(P, M, C) view-independent radiance α_j S_j E_irr(n_y)/π of each sample."""
-    p_count, m_count = geom.s_area.shape
+def _sample_diffuse(geom: IRGeometry, sh: _Shading, e: jax.Array) -> jax.Array:
+    """(P, M, C) view-independent radiance α_j S_j E_irr(n_y)/π of each sample, from its
+    irradiance ``e`` (P, M, C) (:func:`_irradiance_at` of the samples' normals)."""
     senders = [j for _, j in geom.pairs]
-    e = jax.vmap(lambda nn: irradiance(sh.env, nn))(geom.s_nrm.reshape(-1, 3))
-    e = e.reshape(p_count, m_count, -1)
     sid = jnp.asarray(senders, jnp.int32)
     refl = sh.mats["reflectance"][sid][:, None, :]
     return (sh.mats["alpha"][sid] / math.pi)[:, None, None] * _times_reflectance(sh.env, refl,

@@ -31,6 +31,7 @@ from ._diffuse import (
     _VIEW_GRID,
     _direct_diffuse,
     _interpolate_net,
+    _irradiance_at,
     _net_tables,
     _sample_coverage,
     _sample_diffuse,
@@ -135,7 +136,8 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
     frames = _view_frames(geom)
     with jax.named_scope("ir_sample_shading"):
         spec, mirror = _sample_specular(geom, sh, frames)
-        l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh), 0.0)
+        irr = _irradiance_at(env, geom.s_nrm)  # (P, M, C): the samples' diffuse light
+        l0 = jnp.where(live[..., None], _sample_diffuse(geom, sh, irr), 0.0)
     cov = geom.s_cov[..., None]
     with jax.named_scope("ir_atlas"):  # geometry alone: once, not per bounce
         geo_atlas = _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1),
@@ -148,11 +150,13 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
             atlas = (_build_mips(lum * cov, geom.gather_size), geo_atlas)
         return snd, atlas
 
-    centre = len(_VIEW_GRID) ** 2 // 2  # the view grid's direction to the receiver's centre
-    toward = spec[:, :, centre] @ env.spectral_basis
-    if mirror is not None:
-        toward = toward + mirror[:, :, centre]
-    toward = jax.lax.stop_gradient(jnp.maximum(toward, 0.0))
+    toward = None  # the senders' gloss towards their receivers' centres, where it bounds
+    if bounces > 1 and env.product_tensor is None:  # bands (a basis's may be negative)
+        centre = len(_VIEW_GRID) ** 2 // 2  # the view grid's direction to the centre
+        toward = spec[:, :, centre] @ env.spectral_basis
+        if mirror is not None:
+            toward = toward + mirror[:, :, centre]
+        toward = jax.lax.stop_gradient(jnp.maximum(toward, 0.0))
     lum = l0
     snd, atlas = senders_with(lum)
     s_obj = jnp.where(live.reshape(-1), jnp.asarray(np.repeat(senders, m_count), jnp.int32),
@@ -163,7 +167,7 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         if diffuse_at == "samples" or b < bounces - 1:
             with jax.named_scope("ir_sample_transfer"):
                 if cover is None:  # geometry and environment alone: once, not per bounce
-                    cover = _sample_coverage(geom, env)
+                    cover = _sample_coverage(geom, env, irr)
                 net = _sample_diffuse_net(geom, snd, env, cover)
         if b == bounces - 1:
             break
@@ -177,7 +181,7 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         # where it takes away more than the sample's diffuse light it may cancel at most the
         # gloss the sample shows towards its neighbour (the view grid's centre), never more:
         # a sample's radiance towards its receivers stays non-negative, band by band
-        if env.product_tensor is None:  # bands (a basis's coefficients may be negative)
+        if toward is not None:
             lum = jnp.maximum(lum, -toward)
         snd, atlas = senders_with(lum)
     return GatherSenders(geometry=geom, senders=snd, atlas=atlas,
