@@ -29,6 +29,52 @@ def _patch_means(stack: np.ndarray, boxes: np.ndarray, crop: Any) -> np.ndarray:
     return np.stack(out, axis=-2)
 
 
+def _depth_statistics(means: np.ndarray, wl: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-patch statistics of ``means`` (2, K, P, L), the K passes' patch means at path depths
+    2 and 16: ``direct`` / ``total`` (P, L) and their standard errors ``noise_direct`` /
+    ``noise`` over the passes (NaN with one pass), the interreflection share of the luminance
+    ``frac`` = (Y₁₆ − Y₂)/Y₁₆ (P,) and its standard error ``frac_se``, and the relative
+    noise ``rel`` (P, L) of ``total``."""
+    from ...color import xyz_weights
+
+    k = means.shape[1]
+
+    def se(x: np.ndarray) -> np.ndarray:
+        return x.std(axis=0, ddof=1) / np.sqrt(k) if k > 1 else np.full(x.shape[1:], np.nan)
+
+    total = means[1].mean(axis=0)
+    wy = xyz_weights(wl)[:, 1]
+    y2, y16 = means[0] @ wy, means[1] @ wy  # (K, P)
+    noise = se(means[1])
+    return {
+        "direct": means[0].mean(axis=0), "total": total,
+        "noise_direct": se(means[0]), "noise": noise,
+        "frac": (y16.mean(0) - y2.mean(0)) / np.maximum(y16.mean(0), 1e-30),
+        "frac_se": se((y16 - y2) / np.maximum(y16, 1e-30)),
+        "rel": noise / np.maximum(np.abs(total), 1e-30),
+    }
+
+
+def _config_name(scene: Scene) -> str:
+    """The scene's config path relative to the repository (as given where that fails)."""
+    try:
+        return os.path.relpath(scene.path, _REPO) if scene.path else ""
+    except ValueError:
+        return str(scene.path)
+
+
+def _sampling_metadata(spp: int, passes: int, seed: int) -> dict[str, Any]:
+    """The metadata entries that say how a reference was sampled."""
+    return {
+        "spp_per_pass": int(spp),
+        "passes": int(passes),
+        "spp": int(spp * passes),
+        "seeds": [int(seed + p) for p in range(passes)],
+        "depths": [2, 16],
+        "integrator": "path (Russian roulette from depth 5, Mitsuba default), box pixel filter",
+    }
+
+
 def make_reference(
     scene: Scene,
     name: str,
@@ -57,35 +103,15 @@ def make_reference(
     r = render_spectral(scene, spp=spp, passes=passes, depths=(2, 16), seed=seed, crop=crop,
                         analytic_spheres=analytic_spheres, progress=progress)
     wl = r.wavelengths
-    means = _patch_means(r.passes, pt["boxes"], crop)  # (2, passes, P, L)
-    k = means.shape[1]
-
-    def se(x: np.ndarray) -> np.ndarray:
-        return x.std(axis=0, ddof=1) / np.sqrt(k) if k > 1 else np.full(x.shape[1:], np.nan)
-
-    direct, total = means[0].mean(axis=0), means[1].mean(axis=0)
-    w = xyz_weights(wl)
-    y2, y16 = means[0] @ w[:, 1], means[1] @ w[:, 1]  # (passes, P)
-    frac_p = (y16 - y2) / np.maximum(y16, 1e-30)
-    frac = (y16.mean(0) - y2.mean(0)) / np.maximum(y16.mean(0), 1e-30)
-    frac_se = se(frac_p)
+    st = _depth_statistics(_patch_means(r.passes, pt["boxes"], crop), wl)
+    frac, frac_se, rel = st["frac"], st["frac_se"], st["rel"]
     labels = np.where((frac > threshold) & (frac > 3.0 * np.nan_to_num(frac_se)),
                       "interreflection", "direct")
-    xyz = r.mean(16) @ w
-    try:
-        config = os.path.relpath(scene.path, _REPO) if scene.path else ""
-    except ValueError:
-        config = str(scene.path)
-    rel = se(means[1]) / np.maximum(np.abs(total), 1e-30)
+    xyz = r.mean(16) @ xyz_weights(wl)
     meta = {
         "variant": r.variant,
         "mitsuba": mi.__version__,
-        "spp_per_pass": int(spp),
-        "passes": int(passes),
-        "spp": int(spp * passes),
-        "seeds": [int(seed + p) for p in range(passes)],
-        "depths": [2, 16],
-        "integrator": "path (Russian roulette from depth 5, Mitsuba default), box pixel filter",
+        **_sampling_metadata(spp, passes, seed),
         "render_seconds": round(float(r.seconds), 1),
         "renders": int(2 * passes * -(-wl.size // 3)),
         "crop": [crop.x0, crop.y0, crop.width, crop.height],
@@ -100,11 +126,11 @@ def make_reference(
         "ir_patches": int((labels == "interreflection").sum()),
     }
     return Reference(
-        name=name, config=config, wavelengths=wl, boxes=pt["boxes"],
+        name=name, config=_config_name(scene), wavelengths=wl, boxes=pt["boxes"],
         object_names=tuple(o.name for o in scene.objects), object_index=pt["object"],
         normals=pt["normal"], points=pt["point"], views=pt["view"],
-        spectra=total, noise=se(means[1]), direct=direct, noise_direct=se(means[0]),
-        ir_fraction=frac, ir_noise=frac_se, labels=labels,
+        spectra=st["total"], noise=st["noise"], direct=st["direct"],
+        noise_direct=st["noise_direct"], ir_fraction=frac, ir_noise=frac_se, labels=labels,
         preview_xyz=xyz.astype(np.float32), metadata=meta)
 
 
@@ -280,23 +306,13 @@ def make_mesh_reference(
     boxes = patches["boxes"][keep]
     wl = scene.wavelengths
     grid = np.asarray(render["grid"], np.float64)
-    k = grid.shape[1]
-    g = grid.reshape(2, k, -1, wl.size)[:, :, keep]  # (2, K, P, L)
-
-    def se(x: np.ndarray) -> np.ndarray:
-        return x.std(axis=0, ddof=1) / np.sqrt(k) if k > 1 else np.full(x.shape[1:], np.nan)
-
-    direct, total = g[0].mean(axis=0), g[1].mean(axis=0)
-    noise_direct = se(g[0])
+    g = grid.reshape(2, grid.shape[1], -1, wl.size)[:, :, keep]  # (2, K, P, L)
+    st = _depth_statistics(g, wl)
+    direct, noise_direct, frac, frac_se = (st["direct"], st["noise_direct"], st["frac"],
+                                           st["frac_se"])
     missing = (g[0] == 0.0).all(axis=(0, 2))  # outside the depth-2 window (table patches)
-    direct[missing] = np.nan
-    noise_direct[missing] = np.nan
-    wy = xyz_weights(wl)[:, 1]
-    y2, y16 = g[0] @ wy, g[1] @ wy  # (K, P)
-    frac = (y16.mean(0) - y2.mean(0)) / np.maximum(y16.mean(0), 1e-30)
-    frac_se = se((y16 - y2) / np.maximum(y16, 1e-30))
-    frac[missing] = np.nan
-    frac_se[missing] = np.nan
+    for a in (direct, noise_direct, frac, frac_se):
+        a[missing] = np.nan
     obj_index = owner[keep]
     labels = np.where(obj_index < 0, "table",
                       np.where(frac > threshold, "interreflection", "direct"))
@@ -313,23 +329,14 @@ def make_mesh_reference(
     x1, y1 = x0 + (x1 - x0) // step * step, y0 + (y1 - y0) // step * step
     xyz = np.asarray(render["xyz16"], np.float64)[y0:y1, x0:x1]
     xyz = xyz.reshape((y1 - y0) // step, step, (x1 - x0) // step, step, 3).mean(axis=(1, 3))
-    rel = se(g[1]) / np.maximum(np.abs(total), 1e-30)
-    try:
-        config = os.path.relpath(scene.path, _REPO) if scene.path else ""
-    except ValueError:
-        config = str(scene.path)
+    rel = st["rel"]
     obj_ir = (obj_index >= 0) & (labels == "interreflection")
     meta = {
         "layout": "grid",
         "variant": render.get("variant") or "not recorded",
         "mitsuba": mi.__version__,
         "source": render.get("source", ""),
-        "spp_per_pass": int(spp),
-        "passes": int(passes),
-        "spp": int(spp * passes),
-        "seeds": [int(seed + p) for p in range(passes)],
-        "depths": [2, 16],
-        "integrator": "path (Russian roulette from depth 5, Mitsuba default), box pixel filter",
+        **_sampling_metadata(spp, passes, seed),
         "render_seconds": (round(float(render["seconds"]), 1)
                            if np.isfinite(render.get("seconds", np.nan)) else None),
         "renders": int(2 * passes * -(-wl.size // 3)),
@@ -361,10 +368,10 @@ def make_mesh_reference(
     }
     nan3 = np.full((len(boxes), 3), np.nan)
     return Reference(
-        name=name, config=config, wavelengths=wl, boxes=boxes,
+        name=name, config=_config_name(scene), wavelengths=wl, boxes=boxes,
         object_names=tuple(o.name for o in scene.objects), object_index=obj_index,
         normals=nan3, points=nan3, views=nan3,
-        spectra=total, noise=se(g[1]), direct=direct, noise_direct=noise_direct,
+        spectra=st["total"], noise=st["noise"], direct=direct, noise_direct=noise_direct,
         ir_fraction=frac, ir_noise=frac_se, labels=labels,
         preview_xyz=xyz.astype(np.float32), metadata=meta,
         near=np.where(obj_index < 0, near[keep], -1), noise_de=noise_de)
