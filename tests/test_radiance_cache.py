@@ -151,7 +151,7 @@ def test_interreflection_against_reference_readings():
     ir = np.asarray(fitting.interreflection_term(pr, v), np.float64)
     cal = np.asarray(pr.instrument.calibration, np.float64)
     band = np.asarray(pr.instrument.band, np.float64)
-    without = with_ir - cal * ((np.asarray(pr.readings.average) @ ir) @ band.T)
+    without = with_ir - cal * ((pr.readings.average.dense() @ ir) @ band.T)
     wl = session.wavelengths
     lum = lambda x: radiance_to_xyz(x, wl)[..., 1]  # noqa: E731
     meas = np.asarray(pr.readings.measured, np.float64)

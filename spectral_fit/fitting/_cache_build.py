@@ -18,7 +18,7 @@ import numpy as np
 from ._cache_geometry import _fibonacci_cap, _ray_spheres, _unit
 from ._env_sampling import _env_lookup, _texel_table
 from ._gloss_nodes import build_gloss_nodes
-from ._radiance_cache import CacheOptions, RadianceCache, Sphere, _concat_nodes
+from ._radiance_cache import CacheOptions, FieldAverage, RadianceCache, Sphere, _concat_nodes
 
 __all__ = ["build_radiance_cache"]
 
@@ -67,9 +67,9 @@ def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndar
 
 def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
                          views: np.ndarray, objects: np.ndarray, groups: np.ndarray, *,
-                         average: np.ndarray | None = None, spheres: Sequence[Sphere] = (),
-                         options: CacheOptions | None = None, dtype: Any = jnp.float32
-                         ) -> RadianceCache:
+                         weights: np.ndarray | None = None, spheres: Sequence[Sphere] = (),
+                         options: CacheOptions | None = None, dtype: Any = jnp.float32,
+                         probe_groups: int | None = None) -> RadianceCache:
     """Precompute the :class:`RadianceCache` of P field samples (outside ``jit``).
 
     Args:
@@ -77,9 +77,12 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         positions, normals, views: (P, 3) world samples (invalid ones: any values).
         objects: (P,) object per sample, −1 for none.
         groups: (P,) reading of each sample (probes are made per reading and neighbour).
-        average: (B, P) field averaging weights (default: the mean of each group's samples).
+        weights: (P,) each sample's weight in its reading's field mean (default: the mean of
+            each group's samples).
         spheres: the objects as spheres for occlusion and interreflection (empty: no
             interreflection, no occlusion).
+        probe_groups: only groups below this get probes (None: every group); the others are
+            occluded by the neighbours but receive no light from them.
     """
     opts = options or CacheOptions()
     X = np.asarray(positions, np.float64)
@@ -112,6 +115,8 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     probe_dirs, probe_pts, probe_sph, probe_grp, probe_orig = [], [], [], [], []
     if spheres:
         for b in np.unique(grp[valid]):
+            if probe_groups is not None and b >= probe_groups:
+                break
             sel = valid & (grp == b)
             xb = X[sel].mean(axis=0)
             ob = int(np.bincount(obj[sel]).argmax())
@@ -211,18 +216,18 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         hs = hq = np.zeros(0, np.int64)
         hnode = np.zeros(0, np.int64)
     mprobe = np.where(mprobe >= 0, mprobe, Q)  # index Q: a zero row
-    if average is None:
-        nb = int(grp.max()) + 1 if grp.size else 0
-        average = np.zeros((nb, P))
-        for b in range(nb):
-            average[b, grp == b] = 1.0 / max(1, int(np.sum(grp == b)))
-    avg = np.asarray(average, np.float64) * (valid & (nv > 0.0))[None, :]
+    nb = int(grp.max()) + 1 if grp.size else 0
+    if weights is None:
+        count = np.bincount(np.maximum(grp, 0), minlength=nb)
+        weights = 1.0 / np.maximum(count[np.maximum(grp, 0)], 1)
+    w = np.asarray(weights, np.float64) * (valid & (nv > 0.0) & (grp >= 0))
     O = int(max([obj.max() + 1 if obj.size else 0] + [s.object + 1 for s in spheres]))
     fdq = np.zeros((O, Q))
-    for o in range(O):
-        full = avg @ (dpr * (obj == o)[:, None])  # (B, Q)
-        fdq[o] = full[pg, np.arange(Q)] if Q else 0.0
-    h_avg = avg[grp[hs], hs] if hs.size else np.zeros(0)
+    if Q:  # each probe's share of its own reading's mean, per receiving object
+        same = grp[:, None] == pg[None, :]  # (P, Q)
+        for o in range(O):
+            fdq[o] = np.sum((w * (obj == o))[:, None] * dpr * same, axis=0)
+    h_avg = w[hs] if hs.size else np.zeros(0)
     f = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     return RadianceCache(
         nodes=_concat_nodes(nodes, pnodes), irradiance=f(irr), mirror=f(mir),
@@ -231,5 +236,7 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         probe_irradiance=f(pE), probe_mirror=f(pM), mirror_probe=jnp.asarray(mprobe, jnp.int32),
         diffuse_probe=f(dpr), hit_sample=jnp.asarray(hs, jnp.int32),
         hit_probe=jnp.asarray(hq, jnp.int32), hit_node=jnp.asarray(hnode, jnp.int32),
-        average=f(avg), probe_group=jnp.asarray(pg, jnp.int32), probe_diffuse=f(fdq),
+        average=FieldAverage(row=jnp.asarray(np.maximum(grp, 0), jnp.int32), weight=f(w),
+                             rows=nb),
+        probe_group=jnp.asarray(pg, jnp.int32), probe_diffuse=f(fdq),
         hit_average=f(h_avg))

@@ -222,7 +222,7 @@ def cached_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Ar
 def field_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Array,
                    objects: jax.Array, models: Sequence[tuple[str, str]],
                    *, interreflection: bool = True) -> jax.Array:
-    """Mean radiance (B, L) over each reading's field, ``cache.average @`` the samples'
+    """Mean radiance (B, L) over each reading's field, ``cache.average`` of the samples'
     radiance of :func:`cached_radiance`, with every term linear in a per-object parameter
     summed into field means before the spectral product (the fit's forward model: the
     interreflection hits are reduced to a (B, Q) matrix of scalars, then one product with
@@ -235,18 +235,18 @@ def field_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Arr
     v, Fm = v_all[:P], f_all[:P, None]
     S = reflectance[objects]
     direct = (v[:, 0:1] / math.pi) * S * cache.irradiance + v[:, 2:3] * Fm * cache.mirror
-    out = A @ direct + (A @ (v[:, 1:2] * gl_all[:P])) @ cache.spectral_basis
+    out = A.apply(direct) + A.apply(v[:, 1:2] * gl_all[:P]) @ cache.spectral_basis
     if interreflection and cache.n_probes:
         lout = _probe_out(cache, v_all[P:], reflectance, gl_all[P:], f_all[P:])  # (Q, L)
         lz = jnp.concatenate([lout, jnp.zeros((1, lout.shape[1]), lout.dtype)])
-        B, Q = A.shape[0], lout.shape[0]
+        B, Q = A.rows, lout.shape[0]
         coef = cache.probe_diffuse.T @ ((values[:, 0:1] / math.pi) * reflectance)  # (Q, L)
         if cache.hit_sample.shape[0]:
             C = jax.ops.segment_sum(cache.hit_average * v[cache.hit_sample, 1] * wh,
                                     cache.hit_probe, num_segments=Q)
             coef = coef + C[:, None]
         out = out + jax.ops.segment_sum(coef * lout, cache.probe_group, num_segments=B)
-        out = out + A @ (v[:, 2:3] * Fm * lz[cache.mirror_probe])
+        out = out + A.apply(v[:, 2:3] * Fm * lz[cache.mirror_probe])
     return out
 
 

@@ -44,7 +44,7 @@ from ._model_error import estimate_model_error, with_model_error
 from ._options import FitOptions, _fit_options
 from ._params import _SQUARED, LOWER, _dp_dy, _starts, physical_from_y, unknowns, y_start
 from ._prepare_cache import aim_problems_cached, prepare_fit_cached
-from ._problem import FitProblem, PreparedFit
+from ._problem import FitProblem, PreparedFit, row_kinds
 from ._profile import STEPS, profile_intervals
 from ._programs import stored_call
 from ._solver import _PROGRESS, _solve_measured, make_solver, solve_batch
@@ -93,6 +93,10 @@ class FitResult:
             else None.
         constraints: {label: {"lower", "upper", "prior_mean", "prior_sigma"}} of the
             unknowns with a bound or a prior stated in the session (None where not stated).
+        images: per camera photograph of the session: id, bins used and left out (by
+            reason), χ² and the rms relative residual of its channels, and per bin its row,
+            column, object, measured and fitted counts and σ (C each); ``measured``,
+            ``fitted`` and ``sigma`` above hold the spot readings only.
     """
 
     params: dict[str, dict[str, float]]
@@ -123,6 +127,7 @@ class FitResult:
     profile: dict[str, dict[str, Any]] | None = None
     model_error: dict[str, float] = dataclasses.field(default_factory=dict)
     constraints: dict[str, dict[str, float | None]] = dataclasses.field(default_factory=dict)
+    images: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable summary (spectra excluded; see the report for those)."""
@@ -150,6 +155,7 @@ class FitResult:
             "readings": self.readings, "holdout": self.holdout, "timings": self.timings,
             "profile": self.profile, "model_error": self.model_error,
             "constraints": self.constraints,
+            "images": self.images,
         })
 
 
@@ -207,13 +213,13 @@ def _colour_table(wl: np.ndarray, measured: np.ndarray, fitted: np.ndarray,
 
 def _reference_white(prep: PreparedFit, calib: np.ndarray, scale: float) -> np.ndarray:
     """Radiance (L,) of the scene's white for CIELAB: the white standard's reading divided by
-    its reflectance, else a perfect diffuser facing the first instrument."""
+    its reflectance, else a perfect diffuser facing the first instrument (or camera)."""
     from ..lighting import irradiance_exact
 
     s = prep.session
     if s.white is not None:
         return s.white.mean / s.white.reflectance
-    r = s.readings[0]
+    r = s.readings[0] if s.readings else s.images[0]
     n = r.position - r.aim
     n = n / np.linalg.norm(n)
     env = prep.problem.env
@@ -279,7 +285,8 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     t0 = time.perf_counter()
     programs0 = compilation_counts()
     if prepared is None:
-        say(f"rasterising {len(session.readings)} measuring fields ...")
+        say(f"rasterising {len(session.readings)} measuring fields"
+            + (f" and {len(session.images)} photograph(s)" if session.images else "") + " ...")
         prepared = prepare_fit_cached(scene, session, options=opts, cache_dir=cache_dir)
         if prepared.cached == "hit":
             say("preparation loaded from the disk cache")
@@ -287,32 +294,35 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     problem = prep.problem
     names = list(prep.objects)
     labels = problem.names(names)
-    B = len(session.readings)
+    B = len(session.readings)  # spot readings: the first B rows; the images' bins follow
+    Bt = int(problem.readings.measured.shape[0])
     L = session.wavelengths.size
-    use = np.array([r.kind in opts.kinds for r in session.readings], np.float64)
+    use = prep.row_weights(opts.kinds)
     if use.sum() == 0:
         raise InputError(f"no readings of kinds {list(opts.kinds)}", path=session.path,
                          field="readings")
     F = problem.n_free
     if F == 0:
         raise InputError("no free parameters", path=session.path, field="objects")
-    dof = int(use.sum()) * L + len(problem.prior) - F  # (each prior is one datum)
+    n_data = int(np.sum(use * prep.data_per_row()))
+    dof = n_data + len(problem.prior) - F  # (each prior is one datum)
     if dof <= 0:
-        raise InputError(f"{F} unknowns but only {int(use.sum()) * L} data", path=session.path,
+        raise InputError(f"{F} unknowns but only {n_data} data", path=session.path,
                          field="readings")
     vals0 = np.asarray(problem.values, np.float64)
     scale0 = 1.0
     if problem.fit_scale:  # closed-form start for the scale from the diffuse term alone
         pr_ = {k: np.asarray(v, np.float64) for k, v in (
             ("irradiance", problem.irradiance), ("reflectance", problem.surfaces.reflectance),
-            ("average", problem.readings.average), ("background", problem.readings.background),
+            ("background", problem.readings.background),
             ("measured", problem.readings.measured),
             ("calibration", problem.instrument.calibration))}
         obj = np.maximum(np.asarray(problem.receivers.object), 0)
         diff = vals0[obj, 0:1] / math.pi * pr_["reflectance"][obj] * pr_["irradiance"]
         diff *= (np.asarray(problem.receivers.object) >= 0)[:, None]
-        pred = pr_["calibration"] * (pr_["average"] @ diff + pr_["background"])
-        m = use[:, None] > 0
+        pred = pr_["calibration"] * (problem.readings.average.apply_np(diff)
+                                     + pr_["background"])
+        m = (use[:, None] > 0) & (np.arange(Bt) < B)[:, None]  # spot readings
         scale0 = float(np.sum(pred * pr_["measured"] * m) / max(np.sum(pred * pred * m),
                                                                  1e-300))
         scale0 = scale0 if scale0 > 0 and math.isfinite(scale0) else 1.0
@@ -323,8 +333,11 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     # (no host callback in the program: JAX's persistent cache can keep it between runs)
     live = progress is not None and opts.solver != "compact"
     solver = make_solver(opts, live)
-    say(f"solving: {F} unknowns, {int(use.sum())} readings x {L} bands, {opts.starts} starts "
-        f"(Levenberg-Marquardt, {opts.solver}) ...")
+    n_rows = int(use[B:].sum())
+    n_bins = sum(ir.bins.shape[0] for ir in prep.images) if n_rows else 0
+    say(f"solving: {F} unknowns, {int(use[:B].sum())} readings x {L} bands"
+        + (f" + {n_bins} photograph bins ({n_rows} rows)" if n_rows else "")
+        + f", {opts.starts} starts (Levenberg-Marquardt, {opts.solver}) ...")
     if live:
         _PROGRESS.append(lambda s, c: say(f"  step {int(np.max(s)):3d}  "
                                           f"best cost {float(np.min(c)):.6g}"))
@@ -349,7 +362,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     start_best = best
     # the model's error per reading kind: stated in the session, or estimated ("auto") from
     # the residuals and the fit solved again with it (same program: σ is data)
-    reading_kinds = [r.kind for r in session.readings]
+    reading_kinds = row_kinds(session, prep.n_image_rows)
     model_error = {k: float(v) for k, v in session.model_error.items() if not isinstance(v, str)}
     auto = sorted(k for k, v in session.model_error.items() if v == "auto")
     if auto and np.isfinite(costs[best]):
@@ -361,7 +374,8 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
         est = {k: 0.0 for k in auto}
         for _ in range(6):
             new = estimate_model_error(out["predicted"][best] - meas_, meas_, sig0,
-                                       reading_kinds, use, auto, n_free=F)
+                                       reading_kinds, use, auto, n_free=F,
+                                       data=prep.data_per_row())
             settled = all(abs(new[k] - est.get(k, 0.0)) <= 0.05 * max(new[k], 1e-12)
                           for k in new)
             est.update(new)
@@ -417,7 +431,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     jtj = J.T @ J
     bread = np.linalg.pinv(jtj, rcond=1e-12, hermitian=True)
     cov = bread * max(1.0, chi2_red)
-    robust = (_reading_robust_covariance(J, r, B, L, use)
+    robust = (_reading_robust_covariance(J, r, Bt, L, use)
               if opts.errors == "robust" else None)
     if robust is not None:  # the larger of the two per parameter, correlations kept
         grow = np.sqrt(np.maximum(np.diag(robust), 0.0) / np.maximum(np.diag(cov), 1e-300))
@@ -463,10 +477,12 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                             f"({iv['lower']:.4g} .. {iv['upper']:.4g}): these readings do not "
                             "bound it there")
         t_prof = time.perf_counter() - t4
-    fitted = out["predicted"][best].astype(np.float64)
+    fitted_all = out["predicted"][best].astype(np.float64)
+    measured_all = np.asarray(problem.readings.measured, np.float64)
+    sigma_all = np.asarray(problem.readings.sigma, np.float64)
+    images = _image_summaries(prep, measured_all, fitted_all, sigma_all, use)
+    fitted, measured, sigma = fitted_all[:B], measured_all[:B], sigma_all[:B]
     # colour table ---------------------------------------------------------------------------
-    measured = np.asarray(problem.readings.measured, np.float64)
-    sigma = np.asarray(problem.readings.sigma, np.float64)
     calib = np.asarray(problem.instrument.calibration, np.float64)
     wl = session.wavelengths
     white = _reference_white(prep, calib, scale)
@@ -505,7 +521,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     # aiming sensitivity ------------------------------------------------------------------
     t6 = time.perf_counter()
     aim_cache = "off"
-    if opts.aim_step_m > 0:
+    if opts.aim_step_m > 0 and B:
         say("aiming sensitivity ...")
         sens, aim_cache = _aim_sensitivity(scene, prep, vals, scale, opts, white, fitted,
                                            cache_dir)
@@ -536,7 +552,34 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
                             **{f"programs_{k}": programs[k] - programs0[k]
                                for k in programs}}},
         iterations=steps_best, values=vals, profile=profile, model_error=model_error,
-        constraints=_constraints(session, names, problem, labels))
+        constraints=_constraints(session, names, problem, labels), images=images)
+
+
+def _image_summaries(prep: PreparedFit, measured: np.ndarray, fitted: np.ndarray,
+                     sigma: np.ndarray, use: np.ndarray) -> list[dict[str, Any]]:
+    """Per photograph: its bins' measured and fitted counts, χ², rms relative residual."""
+    out = []
+    row = prep.n_spots
+    for ir in prep.images:
+        im = prep.session.images[ir.image]
+        n, c = ir.row_bin.shape[0], ir.response.shape[0]
+        m, f, sg = (a[row:row + n, :c] for a in (measured, fitted, sigma))
+        u = (use[row:row + n] > 0)[:, None] & ir.mask
+        rel = (f - m) / np.maximum(np.abs(m), 1e-12)
+        # one entry per bin: the channels of its rows gathered
+        keys, inv, ob = ir.bins, ir.row_bin, ir.object
+        mb, fb, sb = (np.zeros((keys.shape[0], c)) for _ in range(3))
+        for a, b_ in ((mb, m), (fb, f), (sb, sg)):
+            np.add.at(a, inv, np.where(ir.mask, b_, 0.0))
+        out.append({
+            "id": im.id, "used": bool(u.any()), "bins": int(keys.shape[0]), "rows": n,
+            "grid": list(ir.grid), "superpixel": im.superpixel, "dropped": dict(ir.dropped),
+            "chi2": float(np.sum(((f - m) / sg)[u] ** 2)),
+            "rms_relative_residual": float(np.sqrt(np.mean(rel[u] ** 2))) if u.any() else None,
+            "bin_row": keys[:, 0], "bin_col": keys[:, 1], "object": ob,
+            "measured": mb, "fitted": fb, "sigma": sb})
+        row += n
+    return out
 
 
 def _constraints(session: Session, names: list[str], problem: FitProblem,
@@ -587,8 +630,7 @@ def _holdout(problem: FitProblem, prep: PreparedFit, y: np.ndarray, use: np.ndar
              opts: FitOptions, solver: Any, white: np.ndarray,
              cache_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     s = prep.session
-    obj_only = np.array([u if r.kind == "object" else 0.0 for u, r in
-                         zip(use, s.readings, strict=True)])
+    obj_only = use * prep.row_weights(("object", "image"))
     dt = problem.values.dtype
     # one solve from the fit's optimum; the batch has the fit's size (the same compiled
     # program), its other rows weigh no reading and stop within a few steps
@@ -645,7 +687,7 @@ def _aim_sensitivity(scene: Scene, prep: PreparedFit, vals: np.ndarray, scale: f
             u = u / np.linalg.norm(u)
             v = np.cross(ax, u)
             shifted.append(dataclasses.replace(r, aim=r.aim + step * (u if d == 0 else v)))
-        sessions.append(s.replace(readings=tuple(shifted)))
+        sessions.append(s.replace(readings=tuple(shifted), images=()))
     problems, cached = aim_problems_cached(
         scene, prep, dataclasses.replace(
             opts, interreflection="auto" if prep.problem.interreflection else "none"),
@@ -700,7 +742,7 @@ def fit_many(prepared: PreparedFit, measured: Any, *, sigma: Any = None,
         raise InputError("NaN or infinite readings", field="measured")
     sig = np.broadcast_to(np.asarray(problem.readings.sigma if sigma is None else sigma,
                                      np.float64), meas.shape)
-    use = np.array([r.kind in opts.kinds for r in prepared.session.readings], np.float64)
+    use = prepared.row_weights(opts.kinds)
     y0 = y_start(problem, np.asarray(problem.values, np.float64), 1.0)
     devs = list(devices) if devices is not None else jax.devices()
     nd = len(devs)

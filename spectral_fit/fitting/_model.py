@@ -8,7 +8,8 @@ reading, when the scene's interreflection mode is not "none" and every object is
 sphere; every term is a weighted sum of cached radiances with weights from F, D, G, so
 the Jacobian is exact autodiff, interreflection included; B the instrument's band-pass,
 :func:`~spectral_fit.fitting.band_matrix`). With ``geometry = "SCI"`` reflectance,
-S = max(S_SCI − F(n, 8°), 0).
+S = max(S_SCI − F(n, 8°), 0). A bin of a camera photograph is a reading whose field is the
+bin's pixels and whose "band-pass" is the camera's: counts_c = Σ_λ t s_c(λ) Δλ M_b(λ).
 
 Shapes: B readings, P samples, O objects, L bands; readings in W·sr⁻¹·m⁻²·nm⁻¹.
 """
@@ -64,15 +65,26 @@ def interreflection_term(problem: FitProblem, values: jax.Array) -> jax.Array:
 def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Array:
     """Predicted mean readings (B, L), W·sr⁻¹·m⁻²·nm⁻¹, for physical parameters
     ``values (O, 6)`` (columns α, β, χ, μ, n, γ) and the global environment scale: the field
-    means of eq. (5) (+ eq. 6) from the radiance cache, through the band-pass, times k(λ)."""
+    means of eq. (5) (+ eq. 6) from the radiance cache, through the band-pass, times k(λ).
+    The rows of camera photographs' bins (the last S) hold their C channels' counts instead
+    (:class:`~spectral_fit.fitting.FitReadings`), zeros after them."""
     from ._cache_model import field_radiance
 
     obj = jnp.maximum(problem.receivers.object, 0)
     S = _reflectances(problem, values)
     mean = field_radiance(problem.cache, values, S, obj, problem.surfaces.models,
                           interreflection=problem.interreflection)
-    mean = (mean + problem.readings.background) @ problem.instrument.band.T
-    return problem.instrument.calibration * scale * mean
+    mean = mean + problem.readings.background
+    k = problem.instrument.calibration
+    resp = problem.readings.response
+    n_img = resp.shape[0]
+    if n_img == 0:
+        return k * scale * (mean @ problem.instrument.band.T)
+    n_spot = mean.shape[0] - n_img
+    spots = k * (mean[:n_spot] @ problem.instrument.band.T)
+    counts = jnp.einsum("scl,sl->sc", resp, k * mean[n_spot:])
+    counts = jnp.pad(counts, ((0, 0), (0, mean.shape[1] - resp.shape[1])))
+    return scale * jnp.concatenate([spots, counts])
 
 
 def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:

@@ -27,7 +27,7 @@ __all__ = ["estimate_model_error", "with_model_error"]
 
 def estimate_model_error(residual: np.ndarray, measured: np.ndarray, sigma: np.ndarray,
                          kinds: Sequence[str], use: np.ndarray, estimate: Sequence[str], *,
-                         n_free: int) -> dict[str, float]:
+                         n_free: int, data: np.ndarray | None = None) -> dict[str, float]:
     """Relative model error f_k of each kind in ``estimate`` (see the module docstring).
 
     Args:
@@ -38,6 +38,7 @@ def estimate_model_error(residual: np.ndarray, measured: np.ndarray, sigma: np.n
         use: (B,) reading weights of the fit (0: not fitted).
         estimate: the kinds to estimate.
         n_free: F, the fit's unknowns.
+        data: (B,) data per row (default L; a camera bin holds C channels, zeros after).
 
     Returns:
         {kind: f_k} (a fraction of each reading; 0 where the residuals need none).
@@ -47,7 +48,8 @@ def estimate_model_error(residual: np.ndarray, measured: np.ndarray, sigma: np.n
     s2 = np.asarray(sigma, np.float64) ** 2
     kinds = np.asarray(kinds)
     used = np.asarray(use) > 0
-    n_all = used.sum() * r.shape[1]
+    per = np.full(r.shape[0], r.shape[1]) if data is None else np.asarray(data)
+    n_all = int(per[used].sum())
     share = max(n_all - n_free, 1) / max(n_all, 1)
     out: dict[str, float] = {}
     for k in estimate:
@@ -55,7 +57,7 @@ def estimate_model_error(residual: np.ndarray, measured: np.ndarray, sigma: np.n
         if not rows.any():
             continue
         e2, var, mm = r[rows] ** 2, s2[rows], m[rows] ** 2
-        target = rows.sum() * r.shape[1] * share
+        target = per[rows].sum() * share
 
         def chi2(f: float, e2: np.ndarray = e2, var: np.ndarray = var,
                  mm: np.ndarray = mm) -> float:

@@ -26,7 +26,8 @@ class FitOptions:
         starts: number of starting points (the first is the session's/config's start).
         max_steps: Levenberg–Marquardt iterations per start.
         rtol, atol: optimistix LM tolerances on the unconstrained parameters.
-        kinds: the reading kinds used in the fit ("object", "interreflection").
+        kinds: the reading kinds used in the fit ("object", "interreflection", and "image":
+            the bins of the session's camera photographs).
         interreflection: "auto" (the scene's mode when the interreflection module exists),
             or "none".
         bootstrap: bootstrap resamples over readings (0: skip).
@@ -64,7 +65,7 @@ class FitOptions:
     max_steps: int = 50
     rtol: float = 1e-4
     atol: float = 1e-5
-    kinds: tuple[str, ...] = ("object", "interreflection")
+    kinds: tuple[str, ...] = ("object", "interreflection", "image")
     interreflection: str = "auto"
     bootstrap: int = 0
     aim_step_m: float = 0.001

@@ -237,7 +237,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
 
     # the information already there ---------------------------------------------------------
     base = np.zeros((draws, F, F))
-    if prep_s is not None:
+    if prep_s is not None and prep_s.n_image_rows == 0:
         base = base + session_information(prep_s, values, scale=scale, unknowns=unknowns,
                                           fit_scale=fit_scale, tol=tol, sigma_aim_m=sigma_aim_m,
                                           resolution=fo.spot_resolution, level=level_error)
@@ -299,6 +299,11 @@ def _centre(scene: Scene, session: Session | None, fo: FitOptions, env: Any, geo
                          "plan; check the session with `spectral-fit fit`", path=session.path,
                          field="readings")
     say(f"session fit: {res.status}, chi2/dof {res.chi2_red:.3g}")
+    if session.images:  # the plan counts the information of the session's spots only
+        say("the session's photographs centre the plan; its information counts the spots only")
+        if session.readings:
+            prep = prepare_fit(scene, session.replace(images=()), options=fo, env=env,
+                               geometries=geoms)
     return prep, values, float(res.scale) if res.scale is not None else 1.0, res.stderr
 
 

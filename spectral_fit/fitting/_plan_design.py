@@ -94,7 +94,7 @@ def _sensitivity(problem: FitProblem, values: jax.Array, scale: jax.Array,
     from ._model import _reflectances
 
     g = problem.receivers
-    B = problem.readings.average.shape[0]
+    B = problem.readings.average.rows
     obj = jnp.maximum(g.object, 0)
     o_idx = np.array([o for o, _ in free], np.int32)
     k_idx = np.array([k for _, k in free], np.int32)

@@ -29,7 +29,15 @@ from ..io import PARAMETERS, Scene, Session
 from ..lighting import EnvironmentMap
 from ._model_error import with_model_error
 from ._options import FitOptions
-from ._problem import FitInstrument, FitProblem, FitReadings, FitSurfaces, PreparedFit
+from ._problem import (
+    FitInstrument,
+    FitProblem,
+    FitReadings,
+    FitSurfaces,
+    PreparedFit,
+    row_kinds,
+)
+from ._radiance_cache import FieldAverage
 from ._spots import _spot_samples, disc_pixels
 
 __all__ = [
@@ -135,15 +143,20 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
     if geometries is None:
         geometries = scene_geometry(scene)
     readings = session.readings
-    if not readings:
+    if not readings and not session.images:
         raise InputError("no readings to fit", path=session.path, field="readings")
     B = len(readings)
     res = int(opts.spot_resolution)
     if not 2 <= res <= 64:
         raise InputError(f"must be in [2, 64], got {res}", field="spot_resolution")
-    S = _spot_samples(geometries, np.stack([r.position for r in readings]),
-                      np.stack([r.aim for r in readings]),
-                      np.array([r.field_angle_deg for r in readings]), res)
+    if B:
+        S = _spot_samples(geometries, np.stack([r.position for r in readings]),
+                          np.stack([r.aim for r in readings]),
+                          np.array([r.field_angle_deg for r in readings]), res)
+    else:  # photographs only
+        nd0 = disc_pixels(res).size
+        S = {"obj": np.zeros((0, nd0), np.int64), "xy": np.zeros((nd0, 2)),
+             **{k: np.zeros((0, nd0, 3)) for k in ("pos", "nrm", "view", "ray")}}
     nd = S["obj"].shape[1]
     warn: list[str] = []
     coverage = np.zeros(B)
@@ -169,22 +182,65 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
                                         f"but the geometry puts the spot at {d:.4f} m from the "
                                         "instrument")
     P = B * nd
+    pos_all, nrm_all, view_all = (S[k].reshape(P, 3) for k in ("pos", "nrm", "view"))
     obj = S["obj"].reshape(P).astype(np.int32)
-    recv = GBuffer(position=jnp.asarray(S["pos"].reshape(P, 3), dtype),
-                   normal=jnp.asarray(S["nrm"].reshape(P, 3), dtype),
-                   view=jnp.asarray(S["view"].reshape(P, 3), dtype),
-                   object=jnp.asarray(obj), pixel=jnp.asarray(
-                       np.tile(disc_pixels(res).astype(np.int32), B)))
+    pix = np.tile(disc_pixels(res).astype(np.int32), B)
+    groups = np.repeat(np.arange(B), nd)
+    # camera photographs: one row per kept bin, its samples after the spots'
+    from ._image_rows import image_rows
+
+    img_rows = [image_rows(im, i, geometries, names, session.wavelengths)
+                for i, im in enumerate(session.images)]
+    for ir in img_rows:
+        im = session.images[ir.image]
+        if ir.row_bin.shape[0] == 0:
+            raise session.error(im.field, f"no usable {im.superpixel}-pixel bin of image "
+                                f"{im.id!r} lies on an object (left out: {ir.dropped}); check "
+                                "the camera pose and the objects named")
+    n_img = sum(ir.row_bin.shape[0] for ir in img_rows)
+    if img_rows:
+        kk = [ir.pos.shape[1] for ir in img_rows]
+        pos_all = np.concatenate([pos_all] + [ir.pos.reshape(-1, 3) for ir in img_rows])
+        nrm_all = np.concatenate([nrm_all] + [ir.nrm.reshape(-1, 3) for ir in img_rows])
+        view_all = np.concatenate([view_all] + [ir.view.reshape(-1, 3) for ir in img_rows])
+        obj = np.concatenate([obj] + [np.repeat(ir.object, k).astype(np.int32)
+                                      for ir, k in zip(img_rows, kk, strict=True)])
+        pix = np.concatenate([pix] + [np.tile(np.arange(k, dtype=np.int32), ir.bins.shape[0])
+                                      for ir, k in zip(img_rows, kk, strict=True)])
+        r0 = 0
+        gparts, wparts = [], []
+        for ir, k in zip(img_rows, kk, strict=True):
+            # every sample of a bin belongs to the one row that weighs it
+            rr, cc = np.nonzero(ir.weights)  # (row, sample within the bin)
+            samp = ir.row_bin[rr] * k + cc
+            row_of = np.zeros(ir.bins.shape[0] * k, np.int64)
+            wt = np.zeros(ir.bins.shape[0] * k)
+            row_of[samp] = B + r0 + rr
+            wt[samp] = ir.weights[rr, cc]
+            gparts.append(row_of)
+            wparts.append(wt)
+            r0 += ir.row_bin.shape[0]
+        groups = np.concatenate([groups] + gparts)
+        sample_w = np.concatenate([np.full(P, 1.0 / nd)] + wparts)
+    else:
+        sample_w = np.full(P, 1.0 / nd)
+    recv = GBuffer(position=jnp.asarray(pos_all, dtype), normal=jnp.asarray(nrm_all, dtype),
+                   view=jnp.asarray(view_all, dtype), object=jnp.asarray(obj),
+                   pixel=jnp.asarray(pix))
     valid = obj >= 0
     rays = S["ray"].reshape(P, 3)
     L = session.wavelengths.size
     bgp = np.zeros((P, L))
-    if (~valid).any():
+    if (~valid[:P]).any():
         from ._env_sampling import _env_lookup
 
-        bgp[~valid] = _env_lookup(env, rays[~valid])
-    avg = np.kron(np.eye(B), np.full((1, nd), 1.0 / nd))
-    bg = avg @ bgp
+        bgp[~valid[:P]] = _env_lookup(env, rays[~valid[:P]])
+    avg = FieldAverage(row=jnp.asarray(groups, jnp.int32), weight=jnp.asarray(sample_w, dtype),
+                       rows=B + n_img)
+    bg = np.zeros((B + n_img, L))
+    if B:
+        bg[:B] = FieldAverage(row=jnp.asarray(groups[:P], jnp.int32),
+                              weight=jnp.asarray(sample_w[:P]), rows=B).apply_np(bgp)
     # material-independent radiance: irradiance, mirror direction, gloss nodes, neighbours
     from ._cache_build import build_radiance_cache
     from ._radiance_cache import CacheOptions
@@ -195,9 +251,8 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
         warn.append("interreflection needs every object to be a sphere (uv_sphere or "
                     "icosphere); fitting without the interreflection term")
     cache = build_radiance_cache(
-        env, S["pos"].reshape(P, 3), S["nrm"].reshape(P, 3), S["view"].reshape(P, 3), obj,
-        np.repeat(np.arange(B), nd), average=avg, spheres=spheres,
-        options=opts.cache or CacheOptions(), dtype=dtype)
+        env, pos_all, nrm_all, view_all, obj, groups, weights=sample_w, spheres=spheres,
+        options=opts.cache or CacheOptions(), dtype=dtype, probe_groups=B)
     # reflectances and parameters
     O = len(names)
     refl = np.zeros((O, session.wavelengths.size))
@@ -214,17 +269,30 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
             if om is not None and pname in om.start:
                 vals[o, k] = om.start[pname]
         models.append((m.distribution, m.geometry))
-    measured = np.stack([r.mean for r in readings])
-    nrep = np.array([r.repeats.shape[0] for r in readings], np.float64)
-    sigma = session.noise.sigma(measured) / np.sqrt(nrep)[:, None]
+    measured = np.zeros((B + n_img, L))
+    sigma = np.ones((B + n_img, L))
+    if B:
+        measured[:B] = np.stack([r.mean for r in readings])
+        nrep = np.array([r.repeats.shape[0] for r in readings], np.float64)
+        sigma[:B] = session.noise.sigma(measured[:B]) / np.sqrt(nrep)[:, None]
+    C = max([ir.response.shape[0] for ir in img_rows], default=0)
+    response = np.zeros((n_img, C, L))
+    row = B
+    for ir in img_rows:
+        n, c = ir.row_bin.shape[0], ir.response.shape[0]
+        measured[row:row + n, :c] = ir.measured
+        sigma[row:row + n, :c] = ir.sigma
+        response[row - B:row - B + n, :c] = ir.response[None] * ir.mask[:, :, None]
+        row += n
     # the model's own error stated per kind, in quadrature ("auto": estimated by the fit)
-    sigma = with_model_error(sigma, measured, [r.kind for r in readings],
+    sigma = with_model_error(sigma, measured, row_kinds(session, n_img),
                              {k: _stated(v) for k, v in session.model_error.items()})
     sigma = np.maximum(sigma, 1e-12)
     band = band_matrix(session.wavelengths, session.bandwidth_nm)
     calib = _calibration(session, env, band)
     # what is free
-    measured_objs = {r.object for r in readings}
+    measured_objs = {r.object for r in readings} | {
+        names[o] for ir in img_rows for o in np.unique(ir.object)}
     free = []
     for o, name in enumerate(names):
         if name not in measured_objs:
@@ -240,9 +308,10 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
     bounds, prior = _bounds_and_priors(session, names, free, vals)
     problem = FitProblem(
         env=env, receivers=recv, cache=cache,
-        readings=FitReadings(average=jnp.asarray(avg, dtype), background=jnp.asarray(bg, dtype),
+        readings=FitReadings(average=avg, background=jnp.asarray(bg, dtype),
                              measured=jnp.asarray(measured, dtype),
-                             sigma=jnp.asarray(sigma, dtype)),
+                             sigma=jnp.asarray(sigma, dtype),
+                             response=jnp.asarray(response, dtype)),
         instrument=FitInstrument(calibration=jnp.asarray(calib, dtype),
                                  band=jnp.asarray(band, dtype)),
         surfaces=FitSurfaces(reflectance=jnp.asarray(refl, dtype), sci=jnp.asarray(sci, dtype),
@@ -253,7 +322,8 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
     for w in warn:
         warnings.warn(w, RuntimeWarning, stacklevel=2)
     return PreparedFit(problem=problem, session=session, objects=names, geometries=geometries,
-                    coverage=coverage, warnings=warn, seconds=time.perf_counter() - t0)
+                    coverage=coverage, warnings=warn, seconds=time.perf_counter() - t0,
+                    images=img_rows)
 
 
 def _bounds_and_priors(session: Session, names: list[str], free: list[tuple[int, int]],

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -17,26 +18,39 @@ import numpy as np
 from ..geometry import GBuffer, ObjectGeometry
 from ..io import PARAMETERS, Session
 from ..lighting import EnvironmentMap
-from ._radiance_cache import RadianceCache
+from ._radiance_cache import FieldAverage, RadianceCache
 
-__all__ = ["FitProblem", "FitReadings", "FitInstrument", "FitSurfaces", "PreparedFit"]
+__all__ = ["FitProblem", "FitReadings", "FitInstrument", "FitSurfaces", "PreparedFit",
+           "row_kinds"]
+
+
+def row_kinds(session: Session, n_image_rows: int) -> list[str]:
+    """The kind of every row of a prepared fit: the spot readings' kinds, then "image" for
+    each row of the photographs' bins."""
+    return [r.kind for r in session.readings] + ["image"] * n_image_rows
 
 
 class FitReadings(eqx.Module):
     """The readings the model is compared with, and what each one's field averages.
 
     Attributes:
-        average: (B, P) field averaging weights of the samples (rows sum to 1).
+        average: :class:`~spectral_fit.fitting.FieldAverage`, each reading's field mean of
+            its samples (weights sum to 1 per reading).
         background: (B, L) mean environment radiance (unit-scale map, W·sr⁻¹·m⁻²·nm⁻¹) of
             the field pixels that miss every object.
         measured: (B, L) mean reading (W·sr⁻¹·m⁻²·nm⁻¹).
         sigma: (B, L) standard error of the mean reading (W·sr⁻¹·m⁻²·nm⁻¹).
+        response: (S, C, L) the last S rows are bins of camera photographs: row B − S + i
+            holds C channel counts in its first C columns (the rest 0, σ 1), modelled as
+            ``response[i] @ (k(λ) · mean radiance)`` (exposure × sensitivity × Δλ); S = 0
+            without photographs.
     """
 
-    average: jax.Array
+    average: FieldAverage
     background: jax.Array
     measured: jax.Array
     sigma: jax.Array
+    response: jax.Array
 
 
 class FitInstrument(eqx.Module):
@@ -143,3 +157,27 @@ class PreparedFit:
     warnings: list[str]
     seconds: float
     cached: str = "off"
+    #: the photographs' kept bins (rows after the spot readings), one entry per image
+    images: list[Any] = dataclasses.field(default_factory=list)
+
+    @property
+    def n_spots(self) -> int:
+        """Rows of spot readings (the first rows; the photographs' bins follow)."""
+        return int(self.problem.readings.measured.shape[0]) - self.n_image_rows
+
+    @property
+    def n_image_rows(self) -> int:
+        return int(self.problem.readings.response.shape[0])
+
+    def row_weights(self, kinds: Sequence[str]) -> np.ndarray:
+        """(B,) 1.0 for every row (spot reading or image bin) whose kind is in ``kinds``."""
+        k = row_kinds(self.session, self.n_image_rows)
+        return np.array([x in kinds for x in k], np.float64)
+
+    def data_per_row(self) -> np.ndarray:
+        """(B,) data each row holds: L bands for a spot, its channels for an image row."""
+        B, L = self.problem.readings.measured.shape
+        out = np.full(B, L)
+        resp = np.asarray(self.problem.readings.response)
+        out[self.n_spots:] = np.sum(np.abs(resp).sum(axis=-1) > 0, axis=-1)
+        return out

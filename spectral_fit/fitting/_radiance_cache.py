@@ -61,6 +61,7 @@ import numpy as np
 
 __all__ = [
     "CacheOptions",
+    "FieldAverage",
     "GlossNodes",
     "RadianceCache",
     "Sphere",
@@ -108,6 +109,47 @@ class Sphere:
     radius: float
 
 
+class FieldAverage(eqx.Module):
+    """The readings' field means as weights of their samples (a pytree): every sample belongs
+    to at most one reading (a spot's field, or one channel of a photograph's bin), so the mean
+    of reading b is Σ_{p: row_p = b} weight_p x_p (a segment sum; the dense (B, P) matrix
+    would hold P numbers per row where a photograph has thousands of rows).
+
+    Attributes:
+        row: (P,) int32 the reading of each sample (any valid row where its weight is 0).
+        weight: (P,) its weight in that reading's mean (0: in none).
+        rows: static B, the number of readings.
+    """
+
+    row: jax.Array
+    weight: jax.Array
+    rows: int = eqx.field(static=True)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(B, P), the shape of the equivalent dense matrix."""
+        return self.rows, int(self.weight.shape[0])
+
+    def apply(self, x: jax.Array) -> jax.Array:
+        """(B, ...) field means of per-sample values ``x`` (P, ...) (JAX)."""
+        w = self.weight.reshape((-1,) + (1,) * (x.ndim - 1))
+        return jax.ops.segment_sum(w * x, self.row, num_segments=self.rows)
+
+    def apply_np(self, x: np.ndarray) -> np.ndarray:
+        """As :meth:`apply`, in NumPy float64."""
+        x = np.asarray(x, np.float64)
+        out = np.zeros((self.rows,) + x.shape[1:])
+        w = np.asarray(self.weight, np.float64).reshape((-1,) + (1,) * (x.ndim - 1))
+        np.add.at(out, np.asarray(self.row), w * x)
+        return out
+
+    def dense(self) -> np.ndarray:
+        """The (B, P) averaging matrix (NumPy; for small problems and checks)."""
+        out = np.zeros(self.shape)
+        out[np.asarray(self.row), np.arange(self.shape[1])] = np.asarray(self.weight)
+        return out
+
+
 class GlossNodes(eqx.Module):
     """Gloss quadrature nodes of P shading points with their cached radiance (a pytree).
 
@@ -153,8 +195,8 @@ class RadianceCache(eqx.Module):
             hemisphere hidden by neighbours (irradiance from neighbours = this @ radiance).
         hit_sample, hit_probe: (H,) sample and probe of every gloss node that hits a neighbour.
         hit_node: (H,) that node's flat index in the sample's J·M nodes.
-        average: (B, P) field averaging weights of the readings (0 for samples on no object
-            or facing away).
+        average: :class:`FieldAverage`, the readings' field means (weight 0 for samples on no
+            object or facing away).
         probe_group: (Q,) the reading each probe belongs to.
         probe_diffuse: (O, Q) ``average @ diffuse_probe`` per receiving object, summed over
             each probe's reading (every reading only sees its own probes).
@@ -174,7 +216,7 @@ class RadianceCache(eqx.Module):
     hit_sample: jax.Array
     hit_probe: jax.Array
     hit_node: jax.Array
-    average: jax.Array
+    average: FieldAverage
     probe_group: jax.Array
     probe_diffuse: jax.Array
     hit_average: jax.Array

@@ -16,6 +16,8 @@
 - ``profile.png`` — with the profile likelihood (``FitOptions.profile``,
   ``spectral-fit fit --profile``): each parameter's profile Δχ², its interval and the
   linearised parabola;
+- ``image_<id>.png`` — per camera photograph of the session: its bins as measured and as
+  fitted (camera counts, the same scale) and the normalised residual of each bin;
 - ``render.png`` — the scene rendered with the fitted materials, when the frame renderer is
   available;
 - ``uncertainty.png`` — beside it, the per-pixel ΔE00 uncertainty of that render from the
@@ -155,6 +157,43 @@ def _residual_plot(result: FitResult, path: Path) -> None:
     ax.set_ylabel("(fitted − measured) / σ")
     ax.legend(fontsize=6, ncol=2)
     ax.set_title(f"normalised residuals (χ²/dof = {result.chi2_red:.2f})")
+    _save(fig, path)
+
+
+def _image_plot(im: dict[str, Any], path: Path) -> None:
+    """Measured and fitted bins of one photograph (channels as RGB, one scale: the 99th
+    percentile of the measured counts) and the mean normalised residual of each bin, cropped
+    to the bins used."""
+    plt = _plt()
+    r, c = np.asarray(im["bin_row"]), np.asarray(im["bin_col"])
+    m, f, sg = (np.asarray(im[k], np.float64) for k in ("measured", "fitted", "sigma"))
+    if r.size == 0:
+        return
+    r0, c0 = max(int(r.min()) - 1, 0), max(int(c.min()) - 1, 0)
+    rows, cols = int(r.max()) + 2 - r0, int(c.max()) + 2 - c0
+    r, c = r - r0, c - c0
+    C = m.shape[1]
+    top = max(float(np.percentile(m, 99)), 1e-30)
+    pics = []
+    for a in (m, f):
+        img = np.zeros((rows, cols, 3))
+        img[r, c] = (a / top)[:, [0, min(1, C - 1), min(2, C - 1)]]
+        pics.append(np.clip(img, 0.0, 1.0) ** (1 / 2.2))
+    z = np.full((rows, cols), np.nan)
+    z[r, c] = np.mean((f - m) / sg, axis=1)
+    lim = max(float(np.nanpercentile(np.abs(z), 98)), 1e-6)
+    w = 4.2
+    fig, axes = plt.subplots(1, 3, figsize=(3 * w + 1.0, w * rows / cols + 0.9),
+                             layout="constrained")
+    for ax, pic, title in zip(axes[:2], pics, ("measured", "fitted"), strict=True):
+        ax.imshow(pic, interpolation="nearest")
+        ax.set_title(f"{im['id']}: {title}, {im['superpixel']}-pixel bins", fontsize=9)
+        ax.axis("off")
+    h = axes[2].imshow(z, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+    axes[2].set_title(f"(fitted - measured)/σ, mean of channels\nrms relative "
+                      f"{100 * (im['rms_relative_residual'] or 0):.2g} %", fontsize=9)
+    axes[2].axis("off")
+    fig.colorbar(h, ax=axes[2], fraction=0.04)
     _save(fig, path)
 
 
@@ -366,7 +405,7 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
         "measured": result.measured.tolist(), "fitted": result.fitted.tolist(),
         "sigma": result.sigma.tolist(), "calibration": result.calibration.tolist(),
     }
-    pictures = ["chromaticity.png", "spectra.png", "residuals.png"]
+    pictures = ["chromaticity.png", "spectra.png", "residuals.png"] if result.readings else []
     folder = None if cache_dir is None else Path(cache_dir) / "fit_report"
     data_digest = None
     if folder is not None:  # what the pictures show: everything but the timings
@@ -388,7 +427,11 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
     drawers: list[tuple[str, Callable[[Path], None]]] = [
         ("chromaticity.png", chromaticity),
         ("spectra.png", lambda p: _spectra_plot(result, p)),
-        ("residuals.png", lambda p: _residual_plot(result, p))]
+        ("residuals.png", lambda p: _residual_plot(result, p))] if result.readings else []
+    for im in result.images:
+        name = f"image_{im['id']}.png"
+        drawers.append((name, lambda p, im=im: _image_plot(im, p)))
+        pictures.append(name)
     if result.profile:
         drawers.append(("profile.png", lambda p: _profile_plot(result, p)))
         pictures.append("profile.png")

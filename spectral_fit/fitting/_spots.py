@@ -13,7 +13,7 @@ import numpy as np
 
 from ..geometry import ObjectGeometry
 
-__all__ = ["disc_pixels"]
+__all__ = ["disc_pixels", "scene_triangles"]
 
 
 def disc_pixels(res: int) -> np.ndarray:
@@ -22,6 +22,21 @@ def disc_pixels(res: int) -> np.ndarray:
     c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
     X, Y = np.meshgrid(c, -c)
     return np.flatnonzero((X ** 2 + Y ** 2 <= 1.0).reshape(-1))
+
+
+def scene_triangles(geoms: list[ObjectGeometry]
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The scene's meshes as one: vertices (V, 3), normals (V, 3) (float64), triangles
+    (T, 3) into them and each triangle's object (T,) int32."""
+    verts = np.concatenate([np.asarray(g.vertices, np.float64) for g in geoms])
+    norms = np.concatenate([np.asarray(g.normals, np.float64) for g in geoms])
+    tris, tri_obj, base = [], [], 0
+    for o, g in enumerate(geoms):
+        t = np.asarray(g.triangles)
+        tris.append(t + base)
+        tri_obj.append(np.full(len(t), o, np.int32))
+        base += len(np.asarray(g.vertices))
+    return verts, norms, np.concatenate(tris), np.concatenate(tri_obj)
 
 
 def _ray_cast(origin: np.ndarray, dirs: np.ndarray, tri: np.ndarray
@@ -63,16 +78,7 @@ def _spot_samples(geoms: list[ObjectGeometry], positions: np.ndarray, aims: np.n
     slower than the ray casting). Returns per reading b and disc pixel k: position, normal,
     view, object (−1: the ray misses every object), ray direction.
     """
-    verts = np.concatenate([np.asarray(g.vertices, np.float64) for g in geoms])
-    norms = np.concatenate([np.asarray(g.normals, np.float64) for g in geoms])
-    tris, tri_obj, base = [], [], 0
-    for o, g in enumerate(geoms):
-        t = np.asarray(g.triangles)
-        tris.append(t + base)
-        tri_obj.append(np.full(len(t), o, np.int32))
-        base += len(np.asarray(g.vertices))
-    tris = np.concatenate(tris)
-    tri_obj = np.concatenate(tri_obj)
+    verts, norms, tris, tri_obj = scene_triangles(geoms)
     corners = verts[tris]  # (T, 3, 3)
     centroid = corners.mean(axis=1)
     radius = np.linalg.norm(corners - centroid[:, None], axis=-1).max(axis=1)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .._runtime.errors import InputError
+from ._image_reading import ImageReading
 from ._manifest import _line_of
 from ._noise import NoiseModel
 from ._scene import Scene
@@ -29,6 +30,7 @@ __all__ = [
     "DEFAULT_FREE",
     "PHYSICAL_LOWER",
     "KINDS",
+    "DATA_KINDS",
     "Reading",
     "WhiteStandard",
     "ObjectMeasurement",
@@ -42,6 +44,8 @@ DEFAULT_FREE = ("alpha", "beta", "chi", "mu", "n")
 PHYSICAL_LOWER = {"alpha": (0.0, True), "beta": (0.0, True), "chi": (0.0, False),
                   "mu": (0.0, True), "n": (1.0, True), "gamma": (0.0, False)}
 KINDS = ("object", "interreflection")
+#: the kinds of data a fit compares: the spot kinds and camera photographs ("image")
+DATA_KINDS = KINDS + ("image",)
 CALIBRATION_MODES = ("white", "global", "none")
 
 
@@ -141,6 +145,8 @@ class Session:
     #: quadrature: {kind: fraction, or "auto" (the fit estimates it from its residuals)};
     #: kinds not named: 0
     model_error: dict[str, float | str] = dataclasses.field(default_factory=dict)
+    #: camera photographs used as readings (``[[images]]``)
+    images: tuple[ImageReading, ...] = ()
 
     def line_of(self, field: str) -> int | None:
         """Manifest line of a dotted field (``readings[2].aim``), or of its table."""

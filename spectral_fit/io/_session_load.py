@@ -31,6 +31,7 @@ from ._noise import NoiseModel, estimate_noise
 from ._scene import Scene
 from ._session import (
     CALIBRATION_MODES,
+    DATA_KINDS,
     DEFAULT_FREE,
     KINDS,
     PARAMETERS,
@@ -83,7 +84,7 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
     if not isinstance(data, dict):
         raise ctx.err("<root>", "must be a table")
     ctx.finish(data, ("session", "instrument", "calibration", "white_standard", "dark", "noise",
-                      "model_error", "objects", "readings"), "")
+                      "model_error", "objects", "readings", "images"), "")
 
     st = ctx.table(data, "session", "session", required=True)
     ctx.finish(st, ("format", "scene", "units", "instrument", "date", "notes"), "session")
@@ -224,9 +225,12 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                                           start=start, bounds=bounds, prior=prior)
 
     # readings -------------------------------------------------------------------------------
-    rl = data.get("readings", None)
-    if not isinstance(rl, list) or not rl:
-        raise ctx.err("readings", "need at least one [[readings]] table")
+    from ._image_reading import parse_images
+
+    images = parse_images(ctx, data, base, wl, names, lines)
+    rl = data.get("readings", [] if images else None)
+    if not isinstance(rl, list) or not (rl or images):
+        raise ctx.err("readings", "need at least one [[readings]] or [[images]] table")
     if len(rl) > 10000:
         raise ctx.err("readings", f"too many readings ({len(rl)})")
     readings: list[Reading] = []
@@ -261,7 +265,8 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
         readings.append(Reading(id=rid, object=obj, kind=kind, files=tuple(fs), repeats=reps,
                                 position=pos, aim=aim, field_angle_deg=fa, distance_m=dist,
                                 line=lines.get(f), index=i))
-    means = np.stack([r.mean for r in readings])
+    means = (np.stack([r.mean for r in readings]) if readings
+             else np.ones((1, wl.size)))  # images only: the spot noise model is unused
     if not np.any(means > 0):
         raise ctx.err("readings", "every reading is zero (after dark subtraction)")
 
@@ -281,9 +286,9 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                                source="default")
     # the model's own error per reading kind: a fraction, or "auto" ------------------------
     mt = ctx.table(data, "model_error", "model_error")
-    ctx.finish(mt, KINDS, "model_error")
+    ctx.finish(mt, DATA_KINDS, "model_error")
     model_error: dict[str, float | str] = {}
-    for k in KINDS:
+    for k in DATA_KINDS:
         if k in mt:
             if mt[k] == "auto":
                 model_error[k] = "auto"
@@ -300,7 +305,7 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                    instrument=instrument, calibration=mode, bandwidth_nm=bandwidth,
                    reference=reference, white=white,
                    dark=dark, noise=noise, objects=objects, readings=tuple(readings),
-                   lines=lines, model_error=model_error)
+                   lines=lines, model_error=model_error, images=images)
 
 
 

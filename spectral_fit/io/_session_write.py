@@ -44,6 +44,14 @@ def _spectrum_text(wl: np.ndarray, values: np.ndarray, unit: str, comment: str =
     return "\n".join(head + rows) + "\n"
 
 
+def _npy_bytes(a: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
 def write_session(
     folder: str | os.PathLike[str],
     *,
@@ -59,6 +67,7 @@ def write_session(
     model_error: dict[str, float | str] | None = None,
     notes: str = "",
     units: str = "W.sr^-1.m^-2.nm^-1",
+    images: list[dict[str, Any]] | None = None,
 ) -> Path:
     """Write a session folder in the documented format (``docs/measurements.md``).
 
@@ -75,11 +84,17 @@ def write_session(
         objects: optional per object ``reflectance`` (L,), ``geometry``, ``free``, ``start``.
         model_error: optional ``{kind: relative error of the model, or "auto"}`` (estimated
             by the fit).
+        images: camera photographs: dicts with ``id``, ``pixels`` (H, W) mosaic or (H, W, C)
+            counts (written as ``images/<id>.npy``), ``sensitivities`` (C, L) (written as a
+            CSV on ``wavelengths``), ``camera`` ({position, aim, up?, fov_y_deg |
+            intrinsics}) and the optional keys of an ``[[images]]`` table (``mosaic``,
+            ``exposure_s``, ``black_level``, ``white_level``, ``saturation``,
+            ``read_noise``, ``gain``, ``superpixel``, ``samples``, ``objects``).
 
     Returns:
         the manifest's path. Files are written atomically.
     """
-    from .._runtime.fileio import atomic_write_text
+    from .._runtime.fileio import atomic_write_bytes, atomic_write_text
 
     root = Path(folder)
     wl = np.asarray(wavelengths, np.float64)
@@ -150,6 +165,24 @@ def write_session(
         for k in ("field_angle_deg", "distance_m"):
             if k in r:
                 out.append(f"{k} = {toml_value(float(r[k]))}")
+    for im in images or []:
+        iid = im["id"]
+        out += ["", "[[images]]", f"id = {toml_value(iid)}"]
+        fn = f"images/{iid}.npy"
+        atomic_write_bytes(root / fn, _npy_bytes(np.asarray(im["pixels"])))
+        out.append(f"file = {toml_value(fn)}")
+        sn = f"images/{iid}_sensitivities.csv"
+        atomic_write_text(root / sn, _spectrum_text(
+            wl, im["sensitivities"], "counts/s per W.sr^-1.m^-2.nm^-1 per nm",
+            f"camera sensitivities of image {iid} (R, G, B)"))
+        out.append(f"sensitivities = {toml_value(sn)}")
+        for k in ("mosaic", "exposure_s", "black_level", "white_level", "saturation",
+                  "read_noise", "gain", "superpixel", "samples", "objects"):
+            if k in im:
+                out.append(f"{k} = {toml_value(im[k])}")
+        cam = {k: (list(map(float, v)) if k != "fov_y_deg" else float(v))
+               for k, v in im["camera"].items()}
+        out.append(f"camera = {toml_value(cam)}")
     manifest = root / "session.toml"
     atomic_write_text(manifest, "\n".join(out) + "\n")
     return manifest

@@ -22,8 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--starts", type=int, default=3, help="starting points (default 3)")
     p.add_argument("--bootstrap", type=int, default=0,
                    help="bootstrap resamples over readings (default 0: off)")
-    p.add_argument("--kinds", default="object,interreflection",
-                   help="reading kinds to fit (comma-separated; default both)")
+    p.add_argument("--kinds", default="object,interreflection,image",
+                   help="reading kinds to fit (comma-separated: object, interreflection, "
+                        "image = the session's photographs; default all)")
     p.add_argument("--spot-resolution", type=int, default=8,
                    help="pixels across each measuring field (default 8)")
     p.add_argument("--max-steps", type=int, default=50, help="iterations per start")
@@ -100,14 +101,14 @@ def run(args: argparse.Namespace) -> int:
 
     from ..._runtime.errors import InputError
     from ...fitting import fit, write_report
-    from ...io import KINDS, load_scene, load_session
+    from ...io import DATA_KINDS, load_scene, load_session
     from ...rendering import cache_root
     from .._main import STARTED
 
     kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
-    bad = [k for k in kinds if k not in KINDS]
+    bad = [k for k in kinds if k not in DATA_KINDS]
     if bad or not kinds:
-        raise InputError(f"unknown kind(s) {bad}; choose from {KINDS}", field="--kinds")
+        raise InputError(f"unknown kind(s) {bad}; choose from {DATA_KINDS}", field="--kinds")
     for name, v, lo in (("--starts", args.starts, 1), ("--spot-resolution",
                         args.spot_resolution, 2), ("--max-steps", args.max_steps, 1),
                         ("--bootstrap", args.bootstrap, 0)):
@@ -120,8 +121,9 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.config)
     session = load_session(args.session, scene=scene)
     before = {"startup_s": t_load - STARTED, "load_s": time.perf_counter() - t_load}
-    _say(f"{len(session.readings)} readings of {sorted({r.object for r in session.readings})}, "
-         f"calibration {session.calibration}, noise {session.noise.source}")
+    _say(f"{len(session.readings)} readings of {sorted({r.object for r in session.readings})}"
+         + (f", {len(session.images)} photograph(s)" if session.images else "")
+         + f", calibration {session.calibration}, noise {session.noise.source}")
     res = fit(scene, session, progress=_say, starts=args.starts, bootstrap=args.bootstrap,
               kinds=kinds, spot_resolution=args.spot_resolution, max_steps=args.max_steps,
               holdout=not args.no_holdout, aim_step_m=args.aim_step_mm * 1e-3,
@@ -136,6 +138,10 @@ def run(args: argparse.Namespace) -> int:
     for w in res.warnings:
         _say(f"warning: {w}")
     _say(f"{res.status} after {res.iterations} iterations; chi2/dof {res.chi2_red:.3g}")
+    for im in res.images:
+        _say(f"  photograph {im['id']}: {im['bins']} bins of {im['superpixel']} px fitted "
+             f"(left out: {', '.join(f'{k} {v}' for k, v in im['dropped'].items())}); rms "
+             f"relative residual {100 * (im['rms_relative_residual'] or 0):.2g} %")
     for obj, p in res.params.items():
         se = res.stderr[obj]
         _say(f"  {obj}: " + ", ".join(f"{k} {v:.4g} ± {se[k]:.2g}" for k, v in p.items()))

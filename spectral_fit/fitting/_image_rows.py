@@ -1,0 +1,267 @@
+"""Camera photographs as rows of the fit (outside ``jit``): each image is cut into square
+bins of ``superpixel`` × ``superpixel`` pixels; a bin whose pixels all see one object, none
+clipped and none lit noticeably by a neighbour becomes one row of the fit: its channels' mean
+counts (black subtracted) and their standard errors, compared with the exposure times the
+sensitivities applied to the mean model radiance of ``samples`` × ``samples`` shading samples
+spread over the bin (:mod:`spectral_fit.io`'s image readings give the pixel model).
+
+Shapes: S bins kept, k² samples per bin, C channels, L bands; world metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+from ..geometry import ObjectGeometry
+from ..io import ImageReading
+from ._spots import scene_triangles
+
+__all__ = ["ImageRows", "image_rows", "pixel_rays"]
+
+#: bins where the neighbours' form factor (bounding spheres) exceeds this are left out: the
+#: fit's interreflection term is built per spot
+_NEIGHBOUR_LIMIT = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageRows:
+    """The rows of one image: one per kept bin (a demosaiced image: every channel in one
+    row), or one per kept bin and channel (a mosaic: each channel has its own samples on
+    the lattice of its pixel sites).
+
+    Attributes:
+        image: index of the image in the session.
+        bins: (N, 2) row and column of each kept bin.
+        object: (N,) object each bin sees.
+        row_bin: (S,) the bin of each row.
+        weights: (S, m) each row's weights of its bin's m samples (sum 1: the mean of its
+            channel's sample set).
+        measured: (S, C) mean counts per channel, black level subtracted (0 where ``mask``
+            is False).
+        sigma: (S, C) their standard errors (counts; 1 where ``mask`` is False).
+        mask: (S, C) the channels each row carries.
+        response: (C, L) exposure × sensitivity × Δλ: counts per W·sr⁻¹·m⁻²·nm⁻¹ of the
+            model radiance in each band.
+        pos, nrm, view: (N, m, 3) the shading samples of each bin (world), unit normals,
+            unit directions to the camera: m = k² (demosaiced) or C · k² (a mosaic: k × k
+            per channel on its sites' lattice).
+        dropped: {reason: number of bins} of the bins over an object that were left out.
+        grid: (rows, cols) of the bin grid.
+    """
+
+    image: int
+    bins: np.ndarray
+    object: np.ndarray
+    row_bin: np.ndarray
+    weights: np.ndarray
+    measured: np.ndarray
+    sigma: np.ndarray
+    mask: np.ndarray
+    response: np.ndarray
+    pos: np.ndarray
+    nrm: np.ndarray
+    view: np.ndarray
+    dropped: dict[str, int]
+    grid: tuple[int, int]
+
+
+def pixel_rays(image: ImageReading, xy: np.ndarray) -> np.ndarray:
+    """Unit world directions (N, 3) of the camera rays through pixel coordinates ``xy``
+    (N, 2) (x right, y down, in pixels; pixel (i, j)'s centre at (j + 0.5, i + 0.5))."""
+    from ..geometry import look_at
+
+    H, W = image.shape
+    x, y = xy[:, 0], xy[:, 1]
+    if image.intrinsics is not None:
+        fx, fy, cx, cy = image.intrinsics  # OpenCV: pixel centres at integers
+        d = np.stack([(x - 0.5 - cx) / fx, -(y - 0.5 - cy) / fy, -np.ones_like(x)], -1)
+    else:
+        ty = math.tan(math.radians(image.fov_y_deg) / 2.0)
+        d = np.stack([(2.0 * x / W - 1.0) * ty * W / H, (1.0 - 2.0 * y / H) * ty,
+                      -np.ones_like(x)], -1)
+    R = np.asarray(look_at(image.position, image.aim, image.up), np.float64)[:3, :3]
+    d = d @ R  # eye → world (R is orthonormal: Rᵀ d)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _cast(origin: np.ndarray, dirs: np.ndarray, verts: np.ndarray, norms: np.ndarray,
+          tris: np.ndarray, tri_obj: np.ndarray, chunk: int = 4096
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First hits of rays (N, 3) from one origin: object (N,) (−1: none), position and unit
+    normal (N, 3) (:func:`spectral_fit.geometry.closest_hit` through one hierarchy over the
+    scene's triangles; rays padded to whole chunks, one compiled size)."""
+    import jax.numpy as jnp
+
+    from ..geometry import build_bvh
+
+    bvh = build_bvh(verts, tris)
+    N = dirs.shape[0]
+    tri = np.full(N, -1)
+    uv = np.zeros((N, 2))
+    o = jnp.asarray(origin, jnp.float32)
+    for a in range(0, N, chunk):
+        d = dirs[a:a + chunk]
+        n = d.shape[0]
+        d = np.concatenate([d, np.repeat(d[-1:], chunk - n, 0)])
+        h = _closest_hits(bvh, o, jnp.asarray(d, jnp.float32))
+        tri[a:a + n] = np.asarray(h.triangle)[:n]
+        uv[a:a + n] = np.stack([np.asarray(h.u), np.asarray(h.v)], -1)[:n]
+    hit = tri >= 0
+    idx = tris[np.maximum(tri, 0)]
+    w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
+    p = np.einsum("pk,pkc->pc", w, verts[idx])
+    n_ = np.einsum("pk,pkc->pc", w, norms[idx])
+    n_ /= np.maximum(np.linalg.norm(n_, axis=1, keepdims=True), 1e-12)
+    obj = np.where(hit, tri_obj[np.maximum(tri, 0)], -1)
+    # a hit from behind (inside a closed object, or an open mesh's back) sees no front face
+    front = np.sum(n_ * dirs, -1) < 0.0
+    obj = np.where(front, obj, np.where(hit, -2, -1))
+    return obj, np.where(hit[:, None], p, 0.0), np.where(hit[:, None], n_, 0.0)
+
+
+@jax.jit
+def _closest_hits(bvh: Any, origin: jax.Array, dirs: jax.Array) -> Any:
+    from ..geometry import closest_hit
+
+    return jax.vmap(lambda d: closest_hit(bvh, origin, d))(dirs)
+
+
+def _neighbour_share(x: np.ndarray, n: np.ndarray, v: np.ndarray, obj: np.ndarray,
+                     spheres: Sequence[tuple[np.ndarray, float]]) -> np.ndarray:
+    """(N,) the largest of: the points' form factor towards the other objects' bounding
+    spheres, Σ (r/d)² cosθ, and 1 where the mirror direction passes within 0.3 rad of a
+    neighbour's silhouette (its light then reaches the gloss lobe)."""
+    r_dir = 2.0 * np.sum(n * v, -1, keepdims=True) * n - v
+    out = np.zeros(x.shape[0])
+    ff = np.zeros(x.shape[0])
+    for o, (c, rad) in enumerate(spheres):
+        other = obj != o
+        rel = c[None] - x
+        d = np.linalg.norm(rel, axis=1)
+        u = rel / np.maximum(d, 1e-12)[:, None]
+        cos = np.clip(np.sum(u * n, -1), 0.0, 1.0)
+        ff += np.where(other, (rad / np.maximum(d, rad)) ** 2 * cos, 0.0)
+        half = np.arcsin(np.clip(rad / np.maximum(d, 1e-12), 0.0, 1.0))
+        ang = np.arccos(np.clip(np.sum(u * r_dir, -1), -1.0, 1.0))
+        out = np.maximum(out, np.where(other & (ang < half + 0.3), 1.0, 0.0))
+    return np.maximum(out, ff)
+
+
+def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
+               objects: Sequence[str], wavelengths: np.ndarray) -> ImageRows:
+    """The bins of ``image`` that enter the fit (see the module docstring).
+
+    Args:
+        image: the photograph.
+        index: its index in the session.
+        geoms: world meshes of the scene's objects (config order), named ``objects``.
+        wavelengths: (L,) the scene's grid (nm).
+    """
+    H, W = image.shape
+    s, k = image.superpixel, image.samples
+    rows, cols = H // s, W // s
+    verts, norms, tris, tri_obj = scene_triangles(list(geoms))
+    spheres = []
+    for g in geoms:
+        v = np.asarray(g.vertices, np.float64)
+        c = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        spheres.append((c, float(np.linalg.norm(v - c, axis=1).max())))
+    eye = np.asarray(image.position, np.float64)
+    # bins whose centre ray passes near an object's bounding sphere
+    ii, jj = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    ii, jj = ii.reshape(-1), jj.reshape(-1)
+    centre = np.stack([(jj + 0.5) * s, (ii + 0.5) * s], -1).astype(np.float64)
+    dc = pixel_rays(image, centre)
+    foot = s * 2.0 * math.tan(math.radians(image.fov_y_deg or 60.0) / 2.0) / H \
+        if image.intrinsics is None else s / float(min(image.intrinsics[:2]))
+    near = np.zeros(ii.size, bool)
+    for c, rad in spheres:
+        rel = c - eye
+        t = rel @ dc.T
+        dist = np.linalg.norm(rel[None] - t[:, None] * dc, axis=1)
+        near |= (t > 0) & (dist <= rad + foot * max(float(np.linalg.norm(rel)), rad) * 1.5)
+    ii, jj = ii[near], jj[near]
+    nb = ii.size
+    # rays: the bin's 4 corner pixels, then k × k samples per sample set: one set per
+    # channel of a mosaic, on the lattice of its pixel sites (the midpoint rule over blocks
+    # of sites: R and B sit half a pixel either side of a 2 × 2 tile's centre), one set for
+    # a demosaiced image
+    C = image.channels
+    off_c = np.array([[0.5, 0.5], [s - 0.5, 0.5], [0.5, s - 0.5], [s - 0.5, s - 0.5]])
+    g = (np.arange(k) + 0.5) / k * s
+    gx, gy = np.meshgrid(g, g)
+    grid = np.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+    if image.mosaic == "none":
+        shifts = np.zeros((1, 2))
+    else:
+        chan2 = image.channel_of_pixel()[:2, :2]
+        shifts = np.stack([np.argwhere(chan2 == c)[:, ::-1].mean(axis=0) - 0.5
+                           for c in range(C)])  # (x, y) of each channel's site centroid
+    sets = shifts.shape[0]
+    offs = np.concatenate([off_c, (grid[None] + shifts[:, None]).reshape(-1, 2)])
+    xy = (np.stack([jj * s, ii * s], -1)[:, None, :] + offs[None]).reshape(-1, 2)
+    d = pixel_rays(image, xy)
+    obj, pos, nrm = _cast(eye, d, verts, norms, tris, tri_obj)
+    m = offs.shape[0]
+    obj, pos, nrm = obj.reshape(nb, m), pos.reshape(nb, m, 3), nrm.reshape(nb, m, 3)
+    d = d.reshape(nb, m, 3)
+    allowed = ([objects.index(o) for o in image.objects] if image.objects
+               else list(range(len(objects))))
+    on_obj = (obj >= 0).any(axis=1)
+    one = (obj == obj[:, :1]).all(axis=1) & (obj[:, 0] >= 0)
+    ok = one & np.isin(obj[:, 0], allowed)
+    dropped = {"edge": int(np.sum(on_obj & ~one)),
+               "other_object": int(np.sum(one & ~ok))}
+    # pixels: clipped bins out
+    px = image.pixels
+    blocks = px[:rows * s, :cols * s].reshape(rows, s, cols, s, *px.shape[2:])
+    blocks = np.moveaxis(blocks, 2, 1)[ii, jj]  # (nb, s, s[, C])
+    clipped = (blocks >= image.clip_level()).reshape(nb, -1).any(axis=1)
+    dropped["clipped"] = int(np.sum(ok & clipped))
+    ok &= ~clipped
+    # shading samples; bins a neighbour lights noticeably are left out
+    sp, sn = pos[:, 4:], nrm[:, 4:]
+    sv = -d[:, 4:]
+    share = _neighbour_share(sp.reshape(-1, 3), sn.reshape(-1, 3), sv.reshape(-1, 3),
+                             np.repeat(obj[:, 0], sp.shape[1]), spheres).reshape(nb, -1)
+    lit = share.max(axis=1) > _NEIGHBOUR_LIMIT
+    dropped["neighbour"] = int(np.sum(ok & lit))
+    ok &= ~lit
+    ok &= np.sum(sn * sv, -1).min(axis=1) > 0.0
+    vals = blocks[ok] - image.black_level
+    if image.mosaic == "none":
+        per = vals.reshape(vals.shape[0], -1, C)
+        n_c = np.full((vals.shape[0], C), per.shape[1], np.float64)
+        mean = per.mean(axis=1)
+    else:
+        chan = image.channel_of_pixel()[:s, :s]
+        flat = vals.reshape(vals.shape[0], -1)
+        mean = np.stack([flat[:, chan.reshape(-1) == c].mean(axis=1) for c in range(C)], -1)
+        n_c = np.stack([np.full(flat.shape[0], float(np.sum(chan == c))) for c in range(C)],
+                       -1)
+    var = image.read_noise ** 2 + image.gain * np.maximum(mean, 0.0)
+    sigma = np.sqrt(np.maximum(var, 1e-12) / n_c)
+    dl = np.gradient(np.asarray(wavelengths, np.float64)) if len(wavelengths) > 1 \
+        else np.ones(1)
+    response = image.exposure_s * image.sensitivities * dl[None, :]
+    bins = np.stack([ii[ok], jj[ok]], -1)
+    n = bins.shape[0]
+    kk = k * k
+    wts = np.kron(np.eye(sets), np.full((1, kk), 1.0 / kk))  # (sets, sets · k²)
+    if sets == 1:  # every channel in one row
+        mask = np.ones((n, C), bool)
+        meas, sig = mean, sigma
+    else:  # a mosaic: one row per bin and channel, the mean of its own sample set
+        mask = np.tile(np.eye(C, dtype=bool), (n, 1))
+        meas = np.where(mask, np.repeat(mean, C, axis=0), 0.0)
+        sig = np.where(mask, np.repeat(sigma, C, axis=0), 1.0)
+    return ImageRows(image=index, bins=bins, object=obj[ok, 0], row_bin=np.repeat(
+        np.arange(n), sets), weights=np.tile(wts, (n, 1)), measured=meas, sigma=sig,
+        mask=mask, response=response, pos=sp[ok], nrm=sn[ok], view=sv[ok], dropped=dropped,
+        grid=(rows, cols))
