@@ -105,7 +105,7 @@ def main() -> None:
                "normal": WHITE["normal"], "spectra": whites},
         notes=f"A simulated raw photograph and a white standard, path-traced (Mitsuba "
               f"{r.variant}, {args.spp} spp, depth 16); truth in truth.json",
-        images=[{"id": "photo", "pixels": raw, "sensitivities": sens_counts,
+        images=[{"id": "photo", "pixels": raw, "format": "png", "sensitivities": sens_counts,
                  "exposure_s": exposure, "mosaic": "RGGB", "black_level": BLACK,
                  "white_level": WHITE_LEVEL, "read_noise": READ, "gain": GAIN,
                  "camera": CAMERA}])

@@ -573,6 +573,7 @@ def _image_summaries(prep: PreparedFit, measured: np.ndarray, fitted: np.ndarray
             np.add.at(a, inv, np.where(ir.mask, b_, 0.0))
         out.append({
             "id": im.id, "used": bool(u.any()), "bins": int(keys.shape[0]), "rows": n,
+            "steep_bins": int(np.sum(ir.steep)), "samples": int(ir.sample_row.size),
             "grid": list(ir.grid), "superpixel": im.superpixel, "dropped": dict(ir.dropped),
             "chi2": float(np.sum(((f - m) / sg)[u] ** 2)),
             "rms_relative_residual": float(np.sqrt(np.mean(rel[u] ** 2))) if u.any() else None,

@@ -27,6 +27,9 @@ __all__ = ["ImageRows", "image_rows", "pixel_rays"]
 #: bins where the neighbours' form factor (bounding spheres) exceeds this are left out: the
 #: fit's interreflection term is built per spot
 _NEIGHBOUR_LIMIT = 0.01
+#: bins whose quadrants' means of one channel span more than this fraction of the bin's mean
+#: (a highlight's flank) get twice the samples per side
+_STEEP = 0.15
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,17 +43,19 @@ class ImageRows:
         bins: (N, 2) row and column of each kept bin.
         object: (N,) object each bin sees.
         row_bin: (S,) the bin of each row.
-        weights: (S, m) each row's weights of its bin's m samples (sum 1: the mean of its
-            channel's sample set).
         measured: (S, C) mean counts per channel, black level subtracted (0 where ``mask``
             is False).
         sigma: (S, C) their standard errors (counts; 1 where ``mask`` is False).
         mask: (S, C) the channels each row carries.
         response: (C, L) exposure × sensitivity × Δλ: counts per W·sr⁻¹·m⁻²·nm⁻¹ of the
             model radiance in each band.
-        pos, nrm, view: (N, m, 3) the shading samples of each bin (world), unit normals,
-            unit directions to the camera: m = k² (demosaiced) or C · k² (a mosaic: k × k
-            per channel on its sites' lattice).
+        pos, nrm, view: (Ps, 3) the shading samples (world), unit normals, unit directions
+            to the camera: k × k per row (a mosaic's channel: on the lattice of its pixel
+            sites), twice as many per side in steep bins.
+        sample_row, sample_weight: (Ps,) the row of each sample and its weight in the row's
+            mean (1/k²).
+        steep: (N,) the bins sampled 2k × 2k per row (a channel's means over the bin's
+            quadrants span more than ``_STEEP`` of its mean: a highlight's flank).
         dropped: {reason: number of bins} of the bins over an object that were left out.
         grid: (rows, cols) of the bin grid.
     """
@@ -59,7 +64,6 @@ class ImageRows:
     bins: np.ndarray
     object: np.ndarray
     row_bin: np.ndarray
-    weights: np.ndarray
     measured: np.ndarray
     sigma: np.ndarray
     mask: np.ndarray
@@ -67,6 +71,9 @@ class ImageRows:
     pos: np.ndarray
     nrm: np.ndarray
     view: np.ndarray
+    sample_row: np.ndarray
+    sample_weight: np.ndarray
+    steep: np.ndarray
     dropped: dict[str, int]
     grid: tuple[int, int]
 
@@ -252,16 +259,65 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
     response = image.exposure_s * image.sensitivities * dl[None, :]
     bins = np.stack([ii[ok], jj[ok]], -1)
     n = bins.shape[0]
+    # steepness: the spread of each channel's means over the bin's four quadrants (a
+    # gradient across the bin; the means damp the pixels' noise)
+    h = s // 2
+    quads = np.stack([vals[:, a:a + h, b:b + h] for a in (0, h) for b in (0, h)], 1)
+    if image.mosaic == "none":
+        qm = quads.reshape(n, 4, -1, C).mean(axis=2)
+    else:
+        qc = chan[:h, :h].reshape(-1)
+        qf = quads.reshape(n, 4, -1)
+        qm = np.stack([qf[:, :, qc == c].mean(axis=2) for c in range(C)], -1)
+    span = (qm.max(axis=1) - qm.min(axis=1)) / np.maximum(mean, 1e-12)
+    steep = np.any(span > _STEEP, axis=1) & (mean.min(axis=1) > 10.0 * image.read_noise)
+    k_hi = max(k, s // 2)
+    # the samples, flat: each belongs to one row (a bin's channel) with weight 1/k_b²
+    sp, sn, sv = sp[ok], sn[ok], sv[ok]
     kk = k * k
-    wts = np.kron(np.eye(sets), np.full((1, kk), 1.0 / kk))  # (sets, sets · k²)
+    base_row = np.repeat(np.arange(n) * sets, sets * kk) + np.tile(
+        np.repeat(np.arange(sets), kk), n)
+    keep = ~np.repeat(steep, sets * kk)
+    pos_f, nrm_f, view_f = (a.reshape(-1, 3)[keep] for a in (sp, sn, sv))
+    row_f, w_f = base_row[keep], np.full(int(keep.sum()), 1.0 / kk)
+    if steep.any() and k_hi > k:
+        gh = (np.arange(k_hi) + 0.5) / k_hi * s
+        hx, hy = np.meshgrid(gh, gh)
+        offs_h = (np.stack([hx.reshape(-1), hy.reshape(-1)], -1)[None]
+                  + shifts[:, None]).reshape(-1, 2)
+        sb = np.flatnonzero(steep)
+        xy_h = (np.stack([bins[sb, 1] * s, bins[sb, 0] * s], -1)[:, None, :]
+                + offs_h[None]).reshape(-1, 2)
+        dh = pixel_rays(image, xy_h)
+        oh, ph, nh = _cast(eye, dh, verts, norms, tris, tri_obj)
+        m_h = offs_h.shape[0]
+        front = (np.sum(nh * -dh, -1) > 0.0).reshape(sb.size, m_h)
+        same = (oh.reshape(sb.size, m_h) == obj[ok][sb, :1]).all(axis=1) & front.all(axis=1)
+        good = np.repeat(same, m_h)
+        hh = k_hi * k_hi
+        row_h = np.repeat(sb * sets, sets * hh) + np.tile(np.repeat(np.arange(sets), hh),
+                                                          sb.size)
+        # a steep bin whose finer samples leave its object keeps its k × k samples
+        back = np.isin(base_row // sets, sb[~same])
+        pos_f = np.concatenate([pos_f, ph[good], sp.reshape(-1, 3)[back]])
+        nrm_f = np.concatenate([nrm_f, nh[good], sn.reshape(-1, 3)[back]])
+        view_f = np.concatenate([view_f, -dh[good], sv.reshape(-1, 3)[back]])
+        row_f = np.concatenate([row_f, row_h[good], base_row[back]])
+        w_f = np.concatenate([w_f, np.full(int(good.sum()), 1.0 / hh),
+                              np.full(int(back.sum()), 1.0 / kk)])
+        steep[sb[~same]] = False
+    order = np.argsort(row_f, kind="stable")
     if sets == 1:  # every channel in one row
         mask = np.ones((n, C), bool)
         meas, sig = mean, sigma
+        row_bin = np.arange(n)
     else:  # a mosaic: one row per bin and channel, the mean of its own sample set
         mask = np.tile(np.eye(C, dtype=bool), (n, 1))
         meas = np.where(mask, np.repeat(mean, C, axis=0), 0.0)
         sig = np.where(mask, np.repeat(sigma, C, axis=0), 1.0)
-    return ImageRows(image=index, bins=bins, object=obj[ok, 0], row_bin=np.repeat(
-        np.arange(n), sets), weights=np.tile(wts, (n, 1)), measured=meas, sigma=sig,
-        mask=mask, response=response, pos=sp[ok], nrm=sn[ok], view=sv[ok], dropped=dropped,
-        grid=(rows, cols))
+        row_bin = np.repeat(np.arange(n), sets)
+    return ImageRows(image=index, bins=bins, object=obj[ok, 0], row_bin=row_bin,
+                     measured=meas, sigma=sig, mask=mask, response=response,
+                     pos=pos_f[order], nrm=nrm_f[order], view=view_f[order],
+                     sample_row=row_f[order], sample_weight=w_f[order], steep=steep,
+                     dropped=dropped, grid=(rows, cols))

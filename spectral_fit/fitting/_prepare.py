@@ -199,29 +199,18 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
                                 "the camera pose and the objects named")
     n_img = sum(ir.row_bin.shape[0] for ir in img_rows)
     if img_rows:
-        kk = [ir.pos.shape[1] for ir in img_rows]
-        pos_all = np.concatenate([pos_all] + [ir.pos.reshape(-1, 3) for ir in img_rows])
-        nrm_all = np.concatenate([nrm_all] + [ir.nrm.reshape(-1, 3) for ir in img_rows])
-        view_all = np.concatenate([view_all] + [ir.view.reshape(-1, 3) for ir in img_rows])
-        obj = np.concatenate([obj] + [np.repeat(ir.object, k).astype(np.int32)
-                                      for ir, k in zip(img_rows, kk, strict=True)])
-        pix = np.concatenate([pix] + [np.tile(np.arange(k, dtype=np.int32), ir.bins.shape[0])
-                                      for ir, k in zip(img_rows, kk, strict=True)])
-        r0 = 0
-        gparts, wparts = [], []
-        for ir, k in zip(img_rows, kk, strict=True):
-            # every sample of a bin belongs to the one row that weighs it
-            rr, cc = np.nonzero(ir.weights)  # (row, sample within the bin)
-            samp = ir.row_bin[rr] * k + cc
-            row_of = np.zeros(ir.bins.shape[0] * k, np.int64)
-            wt = np.zeros(ir.bins.shape[0] * k)
-            row_of[samp] = B + r0 + rr
-            wt[samp] = ir.weights[rr, cc]
-            gparts.append(row_of)
-            wparts.append(wt)
-            r0 += ir.row_bin.shape[0]
-        groups = np.concatenate([groups] + gparts)
-        sample_w = np.concatenate([np.full(P, 1.0 / nd)] + wparts)
+        pos_all = np.concatenate([pos_all] + [ir.pos for ir in img_rows])
+        nrm_all = np.concatenate([nrm_all] + [ir.nrm for ir in img_rows])
+        view_all = np.concatenate([view_all] + [ir.view for ir in img_rows])
+        obj = np.concatenate([obj] + [ir.object[ir.row_bin[ir.sample_row]].astype(np.int32)
+                                      for ir in img_rows])
+        pix = np.concatenate([pix] + [np.zeros(ir.sample_row.size, np.int32)
+                                      for ir in img_rows])
+        offsets = np.cumsum([B] + [ir.row_bin.size for ir in img_rows])[:-1]
+        groups = np.concatenate([groups] + [o + ir.sample_row
+                                            for o, ir in zip(offsets, img_rows, strict=True)])
+        sample_w = np.concatenate([np.full(P, 1.0 / nd)]
+                                  + [ir.sample_weight for ir in img_rows])
     else:
         sample_w = np.full(P, 1.0 / nd)
     recv = GBuffer(position=jnp.asarray(pos_all, dtype), normal=jnp.asarray(nrm_all, dtype),

@@ -262,7 +262,7 @@ def parse_images(ctx: _Ctx, data: dict[str, Any], base: Path, wl: np.ndarray,
             read_noise=ctx.number(t, "read_noise", f"{f}.read_noise", 1.0, lo=0.0),
             gain=ctx.number(t, "gain", f"{f}.gain", 0.0, lo=0.0),
             superpixel=sp_px,
-            samples=int(ctx.number(t, "samples", f"{f}.samples", 2.0, lo=1.0, hi=8.0)),
+            samples=int(ctx.number(t, "samples", f"{f}.samples", 1.0, lo=1.0, hi=8.0)),
             objects=tuple(objs), position=pos, aim=aim, up=up, fov_y_deg=fov, intrinsics=intr,
             line=lines.get(f), index=i))
     return tuple(out)

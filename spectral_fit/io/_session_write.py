@@ -85,7 +85,8 @@ def write_session(
         model_error: optional ``{kind: relative error of the model, or "auto"}`` (estimated
             by the fit).
         images: camera photographs: dicts with ``id``, ``pixels`` (H, W) mosaic or (H, W, C)
-            counts (written as ``images/<id>.npy``), ``sensitivities`` (C, L) (written as a
+            counts (written as ``images/<id>.npy``, or a 16-bit ``.png`` with ``format =
+            "png"``), ``sensitivities`` (C, L) (written as a
             CSV on ``wavelengths``), ``camera`` ({position, aim, up?, fov_y_deg |
             intrinsics}) and the optional keys of an ``[[images]]`` table (``mosaic``,
             ``exposure_s``, ``black_level``, ``white_level``, ``saturation``,
@@ -168,8 +169,18 @@ def write_session(
     for im in images or []:
         iid = im["id"]
         out += ["", "[[images]]", f"id = {toml_value(iid)}"]
-        fn = f"images/{iid}.npy"
-        atomic_write_bytes(root / fn, _npy_bytes(np.asarray(im["pixels"])))
+        px = np.asarray(im["pixels"])
+        if im.get("format", "npy") == "png":  # 16-bit PNG (integer counts up to 65535)
+            import skimage.io
+
+            from .._runtime.fileio import atomic_path
+
+            fn = f"images/{iid}.png"
+            with atomic_path(root / fn, suffix=".png") as tmp:
+                skimage.io.imsave(tmp, px.astype(np.uint16), check_contrast=False)
+        else:
+            fn = f"images/{iid}.npy"
+            atomic_write_bytes(root / fn, _npy_bytes(px))
         out.append(f"file = {toml_value(fn)}")
         sn = f"images/{iid}_sensitivities.csv"
         atomic_write_text(root / sn, _spectrum_text(
