@@ -45,7 +45,8 @@ class ImageReading:
             not subtracted).
         mosaic: one of :data:`MOSAICS`.
         sensitivities: (C, L) s_c(λ) on the scene's grid, counts · s⁻¹ per
-            (W·sr⁻¹·m⁻²·nm⁻¹ · nm); channels in the order R, G, B of the mosaic.
+            (W·sr⁻¹·m⁻²·nm⁻¹ · nm); channels in the order R, G, B of the mosaic (from a file,
+            or estimated from a chart shot).
         exposure_s: t, seconds.
         black_level, white_level: counts; a pixel at or above
             ``black + saturation · (white − black)`` is clipped (left out).
@@ -185,6 +186,61 @@ def load_sensitivities(path: Path, wl: np.ndarray) -> np.ndarray:
     return out
 
 
+def _read_counts(path: Path) -> np.ndarray:
+    """A chart's mean counts: CSV rows ``patch, R, G, B`` (a header line and ``#`` comments
+    allowed) → (N, C), black subtracted by the user."""
+    text = read_text(path, encoding="utf-8-sig", max_bytes=1024 * 1024, what="chart counts")
+    rows = []
+    for i, line in enumerate(text.splitlines(), start=1):
+        t = line.strip()
+        if not t or t.startswith("#"):
+            continue
+        parts = [x.strip() for x in t.replace(";", ",").split(",")]
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            if not rows:
+                continue  # the header
+            raise InputError(f"not a number in {parts!r}", path=path, line=i,
+                             field="chart_counts") from None
+        if len(vals) < 2 or (rows and len(vals) != len(rows[0])) or not all(
+                np.isfinite(vals)):
+            raise InputError("each row: patch, then one finite count per channel", path=path,
+                             line=i, field="chart_counts")
+        rows.append(vals)
+    if not rows:
+        raise InputError("no rows", path=path, field="chart_counts")
+    return np.asarray(rows)[:, 1:]
+
+
+def _chart_sensitivities(ctx: _Ctx, t: dict[str, Any], f: str, base: Path,
+                         wl: np.ndarray) -> np.ndarray:
+    """Sensitivities estimated from a chart shot (``{chart_counts, chart_radiance,
+    exposure_s}``; :func:`spectral_fit.color.estimate_camera_sensitivities`)."""
+    from ..color import estimate_camera_sensitivities
+    from ._spectrum_files import _read_spectra
+
+    ctx.finish(t, ("chart_counts", "chart_radiance", "exposure_s"), f)
+    paths = {}
+    for k in ("chart_counts", "chart_radiance"):
+        p = base / ctx.string(t, k, f"{f}.{k}")
+        if not p.is_file():
+            raise ctx.err(f"{f}.{k}", f"file not found: {p}")
+        paths[k] = p
+    counts = _read_counts(paths["chart_counts"])  # (N, C)
+    rad = _read_spectra(paths["chart_radiance"], wl, kind="radiance",
+                        units="W.sr^-1.m^-2.nm^-1")  # (N, L)
+    if rad.shape[0] != counts.shape[0]:
+        raise InputError(f"{counts.shape[0]} patches' counts but {rad.shape[0]} radiance "
+                         "columns", path=paths["chart_radiance"], field="chart_radiance")
+    try:
+        return estimate_camera_sensitivities(
+            counts, rad, wl, ctx.number(t, "exposure_s", f"{f}.exposure_s", lo=0.0,
+                                        lo_open=True))
+    except InputError as e:
+        raise ctx.err(f, e.reason) from None
+
+
 def parse_images(ctx: _Ctx, data: dict[str, Any], base: Path, wl: np.ndarray,
                  names: list[str], lines: dict[str, int]) -> tuple[ImageReading, ...]:
     """The manifest's ``[[images]]`` tables, checked (errors name the file and field)."""
@@ -207,10 +263,13 @@ def parse_images(ctx: _Ctx, data: dict[str, Any], base: Path, wl: np.ndarray,
         mosaic = ctx.string(t, "mosaic", f"{f}.mosaic", "RGGB")
         if mosaic not in MOSAICS:
             raise ctx.err(f"{f}.mosaic", f"must be one of {MOSAICS}, got {mosaic!r}")
-        sp = base / ctx.string(t, "sensitivities", f"{f}.sensitivities")
-        if not sp.is_file():
-            raise ctx.err(f"{f}.sensitivities", f"file not found: {sp}")
-        sens = load_sensitivities(sp, wl)
+        if isinstance(t.get("sensitivities"), dict):
+            sens = _chart_sensitivities(ctx, t["sensitivities"], f"{f}.sensitivities", base, wl)
+        else:
+            sp = base / ctx.string(t, "sensitivities", f"{f}.sensitivities")
+            if not sp.is_file():
+                raise ctx.err(f"{f}.sensitivities", f"file not found: {sp}")
+            sens = load_sensitivities(sp, wl)
         if mosaic != "none" and sens.shape[0] != 3:
             raise ctx.err(f"{f}.sensitivities", f"a {mosaic} mosaic needs 3 channel columns "
                           f"(R, G, B), the file has {sens.shape[0]}")
