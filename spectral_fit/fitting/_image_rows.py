@@ -262,14 +262,18 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
     # steepness: the spread of each channel's means over the bin's four quadrants (a
     # gradient across the bin; the means damp the pixels' noise)
     h = s // 2
-    quads = np.stack([vals[:, a:a + h, b:b + h] for a in (0, h) for b in (0, h)], 1)
+    corners = [(a, b) for a in (0, h) for b in (0, h)]
     if image.mosaic == "none":
-        qm = quads.reshape(n, 4, -1, C).mean(axis=2)
-    else:
-        qc = chan[:h, :h].reshape(-1)
-        qf = quads.reshape(n, 4, -1)
-        qm = np.stack([qf[:, :, qc == c].mean(axis=2) for c in range(C)], -1)
-    span = (qm.max(axis=1) - qm.min(axis=1)) / np.maximum(mean, 1e-12)
+        qm = np.stack([vals[:, a:a + h, b:b + h].reshape(n, -1, C).mean(axis=1)
+                       for a, b in corners], 1)  # (n, 4, C)
+        span = (qm.max(axis=1) - qm.min(axis=1)) / np.maximum(mean, 1e-12)
+    elif h >= 2:  # each quadrant with its own sites (an odd half-width shifts the pattern)
+        qm = np.stack([np.stack([vals[:, a:a + h, b:b + h][:, chan[a:a + h, b:b + h] == c]
+                                 .mean(axis=1) for c in range(C)], -1)
+                       for a, b in corners], 1)
+        span = (qm.max(axis=1) - qm.min(axis=1)) / np.maximum(mean, 1e-12)
+    else:  # 2-pixel bins: no quadrant holds every channel
+        span = np.zeros_like(mean)
     steep = np.any(span > _STEEP, axis=1) & (mean.min(axis=1) > 10.0 * image.read_noise)
     k_hi = max(k, s // 2)
     # the samples, flat: each belongs to one row (a bin's channel) with weight 1/k_b²
