@@ -28,6 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from spectral_fit.color import integration_weights  # noqa: E402
 from spectral_fit.io import load_scene, write_session  # noqa: E402
 
 CONFIG = ROOT / "configs" / "two_spheres_photo.toml"
@@ -82,7 +83,7 @@ def main() -> None:
     white = w["white"][0]
     # the camera
     sens = camera_sensitivities(wl)
-    dl = np.gradient(wl)
+    dl = integration_weights(wl)
     signal = np.einsum("hwl,cl->hwc", radiance, sens * dl[None, :])
     peak = float(np.percentile(signal[..., 1], 99.95))
     scale = 1.4 * (WHITE_LEVEL - BLACK) / max(peak, 1e-30)  # the top highlights clip

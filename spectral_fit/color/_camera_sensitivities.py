@@ -65,6 +65,8 @@ def estimate_camera_sensitivities(counts: np.ndarray, radiance: np.ndarray,
     """
     from scipy.optimize import nnls
 
+    from ._colorimetry import integration_weights
+
     v = np.asarray(counts, np.float64)
     Lr = np.asarray(radiance, np.float64)
     wl = np.asarray(wavelengths, np.float64)
@@ -76,7 +78,7 @@ def estimate_camera_sensitivities(counts: np.ndarray, radiance: np.ndarray,
     if not (np.all(np.isfinite(v)) and np.all(np.isfinite(Lr)) and np.all(Lr >= 0)):
         raise InputError("counts and radiance must be finite (radiance non-negative)",
                          field="chart")
-    dl = np.gradient(wl) if wl.size > 1 else np.ones(1)
+    dl = integration_weights(wl)
     A = exposure_s * Lr * dl[None, :]  # (N, L)
     scale = np.linalg.norm(A, 2)
     An = A / scale

@@ -5,7 +5,7 @@ counts (black subtracted) and their standard errors, compared with the exposure 
 sensitivities applied to the mean model radiance of ``samples`` × ``samples`` shading samples
 spread over the bin (:mod:`spectral_fit.io`'s image readings give the pixel model).
 
-Shapes: S bins kept, k² samples per bin, C channels, L bands; world metres.
+Shapes: N bins kept, S rows, Ps samples, C channels, L bands; world metres.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ __all__ = ["ImageRows", "image_rows", "pixel_rays"]
 #: fit's interreflection term is built per spot
 _NEIGHBOUR_LIMIT = 0.01
 #: bins whose quadrants' means of one channel span more than this fraction of the bin's mean
-#: (a highlight's flank) get twice the samples per side
+#: (a highlight's flank) get superpixel/2 samples per side (one per R/B site of a mosaic)
 _STEEP = 0.15
 
 
@@ -51,11 +51,12 @@ class ImageRows:
             model radiance in each band.
         pos, nrm, view: (Ps, 3) the shading samples (world), unit normals, unit directions
             to the camera: k × k per row (a mosaic's channel: on the lattice of its pixel
-            sites), twice as many per side in steep bins.
+            sites), superpixel/2 per side in steep bins.
         sample_row, sample_weight: (Ps,) the row of each sample and its weight in the row's
             mean (1/k²).
-        steep: (N,) the bins sampled 2k × 2k per row (a channel's means over the bin's
-            quadrants span more than ``_STEEP`` of its mean: a highlight's flank).
+        steep: (N,) the bins sampled superpixel/2 × superpixel/2 per row (a channel's means
+            over the bin's quadrants span more than ``_STEEP`` of its mean: a highlight's
+            flank).
         dropped: {reason: number of bins} of the bins over an object that were left out.
         grid: (rows, cols) of the bin grid.
     """
@@ -97,17 +98,14 @@ def pixel_rays(image: ImageReading, xy: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def _cast(origin: np.ndarray, dirs: np.ndarray, verts: np.ndarray, norms: np.ndarray,
-          tris: np.ndarray, tri_obj: np.ndarray, chunk: int = 4096
+def _cast(bvh: Any, origin: np.ndarray, dirs: np.ndarray, verts: np.ndarray,
+          norms: np.ndarray, tris: np.ndarray, tri_obj: np.ndarray, chunk: int = 4096
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """First hits of rays (N, 3) from one origin: object (N,) (−1: none), position and unit
-    normal (N, 3) (:func:`spectral_fit.geometry.closest_hit` through one hierarchy over the
-    scene's triangles; rays padded to whole chunks, one compiled size)."""
+    normal (N, 3) (:func:`spectral_fit.geometry.closest_hit` through ``bvh``, the hierarchy
+    over the scene's triangles; rays padded to whole chunks, one compiled size)."""
     import jax.numpy as jnp
 
-    from ..geometry import build_bvh
-
-    bvh = build_bvh(verts, tris)
     N = dirs.shape[0]
     tri = np.full(N, -1)
     uv = np.zeros((N, 2))
@@ -173,7 +171,10 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
     H, W = image.shape
     s, k = image.superpixel, image.samples
     rows, cols = H // s, W // s
+    from ..geometry import build_bvh
+
     verts, norms, tris, tri_obj = scene_triangles(list(geoms))
+    bvh = build_bvh(verts, tris)
     spheres = []
     for g in geoms:
         v = np.asarray(g.vertices, np.float64)
@@ -201,9 +202,6 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
     # a demosaiced image
     C = image.channels
     off_c = np.array([[0.5, 0.5], [s - 0.5, 0.5], [0.5, s - 0.5], [s - 0.5, s - 0.5]])
-    g = (np.arange(k) + 0.5) / k * s
-    gx, gy = np.meshgrid(g, g)
-    grid = np.stack([gx.reshape(-1), gy.reshape(-1)], -1)
     if image.mosaic == "none":
         shifts = np.zeros((1, 2))
     else:
@@ -211,10 +209,18 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
         shifts = np.stack([np.argwhere(chan2 == c)[:, ::-1].mean(axis=0) - 0.5
                            for c in range(C)])  # (x, y) of each channel's site centroid
     sets = shifts.shape[0]
-    offs = np.concatenate([off_c, (grid[None] + shifts[:, None]).reshape(-1, 2)])
+
+    def sample_offsets(q: int) -> np.ndarray:
+        """(sets · q², 2) pixel offsets in a bin of q × q samples per set, row-major."""
+        g = (np.arange(q) + 0.5) / q * s
+        gx, gy = np.meshgrid(g, g)
+        grid = np.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+        return (grid[None] + shifts[:, None]).reshape(-1, 2)
+
+    offs = np.concatenate([off_c, sample_offsets(k)])
     xy = (np.stack([jj * s, ii * s], -1)[:, None, :] + offs[None]).reshape(-1, 2)
     d = pixel_rays(image, xy)
-    obj, pos, nrm = _cast(eye, d, verts, norms, tris, tri_obj)
+    obj, pos, nrm = _cast(bvh, eye, d, verts, norms, tris, tri_obj)
     m = offs.shape[0]
     obj, pos, nrm = obj.reshape(nb, m), pos.reshape(nb, m, 3), nrm.reshape(nb, m, 3)
     d = d.reshape(nb, m, 3)
@@ -254,8 +260,9 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
                        -1)
     var = image.read_noise ** 2 + image.gain * np.maximum(mean, 0.0)
     sigma = np.sqrt(np.maximum(var, 1e-12) / n_c)
-    dl = np.gradient(np.asarray(wavelengths, np.float64)) if len(wavelengths) > 1 \
-        else np.ones(1)
+    from ..color import integration_weights
+
+    dl = integration_weights(wavelengths)
     response = image.exposure_s * image.sensitivities * dl[None, :]
     bins = np.stack([ii[ok], jj[ok]], -1)
     n = bins.shape[0]
@@ -285,15 +292,12 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
     pos_f, nrm_f, view_f = (a.reshape(-1, 3)[keep] for a in (sp, sn, sv))
     row_f, w_f = base_row[keep], np.full(int(keep.sum()), 1.0 / kk)
     if steep.any() and k_hi > k:
-        gh = (np.arange(k_hi) + 0.5) / k_hi * s
-        hx, hy = np.meshgrid(gh, gh)
-        offs_h = (np.stack([hx.reshape(-1), hy.reshape(-1)], -1)[None]
-                  + shifts[:, None]).reshape(-1, 2)
+        offs_h = sample_offsets(k_hi)
         sb = np.flatnonzero(steep)
         xy_h = (np.stack([bins[sb, 1] * s, bins[sb, 0] * s], -1)[:, None, :]
                 + offs_h[None]).reshape(-1, 2)
         dh = pixel_rays(image, xy_h)
-        oh, ph, nh = _cast(eye, dh, verts, norms, tris, tri_obj)
+        oh, ph, nh = _cast(bvh, eye, dh, verts, norms, tris, tri_obj)
         m_h = offs_h.shape[0]
         front = (np.sum(nh * -dh, -1) > 0.0).reshape(sb.size, m_h)
         same = (oh.reshape(sb.size, m_h) == obj[ok][sb, :1]).all(axis=1) & front.all(axis=1)

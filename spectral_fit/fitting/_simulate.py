@@ -104,6 +104,7 @@ def simulate_photograph(scene: Scene, *, position: Any, aim: Any, up: Any = (0.0
     """
     import dataclasses
 
+    from ..color import integration_weights
     from ..rendering import prepare, render_frame
 
     W, H = int(size[0]), int(size[1])
@@ -121,7 +122,7 @@ def simulate_photograph(scene: Scene, *, position: Any, aim: Any, up: Any = (0.0
     wl = np.asarray(scene.wavelengths, np.float64)
     if calibration is not None:
         L_img = L_img * np.broadcast_to(np.asarray(calibration, np.float64), wl.shape)
-    dl = np.gradient(wl) if wl.size > 1 else np.ones(1)
+    dl = integration_weights(wl)
     s = np.asarray(sensitivities, np.float64)
     clean = exposure_s * np.einsum("hwl,cl->hwc", L_img, s * dl[None, :])
     if mosaic != "none":

@@ -7,9 +7,9 @@ A pixel of channel c records (docs/measurements.md, "Images")
     v_c = black + t · Σ_λ s_c(λ) L(λ) Δλ  (+ noise),   clipped at the white level,
 
 with t the exposure (s), s_c the sensitivity in counts per second per W·sr⁻¹·m⁻²·nm⁻¹ per nm
-on the scene's wavelength grid (spacing Δλ, nm) and L the spectral radiance reaching the
-pixel. Noise: σ² = read² + gain · (v − black) (read noise in counts, gain in counts per
-photo-electron).
+on the scene's wavelength grid (Δλ its step, nm; trapezoid weights on an uneven grid) and L
+the spectral radiance reaching the pixel. Noise: σ² = read² + gain · (v − black) (read noise
+in counts, gain in counts per photo-electron).
 
 This module is plain NumPy (the data layer): it loads and checks the files and says what
 each pixel is; the fit turns pixels into readings (:mod:`spectral_fit.fitting`).
