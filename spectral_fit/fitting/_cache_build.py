@@ -18,21 +18,27 @@ import numpy as np
 from ._cache_geometry import _fibonacci_cap, _ray_spheres, _unit
 from ._env_sampling import _env_lookup, _texel_table
 from ._gloss_nodes import build_gloss_nodes
+from ._occluders import MeshOccluder, PointOcclusion
 from ._radiance_cache import CacheOptions, FieldAverage, RadianceCache, Sphere, _concat_nodes
 
 __all__ = ["build_radiance_cache"]
 
 
 def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndarray,
-                        spheres: Sequence[Sphere], chunk: int = 64
+                        spheres: Sequence[Sphere], chunk: int = 64, *,
+                        occlusion: PointOcclusion | None = None,
+                        rows: np.ndarray | None = None
                         ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray,
                                                           np.ndarray]]]:
     """Exact texel-sum irradiance (P, C) of the environment visible from each point, and per
-    chunk the hidden texels: (point index, cos·Δω, hit sphere, hit point).
+    chunk the hidden texels: (point index, cos·Δω, hit occluder, hit point).
 
     A texel direction is hidden by a sphere when it lies inside the sphere's silhouette cone
-    from the point (angle to the centre <= asin(radius/distance)); computed in float32."""
+    from the point (angle to the centre <= asin(radius/distance)); by the meshes of
+    ``occlusion`` (whose point ``rows[i]`` is ``X[i]``) in the fraction its bilinear taps in
+    the occlusion's direction grid say; computed in float32."""
     dirs, sa, tex = _texel_table(env)
+    taps = occlusion.taps(dirs) if occlusion is not None and occlusion.has_meshes else None
     d32 = dirs.astype(np.float32)
     tex32 = tex.astype(np.float32)
     P = X.shape[0]
@@ -61,6 +67,14 @@ def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndar
                 t = -bq - np.sqrt(np.maximum(bq * bq - np.sum(oc * oc, -1) + s.radius ** 2,
                                              0.0))
                 hidden.append((pi + a, hw, np.full(pi.size, si), o + t[:, None] * dirs[ti]))
+        if taps is not None:
+            frac, occ, hp = occlusion.hidden_share(  # type: ignore[union-attr]
+                rows[sl][:, None], taps[0][None], taps[1][None])  # type: ignore[index]
+            pi, ti = np.nonzero((frac > 0.0) & (w > 0.0))
+            if pi.size:
+                hw = (w[pi, ti] * frac[pi, ti]).astype(np.float64)
+                w[pi, ti] *= (1.0 - frac[pi, ti]).astype(np.float32)
+                hidden.append((pi + a, hw, occ[pi, ti], hp[pi, ti]))
         E[sl] = w @ tex32
     return E, hidden
 
@@ -68,6 +82,7 @@ def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndar
 def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
                          views: np.ndarray, objects: np.ndarray, groups: np.ndarray, *,
                          weights: np.ndarray | None = None, spheres: Sequence[Sphere] = (),
+                         meshes: Sequence[MeshOccluder] = (), interreflection: bool = True,
                          options: CacheOptions | None = None, dtype: Any = jnp.float32,
                          probe_groups: int | None = None) -> RadianceCache:
     """Precompute the :class:`RadianceCache` of P field samples (outside ``jit``).
@@ -79,8 +94,13 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         groups: (P,) reading of each sample (probes are made per reading and neighbour).
         weights: (P,) each sample's weight in its reading's field mean (default: the mean of
             each group's samples).
-        spheres: the objects as spheres for occlusion and interreflection (empty: no
-            interreflection, no occlusion).
+        spheres: the sphere objects for occlusion and interreflection (analytic).
+        meshes: the mesh objects for occlusion and interreflection (:class:`MeshOccluder`:
+            the frame's shadow-map visibility at the samples and probes, a non-convex mesh
+            hiding parts of its own points' sky and lighting them).
+        interreflection: False: no probes, and the meshes hide only their own object's
+            points (the direct light, as the frame's mode "none"); the spheres given are
+            occluders either way.
         probe_groups: only groups below this get probes (None: every group); the others are
             occluded by the neighbours but receive no light from them.
     """
@@ -93,8 +113,17 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     valid = obj >= 0
     P = X.shape[0]
     C = env.texels.shape[-1]
+    occ = None
+    if meshes:
+        # every point gets a row (invalid ones at a valid point's place: never used)
+        first = int(np.argmax(valid)) if valid.any() else 0
+        Xs = np.where(valid[:, None], X, X[first] if P else 0.0)
+        Ns = np.where(valid[:, None], N, N[first] if P else [0.0, 1.0, 0.0])
+        occ = PointOcclusion(Xs, Ns, obj, spheres=spheres, meshes=meshes,
+                             own_only=not interreflection, resolution=opts.visibility)
     nodes, hits = build_gloss_nodes(
-        env, X, N, V, objects=obj, spheres=spheres if spheres else (), theta0=opts.theta0,
+        env, X, N, V, objects=obj, spheres=spheres if spheres else (), occlusion=occ,
+        theta0=opts.theta0,
         ring_ratio=opts.ring_ratio, azimuths=opts.azimuths, prefilter=opts.prefilter,
         horizon_ratio=opts.horizon_ratio, subsamples=opts.subsamples, sources=opts.sources,
         dtype=dtype)
@@ -103,17 +132,22 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     irr = np.zeros((P, C))
     mir = np.zeros((P, C))
     iv = np.flatnonzero(valid)
-    E, hidden = _visible_irradiance(env, X[iv], N[iv], obj[iv], spheres)
+    E, hidden = _visible_irradiance(env, X[iv], N[iv], obj[iv], spheres, occlusion=occ,
+                                    rows=iv)
     irr[iv] = E
     mk = np.full(P, -1)
-    mt = np.full(P, np.inf)
-    if spheres:
-        mk[iv], mt[iv] = _ray_spheres(X[iv], R[iv], spheres, obj[iv])
+    mpt = np.zeros((P, 3))
+    if occ is not None:
+        mk[iv], mpt[iv], _ = occ.trace(iv, R[iv])
+    elif spheres:
+        mk[iv], mt = _ray_spheres(X[iv], R[iv], spheres, obj[iv])
+        mpt[iv] = X[iv] + np.where(mk[iv] >= 0, mt, 0.0)[:, None] * R[iv]
     mvis = valid & (mk < 0)
     mir[mvis] = _env_lookup(env, R[mvis])
     # probes: per reading and neighbour, directions from the spot centre over its silhouette
     probe_dirs, probe_pts, probe_sph, probe_grp, probe_orig = [], [], [], [], []
-    if spheres:
+    probe_nrm: list[np.ndarray] = []
+    if interreflection and (spheres or meshes):
         for b in np.unique(grp[valid]):
             if probe_groups is not None and b >= probe_groups:
                 break
@@ -135,6 +169,26 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
                 probe_sph.append(np.full(u.shape[0], si))
                 probe_grp.append(np.full(u.shape[0], b))
                 probe_orig.append(np.broadcast_to(xb, u.shape))
+                probe_nrm.append(_unit(probe_pts[-1] - s.centre))
+            if occ is not None:
+                # the meshes (the spot's own object too, where it hides its sky): the points
+                # its most central sample sees hidden along the direction grid, at most
+                # ``probes`` of them per mesh, spread by taking every k-th
+                cand = np.flatnonzero(sel)
+                rb = cand[np.argmin(np.linalg.norm(X[cand] - xb, axis=1))]
+                for j in range(len(meshes)):
+                    ks = np.flatnonzero(occ.occ[rb] == len(spheres) + j)
+                    if ks.size == 0:
+                        continue
+                    ks = ks[np.unique(np.linspace(0, ks.size - 1, min(ks.size, opts.probes)
+                                                  ).round().astype(int))]
+                    pts = occ.hit[rb, ks].astype(np.float64)
+                    probe_dirs.append(_unit(pts - xb))
+                    probe_pts.append(pts)
+                    probe_sph.append(np.full(ks.size, len(spheres) + j))
+                    probe_grp.append(np.full(ks.size, b))
+                    probe_orig.append(np.broadcast_to(X[rb], pts.shape))
+                    probe_nrm.append(occ.hit_normal[rb, ks].astype(np.float64))
     Q = int(sum(u.shape[0] for u in probe_dirs))
     if Q:
         pd = np.concatenate(probe_dirs)
@@ -142,6 +196,7 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         ps = np.concatenate(probe_sph)
         pg = np.concatenate(probe_grp)
         po = np.concatenate(probe_orig)
+        pn = np.concatenate(probe_nrm)
         centre_of = {int(b): X[valid & (grp == b)].mean(axis=0) for b in np.unique(pg)}
 
         def nearest(sample: np.ndarray, sph: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -168,7 +223,7 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         mprobe = np.full(P, -1)
         mh = np.flatnonzero(valid & (mk >= 0))
         if mh.size:
-            mprobe[mh] = nearest(mh, mk[mh], X[mh] + mt[mh, None] * R[mh])
+            mprobe[mh] = nearest(mh, mk[mh], mpt[mh])
         # gloss hits
         J, M = nodes.vh.shape[1], nodes.vh.shape[2]
         hs = hits["node"] // (J * M)
@@ -187,19 +242,26 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         mprobe = np.where(mprobe >= 0, new[np.maximum(mprobe, 0)], -1)
         hq = new[hq]
         pd, pp, ps, pg, po = pd[used], pp[used], ps[used], pg[used], po[used]
-        pobj = np.array([spheres[i].object for i in ps])
-        pc = np.stack([spheres[i].centre for i in ps]) if Q else np.zeros((0, 3))
-        pN = _unit(pp - pc)
+        pN = pn[used]
+        pobj = np.array([s.object for s in spheres] + [m.object for m in meshes])[ps]
         pV = _unit(po - pp)
+        # an open mesh is two-sided: a probe faces the spot it lights
+        pN = np.where((np.sum(pN * pV, -1) < 0.0)[:, None], -pN, pN)
+        pocc = (PointOcclusion(pp, pN, pobj, spheres=spheres, meshes=meshes,
+                               resolution=opts.probe_visibility) if meshes else None)
         pnodes, _ = build_gloss_nodes(
-            env, pp, pN, pV, objects=pobj, spheres=spheres, theta0=opts.theta0,
-            ring_ratio=opts.ring_ratio, azimuths=opts.azimuths,
+            env, pp, pN, pV, objects=pobj, spheres=spheres, occlusion=pocc,
+            theta0=opts.theta0, ring_ratio=opts.ring_ratio, azimuths=opts.azimuths,
             prefilter=opts.prefilter, horizon_ratio=opts.horizon_ratio, sources=opts.sources,
             dtype=dtype)
-        pE, _ = _visible_irradiance(env, pp, pN, pobj, spheres)
+        pE, _ = _visible_irradiance(env, pp, pN, pobj, spheres, occlusion=pocc,
+                                    rows=np.arange(Q))
         pnv = np.sum(pN * pV, -1)
         pR = _unit(2.0 * pnv[:, None] * pN - pV)
-        k, _ = _ray_spheres(pp, pR, spheres, pobj)
+        if pocc is not None:
+            k, _, _ = pocc.trace(np.arange(Q), pR)
+        else:
+            k, _ = _ray_spheres(pp, pR, spheres, pobj)
         pM = np.zeros((Q, C))
         pM[k < 0] = _env_lookup(env, pR[k < 0])
     else:
@@ -221,7 +283,8 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         count = np.bincount(np.maximum(grp, 0), minlength=nb)
         weights = 1.0 / np.maximum(count[np.maximum(grp, 0)], 1)
     w = np.asarray(weights, np.float64) * (valid & (nv > 0.0) & (grp >= 0))
-    O = int(max([obj.max() + 1 if obj.size else 0] + [s.object + 1 for s in spheres]))
+    O = int(max([obj.max() + 1 if obj.size else 0] + [s.object + 1 for s in spheres]
+                + [m.object + 1 for m in meshes]))
     fdq = np.zeros((O, Q))
     if Q:  # each probe's share of its own reading's mean, per receiving object
         same = grp[:, None] == pg[None, :]  # (P, Q)

@@ -50,7 +50,8 @@ def _visible_arc(nv: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, views: np.ndarray,
                       *, objects: np.ndarray, spheres: Sequence[Sphere] = (),
-                      theta0: float = 0.003, ring_ratio: float = 1.35, azimuths: int = 16,
+                      occlusion: Any = None, theta0: float = 0.003,
+                      ring_ratio: float = 1.35, azimuths: int = 16,
                       prefilter: float = 0.35, horizon_ratio: float = 0.2,
                       subsamples: int = 1, sources: str = "tent", dtype: Any = jnp.float32
                       ) -> tuple[GlossNodes, dict[str, np.ndarray]]:
@@ -62,13 +63,16 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
             the observer.
         objects: (P,) object of each point (its own sphere never occludes it).
         spheres: occluders; node directions that hit one get no environment radiance.
+        occlusion: a :class:`~spectral_fit.fitting._occluders.PointOcclusion` of these P
+            points (objects of any shape), used instead of ``spheres`` when given.
         subsamples: s; each node's radiance is the mean of s × s sub-samples over its cell
             (1: one lookup at the node, prefiltered to the cell's size).
         sources: how the map's bright source texels are summed (:class:`CacheOptions`).
 
     Returns:
         (nodes, hits): ``hits`` holds, for the nodes that hit an occluder, flat node indices
-        ``node`` (into P·J·M), ``sphere`` (index into ``spheres``) and world ``point`` (·, 3).
+        ``node`` (into P·J·M), ``sphere`` (the occluder: an index into ``spheres``, or into
+        the occlusion's spheres then meshes) and world ``point`` (·, 3).
     """
     P = positions.shape[0]
     N = _unit(np.asarray(normals, np.float64))
@@ -106,12 +110,19 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
     dirs = Ldir.reshape(-1, 3)
     hit_idx = np.full(P * J * M, -1, np.int64)
     hit_t = np.full(P * J * M, np.inf)
-    if spheres:
+    hit_pt = np.zeros((P * J * M, 3))
+    if occlusion is not None:
+        sel = np.flatnonzero(flat_ok)
+        hi_, hp_, _ = occlusion.trace(sel // (J * M), dirs[sel])
+        hit_idx[sel] = hi_
+        hit_pt[sel] = hp_
+    elif spheres:
         orig = np.broadcast_to(X[:, None, None, :], Ldir.shape).reshape(-1, 3)
         skip = np.broadcast_to(np.asarray(objects)[:, None, None], ok.shape).reshape(-1)
         sel = np.flatnonzero(flat_ok)
         hi_, ht = _ray_spheres(orig[sel], dirs[sel], spheres, skip[sel])
         hit_idx[sel], hit_t[sel] = hi_, ht
+        hit_pt[sel] = orig[sel] + np.where(hi_ >= 0, ht, 0.0)[:, None] * dirs[sel]
     look = flat_ok & (hit_idx < 0)
     sel = np.flatnonzero(look)
     if sel.size and subsamples <= 1:
@@ -143,9 +154,7 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
         rad[sel] = np.where(fallback[:, None], _prefiltered(
             env, dirs[sel], sigma.reshape(-1)[sel]) if fallback.any() else 0.0, mean)
     hits = np.flatnonzero(flat_ok & (hit_idx >= 0))
-    orig_h = np.repeat(X, J * M, axis=0)[hits] if hits.size else np.zeros((0, 3))
-    hit_info = {"node": hits, "sphere": hit_idx[hits],
-                "point": orig_h + hit_t[hits, None] * dirs[hits]}
+    hit_info = {"node": hits, "sphere": hit_idx[hits], "point": hit_pt[hits]}
     # explicit sources: points of each source texel's footprint in the bilinear map, each
     # with its share of the texel's excess flux: 16 equal-weight points ("tent") or the
     # environment module's product Gauss rule ("gauss", as its exact gloss sums them)
@@ -172,7 +181,11 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
         s_nl = d @ N.T
         s_nl = s_nl.T
         vis = (s_nl > 0.0) & (nv[:, None] > 0.0) & live[:, None]
-        if spheres:
+        if occlusion is not None:
+            k, _, _ = occlusion.trace(np.arange(P)[:, None],
+                                      np.broadcast_to(d[None], (P, S, 3)))
+            vis &= k < 0
+        elif spheres:
             o = np.broadcast_to(X[:, None], (P, S, 3))
             k, _ = _ray_spheres(o, np.broadcast_to(d[None], (P, S, 3)), spheres,
                                 np.asarray(objects)[:, None])

@@ -235,12 +235,12 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
     from ._radiance_cache import CacheOptions
 
     mode = scene.interreflection.mode if opts.interreflection == "auto" else "none"
-    spheres = _scene_spheres(scene) if mode != "none" else []
-    if mode != "none" and not spheres:
-        warn.append("interreflection needs every object to be a sphere (uv_sphere or "
-                    "icosphere); fitting without the interreflection term")
+    spheres, meshes = _scene_occluders(scene, geometries)
+    if mode == "none":
+        spheres = []  # the direct light: a mesh still hides its own points' sky
     cache = build_radiance_cache(
         env, pos_all, nrm_all, view_all, obj, groups, weights=sample_w, spheres=spheres,
+        meshes=meshes, interreflection=mode != "none",
         options=opts.cache or CacheOptions(), dtype=dtype, probe_groups=B)
     # reflectances and parameters
     O = len(names)
@@ -306,7 +306,8 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
         surfaces=FitSurfaces(reflectance=jnp.asarray(refl, dtype), sci=jnp.asarray(sci, dtype),
                              models=tuple(models)),
         values=jnp.asarray(vals, dtype), free=tuple(free),
-        fit_scale=session.calibration == "global", interreflection=bool(spheres),
+        fit_scale=session.calibration == "global",
+        interreflection=mode != "none" and (bool(spheres) or bool(meshes)),
         bounds=bounds, prior=prior)
     for w in warn:
         warnings.warn(w, RuntimeWarning, stacklevel=2)
@@ -339,15 +340,22 @@ def _bounds_and_priors(session: Session, names: list[str], free: list[tuple[int,
     return (tuple(bounds) if stated else ()), tuple(prior)
 
 
-def _scene_spheres(scene: Scene) -> list[Any]:
-    """The scene's objects as spheres (world centre, radius × scale) for occlusion and
-    interreflection in the radiance cache; [] if any object is not a sphere."""
+def _scene_occluders(scene: Scene, geometries: Any) -> tuple[list[Any], list[Any]]:
+    """The scene's objects as occluders of the radiance cache: uv_sphere and icosphere
+    objects as spheres (world centre, radius × scale: exact, analytic), mesh objects as their
+    world meshes (the frame's visibility test; convex ones hide nothing from themselves)."""
+    from ..geometry import is_convex
+    from ._occluders import MeshOccluder
     from ._radiance_cache import Sphere
 
-    out = []
+    spheres, meshes = [], []
     for o, ob in enumerate(scene.objects):
-        if ob.shape not in ("uv_sphere", "icosphere"):
-            return []
-        out.append(Sphere(object=o, centre=np.asarray(ob.position, np.float64),
-                          radius=float(ob.radius) * float(ob.scale)))
-    return out
+        if ob.shape in ("uv_sphere", "icosphere"):
+            spheres.append(Sphere(object=o, centre=np.asarray(ob.position, np.float64),
+                                  radius=float(ob.radius) * float(ob.scale)))
+            continue
+        g = geometries[o]
+        v, t, n = (np.asarray(a) for a in (g.vertices, g.triangles, g.normals))
+        meshes.append(MeshOccluder(object=o, vertices=v, triangles=t, normals=n,
+                                   convex=is_convex(v, t, n)))
+    return spheres, meshes

@@ -46,7 +46,7 @@ __all__ = ["FIT_PREPARED_LAYOUT", "PREPARE_FIELDS", "FIT_CACHE_STATS", "prepare_
            "aim_problems_cached", "fit_prepare_key"]
 
 #: layout number of the stored entries (raised whenever what is stored changes shape)
-FIT_PREPARED_LAYOUT = 2
+FIT_PREPARED_LAYOUT = 3
 
 #: the :class:`FitOptions` fields that :func:`prepare_fit` reads (the key's options)
 PREPARE_FIELDS = ("spot_resolution", "interreflection", "dtype", "compress_tol", "cache")

@@ -31,6 +31,7 @@ _EXPORTS: dict[str, str] = {
     "octahedral_taps": "_visibility",
     "octahedral_uv": "_visibility",
     "self_visibility": "_visibility",
+    "point_visibility": "_visibility",
     "build_clusters": "_culling",
     "capacity_ladder": "_raster_plan",
     "clear_plans": "_raster",

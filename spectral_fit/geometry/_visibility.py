@@ -43,7 +43,7 @@ import numpy as np
 from .._runtime.errors import InputError
 
 __all__ = ["SelfVisibility", "is_convex", "octahedral_directions", "octahedral_taps",
-           "octahedral_uv", "self_visibility"]
+           "octahedral_uv", "point_visibility", "self_visibility"]
 
 #: default octahedral grid side R (K = R² directions over the sphere, ~0.15 rad apart)
 RESOLUTION = 24
@@ -291,48 +291,33 @@ def _plan(vj: jax.Array, tj: jax.Array, frames: np.ndarray, centre: np.ndarray,
     return plan_config(np.asarray(clip), np.asarray(tj), size, cull=cull, headroom=1.1)
 
 
-def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
-                    resolution: int = RESOLUTION, raster_size: int = RASTER_SIZE,
-                    progress: Any = None) -> SelfVisibility:
-    """Precompute what the mesh hides from its own vertices (see the module docstring).
+def _check_mesh(v: np.ndarray, t: np.ndarray, who: str) -> None:
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise InputError(f"{who}: vertices must be (V, 3), got {v.shape}")
+    if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
+        raise InputError(f"{who}: triangles must be (T, 3) with T > 0, got {t.shape}")
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{who}: non-finite vertex positions")
+    if t.min() < 0 or t.max() >= len(v):
+        raise InputError(f"{who}: triangle indices outside 0..{len(v) - 1}")
 
-    Args:
-        vertices: (V, 3) float object-frame positions (m).
-        triangles: (T, 3) int vertex indices.
-        normals: (V, 3) float unit vertex normals (outward; they orient the convexity test).
-        resolution: R, the octahedral grid's side (K = R² directions).
-        raster_size: side of each direction's shadow map over the bounding sphere (pixels);
-            occluders thinner than about 2 bounding radii / ``raster_size`` may be missed.
-        progress: optional callable(done, total) called after each batch of views.
 
-    Returns:
-        :class:`SelfVisibility` (NumPy arrays).
+def _unit_rows(n: np.ndarray) -> np.ndarray:
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
-    Raises:
-        InputError: wrong shapes, non-finite positions or indices out of range.
-    """
+
+def _rasterised_visibility(v: np.ndarray, t: np.ndarray, points: np.ndarray,
+                           point_normals: np.ndarray, resolution: int, raster_size: int,
+                           progress: Any) -> SelfVisibility:
+    """The shadow-map test of every point against the mesh along each octahedral direction
+    (see the module docstring): hidden, the front triangle over the point and its
+    barycentrics, (P, K)."""
     from ._raster import rasterize_batch
 
-    v = np.asarray(vertices, np.float32)
-    t = np.asarray(triangles, np.int32)
-    n = np.asarray(normals, np.float32)
-    if v.ndim != 2 or v.shape[1] != 3 or n.shape != v.shape:
-        raise InputError(f"self_visibility: vertices and normals must be (V, 3), got "
-                         f"{v.shape} and {n.shape}")
-    if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
-        raise InputError(f"self_visibility: triangles must be (T, 3) with T > 0, got {t.shape}")
-    if not np.all(np.isfinite(v)) or not np.all(np.isfinite(n)):
-        raise InputError("self_visibility: non-finite vertex positions or normals")
-    if t.min() < 0 or t.max() >= len(v):
-        raise InputError(f"self_visibility: triangle indices outside 0..{len(v) - 1}")
     dirs, omega = octahedral_directions(resolution)
     k = len(dirs)
-    if is_convex(v, t, n):
-        return SelfVisibility(dirs, omega, np.zeros((len(v), k), bool),
-                              np.full((len(v), k), -1, np.int32),
-                              np.zeros((len(v), k, 3), np.float32), True, int(resolution))
     # a closed mesh wound outward keeps only the triangles facing back along each direction
-    # (towards the vertices below them): along a ray that crosses the object's material once
+    # (towards the points below them): along a ray that crosses the object's material once
     # (a cup's wall, a torus's tube) the front-most of those is the first surface the ray
     # meets, not the far side of the object; any other mesh keeps every triangle (hidden is
     # right either way, the hit is the outermost surface)
@@ -341,14 +326,14 @@ def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
     centre = 0.5 * (lo + hi)
     radius = float(np.linalg.norm(v - centre, axis=1).max()) * 1.02 or 1.0
     frames = _frames(dirs).astype(np.float32)
-    # each vertex is tested half a shadow-map pixel off the surface along its normal: a vertex
+    # each point is tested half a shadow-map pixel off the surface along its normal: a point
     # on an edge of a cavity (a box's inside corner) then lies inside the walls' coverage,
     # not on their silhouette
-    lifted = v + (radius / raster_size) * n / np.maximum(
-        np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    hidden = np.zeros((len(v), k), bool)
-    hit_tri = np.full((len(v), k), -1, np.int32)
-    hit_bary = np.zeros((len(v), k, 3), np.float32)
+    lifted = points + (radius / raster_size) * _unit_rows(point_normals)
+    n_p = len(points)
+    hidden = np.zeros((n_p, k), bool)
+    hit_tri = np.full((n_p, k), -1, np.int32)
+    hit_bary = np.zeros((n_p, k, 3), np.float32)
     tj = jnp.asarray(t)
     vj = jnp.asarray(v)
     lj = jnp.asarray(lifted.astype(np.float32))
@@ -373,19 +358,96 @@ def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
     return SelfVisibility(dirs, omega, hidden, hit_tri, hit_bary, False, int(resolution))
 
 
-def octahedral_taps(d: jax.Array, resolution: int) -> tuple[jax.Array, jax.Array]:
+def self_visibility(vertices: Any, triangles: Any, normals: Any, *,
+                    resolution: int = RESOLUTION, raster_size: int = RASTER_SIZE,
+                    progress: Any = None) -> SelfVisibility:
+    """Precompute what the mesh hides from its own vertices (see the module docstring).
+
+    Args:
+        vertices: (V, 3) float object-frame positions (m).
+        triangles: (T, 3) int vertex indices.
+        normals: (V, 3) float unit vertex normals (outward; they orient the convexity test).
+        resolution: R, the octahedral grid's side (K = R² directions).
+        raster_size: side of each direction's shadow map over the bounding sphere (pixels);
+            occluders thinner than about 2 bounding radii / ``raster_size`` may be missed.
+        progress: optional callable(done, total) called after each batch of views.
+
+    Returns:
+        :class:`SelfVisibility` (NumPy arrays).
+
+    Raises:
+        InputError: wrong shapes, non-finite positions or indices out of range.
+    """
+    v = np.asarray(vertices, np.float32)
+    t = np.asarray(triangles, np.int32)
+    n = np.asarray(normals, np.float32)
+    _check_mesh(v, t, "self_visibility")
+    if n.shape != v.shape:
+        raise InputError(f"self_visibility: vertices and normals must be (V, 3), got "
+                         f"{v.shape} and {n.shape}")
+    if not np.all(np.isfinite(n)):
+        raise InputError("self_visibility: non-finite vertex normals")
+    if is_convex(v, t, n):
+        dirs, omega = octahedral_directions(resolution)
+        k = len(dirs)
+        return SelfVisibility(dirs, omega, np.zeros((len(v), k), bool),
+                              np.full((len(v), k), -1, np.int32),
+                              np.zeros((len(v), k, 3), np.float32), True, int(resolution))
+    return _rasterised_visibility(v, t, v, n, resolution, raster_size, progress)
+
+
+def point_visibility(vertices: Any, triangles: Any, points: Any, normals: Any, *,
+                     resolution: int = RESOLUTION, raster_size: int = RASTER_SIZE,
+                     progress: Any = None) -> SelfVisibility:
+    """What a mesh hides from arbitrary points (on it, or on other objects beside it), by the
+    same shadow-map test as :func:`self_visibility`, in the frame of the given positions
+    (world, when both are): for each point and each of the K = R² octahedral directions,
+    whether the mesh lies along the ray from the point (lifted half a shadow-map pixel along
+    its normal), the front triangle there and the point's barycentrics in it. No convexity
+    shortcut: a convex mesh hides what lies behind it from points off it.
+
+    Args:
+        vertices: (V, 3) float positions (m).
+        triangles: (T, 3) int vertex indices.
+        points: (P, 3) float query positions, same frame.
+        normals: (P, 3) float unit normals of the surfaces the points lie on (the lift).
+        resolution, raster_size, progress: as :func:`self_visibility`.
+
+    Returns:
+        :class:`SelfVisibility` whose ``hidden``, ``hit_triangle`` and ``hit_bary`` have one
+        row per point (``convex`` False).
+
+    Raises:
+        InputError: wrong shapes, non-finite values or indices out of range.
+    """
+    v = np.asarray(vertices, np.float32)
+    t = np.asarray(triangles, np.int32)
+    p = np.asarray(points, np.float32)
+    n = np.asarray(normals, np.float32)
+    _check_mesh(v, t, "point_visibility")
+    if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
+        raise InputError(f"point_visibility: points and normals must be (P, 3), got "
+                         f"{p.shape} and {n.shape}")
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(n))):
+        raise InputError("point_visibility: non-finite points or normals")
+    return _rasterised_visibility(v, t, p, n, resolution, raster_size, progress)
+
+
+def octahedral_taps(d: Any, resolution: int) -> tuple[Any, Any]:
     """Bilinear taps of an R × R octahedral map (texels row-major in (v, u), as
-    :func:`octahedral_directions`) at unit directions ``d`` (..., 3): indices (..., 4) int32 and
-    weights (..., 4) summing to 1 (clamped at the square's border)."""
+    :func:`octahedral_directions`) at unit directions ``d`` (..., 3) (NumPy or JAX arrays, the
+    result alike): indices (..., 4) int32 and weights (..., 4) summing to 1 (clamped at the
+    square's border)."""
+    xp = jnp if isinstance(d, jax.Array) else np
     r = int(resolution)
-    u, v = octahedral_uv(jnp.asarray(d))
-    x = jnp.clip((u + 1.0) * 0.5 * r - 0.5, 0.0, r - 1.0)
-    y = jnp.clip((v + 1.0) * 0.5 * r - 0.5, 0.0, r - 1.0)
-    x0 = jnp.minimum(jnp.floor(x), r - 2).astype(jnp.int32)
-    y0 = jnp.minimum(jnp.floor(y), r - 2).astype(jnp.int32)
+    u, v = octahedral_uv(d if xp is np else jnp.asarray(d))
+    x = xp.clip((u + 1.0) * 0.5 * r - 0.5, 0.0, r - 1.0)
+    y = xp.clip((v + 1.0) * 0.5 * r - 0.5, 0.0, r - 1.0)
+    x0 = xp.minimum(xp.floor(x), r - 2).astype(xp.int32)
+    y0 = xp.minimum(xp.floor(y), r - 2).astype(xp.int32)
     fx = x - x0
     fy = y - y0
-    idx = jnp.stack([y0 * r + x0, y0 * r + x0 + 1, (y0 + 1) * r + x0, (y0 + 1) * r + x0 + 1],
-                    axis=-1)
-    w = jnp.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
+    idx = xp.stack([y0 * r + x0, y0 * r + x0 + 1, (y0 + 1) * r + x0, (y0 + 1) * r + x0 + 1],
+                   axis=-1)
+    w = xp.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
     return idx, w
