@@ -211,3 +211,24 @@ reflectance = 0.5
     scene = load_scene(tmp_path / "s.toml")
     spheres, meshes = _scene_occluders(scene, [None])
     assert len(spheres) == 1 and meshes == []
+
+
+def test_photograph_bins_a_concave_object_lights_itself_are_found():
+    """A torus's outer equator faces open sky (nothing of the torus above its tangent plane)
+    and the view straight out mirrors into the sky; its inner equator faces the hole, where
+    the other side of the ring fills a large part of its sky: the bins there are left out of a
+    fit (their light from the object itself is not in the photograph's model)."""
+    from types import SimpleNamespace
+
+    from spectral_fit.fitting._image_rows import _self_lit
+
+    v, t, n = torus(0.05, 0.02, 48, 24)
+    g = SimpleNamespace(vertices=v, triangles=t, normals=n)
+    ang = np.linspace(0.0, 2 * np.pi, 12, endpoint=False)
+    radial = np.stack([np.cos(ang), np.zeros_like(ang), np.sin(ang)], 1)
+    outer = 0.07 * radial
+    inner = 0.03 * radial
+    x = np.concatenate([outer, inner])
+    nrm = np.concatenate([radial, -radial])
+    lit = _self_lit(x, nrm, nrm, np.zeros(len(x), int), [g])
+    assert not lit[:12].any() and lit[12:].all(), lit

@@ -1,6 +1,7 @@
 """Camera photographs as rows of the fit (outside ``jit``): each image is cut into square
 bins of ``superpixel`` × ``superpixel`` pixels; a bin whose pixels all see one object, none
-clipped and none lit noticeably by a neighbour becomes one row of the fit: its channels' mean
+clipped and none lit noticeably by a neighbour or by its own object (the inside of a concave
+one) becomes one row of the fit: its channels' mean
 counts (black subtracted) and their standard errors, compared with the exposure times the
 sensitivities applied to the mean model radiance of ``samples`` × ``samples`` shading samples
 spread over the bin (:mod:`spectral_fit.io`'s image readings give the pixel model).
@@ -158,6 +159,32 @@ def _neighbour_share(x: np.ndarray, n: np.ndarray, v: np.ndarray, obj: np.ndarra
     return np.maximum(out, ff)
 
 
+def _self_lit(x: np.ndarray, n: np.ndarray, v: np.ndarray, obj: np.ndarray,
+              geoms: Sequence[ObjectGeometry]) -> np.ndarray:
+    """(N,) whether a point of a non-convex object receives its own light: the object hides
+    more than ``_NEIGHBOUR_LIMIT`` of its cosine-weighted sky, or any of its mirror
+    direction's taps (the frame's visibility test on a 16² direction grid)."""
+    from ..geometry import is_convex, octahedral_taps, point_visibility
+
+    out = np.zeros(x.shape[0], bool)
+    for o in np.unique(obj[obj >= 0]):
+        g = geoms[int(o)]
+        verts, tris, nrms = (np.asarray(a) for a in (g.vertices, g.triangles, g.normals))
+        if is_convex(verts, tris, nrms):
+            continue
+        sel = np.flatnonzero(obj == o)
+        sv = point_visibility(verts, tris, x[sel], n[sel], resolution=16)
+        dirs = np.asarray(sv.directions, np.float64)
+        hid = np.asarray(sv.hidden)
+        cos = np.maximum(n[sel] @ dirs.T, 0.0)
+        share = (hid * cos * np.asarray(sv.solid_angle)[None]).sum(axis=1) / math.pi
+        r = 2.0 * np.sum(n[sel] * v[sel], -1, keepdims=True) * n[sel] - v[sel]
+        idx, _ = octahedral_taps(r, 16)
+        mirror = np.take_along_axis(hid, np.asarray(idx), axis=1).any(axis=1)
+        out[sel] = (share > _NEIGHBOUR_LIMIT) | mirror
+    return out
+
+
 def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
                objects: Sequence[str], wavelengths: np.ndarray) -> ImageRows:
     """The bins of ``image`` that enter the fit (see the module docstring).
@@ -246,6 +273,12 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
     lit = share.max(axis=1) > _NEIGHBOUR_LIMIT
     dropped["neighbour"] = int(np.sum(ok & lit))
     ok &= ~lit
+    # and bins a concave object lights itself (a cup's inside): the light an object sends
+    # itself enters the fit through probes made per spot
+    own = np.zeros(nb, bool)
+    own[ok] = _self_lit(sp[ok, 0], sn[ok, 0], sv[ok, 0], obj[ok, 0], geoms)
+    dropped["self"] = int(np.sum(own))
+    ok &= ~own
     ok &= np.sum(sn * sv, -1).min(axis=1) > 0.0
     vals = blocks[ok] - image.black_level
     if image.mosaic == "none":
