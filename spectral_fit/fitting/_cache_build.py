@@ -24,6 +24,26 @@ from ._radiance_cache import CacheOptions, FieldAverage, RadianceCache, Sphere, 
 __all__ = ["build_radiance_cache"]
 
 
+def _coarse_texels(env: Any, dirs: np.ndarray, sa: np.ndarray, tex: np.ndarray,
+                   spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The texel table merged into blocks of f × f texels (f the largest power of two that
+    divides the map's sides and keeps a texel's height below ``spacing`` radians): solid
+    angles summed, radiance averaged by solid angle (the flux kept), directions the
+    solid-angle-weighted mean."""
+    h, w = env.texels.shape[:2]
+    f = 1
+    while h % (2 * f) == 0 and w % (2 * f) == 0 and 2 * f * math.pi / h <= spacing:
+        f *= 2
+    if f == 1:
+        return dirs, sa, tex
+    c = tex.shape[1]
+    blk = lambda a, k: a.reshape(h // f, f, w // f, f, k).sum(axis=(1, 3)).reshape(-1, k)  # noqa: E731
+    s_ = blk(sa[:, None], 1)[:, 0]
+    t_ = blk(sa[:, None] * tex, c) / np.maximum(s_, 1e-300)[:, None]
+    d_ = _unit(blk(sa[:, None] * dirs, 3))
+    return d_, s_, t_
+
+
 def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndarray,
                         spheres: Sequence[Sphere], chunk: int = 64, *,
                         occlusion: PointOcclusion | None = None,
@@ -38,7 +58,16 @@ def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndar
     ``occlusion`` (whose point ``rows[i]`` is ``X[i]``) in the fraction its bilinear taps in
     the occlusion's direction grid say; computed in float32."""
     dirs, sa, tex = _texel_table(env)
-    taps = occlusion.taps(dirs) if occlusion is not None and occlusion.has_meshes else None
+    taps = None
+    if occlusion is not None and occlusion.has_meshes:
+        # what the meshes hide is summed over a coarser table (texels about half the
+        # direction grid's spacing: the grid resolves no finer)
+        c_dirs, c_sa, c_tex = _coarse_texels(env, dirs, sa, tex, 2.0 * math.pi / (
+            4.0 * occlusion.resolution))
+        taps = occlusion.taps(c_dirs)
+        c_d32 = c_dirs.astype(np.float32)
+        c_sa32 = c_sa.astype(np.float32)
+        c_tex32 = c_tex.astype(np.float32)
     d32 = dirs.astype(np.float32)
     tex32 = tex.astype(np.float32)
     P = X.shape[0]
@@ -67,16 +96,55 @@ def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndar
                 t = -bq - np.sqrt(np.maximum(bq * bq - np.sum(oc * oc, -1) + s.radius ** 2,
                                              0.0))
                 hidden.append((pi + a, hw, np.full(pi.size, si), o + t[:, None] * dirs[ti]))
+        E[sl] = w @ tex32
         if taps is not None:
             frac, occ, hp = occlusion.hidden_share(  # type: ignore[union-attr]
                 rows[sl][:, None], taps[0][None], taps[1][None])  # type: ignore[index]
-            pi, ti = np.nonzero((frac > 0.0) & (w > 0.0))
+            wc = np.maximum(N[sl].astype(np.float32) @ c_d32.T, 0.0) * c_sa32[None]
+            pi, ti = np.nonzero((frac > 0.0) & (wc > 0.0))
+            for sp in spheres:  # directions a sphere hides are its own (counted above)
+                rel = sp.centre[None] - X[sl][pi]
+                dist = np.linalg.norm(rel, axis=1)
+                cos_half = np.sqrt(np.maximum(1.0 - (sp.radius / np.maximum(dist, 1e-300)) ** 2,
+                                              0.0))
+                behind = ((objects[sl][pi] != sp.object) & (dist > sp.radius)
+                          & (np.sum(rel * c_dirs[ti], -1) >= cos_half * dist))
+                pi, ti = pi[~behind], ti[~behind]
             if pi.size:
-                hw = (w[pi, ti] * frac[pi, ti]).astype(np.float64)
-                w[pi, ti] *= (1.0 - frac[pi, ti]).astype(np.float32)
+                hw = (wc[pi, ti] * frac[pi, ti]).astype(np.float64)
+                np.subtract.at(E[sl], pi, hw[:, None] * c_tex32[ti])
                 hidden.append((pi + a, hw, occ[pi, ti], hp[pi, ti]))
-        E[sl] = w @ tex32
     return E, hidden
+
+
+def _facing(n: np.ndarray, p: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3) turned to face ``origin`` (an open mesh is two-sided: a probe
+    faces the spot it lights)."""
+    n = _unit(np.asarray(n, np.float64))
+    return np.where((np.sum(n * (origin - p), -1) < 0.0)[:, None], -n, n)
+
+
+def _first_hits(scene: tuple[Any, ...], origin: np.ndarray, dirs: np.ndarray,
+                spheres: Sequence[Sphere], n_spheres: int, *, skip: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first occluder (index: spheres, then meshes; −1 none) along rays (N, 3) from
+    ``origin``, its hit point and normal: the meshes through their hierarchy (``scene``: bvh,
+    vertices, normals, triangles, each triangle's occluder), the spheres analytically (the
+    sphere of object ``skip`` ignored)."""
+    from ._spots import cast_rays
+
+    bvh, verts, norms, tris, tri_occ = scene
+    # two-sided: an open mesh's back is a surface too (a closed one's is never met from
+    # outside)
+    k, p, n = cast_rays(bvh, origin, dirs, verts, norms, tris, tri_occ, chunk=512,
+                        two_sided=True)
+    t = np.where(k >= 0, np.linalg.norm(p - origin, axis=1), np.inf)
+    if n_spheres:
+        ks, ts = _ray_spheres(np.broadcast_to(origin, dirs.shape), dirs, spheres,
+                              np.array(skip))
+        nearer = (ks >= 0) & (ts < t)
+        k = np.where(nearer, -1, k)  # a sphere in front: its probes are its own
+    return k, p, n
 
 
 def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
@@ -113,38 +181,24 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     valid = obj >= 0
     P = X.shape[0]
     C = env.texels.shape[-1]
-    occ = None
-    if meshes:
-        # every point gets a row (invalid ones at a valid point's place: never used)
-        first = int(np.argmax(valid)) if valid.any() else 0
-        Xs = np.where(valid[:, None], X, X[first] if P else 0.0)
-        Ns = np.where(valid[:, None], N, N[first] if P else [0.0, 1.0, 0.0])
-        occ = PointOcclusion(Xs, Ns, obj, spheres=spheres, meshes=meshes,
-                             own_only=not interreflection, resolution=opts.visibility)
-    nodes, hits = build_gloss_nodes(
-        env, X, N, V, objects=obj, spheres=spheres if spheres else (), occlusion=occ,
-        theta0=opts.theta0,
-        ring_ratio=opts.ring_ratio, azimuths=opts.azimuths, prefilter=opts.prefilter,
-        horizon_ratio=opts.horizon_ratio, subsamples=opts.subsamples, sources=opts.sources,
-        dtype=dtype)
-    nv = np.sum(N * V, -1)
-    R = _unit(2.0 * nv[:, None] * N - V)
-    irr = np.zeros((P, C))
-    mir = np.zeros((P, C))
-    iv = np.flatnonzero(valid)
-    E, hidden = _visible_irradiance(env, X[iv], N[iv], obj[iv], spheres, occlusion=occ,
-                                    rows=iv)
-    irr[iv] = E
-    mk = np.full(P, -1)
-    mpt = np.zeros((P, 3))
-    if occ is not None:
-        mk[iv], mpt[iv], _ = occ.trace(iv, R[iv])
-    elif spheres:
-        mk[iv], mt = _ray_spheres(X[iv], R[iv], spheres, obj[iv])
-        mpt[iv] = X[iv] + np.where(mk[iv] >= 0, mt, 0.0)[:, None] * R[iv]
-    mvis = valid & (mk < 0)
-    mir[mvis] = _env_lookup(env, R[mvis])
+    if meshes and interreflection:
+        from ..geometry import build_bvh, octahedral_directions
+
+        mv = [np.asarray(m.vertices, np.float64) for m in meshes]
+        base = np.cumsum([0] + [len(v) for v in mv])[:-1]
+        scene_bvh = (build_bvh(np.concatenate(mv), np.concatenate(
+            [np.asarray(m.triangles) + o for m, o in zip(meshes, base, strict=True)])),
+            np.concatenate(mv), np.concatenate([np.asarray(m.normals, np.float64)
+                                                for m in meshes]),
+            np.concatenate([np.asarray(m.triangles) + o
+                            for m, o in zip(meshes, base, strict=True)]),
+            np.concatenate([np.full(len(m.triangles), len(spheres) + j, np.int32)
+                            for j, m in enumerate(meshes)]))
+        grid = octahedral_directions(opts.visibility)[0].astype(np.float64)
+        size = float(np.ptp(np.concatenate(mv), axis=0).max())
+        lift = 1e-4 * size
     # probes: per reading and neighbour, directions from the spot centre over its silhouette
+    occ_object = np.array([sp.object for sp in spheres] + [m.object for m in meshes], np.int64)
     probe_dirs, probe_pts, probe_sph, probe_grp, probe_orig = [], [], [], [], []
     probe_nrm: list[np.ndarray] = []
     if interreflection and (spheres or meshes):
@@ -170,25 +224,62 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
                 probe_grp.append(np.full(u.shape[0], b))
                 probe_orig.append(np.broadcast_to(xb, u.shape))
                 probe_nrm.append(_unit(probe_pts[-1] - s.centre))
-            if occ is not None:
-                # the meshes (the spot's own object too, where it hides its sky): the points
-                # its most central sample sees hidden along the direction grid, at most
-                # ``probes`` of them per mesh, spread by taking every k-th
+            if meshes:
+                # the meshes (the spot's own object too, where it hides its sky): what the
+                # spot's most central sample sees of them along the upper half of the
+                # direction grid (ray casting, first hits), at most ``probes`` per mesh,
+                # spread by taking every k-th
                 cand = np.flatnonzero(sel)
                 rb = cand[np.argmin(np.linalg.norm(X[cand] - xb, axis=1))]
+                hk, hp, hn = _first_hits(scene_bvh, X[rb] + lift * N[rb], grid[grid @ N[rb] > 0],
+                                         spheres, len(spheres), skip=ob)
                 for j in range(len(meshes)):
-                    ks = np.flatnonzero(occ.occ[rb] == len(spheres) + j)
+                    ks = np.flatnonzero(hk == len(spheres) + j)
                     if ks.size == 0:
                         continue
                     ks = ks[np.unique(np.linspace(0, ks.size - 1, min(ks.size, opts.probes)
                                                   ).round().astype(int))]
-                    pts = occ.hit[rb, ks].astype(np.float64)
-                    probe_dirs.append(_unit(pts - xb))
-                    probe_pts.append(pts)
+                    probe_dirs.append(_unit(hp[ks] - xb))
+                    probe_pts.append(hp[ks])
                     probe_sph.append(np.full(ks.size, len(spheres) + j))
                     probe_grp.append(np.full(ks.size, b))
-                    probe_orig.append(np.broadcast_to(X[rb], pts.shape))
-                    probe_nrm.append(occ.hit_normal[rb, ks].astype(np.float64))
+                    probe_orig.append(np.broadcast_to(X[rb], hp[ks].shape))
+                    probe_nrm.append(hn[ks])
+    occ = None
+    if meshes:
+        # every sample and probe gets a row (invalid samples at a valid one's place: unused)
+        first = int(np.argmax(valid)) if valid.any() else 0
+        Xs = np.where(valid[:, None], X, X[first] if P else 0.0)
+        Ns = np.where(valid[:, None], N, N[first] if P else [0.0, 1.0, 0.0])
+        pts0 = np.concatenate([Xs] + probe_pts) if probe_pts else Xs
+        nrm0 = np.concatenate([Ns] + [_facing(n, p, o) for n, p, o in zip(
+            probe_nrm, probe_pts, probe_orig, strict=True)]) if probe_pts else Ns
+        obj0 = np.concatenate([obj] + [occ_object[k] for k in probe_sph]) if probe_pts else obj
+        occ = PointOcclusion(pts0, nrm0, obj0, spheres=spheres, meshes=meshes,
+                             own_only=not interreflection, resolution=opts.visibility)
+    nodes, hits = build_gloss_nodes(
+        env, X, N, V, objects=obj, spheres=spheres if spheres else (), occlusion=occ,
+        theta0=opts.theta0,
+        ring_ratio=opts.ring_ratio, azimuths=opts.azimuths, prefilter=opts.prefilter,
+        horizon_ratio=opts.horizon_ratio, subsamples=opts.subsamples, sources=opts.sources,
+        dtype=dtype)
+    nv = np.sum(N * V, -1)
+    R = _unit(2.0 * nv[:, None] * N - V)
+    irr = np.zeros((P, C))
+    mir = np.zeros((P, C))
+    iv = np.flatnonzero(valid)
+    E, hidden = _visible_irradiance(env, X[iv], N[iv], obj[iv], spheres, occlusion=occ,
+                                    rows=iv)
+    irr[iv] = E
+    mk = np.full(P, -1)
+    mpt = np.zeros((P, 3))
+    if occ is not None:
+        mk[iv], mpt[iv], _ = occ.trace(iv, R[iv])
+    elif spheres:
+        mk[iv], mt = _ray_spheres(X[iv], R[iv], spheres, obj[iv])
+        mpt[iv] = X[iv] + np.where(mk[iv] >= 0, mt, 0.0)[:, None] * R[iv]
+    mvis = valid & (mk < 0)
+    mir[mvis] = _env_lookup(env, R[mvis])
     Q = int(sum(u.shape[0] for u in probe_dirs))
     if Q:
         pd = np.concatenate(probe_dirs)
@@ -201,10 +292,14 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
 
         def nearest(sample: np.ndarray, sph: np.ndarray, pts: np.ndarray) -> np.ndarray:
             """Nearest probe (by direction from the spot centre) of each hit; −1 if none."""
-            out = np.full(sample.shape[0], -1)
-            for b in np.unique(grp[sample]):
+            return nearest_in(grp[sample], sph, pts)
+
+        def nearest_in(g: np.ndarray, sph: np.ndarray, pts: np.ndarray) -> np.ndarray:
+            """The same for hits of readings ``g``."""
+            out = np.full(g.shape[0], -1)
+            for b in np.unique(g):
                 for si in np.unique(sph):
-                    m = (grp[sample] == b) & (sph == si)
+                    m = (g == b) & (sph == si)
                     cand = np.flatnonzero((pg == b) & (ps == si))
                     if not m.any() or cand.size == 0:
                         continue
@@ -242,20 +337,26 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         mprobe = np.where(mprobe >= 0, new[np.maximum(mprobe, 0)], -1)
         hq = new[hq]
         pd, pp, ps, pg, po = pd[used], pp[used], ps[used], pg[used], po[used]
-        pN = pn[used]
-        pobj = np.array([s.object for s in spheres] + [m.object for m in meshes])[ps]
+        pobj = occ_object[ps]
         pV = _unit(po - pp)
-        # an open mesh is two-sided: a probe faces the spot it lights
-        pN = np.where((np.sum(pN * pV, -1) < 0.0)[:, None], -pN, pN)
-        pocc = (PointOcclusion(pp, pN, pobj, spheres=spheres, meshes=meshes,
-                               resolution=opts.probe_visibility) if meshes else None)
+        pN = _facing(pn[used], pp, po)
+        pocc = occ.rows_at(P + np.flatnonzero(used)) if occ is not None else None
         pnodes, _ = build_gloss_nodes(
             env, pp, pN, pV, objects=pobj, spheres=spheres, occlusion=pocc,
             theta0=opts.theta0, ring_ratio=opts.ring_ratio, azimuths=opts.azimuths,
             prefilter=opts.prefilter, horizon_ratio=opts.horizon_ratio, sources=opts.sources,
             dtype=dtype)
-        pE, _ = _visible_irradiance(env, pp, pN, pobj, spheres, occlusion=pocc,
-                                    rows=np.arange(Q))
+        pE, phidden = _visible_irradiance(env, pp, pN, pobj, spheres, occlusion=pocc,
+                                          rows=np.arange(Q))
+        # probe → probe: what a probe's hidden directions meet, as the nearest probe of the
+        # same reading there (the second and later bounces, diffuse)
+        tr = np.zeros((Q, Q))
+        for qi, hw, hk, pts in phidden:
+            qq = nearest_in(pg[qi], hk, pts)
+            ok = qq >= 0
+            np.add.at(tr, (qi[ok], qq[ok]), hw[ok])
+        t_row, t_col = np.nonzero(tr)
+        t_w = tr[t_row, t_col]
         pnv = np.sum(pN * pV, -1)
         pR = _unit(2.0 * pnv[:, None] * pN - pV)
         if pocc is not None:
@@ -277,6 +378,8 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         mprobe = np.full(P, -1)
         hs = hq = np.zeros(0, np.int64)
         hnode = np.zeros(0, np.int64)
+        t_row = t_col = np.zeros(0, np.int64)
+        t_w = np.zeros(0)
     mprobe = np.where(mprobe >= 0, mprobe, Q)  # index Q: a zero row
     nb = int(grp.max()) + 1 if grp.size else 0
     if weights is None:
@@ -302,4 +405,6 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
         average=FieldAverage(row=jnp.asarray(np.maximum(grp, 0), jnp.int32), weight=f(w),
                              rows=nb),
         probe_group=jnp.asarray(pg, jnp.int32), probe_diffuse=f(fdq),
-        hit_average=f(h_avg))
+        hit_average=f(h_avg), transfer_row=jnp.asarray(t_row, jnp.int32),
+        transfer_col=jnp.asarray(t_col, jnp.int32), transfer_weight=f(t_w),
+        probe_bounces=opts.probe_bounces)

@@ -178,11 +178,19 @@ def _gloss_all(cache: RadianceCache, values: jax.Array, objects: jax.Array,
 
 def _probe_out(cache: RadianceCache, vq: jax.Array, reflectance: jax.Array,
                glq: jax.Array, fq: jax.Array) -> jax.Array:
-    """Outgoing radiance (Q, L) at the probes: α' S' E'/π + β' gloss' + χ' F L'(R)."""
+    """Outgoing radiance (Q, L) at the probes: α' S' E'/π + β' gloss' + χ' F L'(R), plus the
+    diffuse light of the probes among themselves (``cache.probe_bounces`` Jacobi steps)."""
     S = reflectance[cache.probe_object]
-    return ((vq[:, 0:1] / math.pi) * S * cache.probe_irradiance
-            + vq[:, 1:2] * (glq @ cache.spectral_basis) + vq[:, 2:3] * fq[:, None]
-            * cache.probe_mirror)
+    kd = (vq[:, 0:1] / math.pi) * S
+    direct = (kd * cache.probe_irradiance + vq[:, 1:2] * (glq @ cache.spectral_basis)
+              + vq[:, 2:3] * fq[:, None] * cache.probe_mirror)
+    out = direct
+    if cache.transfer_weight.shape[0]:
+        for _ in range(cache.probe_bounces):
+            out = direct + kd * jax.ops.segment_sum(
+                cache.transfer_weight[:, None] * out[cache.transfer_col], cache.transfer_row,
+                num_segments=direct.shape[0])
+    return out
 
 
 def cached_radiance(cache: RadianceCache, values: jax.Array, reflectance: jax.Array,

@@ -14,14 +14,12 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from typing import Any
 
-import jax
 import numpy as np
 
 from ..geometry import ObjectGeometry
 from ..io import ImageReading
-from ._spots import scene_triangles
+from ._spots import cast_rays, scene_triangles
 
 __all__ = ["ImageRows", "image_rows", "pixel_rays"]
 
@@ -97,45 +95,6 @@ def pixel_rays(image: ImageReading, xy: np.ndarray) -> np.ndarray:
     R = np.asarray(look_at(image.position, image.aim, image.up), np.float64)[:3, :3]
     d = d @ R  # eye → world (R is orthonormal: Rᵀ d)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def _cast(bvh: Any, origin: np.ndarray, dirs: np.ndarray, verts: np.ndarray,
-          norms: np.ndarray, tris: np.ndarray, tri_obj: np.ndarray, chunk: int = 4096
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """First hits of rays (N, 3) from one origin: object (N,) (−1: none), position and unit
-    normal (N, 3) (:func:`spectral_fit.geometry.closest_hit` through ``bvh``, the hierarchy
-    over the scene's triangles; rays padded to whole chunks, one compiled size)."""
-    import jax.numpy as jnp
-
-    N = dirs.shape[0]
-    tri = np.full(N, -1)
-    uv = np.zeros((N, 2))
-    o = jnp.asarray(origin, jnp.float32)
-    for a in range(0, N, chunk):
-        d = dirs[a:a + chunk]
-        n = d.shape[0]
-        d = np.concatenate([d, np.repeat(d[-1:], chunk - n, 0)])
-        h = _closest_hits(bvh, o, jnp.asarray(d, jnp.float32))
-        tri[a:a + n] = np.asarray(h.triangle)[:n]
-        uv[a:a + n] = np.stack([np.asarray(h.u), np.asarray(h.v)], -1)[:n]
-    hit = tri >= 0
-    idx = tris[np.maximum(tri, 0)]
-    w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
-    p = np.einsum("pk,pkc->pc", w, verts[idx])
-    n_ = np.einsum("pk,pkc->pc", w, norms[idx])
-    n_ /= np.maximum(np.linalg.norm(n_, axis=1, keepdims=True), 1e-12)
-    obj = np.where(hit, tri_obj[np.maximum(tri, 0)], -1)
-    # a hit from behind (inside a closed object, or an open mesh's back) sees no front face
-    front = np.sum(n_ * dirs, -1) < 0.0
-    obj = np.where(front, obj, np.where(hit, -2, -1))
-    return obj, np.where(hit[:, None], p, 0.0), np.where(hit[:, None], n_, 0.0)
-
-
-@jax.jit
-def _closest_hits(bvh: Any, origin: jax.Array, dirs: jax.Array) -> Any:
-    from ..geometry import closest_hit
-
-    return jax.vmap(lambda d: closest_hit(bvh, origin, d))(dirs)
 
 
 def _neighbour_share(x: np.ndarray, n: np.ndarray, v: np.ndarray, obj: np.ndarray,
@@ -247,7 +206,7 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
     offs = np.concatenate([off_c, sample_offsets(k)])
     xy = (np.stack([jj * s, ii * s], -1)[:, None, :] + offs[None]).reshape(-1, 2)
     d = pixel_rays(image, xy)
-    obj, pos, nrm = _cast(bvh, eye, d, verts, norms, tris, tri_obj)
+    obj, pos, nrm = cast_rays(bvh, eye, d, verts, norms, tris, tri_obj)
     m = offs.shape[0]
     obj, pos, nrm = obj.reshape(nb, m), pos.reshape(nb, m, 3), nrm.reshape(nb, m, 3)
     d = d.reshape(nb, m, 3)
@@ -330,7 +289,7 @@ def image_rows(image: ImageReading, index: int, geoms: Sequence[ObjectGeometry],
         xy_h = (np.stack([bins[sb, 1] * s, bins[sb, 0] * s], -1)[:, None, :]
                 + offs_h[None]).reshape(-1, 2)
         dh = pixel_rays(image, xy_h)
-        oh, ph, nh = _cast(bvh, eye, dh, verts, norms, tris, tri_obj)
+        oh, ph, nh = cast_rays(bvh, eye, dh, verts, norms, tris, tri_obj)
         m_h = offs_h.shape[0]
         front = (np.sum(nh * -dh, -1) > 0.0).reshape(sb.size, m_h)
         same = (oh.reshape(sb.size, m_h) == obj[ok][sb, :1]).all(axis=1) & front.all(axis=1)

@@ -24,6 +24,7 @@ Shapes: P points, K directions, (..., 3) world vectors; distances in metres.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Sequence
 from typing import Any
@@ -83,6 +84,7 @@ class PointOcclusion:
         self.spheres = list(spheres)
         self.meshes = list(meshes)
         self.resolution = int(resolution)
+        self._map: np.ndarray | None = None
         P = self.points.shape[0]
         ns = len(self.spheres)
         self.occluder_object = np.array([s.object for s in self.spheres]
@@ -104,23 +106,34 @@ class PointOcclusion:
                 continue
             sv = point_visibility(m.vertices, m.triangles, self.points[rows], N[rows],
                                   resolution=self.resolution, raster_size=raster_size)
-            hid = np.asarray(sv.hidden)
-            tri = np.asarray(m.triangles)[np.maximum(np.asarray(sv.hit_triangle), 0)]
-            bary = np.asarray(sv.hit_bary, np.float64)[..., None]  # (p, K, 3, 1)
-            pt = np.sum(bary * np.asarray(m.vertices, np.float64)[tri], axis=2)
-            nr = _unit(np.sum(bary * np.asarray(m.normals, np.float64)[tri], axis=2))
-            t = np.linalg.norm(pt - self.points[rows][:, None], axis=-1)
-            closer = hid & (t < self.t[rows])
-            r_, k_ = np.nonzero(closer)
+            r_, k_ = np.nonzero(np.asarray(sv.hidden))
+            tri = np.asarray(m.triangles)[np.asarray(sv.hit_triangle)[r_, k_]]  # (n, 3)
+            bary = np.asarray(sv.hit_bary, np.float64)[r_, k_][..., None]  # (n, 3, 1)
+            pt = np.sum(bary * np.asarray(m.vertices, np.float64)[tri], axis=1)
+            nr = _unit(np.sum(bary * np.asarray(m.normals, np.float64)[tri], axis=1))
             rr = rows[r_]
+            t = np.linalg.norm(pt - self.points[rr], axis=-1)
+            closer = t < self.t[rr, k_]
+            r_, k_, rr, pt, nr, t = (a[closer] for a in (r_, k_, rr, pt, nr, t))
             self.occ[rr, k_] = ns + j
-            self.t[rr, k_] = t[r_, k_]
-            self.hit[rr, k_] = pt[r_, k_]
-            self.hit_normal[rr, k_] = nr[r_, k_]
+            self.t[rr, k_] = t
+            self.hit[rr, k_] = pt
+            self.hit_normal[rr, k_] = nr
 
     @property
     def has_meshes(self) -> bool:
         return bool(self.meshes)
+
+    def rows_at(self, rows: np.ndarray) -> PointOcclusion:
+        """A view of these tables whose point i is this one's point ``rows[i]``."""
+        view = copy.copy(self)
+        rows = np.asarray(rows, np.int64)
+        view._map = rows if self._map is None else self._map[rows]
+        return view
+
+    def _mapped(self, rows: Any) -> np.ndarray:
+        rows = np.asarray(rows)
+        return rows if self._map is None else self._map[rows]
 
     def taps(self, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The octahedral grid's bilinear taps (..., 4) and weights of directions (..., 3)."""
@@ -150,7 +163,7 @@ class PointOcclusion:
         (..., 3) from points ``rows`` (broadcast against ``dirs[..., 0]``), its hit point and
         unit normal (..., 3). A mesh counts when at least half the taps' weight is hidden."""
         shape = dirs.shape[:-1]
-        rows = np.broadcast_to(np.asarray(rows), shape).reshape(-1)
+        rows = self._mapped(np.broadcast_to(np.asarray(rows), shape).reshape(-1))
         flat = np.asarray(dirs, np.float64).reshape(-1, 3)
         occ = np.full(rows.shape, -1, np.int64)
         pt = np.zeros(flat.shape)
@@ -190,5 +203,5 @@ class PointOcclusion:
         """Fraction of each direction (taps ``idx``, ``w`` (..., 4) from :meth:`taps`) from
         points ``rows`` (broadcast against ``idx[..., 0]``) that the MESHES hide (bilinear in
         the grid), the dominant occluder (−1: none) and its hit point (..., 3)."""
-        frac, o, p, _ = self._mesh_taps(rows, idx, w)
+        frac, o, p, _ = self._mesh_taps(self._mapped(rows), idx, w)
         return frac, o, p

@@ -89,8 +89,12 @@ class CacheOptions:
             product Gauss rule over that footprint ("gauss", 64 points, what its exact gloss
             sums; the bundled session's red β then comes out at +2.8 % instead of +1.8 %).
         visibility: R of the octahedral direction grid (R² directions) in which mesh objects
-            are tested against the samples (the frame's default, ~0.15 rad apart).
-        probe_visibility: the same at the probes (one bounce: a coarser grid).
+            are tested against the samples and the probes (the frame's default, ~0.15 rad
+            apart); the probes on meshes are the first hits of the grid's directions from
+            each spot's most central sample.
+        probe_bounces: Jacobi steps of the probes' light among themselves (diffuse: what a
+            probe's hidden directions meet is the nearest probe of its reading there): the
+            second and later bounces inside a concave object or among three or more.
     """
 
     theta0: float = 0.003
@@ -102,7 +106,7 @@ class CacheOptions:
     probes: int = 64
     sources: str = "tent"
     visibility: int = 24
-    probe_visibility: int = 16
+    probe_bounces: int = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,6 +211,11 @@ class RadianceCache(eqx.Module):
             each probe's reading (every reading only sees its own probes).
         hit_average: (H,) the averaging weight of each hit's sample (the gloss hits are
             summed straight into field means).
+        transfer_row, transfer_col, transfer_weight: (E,) probe → probe diffuse transfer:
+            probe ``row`` receives irradiance ``weight`` × the radiance of probe ``col``
+            (cos·Δω of its directions that meet the object there).
+        probe_bounces: static, Jacobi steps of that transfer (0: the probes are lit by the
+            environment alone).
     """
 
     nodes: GlossNodes
@@ -225,6 +234,10 @@ class RadianceCache(eqx.Module):
     probe_group: jax.Array
     probe_diffuse: jax.Array
     hit_average: jax.Array
+    transfer_row: jax.Array
+    transfer_col: jax.Array
+    transfer_weight: jax.Array
+    probe_bounces: int = eqx.field(static=True, default=0)
 
     @property
     def n_probes(self) -> int:

@@ -6,6 +6,7 @@ their first hits on the scene's triangles (NumPy, float64; world units metres).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +14,7 @@ import numpy as np
 
 from ..geometry import ObjectGeometry
 
-__all__ = ["disc_pixels", "scene_triangles"]
+__all__ = ["cast_rays", "disc_pixels", "scene_triangles"]
 
 
 def disc_pixels(res: int) -> np.ndarray:
@@ -37,6 +38,49 @@ def scene_triangles(geoms: list[ObjectGeometry]
         tri_obj.append(np.full(len(t), o, np.int32))
         base += len(np.asarray(g.vertices))
     return verts, norms, np.concatenate(tris), np.concatenate(tri_obj)
+
+
+def cast_rays(bvh: Any, origin: np.ndarray, dirs: np.ndarray, verts: np.ndarray,
+              norms: np.ndarray, tris: np.ndarray, tri_obj: np.ndarray, chunk: int = 4096,
+              two_sided: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First hits of rays (N, 3) from one origin (3,): object (N,) (−1: none, −2: a
+    triangle's back), position and unit normal (N, 3) (:func:`spectral_fit.geometry.closest_hit`
+    through ``bvh``, the hierarchy over the scene's triangles ``tris`` with vertices
+    ``verts``, normals ``norms`` and objects ``tri_obj`` (:func:`scene_triangles`); rays
+    padded to whole chunks, one compiled size). ``two_sided``: a back counts like a front
+    (its object, the normal turned towards the origin)."""
+    N = dirs.shape[0]
+    tri = np.full(N, -1)
+    uv = np.zeros((N, 2))
+    o = jnp.asarray(origin, jnp.float32)
+    for a in range(0, N, chunk):
+        d = dirs[a:a + chunk]
+        n = d.shape[0]
+        d = np.concatenate([d, np.repeat(d[-1:], chunk - n, 0)])
+        h = _closest_hits(bvh, o, jnp.asarray(d, jnp.float32))
+        tri[a:a + n] = np.asarray(h.triangle)[:n]
+        uv[a:a + n] = np.stack([np.asarray(h.u), np.asarray(h.v)], -1)[:n]
+    hit = tri >= 0
+    idx = tris[np.maximum(tri, 0)]
+    w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
+    p = np.einsum("pk,pkc->pc", w, verts[idx])
+    n_ = np.einsum("pk,pkc->pc", w, norms[idx])
+    n_ /= np.maximum(np.linalg.norm(n_, axis=1, keepdims=True), 1e-12)
+    obj = np.where(hit, tri_obj[np.maximum(tri, 0)], -1)
+    # a hit from behind (inside a closed object, or an open mesh's back) sees no front face
+    front = np.sum(n_ * dirs, -1) < 0.0
+    if two_sided:
+        n_ = np.where(front[:, None], n_, -n_)
+    else:
+        obj = np.where(front, obj, np.where(hit, -2, -1))
+    return obj, np.where(hit[:, None], p, 0.0), np.where(hit[:, None], n_, 0.0)
+
+
+@jax.jit
+def _closest_hits(bvh: Any, origin: jax.Array, dirs: jax.Array) -> Any:
+    from ..geometry import closest_hit
+
+    return jax.vmap(lambda d: closest_hit(bvh, origin, d))(dirs)
 
 
 def _ray_cast(origin: np.ndarray, dirs: np.ndarray, tri: np.ndarray
