@@ -142,3 +142,21 @@ def test_report_picture_and_figures_kept_together(scene, tmp_path, monkeypatch):
     assert (tmp_path / "b.png").read_bytes() == (tmp_path / "a.png").read_bytes()
     note, _ = report._uncertainty(scene, res, tmp_path / "c.png", None, None)
     assert "rendered again" in note["note"]  # a failure is a note, not a lost report
+
+
+def test_draws_beyond_an_open_bound_stay_finite(scene):
+    """Standard errors far larger than the values (a lobe the readings cannot resolve: μ
+    0.17 ± 1.0, n 1.5 ± 2): draws that fall below μ = 0 or n = 1 stop short of those open
+    ends (μ = 0 has no lobe), so every covered pixel gets a finite ΔE00 and the summary, as
+    written into fit.json, is strict JSON."""
+    import json
+
+    from spectral_fit.fitting import render_uncertainty
+
+    res, _ = _result(scene)
+    names = [o.name for o in scene.objects]
+    res.stderr[names[0]]["mu"] = 1.0
+    res.stderr[names[1]]["n"] = 2.0
+    unc = render_uncertainty(scene, res, draws=8)
+    assert np.isfinite(unc.rms[unc.mask]).all() and unc.rms[unc.mask].max() > 1.0
+    json.dumps(unc.summary(names), allow_nan=False)

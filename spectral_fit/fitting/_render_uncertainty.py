@@ -11,7 +11,8 @@ linearisation), and the 95th percentile. CIELAB is taken against the frame's dis
 (Y = the exposure luminance, chromaticity the display's white point), so 1 ΔE00 is what a
 viewer of the picture would call one unit.
 
-Draws outside a parameter's physical range (α, β, μ ≥ 0, n ≥ 1, …) are clipped to it; a
+Draws outside a parameter's physical range (α, β, μ > 0, n > 1, χ ≥ 0) are clipped to it
+(an open end to a tenth of the way from it to the fitted value); a
 parameter without a standard error (fixed, or not identified) does not vary.
 """
 
@@ -54,6 +55,7 @@ class RenderUncertainty:
         scene's order), the median / 90th percentile / max of the per-pixel RMS ΔE00."""
         def stats(sel: np.ndarray) -> dict[str, float | int]:
             v = self.rms[sel]
+            v = v[np.isfinite(v)]
             if v.size == 0:
                 return {"pixels": 0}
             return {"pixels": int(v.size), "median": float(np.median(v)),
@@ -91,6 +93,10 @@ def render_uncertainty(scene: Scene, result: Any, *, draws: int = 32, seed: int 
     w, v = np.linalg.eigh(corr)
     root = v * np.sqrt(np.clip(w, 0.0, None))  # C = root rootᵀ (C^½ up to a rotation)
     lower = np.array([[PHYSICAL_LOWER[p][0] for p in PARAMETERS]] * len(names))
+    # an open end (μ = 0 is no lobe, n = 1 no interface) is not reached: a draw beyond it
+    # stops a tenth of the way from it to the fitted value
+    is_open = np.array([[PHYSICAL_LOWER[p][1] for p in PARAMETERS]] * len(names))
+    lower = np.where(is_open, lower + 0.1 * np.maximum(theta - lower, 0.0), lower)
 
     fitted = fitted_frame(scene, theta, prep)
     mask = np.asarray(fitted["mask"], bool)

@@ -465,14 +465,31 @@ def write_report(result: FitResult, out_dir: str | os.PathLike[str], *, scene: S
             summary["render_note"] = note
     summary.update(extra or {})
     summary["pictures"] = pictures
-    atomic_write_text(out / "materials.json",
-                      json.dumps(materials_json(result, scene), indent=2) + "\n")
+    atomic_write_text(out / "materials.json", json.dumps(
+        _json_ready(materials_json(result, scene)), indent=2, allow_nan=False) + "\n")
     atomic_write_text(out / "materials_mitsuba.xml", mitsuba_snippet(result, scene))
     summary["files"] = pictures + ["fit.json", "materials.json", "materials_mitsuba.xml"]
     summary["timing"] = _timing_block(result, timing, started, time.perf_counter() - t_report,
                                       hits)
-    atomic_write_text(out / "fit.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(out / "fit.json", json.dumps(_json_ready(summary), indent=2,
+                                                   allow_nan=False) + "\n")
     return summary
+
+
+def _json_ready(x: Any) -> Any:
+    """``x`` with every non-finite float (NaN, ±inf: an undefined standard error, an empty
+    statistic) as None, so the file is strict JSON."""
+    if isinstance(x, dict):
+        return {k: _json_ready(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_ready(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(float(x)) else None
+    if isinstance(x, np.ndarray):
+        return _json_ready(x.tolist())
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
 
 
 def _timing_block(result: FitResult, before: Mapping[str, float] | None,
