@@ -2,7 +2,8 @@
 kinds), 5 free parameters per sphere, 81 bands, interreflection on (inside the forward model
 and its Jacobian, :mod:`spectral_fit.fitting`), one start from the config's materials;
 ``fit_photo``: the same solve on the bundled photograph session (one raw photograph, 41
-bands, 5 free parameters per sphere).
+bands, 5 free parameters per sphere); ``fit_any_shape``: on the bundled session of spots on a
+cup and a torus (meshes: occlusion and interreflection from the visibility tables).
 
 Timed: the jit-compiled Levenberg–Marquardt solve that :func:`~spectral_fit.fitting.fit` runs
 per start (forward model and exact Jacobian inside), with the default compact solver
@@ -32,9 +33,11 @@ import numpy as np
 
 from .._harness import BenchOptions, measure
 
-#: the bundled photograph session (scripts/make_photo_session.py)
-PHOTO_SESSION = Path(__file__).resolve().parents[3] / "measurements" / "sessions" / \
-    "two_spheres_photo"
+#: the bundled sessions besides the demo: the photograph (scripts/make_photo_session.py) and
+#: the spots on a cup and a torus (scripts/make_any_shape_session.py)
+SESSIONS = {name: Path(__file__).resolve().parents[3] / "measurements" / "sessions" / folder
+            for name, folder in (("photo", "two_spheres_photo"),
+                                 ("any_shape", "any_shape_spots"))}
 
 
 @functools.lru_cache(maxsize=4)
@@ -45,7 +48,7 @@ def _prepared(quick: bool, which: str = "demo") -> tuple[Any, Any, float, float]
     from ...fitting import DEMO_SESSION, FitOptions, prepare_fit
     from ...io import load_session
 
-    session = load_session(DEMO_SESSION if which == "demo" else PHOTO_SESSION)
+    session = load_session(DEMO_SESSION if which == "demo" else SESSIONS[which])
     scene = session.scene
     fo = FitOptions(spot_resolution=4 if quick else 8)
     t0, c0 = time.perf_counter(), time.process_time()
@@ -114,6 +117,13 @@ def fit_photo(opts: BenchOptions) -> dict[str, Any]:
     """The compact Levenberg–Marquardt solve of the bundled photograph session (one 720 × 480
     raw photograph of the two spheres and a white standard), one start."""
     return _fit_demo(opts, "compact", "photo")
+
+
+def fit_any_shape(opts: BenchOptions) -> dict[str, Any]:
+    """The compact Levenberg–Marquardt solve of the bundled cup-and-torus session (path-traced
+    spots outside, inside the cup and the torus's hole, facing each other), one start: the
+    preparation holds the meshes' visibility tables and probes (``prepare_s``)."""
+    return _fit_demo(opts, "compact", "any_shape")
 
 
 def fit_demo(opts: BenchOptions) -> dict[str, Any]:
@@ -188,4 +198,4 @@ def fit_cli(opts: BenchOptions) -> dict[str, Any]:
 
 
 CASES = {"fit_demo": fit_demo, "fit_demo_optimistix": fit_demo_optimistix, "fit_cli": fit_cli,
-         "fit_photo": fit_photo}
+         "fit_photo": fit_photo, "fit_any_shape": fit_any_shape}
