@@ -93,35 +93,12 @@ def cast(scene: Any, origin: np.ndarray, dirs: np.ndarray
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """First hits of rays from ``origin`` against the scene's world meshes: object (N,)
     (−1 none, −2 a back face), point (N, 3), the shading normal (N, 3)."""
-    import jax
-    import jax.numpy as jnp
+    from spectral_fit.fitting import cast_rays, scene_triangles
+    from spectral_fit.geometry import build_bvh
 
-    from spectral_fit.geometry import build_bvh, closest_hit
-
-    verts, norms, tris, tri_obj = [], [], [], []
-    base = 0
-    for o, ob in enumerate(scene.objects):
-        m = ob.make_mesh(world=True)
-        verts.append(np.asarray(m.vertices, np.float64))
-        norms.append(np.asarray(m.normals, np.float64))
-        tris.append(np.asarray(m.triangles) + base)
-        tri_obj.append(np.full(len(m.triangles), o))
-        base += len(m.vertices)
-    V, Nn, T, TO = (np.concatenate(a) for a in (verts, norms, tris, tri_obj))
-    bvh = build_bvh(V, T)
-    hit = jax.jit(jax.vmap(lambda d: closest_hit(bvh, jnp.asarray(origin, jnp.float32), d)))(
-        jnp.asarray(dirs, jnp.float32))
-    tri = np.asarray(hit.triangle)
-    u, v = np.asarray(hit.u, np.float64), np.asarray(hit.v, np.float64)
-    ok = tri >= 0
-    idx = T[np.maximum(tri, 0)]
-    w = np.stack([1 - u - v, u, v], -1)
-    p = np.einsum("nk,nkc->nc", w, V[idx])
-    n = np.einsum("nk,nkc->nc", w, Nn[idx])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    obj = np.where(ok, TO[np.maximum(tri, 0)], -1)
-    obj = np.where(ok & (np.sum(n * dirs, -1) >= 0), -2, obj)
-    return obj, p, n
+    verts, norms, tris, tri_obj = scene_triangles(
+        [ob.make_mesh(world=True) for ob in scene.objects])
+    return cast_rays(build_bvh(verts, tris), origin, dirs, verts, norms, tris, tri_obj)
 
 
 def _stats(x: np.ndarray) -> dict[str, Any]:

@@ -24,10 +24,10 @@ spectroradiometer would, plus the hard ones:
   normal towards the hole's centre, seen through the hole 42° off its normal); two on the side
   facing the cup; one on the underside.
 
-Every aim point is checked by ray casting (spectral_fit.geometry.build_bvh / closest_hit against
-both world meshes): the central ray from the instrument's position must first hit the named object
-within 0.5 mm of the aim, and every one of 16 x 16 rays over the measuring field (the disc the
-simulator averages) must hit the same object.
+Every aim point is checked by ray casting (spectral_fit.fitting.cast_rays through a hierarchy
+of both world meshes): the central ray from the instrument's position must first hit the
+named object's front within 0.5 mm of the aim, and every one of 16 x 16 rays over the
+measuring field (the disc the simulator averages) must hit the same object.
 
     python scripts/make_any_shape_session.py --check          # spots, visibility, gloss shares
     python scripts/make_any_shape_session.py --mc 256,1024,4096,16384   # Monte Carlo noise
@@ -250,25 +250,13 @@ def check_visibility(scene, spots: list[dict], pixels: int = 16) -> list[dict]:
     """Ray casting against both world meshes: the central ray's first hit (object, distance
     from the aim), the share of the field's rays (the simulator's 16 x 16 disc) that hit the
     spot's object, and the view angle at the aim."""
-    import jax
-    import jax.numpy as jnp
+    from spectral_fit.fitting import cast_rays, scene_triangles
+    from spectral_fit.geometry import build_bvh
 
-    from spectral_fit.geometry import build_bvh, closest_hit
-
-    verts, tris, owner = [], [], []
-    base = 0
     names = [o.name for o in scene.objects]
-    for k, o in enumerate(scene.objects):
-        m = o.make_mesh(world=True)
-        verts.append(np.asarray(m.vertices, np.float64))
-        tris.append(np.asarray(m.triangles) + base)
-        owner.append(np.full(len(m.triangles), k))
-        base += len(m.vertices)
-    v = np.concatenate(verts)
-    t = np.concatenate(tris)
-    owner = np.concatenate(owner)
-    bvh = build_bvh(v, t)
-    hit = jax.jit(jax.vmap(lambda o, d: closest_hit(bvh, o, d)))
+    verts, norms, tris, owner = scene_triangles([o.make_mesh(world=True)
+                                                 for o in scene.objects])
+    bvh = build_bvh(verts, tris)
     c = (np.arange(pixels) + 0.5) / pixels * 2.0 - 1.0
     gx, gy = np.meshgrid(c, c)
     disc = gx**2 + gy**2 <= 1.0
@@ -283,13 +271,10 @@ def check_visibility(scene, spots: list[dict], pixels: int = 16) -> list[dict]:
         dirs = [d] + [_unit(d + th * (x * right + y * up)) for x, y in
                       zip(gx[disc], gy[disc], strict=True)]
         dirs = np.asarray(dirs)
-        r = hit(jnp.asarray(np.tile(pos, (len(dirs), 1)), jnp.float32),
-                jnp.asarray(dirs, jnp.float32))
-        tri = np.asarray(r.triangle)
-        tt = np.asarray(r.t)
-        obj = np.where(tri >= 0, owner[np.maximum(tri, 0)], -1)
+        obj, pts, _ = cast_rays(bvh, pos, dirs, verts, norms, tris, owner, chunk=256)
         centre_obj = names[obj[0]] if obj[0] >= 0 else None
-        miss = float(abs(tt[0] - np.linalg.norm(aim - pos))) if centre_obj else float("inf")
+        miss = (float(abs(np.linalg.norm(pts[0] - pos) - np.linalg.norm(aim - pos)))
+                if centre_obj else float("inf"))
         share = float(np.mean(obj[1:] == names.index(s["object"])))
         cos_v = float(np.dot(s["normal"], s["V"]))
         out.append({"id": s["id"], "hit": centre_obj, "miss_mm": 1e3 * miss,

@@ -20,6 +20,7 @@ from ._env_sampling import _env_lookup, _texel_table
 from ._gloss_nodes import build_gloss_nodes
 from ._occluders import MeshOccluder, PointOcclusion
 from ._radiance_cache import CacheOptions, FieldAverage, RadianceCache, Sphere, _concat_nodes
+from ._spots import cast_rays, scene_triangles
 
 __all__ = ["build_radiance_cache"]
 
@@ -42,6 +43,18 @@ def _coarse_texels(env: Any, dirs: np.ndarray, sa: np.ndarray, tex: np.ndarray,
     t_ = blk(sa[:, None] * tex, c) / np.maximum(s_, 1e-300)[:, None]
     d_ = _unit(blk(sa[:, None] * dirs, 3))
     return d_, s_, t_
+
+
+def _silhouette_cone(s: Sphere, X: np.ndarray, objects: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cone sphere ``s`` fills as seen from points X (n, 3): unit axis towards its centre
+    (n, 3), cosine of the half-angle asin(radius/distance) (n,), and whether it hides
+    anything from each point (n,) (not its own object's, not from inside it)."""
+    rel = s.centre[None] - X
+    dist = np.linalg.norm(rel, axis=1)
+    axis = rel / np.maximum(dist, 1e-300)[:, None]
+    cos_half = np.sqrt(np.maximum(1.0 - (s.radius / np.maximum(dist, 1e-300)) ** 2, 0.0))
+    return axis, cos_half, (objects != s.object) & (dist > s.radius)
 
 
 def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndarray,
@@ -76,15 +89,10 @@ def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndar
     for a in range(0, P, chunk):
         sl = slice(a, min(P, a + chunk))
         w = np.maximum(N[sl].astype(np.float32) @ d32.T, 0.0) * sa[None].astype(np.float32)
-        for si, s in enumerate(spheres):
-            rel = s.centre[None] - X[sl]
-            dist = np.linalg.norm(rel, axis=1)
-            use = (objects[sl] != s.object) & (dist > s.radius)
+        cones = [_silhouette_cone(s, X[sl], objects[sl]) for s in spheres]
+        for si, (s, (axis, cos_half, use)) in enumerate(zip(spheres, cones, strict=True)):
             if not use.any():
                 continue
-            axis = rel / np.maximum(dist, 1e-300)[:, None]
-            cos_half = np.sqrt(np.maximum(1.0 - (s.radius / np.maximum(dist, 1e-300)) ** 2,
-                                          0.0))
             inside = (axis.astype(np.float32) @ d32.T >= cos_half[:, None]) & use[:, None]
             pi, ti = np.nonzero(inside & (w > 0.0))
             if pi.size:
@@ -102,13 +110,8 @@ def _visible_irradiance(env: Any, X: np.ndarray, N: np.ndarray, objects: np.ndar
                 rows[sl][:, None], taps[0][None], taps[1][None])  # type: ignore[index]
             wc = np.maximum(N[sl].astype(np.float32) @ c_d32.T, 0.0) * c_sa32[None]
             pi, ti = np.nonzero((frac > 0.0) & (wc > 0.0))
-            for sp in spheres:  # directions a sphere hides are its own (counted above)
-                rel = sp.centre[None] - X[sl][pi]
-                dist = np.linalg.norm(rel, axis=1)
-                cos_half = np.sqrt(np.maximum(1.0 - (sp.radius / np.maximum(dist, 1e-300)) ** 2,
-                                              0.0))
-                behind = ((objects[sl][pi] != sp.object) & (dist > sp.radius)
-                          & (np.sum(rel * c_dirs[ti], -1) >= cos_half * dist))
+            for axis, cos_half, use in cones:  # what a sphere hides is its own (above)
+                behind = use[pi] & (np.sum(axis[pi] * c_dirs[ti], -1) >= cos_half[pi])
                 pi, ti = pi[~behind], ti[~behind]
             if pi.size:
                 hw = (wc[pi, ti] * frac[pi, ti]).astype(np.float64)
@@ -131,8 +134,6 @@ def _first_hits(scene: tuple[Any, ...], origin: np.ndarray, dirs: np.ndarray,
     ``origin``, its hit point and normal: the meshes through their hierarchy (``scene``: bvh,
     vertices, normals, triangles, each triangle's occluder), the spheres analytically (the
     sphere of object ``skip`` ignored)."""
-    from ._spots import cast_rays
-
     bvh, verts, norms, tris, tri_occ = scene
     # two-sided: an open mesh's back is a surface too (a closed one's is never met from
     # outside)
@@ -184,18 +185,10 @@ def build_radiance_cache(env: Any, positions: np.ndarray, normals: np.ndarray,
     if meshes and interreflection:
         from ..geometry import build_bvh, octahedral_directions
 
-        mv = [np.asarray(m.vertices, np.float64) for m in meshes]
-        base = np.cumsum([0] + [len(v) for v in mv])[:-1]
-        scene_bvh = (build_bvh(np.concatenate(mv), np.concatenate(
-            [np.asarray(m.triangles) + o for m, o in zip(meshes, base, strict=True)])),
-            np.concatenate(mv), np.concatenate([np.asarray(m.normals, np.float64)
-                                                for m in meshes]),
-            np.concatenate([np.asarray(m.triangles) + o
-                            for m, o in zip(meshes, base, strict=True)]),
-            np.concatenate([np.full(len(m.triangles), len(spheres) + j, np.int32)
-                            for j, m in enumerate(meshes)]))
+        verts, norms, tris, tri_mesh = scene_triangles(list(meshes))
+        scene_bvh = (build_bvh(verts, tris), verts, norms, tris, tri_mesh + len(spheres))
         grid = octahedral_directions(opts.visibility)[0].astype(np.float64)
-        size = float(np.ptp(np.concatenate(mv), axis=0).max())
+        size = float(np.ptp(verts, axis=0).max())
         lift = 1e-4 * size
     # probes: per reading and neighbour, directions from the spot centre over its silhouette
     occ_object = np.array([sp.object for sp in spheres] + [m.object for m in meshes], np.int64)

@@ -109,7 +109,6 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
     rad = np.zeros((P * J * M, env.atlas.shape[1]), np.float32)
     dirs = Ldir.reshape(-1, 3)
     hit_idx = np.full(P * J * M, -1, np.int64)
-    hit_t = np.full(P * J * M, np.inf)
     hit_pt = np.zeros((P * J * M, 3))
     if occlusion is not None:
         sel = np.flatnonzero(flat_ok)
@@ -121,7 +120,7 @@ def build_gloss_nodes(env: Any, positions: np.ndarray, normals: np.ndarray, view
         skip = np.broadcast_to(np.asarray(objects)[:, None, None], ok.shape).reshape(-1)
         sel = np.flatnonzero(flat_ok)
         hi_, ht = _ray_spheres(orig[sel], dirs[sel], spheres, skip[sel])
-        hit_idx[sel], hit_t[sel] = hi_, ht
+        hit_idx[sel] = hi_
         hit_pt[sel] = orig[sel] + np.where(hi_ >= 0, ht, 0.0)[:, None] * dirs[sel]
     look = flat_ok & (hit_idx < 0)
     sel = np.flatnonzero(look)
