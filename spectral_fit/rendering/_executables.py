@@ -6,6 +6,7 @@ be loaded here is compiled again).
 
 from __future__ import annotations
 
+import functools
 import re
 from pathlib import Path
 from typing import Any
@@ -64,11 +65,25 @@ def _strip_locations(lowered: Any) -> bool:
     return True
 
 
+def _recheck_cache() -> None:
+    """Make JAX decide again whether its persistent cache is in use. JAX decides once per
+    process, at its first compile, and keeps the answer: changing the setting afterwards alone
+    would leave the cache on (a program compiled then could be a stored one, with the source
+    locations of whoever stored it)."""
+    try:
+        from jax.experimental.compilation_cache import compilation_cache
+
+        compilation_cache.reset_cache()
+    except Exception:  # a JAX without it: the setting alone
+        pass
+
+
 def _cache_off() -> bool:
     import jax
 
     saved = jax.config.jax_enable_compilation_cache
     jax.config.update("jax_enable_compilation_cache", False)
+    _recheck_cache()
     return saved
 
 
@@ -76,6 +91,7 @@ def _cache_back(saved: bool) -> None:
     import jax
 
     jax.config.update("jax_enable_compilation_cache", saved)
+    _recheck_cache()
 
 
 _BYPASS = WhileInside(_cache_off, _cache_back)
@@ -101,6 +117,18 @@ def _load_entry(folder: Path, key: str) -> Any:
         return None
 
 
+def _fresh(fn: Any) -> Any:
+    """``fn`` as a new function object: JAX keeps the lowering and the executable of a function
+    it has compiled before for the same arguments, and would hand back that executable (with
+    its source locations) instead of compiling the stripped program."""
+
+    @functools.wraps(fn)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return fn(*args, **kwargs)
+
+    return call
+
+
 def _compile(key: str, fn: Any, arrays: Any, compiler_options: dict[str, Any] | None,
              folder: Path | None) -> Any:
     """The compiled ``jax.jit(fn)`` for ``arrays`` (a list of arrays or shape structs, or a
@@ -115,7 +143,7 @@ def _compile(key: str, fn: Any, arrays: Any, compiler_options: dict[str, Any] | 
     from .._runtime.dispatch import cpu_compiler_options
 
     compiler_options = {**cpu_compiler_options(), **(compiler_options or {})}
-    lowered = jax.jit(fn).lower(arrays() if callable(arrays) else arrays)
+    lowered = jax.jit(_fresh(fn)).lower(arrays() if callable(arrays) else arrays)
     _strip_locations(lowered)
     with _without_persistent_cache():
         compiled = (lowered.compile(compiler_options=compiler_options) if compiler_options
