@@ -33,10 +33,11 @@ def torus(big: float = 0.035, small: float = 0.014, nu: int = 72, nv: int = 36):
 
 
 def cup(outer: float = 0.03, wall: float = 0.004, height: float = 0.07, base: float = 0.006,
-        lip: float = 0.002, slices: int = 72, per_segment: int = 6):
+        lip: float = 0.002, slices: int = 72, per_segment: int = 6, glaze: bool = False):
     """A cup revolved about the y axis from its profile (outer base, outer wall, rounded lip,
     inner wall, inner floor): smooth normals within each part of the profile, split at its
-    corners; the base at y = 0."""
+    corners; the base at y = 0. ``glaze``: also each triangle's material index (1 inside:
+    inner wall and floor; 0 elsewhere)."""
     inner = outer - wall
     rl = 0.5 * wall  # lip radius
     prof: list[tuple[np.ndarray, np.ndarray]] = []  # (points (n, 2) of (r, y), normals (n, 2))
@@ -58,9 +59,9 @@ def cup(outer: float = 0.03, wall: float = 0.004, height: float = 0.07, base: fl
     seg((inner, height - rl), (inner, base), (-1.0, 0.0))  # inner wall
     seg((inner, base), (0.0, base), (0.0, 1.0))  # inner floor
     phi = np.linspace(0, 2 * np.pi, slices, endpoint=False)
-    pts, nrms, tris = [], [], []
+    pts, nrms, tris, segment = [], [], [], []
     base_index = 0
-    for p, n in prof:
+    for s, (p, n) in enumerate(prof):
         m = len(p)
         for k in range(slices):
             cph, sph = np.cos(phi[k]), np.sin(phi[k])
@@ -72,6 +73,7 @@ def cup(outer: float = 0.03, wall: float = 0.004, height: float = 0.07, base: fl
                 a0, a1 = base_index + k * m + i, base_index + k * m + i + 1
                 b0, b1 = base_index + k2 * m + i, base_index + k2 * m + i + 1
                 tris += [[a0, a1, b1], [a0, b1, b0]]
+                segment += [s, s]
         base_index += m * slices
     pts = np.concatenate(pts)
     nrms = np.concatenate(nrms)
@@ -84,6 +86,8 @@ def cup(outer: float = 0.03, wall: float = 0.004, height: float = 0.07, base: fl
     tris, e = tris[keep], e[keep]
     flip = np.sum(e * nrms[tris].sum(axis=1), axis=1) < 0
     tris[flip] = tris[flip][:, ::-1]
+    if glaze:  # the inside (inner wall and floor: profile parts 4 and 5) a material of its own
+        return pts, tris, nrms, (np.asarray(segment)[keep] >= 4).astype(np.uint8)
     return pts, tris, nrms
 
 
@@ -119,17 +123,23 @@ def box(size: tuple[float, float, float], segments: int = 8):
     return pts, tris, nrms
 
 
-def write_ply(path: Path, pts, tris, nrms, comment: str) -> None:
-    """Binary little-endian PLY: float32 x y z nx ny nz per vertex, uint8-counted int32 faces."""
+def write_ply(path: Path, pts, tris, nrms, material_index=None, *, comment: str) -> None:
+    """Binary little-endian PLY: float32 x y z nx ny nz per vertex, uint8-counted int32 faces
+    (and a uchar material_index per face when given)."""
+    extra = [] if material_index is None else ["property uchar material_index"]
     header = "\n".join([
         "ply", "format binary_little_endian 1.0", f"comment {comment}",
         f"element vertex {len(pts)}", "property float x", "property float y", "property float z",
         "property float nx", "property float ny", "property float nz",
-        f"element face {len(tris)}", "property list uchar int vertex_indices", "end_header", ""])
+        f"element face {len(tris)}", "property list uchar int vertex_indices", *extra,
+        "end_header", ""])
     vert = np.concatenate([pts, nrms], axis=1).astype("<f4")
-    face = np.zeros(len(tris), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    face = np.zeros(len(tris), dtype=[("n", "u1"), ("i", "<i4", (3,))]
+                    + ([("m", "u1")] if extra else []))
     face["n"] = 3
     face["i"] = tris
+    if extra:
+        face["m"] = material_index
     tmp = path.with_suffix(".tmp")
     tmp.write_bytes(header.encode("ascii") + vert.tobytes() + face.tobytes())
     tmp.replace(path)
@@ -141,13 +151,16 @@ def main() -> None:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     write_ply(args.out / "torus.ply", *torus(),
-              "ring torus, radii 35 mm and 14 mm, 72 x 36 (scripts/make_meshes.py)")
+              comment="ring torus, radii 35 mm and 14 mm, 72 x 36 (scripts/make_meshes.py)")
     write_ply(args.out / "cup.ply", *cup(),
-              "cup, 60 mm across, 70 mm high, 4 mm wall (scripts/make_meshes.py)")
+              comment="cup, 60 mm across, 70 mm high, 4 mm wall (scripts/make_meshes.py)")
+    write_ply(args.out / "cup_glazed.ply", *cup(glaze=True),
+              comment="cup, 60 mm across, 70 mm high, 4 mm wall; material_index 1 inside "
+                      "(inner wall and floor) (scripts/make_meshes.py)")
     write_ply(args.out / "slab.ply", *box((0.07, 0.09, 0.012)),
-              "slab, 70 x 90 x 12 mm, flat faces (scripts/make_meshes.py)")
+              comment="slab, 70 x 90 x 12 mm, flat faces (scripts/make_meshes.py)")
     write_ply(args.out / "cube.ply", *box((0.03, 0.03, 0.03)),
-              "cube, 30 mm, flat faces (scripts/make_meshes.py)")
+              comment="cube, 30 mm, flat faces (scripts/make_meshes.py)")
 
 
 if __name__ == "__main__":

@@ -32,6 +32,8 @@ __all__ = [
     "load_mesh",
     "load_obj",
     "load_ply",
+    "face_labels",
+    "select_faces",
     "vertex_normals",
     "is_closed_outward",
     "translate",
@@ -310,17 +312,29 @@ def _finish(path, positions, corners, normals, uvs, corner_lines) -> Mesh:
 def load_obj(path: str | os.PathLike[str]) -> Mesh:
     """Load a Wavefront OBJ: ``v`` (x y z [w]), ``vt`` (u [v]), ``vn``, ``f`` (``v``, ``v/vt``,
     ``v//vn``, ``v/vt/vn``; negative indices relative to the end). Polygons are triangulated as
-    fans from their first corner. Other statements (o, g, s, usemtl, mtllib, l, p) are ignored.
+    fans from their first corner. Other statements (o, g, s, usemtl, mtllib, l, p) are ignored
+    here (the names of o, g and usemtl label the faces: :func:`face_labels`).
     Vertices are split where a position is used with different uvs/normals.
 
     Raises:
         InputError: naming the file, line and statement for malformed lines or bad indices.
     """
+    return _read_obj(path)[0]
+
+
+def _read_obj(path: str | os.PathLike[str]) -> tuple[Mesh, dict[str, np.ndarray]]:
+    """:func:`load_obj`'s mesh and its face labels (name → (T,) bool over its triangles)."""
     positions: list[float] = []
     normals: list[float] = []
     uvs: list[float] = []
     corners: list[tuple[int, int, int]] = []
     corner_lines: list[int] = []
+    # the names in force (g's names, o's, usemtl's), and each triangle's set of them
+    groups: tuple[str, ...] = ()
+    obj_name: tuple[str, ...] = ()
+    material: tuple[str, ...] = ()
+    states: dict[frozenset[str], int] = {}
+    tri_state: list[int] = []
     try:
         text = Path(path).read_text(encoding="utf-8", errors="replace")
     except OSError as exc:
@@ -382,14 +396,28 @@ def load_obj(path: str | os.PathLike[str]) -> Mesh:
                                          path=path, line=lineno, field="f")
                     idx.append(i)
                 face.append(tuple(idx))
+            state = states.setdefault(frozenset(groups + obj_name + material), len(states))
             for k in range(1, len(face) - 1):
                 corners.extend((face[0], face[k], face[k + 1]))
                 corner_lines.extend((lineno,) * 3)
-        elif kind in ("o", "g", "s", "usemtl", "mtllib", "l", "p", "vp", "cstype"):
+                tri_state.append(state)
+        elif kind == "g":
+            groups = tuple(tok[1:])
+        elif kind == "o":
+            obj_name = tuple(tok[1:2])
+        elif kind == "usemtl":
+            material = tuple(tok[1:2])
+        elif kind in ("s", "mtllib", "l", "p", "vp", "cstype"):
             continue
         else:
             raise InputError(f"unknown statement {kind!r}", path=path, line=lineno, field=kind)
-    return _finish(path, positions, corners, normals, uvs, corner_lines)
+    mesh = _finish(path, positions, corners, normals, uvs, corner_lines)
+    code = np.asarray(tri_state, np.int64)
+    labels: dict[str, np.ndarray] = {}
+    for names, k in states.items():
+        for name in names:
+            labels[name] = labels.get(name, np.zeros(code.shape, bool)) | (code == k)
+    return mesh, labels
 
 
 _PLY_TYPES = {
@@ -404,11 +432,18 @@ def load_ply(path: str | os.PathLike[str]) -> Mesh:
     """Load a PLY mesh (``ascii 1.0``, ``binary_little_endian 1.0`` or ``binary_big_endian``):
     element ``vertex`` with x, y, z and optionally nx, ny, nz and u, v (or s, t / texture_u,
     texture_v); element ``face`` with a list property ``vertex_indices`` (or ``vertex_index``).
-    Polygons are triangulated as fans. Other elements and properties are skipped.
+    Polygons are triangulated as fans. Other elements and properties are skipped here (the
+    face's scalar properties label the faces: :func:`face_labels`).
 
     Raises:
         InputError: naming the file and the header line or element/field at fault.
     """
+    return _read_ply(path)[0]
+
+
+def _read_ply(path: str | os.PathLike[str]) -> tuple[Mesh, dict[str, np.ndarray]]:
+    """:func:`load_ply`'s mesh and the face element's scalar properties, one value per
+    triangle (property name → (T,) array)."""
     try:
         data = Path(path).read_bytes()
     except OSError as exc:
@@ -559,6 +594,7 @@ def load_ply(path: str | os.PathLike[str]) -> Mesh:
         raise InputError("face element lacks a 'vertex_indices' list", path=path,
                          field="face.vertex_indices")
     tris = []
+    tri_face: list[int] = []
     nv = len(positions)
     for k, poly in enumerate(face[key]):
         poly = np.asarray(poly, dtype=np.int64)
@@ -570,9 +606,75 @@ def load_ply(path: str | os.PathLike[str]) -> Mesh:
                              field="face.vertex_indices")
         for i in range(1, len(poly) - 1):
             tris.append((poly[0], poly[i], poly[i + 1]))
+            tri_face.append(k)
     if not tris:
         raise InputError("no faces", path=path, field="face")
-    return Mesh(positions, np.asarray(tris, dtype=np.int64), normals, uv)
+    scalars = {name: np.asarray(face[name])[np.asarray(tri_face)]
+               for name, _t, item in next(e for e in elements if e["name"] == "face")["props"]
+               if item is None}
+    return Mesh(positions, np.asarray(tris, dtype=np.int64), normals, uv), scalars
+
+
+#: the PLY face properties that name a face's part, tried in this order
+PLY_PART_PROPERTIES = ("material_index", "material", "part", "label", "segment", "group")
+
+
+def face_labels(path: str | os.PathLike[str], *,
+                ply_property: str | None = None) -> dict[str, np.ndarray]:
+    """The named sets of faces of a mesh file, for objects made of parts with a material each.
+
+    OBJ: every name of ``g`` (a face belongs to each group in force), ``o`` and ``usemtl``
+    labels the faces that follow it. PLY: the values of an integer property of the ``face``
+    element, as decimal strings (``ply_property``, default the first present of
+    :data:`PLY_PART_PROPERTIES`).
+
+    Returns:
+        name → ``(T,)`` bool mask over the triangles of :func:`load_mesh` of the same file
+        (polygons triangulated as there); empty when the file names no sets.
+
+    Raises:
+        InputError: the file is malformed, or ``ply_property`` is not an integer property of
+            its faces (naming the file and ``face.<property>``).
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix == ".obj":
+        return _read_obj(path)[1]
+    if suffix != ".ply":
+        raise InputError(f"unknown mesh format {suffix!r} (.obj, .ply)", path=path)
+    scalars = _read_ply(path)[1]
+    if ply_property is None:
+        ply_property = next((n for n in PLY_PART_PROPERTIES if n in scalars), None)
+        if ply_property is None:
+            return {}
+    values = scalars.get(ply_property)
+    if values is None:
+        raise InputError(f"the faces have no scalar property {ply_property!r} (they have "
+                         f"{sorted(scalars)})", path=path, field=f"face.{ply_property}")
+    values = np.asarray(values)
+    if not (np.issubdtype(values.dtype, np.integer)
+            or (np.issubdtype(values.dtype, np.floating) and np.all(values == np.round(values)))):
+        raise InputError(f"face property {ply_property!r} must hold integers", path=path,
+                         field=f"face.{ply_property}")
+    values = values.astype(np.int64)
+    return {str(v): values == v for v in np.unique(values)}
+
+
+def select_faces(mesh: Mesh, mask: np.ndarray) -> Mesh:
+    """The triangles of ``mesh`` where ``mask`` ((T,) bool) holds, with the vertices they use
+    (positions, normals and uvs unchanged, so a part's shading matches the whole's).
+
+    Raises:
+        InputError: ``mask`` has the wrong shape or selects no triangle."""
+    mask = np.asarray(mask, bool)
+    if mask.shape != (mesh.num_triangles,):
+        raise InputError(f"expected shape ({mesh.num_triangles},), got {mask.shape}",
+                         field="mask")
+    if not mask.any():
+        raise InputError("selects no triangle", field="mask")
+    tris = mesh.triangles[mask]
+    used, inv = np.unique(tris, return_inverse=True)
+    return Mesh(mesh.vertices[used], inv.reshape(tris.shape), mesh.normals[used],
+                None if mesh.uvs is None else mesh.uvs[used])
 
 
 # ----------------------------------------------------------------------------- model matrices

@@ -29,7 +29,10 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
                        exposure_luminance ["auto" or cd/m²], scene_white_xy (optional [x, y])
     [spectral]         start_nm [380], end_nm [780], step_nm [5],
                        mode ["bands" | "basis"], k [8]
-    [interreflection]  mode ["gather" | "paper" | "none"], bounces [1], texture_size [256]
+    [interreflection]  mode ["gather" | "paper" | "none"], bounces [1], texture_size [256],
+                       tail ["none" | "geometric"] (a concave object's light on itself after
+                       ``bounces`` steps: "geometric" adds the rest of the series from the
+                       ratio of its last two steps, for bounces >= 3; docs/any_shape.md)
     [[objects]]        name (unique), shape ["uv_sphere" | "icosphere" | "mesh"],
                        radius, stacks [100], slices [100], subdivisions [5], mesh (file),
                        position [[0,0,0]], rotation_deg [[0,0,0]] (XYZ Euler), scale [1.0],
@@ -37,6 +40,14 @@ Schema (all lengths in metres, angles in degrees; defaults in brackets)::
       [objects.material] reflectance (number, CSV file, or "colourchecker:<set>/<patch>"),
                        alpha [1], beta [1], chi [0], mu [0.1], n [1.5], gamma [1],
                        distribution ["gaussian" | "beckmann"], geometry ["vcavity" | "smith"]
+                       (a mesh with parts: the material of the faces no part takes)
+      part_property    (mesh objects with parts, PLY only) the integer face property that
+                       labels the parts [the first of material_index, material, part, label,
+                       segment, group]
+      [[objects.parts]] (mesh objects) a part with a material of its own, an object named
+                       "<name>.<part name>" at the table's pose (docs/any_shape.md, "Parts"):
+                       name, faces [[name]] (labels of the mesh file: OBJ g, o or usemtl
+                       names, PLY property values), [objects.parts.material] (as above)
     [[surfaces]]       (optional) real surfaces that are not drawn but take part in the light
                        transport (docs/surfaces.md): name (unique), shape ["plane"],
                        point [[0,0,0]] (a point of the plane, world, m), normal [[0,1,0]]
@@ -169,6 +180,7 @@ class InterreflectionSpec:
     mode: str = "gather"
     bounces: int = 1
     texture_size: int = 256
+    tail: str = "none"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,9 +214,24 @@ class ObjectSpec:
     scale: float = 1.0
     marker: int | None = None
     marker_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: a part of a mesh object with several materials: the name of the ``[[objects]]`` table
+    #: it comes from (its pose and marker are that table's), else None
+    body: str | None = None
+    #: the face labels of the mesh file this object takes (:func:`~spectral_fit.io.face_labels`;
+    #: None: every face), and those it leaves to other parts
+    faces: tuple[str, ...] | None = None
+    faces_except: tuple[str, ...] = ()
+    #: the PLY face property whose values are the labels (None: the first known one)
+    face_property: str | None = None
+    #: a part's origin: the point of the mesh file (its frame, m, before ``scale``) at the
+    #: centre of the part's bounding box, so that the parts of one body have centres of their
+    #: own (the interreflection and the occlusion between objects are built on each object's
+    #: origin); (0, 0, 0) for a whole object
+    part_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def model_matrix(self) -> np.ndarray:
-        """4×4 world-from-object matrix: translate · Rz · Ry · Rx · scale (column vectors)."""
+        """4×4 world-from-object matrix: translate · Rz · Ry · Rx · scale · translate(part
+        origin) (column vectors)."""
         rx, ry, rz = (math.radians(a) for a in self.rotation_deg)
 
         def rot(axis: int, a: float) -> np.ndarray:
@@ -216,14 +243,14 @@ class ObjectSpec:
 
         m = np.eye(4)
         m[:3, :3] = rot(2, rz) @ rot(1, ry) @ rot(0, rx) * self.scale
-        m[:3, 3] = self.position
+        m[:3, 3] = np.asarray(self.position) + m[:3, :3] @ np.asarray(self.part_origin)
         return m
 
     def make_mesh(self, *, world: bool = False) -> Any:
         """The object's :class:`~spectral_fit.io.Mesh`: its UV sphere, icosphere or mesh
         file in the object's own frame (metres), or moved into the world by
         :meth:`model_matrix` (``world=True``)."""
-        from ._mesh import icosphere, load_mesh, uv_sphere
+        from ._mesh import icosphere, load_mesh, select_faces, translate, uv_sphere
 
         if self.shape == "uv_sphere":
             m = uv_sphere(self.radius, self.stacks, self.slices)
@@ -231,7 +258,24 @@ class ObjectSpec:
             m = icosphere(self.radius, self.subdivisions)
         else:
             m = load_mesh(self.mesh)
+            if self.faces is not None or self.faces_except:
+                m = select_faces(m, self.face_mask())
+            if any(self.part_origin):
+                m = m.transformed(translate(-np.asarray(self.part_origin)))
         return m.transformed(self.model_matrix()) if world else m
+
+    def face_mask(self) -> np.ndarray:
+        """``(T,)`` bool over the triangles of the whole mesh file: those this object takes
+        (a part: its labels; the rest of a body: every face no part takes)."""
+        from ._mesh import face_labels
+
+        labels = face_labels(self.mesh, ply_property=self.face_property)
+        some = next(iter(labels.values()))
+        take = (np.ones(some.shape, bool) if self.faces is None
+                else np.any([labels[k] for k in self.faces], axis=0))
+        for k in self.faces_except:
+            take &= ~labels[k]
+        return take
 
 
 #: OpenCV's predefined marker dictionaries and how many ids each holds
@@ -546,6 +590,73 @@ def _material(r: _Reader, wl: np.ndarray) -> MaterialSpec:
     return m
 
 
+def _objects(r: _Reader, wl: np.ndarray) -> list[ObjectSpec]:
+    """One ``[[objects]]`` table: its object, or for a mesh with ``[[objects.parts]]`` one
+    object per part (named ``<name>.<part>``) and one for the faces no part takes (named
+    ``<name>``, left out when every face is in a part), all at the table's pose."""
+    obj = _object(r, wl)
+    parts = r.raw("parts", None)
+    if parts is None:
+        r.finish()
+        return [obj]
+    if obj.shape != "mesh":
+        raise r.err("parts", "only a mesh object (shape = \"mesh\") has parts")
+    if not isinstance(parts, list) or not parts:
+        raise r.err("parts", "must be a non-empty array of tables ([[objects.parts]])")
+    prop = r.raw("part_property", None)
+    if prop is not None:
+        prop = r.string("part_property")
+        if obj.mesh is not None and obj.mesh.suffix.lower() != ".ply":
+            raise r.err("part_property", "only PLY files have face properties")
+    r.finish()
+    from ._mesh import face_labels
+
+    labels = face_labels(obj.mesh, ply_property=prop)  # type: ignore[arg-type]
+    if not labels:
+        raise r.err("parts", f"{obj.mesh} names no sets of faces (OBJ: g, o or usemtl; PLY: "
+                    "an integer face property such as material_index)")
+    out: list[ObjectSpec] = []
+    owner = np.full(next(iter(labels.values())).shape, -1)
+    taken: list[str] = []
+    for j, t in enumerate(parts):
+        pr = _Reader(t, r.key(f"parts[{j}]"), r.path)
+        part = pr.string("name")
+        faces = pr.raw("faces", [part])
+        if isinstance(faces, str | int) and not isinstance(faces, bool):
+            faces = [faces]
+        if (not isinstance(faces, list) or not faces
+                or not all(isinstance(f, str | int) and not isinstance(f, bool) for f in faces)):
+            raise pr.err("faces", f"must be a list of face labels (names or integers), got "
+                         f"{faces!r}")
+        faces = [str(f) for f in faces]
+        missing = [f for f in faces if f not in labels]
+        if missing:
+            known = sorted(labels)
+            raise pr.err("faces", f"{missing[0]!r} labels no face of {obj.mesh.name} (its "  # type: ignore[union-attr]
+                         f"labels: {known[:20]}{' ...' if len(known) > 20 else ''})")
+        mask = np.any([labels[f] for f in faces], axis=0)
+        clash = np.unique(owner[mask & (owner >= 0)])
+        if clash.size:
+            raise pr.err("faces", f"faces {faces} overlap those of part "
+                         f"{parts[int(clash[0])].get('name')!r}")
+        owner[mask] = j
+        taken.extend(faces)
+        out.append(dataclasses.replace(
+            obj, name=f"{obj.name}.{part}", material=_material(pr.sub("material"), wl),
+            body=obj.name, faces=tuple(faces), face_property=prop))
+        pr.finish()
+    if (owner < 0).any():  # the faces no part takes keep the table's own material
+        out.insert(0, dataclasses.replace(obj, body=obj.name, faces_except=tuple(taken),
+                                          face_property=prop))
+    # each part's origin at its bounding box's centre (the mesh is read once more here)
+    whole = obj.make_mesh()
+    for k, o in enumerate(out):
+        v = whole.vertices[np.unique(whole.triangles[o.face_mask()])]
+        centre = 0.5 * (v.min(axis=0) + v.max(axis=0)).astype(np.float64)
+        out[k] = dataclasses.replace(o, part_origin=tuple(float(x) for x in centre))
+    return out
+
+
 def _object(r: _Reader, wl: np.ndarray) -> ObjectSpec:
     name = r.string("name")
     shape = r.choice("shape", ("uv_sphere", "icosphere", "mesh"), "uv_sphere")
@@ -575,7 +686,6 @@ def _object(r: _Reader, wl: np.ndarray) -> ObjectSpec:
                                bound=MAX_COORD_M),
         **kw,
     )
-    r.finish()
     return obj
 
 
@@ -700,13 +810,16 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
         mode=ir_.choice("mode", ("gather", "paper", "none"), "gather"),
         bounces=ir_.integer("bounces", 1, lo=0, hi=16),
         texture_size=ir_.integer("texture_size", 256, lo=8, hi=4096),
+        tail=ir_.choice("tail", ("none", "geometric"), "none"),
     )
     ir_.finish()
 
     objs = root.raw("objects", [])
     if not isinstance(objs, list) or not objs:
         raise root.err("objects", "need at least one [[objects]] table")
-    objects = tuple(_object(_Reader(o, f"objects[{i}]", p), wl) for i, o in enumerate(objs))
+    groups = [_objects(_Reader(t, f"objects[{i}]", p), wl) for i, t in enumerate(objs)]
+    objects = tuple(o for g in groups for o in g)
+    tables = [i for i, g in enumerate(groups) for _ in g]  # each object's [[objects]] table
     names = [o.name for o in objects]
     dup = {n for n in names if names.count(n) > 1}
     if dup:
@@ -718,7 +831,7 @@ def parse_scene(data: dict[str, Any], *, path: str | os.PathLike[str] | None = N
     snames = [t.name for t in surfaces]
     if len(set(snames)) != len(snames):
         raise root.err("surfaces", f"surface names must be unique: {snames}")
-    markers = _markers(root, objects) if "markers" in data else None
+    markers = _markers(root, objects, tables) if "markers" in data else None
     camera_colour = _camera_colour(root) if "camera_colour" in data else None
     colour_chart = _colour_chart(root, markers) if "colour_chart" in data else None
     root.finish()
@@ -786,7 +899,7 @@ def _camera_colour(root: _Reader) -> CameraColourSpec:
     return spec
 
 
-def _markers(root: _Reader, objects: tuple[ObjectSpec, ...]) -> MarkerSpec:
+def _markers(root: _Reader, objects: tuple[ObjectSpec, ...], tables: list[int]) -> MarkerSpec:
     """The ``[markers]`` table; object marker ids must exist in the dictionary."""
     mr = root.sub("markers")
     dictionary = mr.choice("dictionary", tuple(MARKER_DICTIONARIES), "DICT_5X5_100")
@@ -805,7 +918,7 @@ def _markers(root: _Reader, objects: tuple[ObjectSpec, ...]) -> MarkerSpec:
         gamma=mr.number("gamma", 2.2, lo=0.1, hi=10.0),
     )
     mr.finish()
-    for i, o in enumerate(objects):
+    for i, o in zip(tables, objects, strict=True):
         if o.marker is not None and o.marker >= n_ids:
             raise root.err(f"objects[{i}].marker", f"id {o.marker} is not in {dictionary} "
                            f"(ids 0..{n_ids - 1})")
