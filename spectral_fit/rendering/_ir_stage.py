@@ -60,12 +60,13 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
 def _ir_pass1(prep: Prepared, geoms: list[ObjectGeometry]) -> Any:
     """The interreflection's pass 1 (geometry only) of the objects, with ``prep``'s mode,
     texture size and planned raster capacities."""
-    from .interreflection._pass1 import prepare_interreflection
+    from .interreflection._pass1 import prepare_interreflection, without_pairs
 
     with jax.named_scope("ir_pass1"):
-        return prepare_interreflection(geoms, mode=prep.interreflection.mode,
+        geom = prepare_interreflection(geoms, mode=prep.interreflection.mode,
                                        texture_size=prep.interreflection.texture_size,
                                        raster_config=prep.buffers.ir_raster_config)
+        return without_pairs(geom, prep.interreflection.bodies)
 
 
 def _ir_geometries(prep: Prepared, model: jax.Array, visible: jax.Array

@@ -365,7 +365,8 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
                       model: jax.Array, normals: jax.Array, world_normals: jax.Array,
                       vertex_slices: tuple[tuple[int, int], ...], bounces: int,
                       to_out: jax.Array, quality: str = "fast", split_map: Any = None,
-                      split_settings: Any = None) -> tuple[jax.Array, jax.Array]:
+                      split_settings: Any = None, tail: str = "none"
+                      ) -> tuple[jax.Array, jax.Array]:
     """The change (V, D) of every vertex's diffuse radiance in the output channels of
     ``to_out`` (C, D) that its own object's shape makes (hidden environment, own diffuse
     light; rows of convex objects 0), and that diffuse radiance itself (V, D) (0 for convex
@@ -373,7 +374,12 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
     irradiance map table (or None: the environment's own irradiance). With ``bounces``, the
     light the object's own gloss and mirror send into its hidden directions is added first
     (:func:`_gloss_irradiance`; ``quality``, ``split_map``, ``split_settings`` as the
-    frame's shading)."""
+    frame's shading). ``tail="geometric"`` (with ``bounces`` >= 3) completes the object's own
+    light after the last step: the steps of a power series shrink by the ratio q of its
+    leading eigenvalue, so the rest sums to Δ q / (1 − q), Δ the last step and q the ratio of
+    the last two steps' sums over the patches (per band; in basis mode of their norms),
+    clipped to [0, 0.95]. A white cup's inside (albedo 0.9, 85 % of its view its own wall)
+    needs some 16 steps otherwise."""
     from ..lighting import lookup_level
     from ._shading import _filtered_irradiance, _irradiance_at, _lut_env
 
@@ -424,9 +430,15 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
                                       num_segments=to_p.shape[0]) + to_p @ spec
             b0 = (m.alpha / math.pi) * _filtered_irradiance(m, env, e_p)  # (P, C)
             patch = b0
+            steps = []
             for _ in range(bounces - 1):
                 e_own = st.patch_transfer[i] @ patch + to_p @ _own_gloss(st, i, albedo, patch)
-                patch = b0 + (m.alpha / math.pi) * _filtered_irradiance(m, env, e_own)
+                new = b0 + (m.alpha / math.pi) * _filtered_irradiance(m, env, e_own)
+                steps.append(new - patch)
+                patch = new
+            if tail == "geometric" and len(steps) >= 2:
+                patch = patch + _series_rest(steps[-2], steps[-1],
+                                             per_channel=env.product_tensor is None)
             e = e0 + st.transfer[i] @ patch + _gloss_to_vertices(
                 st, i, spec + _own_gloss(st, i, albedo, patch))
         delta = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e - e_map)) @ to_out
@@ -434,6 +446,18 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
         out = out.at[a:b].set(delta)
         own = own.at[a:b].set(full)
     return out, own
+
+
+def _series_rest(prev: jax.Array, last: jax.Array, *, per_channel: bool) -> jax.Array:
+    """What a converging power series adds after its ``last`` step (P, C), given the step
+    before (``prev``): last · q / (1 − q), q = the steps' ratio (their sums over the rows per
+    channel, or their norms), clipped to [0, 0.95]."""
+    if per_channel:
+        q = jnp.sum(last, 0) / jnp.maximum(jnp.sum(prev, 0), 1e-30)
+    else:
+        q = jnp.linalg.norm(last) / jnp.maximum(jnp.linalg.norm(prev), 1e-30)
+    q = jnp.clip(q, 0.0, 0.95)
+    return last * (q / (1.0 - q))
 
 
 def _gloss_irradiance(st: SelfTransfer, i: int, m: Any, env: Any, rot: jax.Array, *,
@@ -529,13 +553,17 @@ def _hidden_weights(st: SelfTransfer, model: jax.Array, vertex_object: jax.Array
 
 def neighbour_visibility(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Array,
                          pixels: Any, triangles: jax.Array, clip: jax.Array,
-                         position: jax.Array, visible: jax.Array) -> jax.Array:
+                         position: jax.Array, visible: jax.Array,
+                         bodies: tuple[int, ...] = ()) -> jax.Array:
     """How much of the other objects each pixel's own object leaves in view (N,): the
     visibility of the direction towards each other object's centre (as :func:`own_reflection`
     reads its mirror direction's), averaged with weights 1/d² over the visible other
     objects (1 for convex objects). The light the neighbours exchange with a pixel
     (interreflection, and the environment they hide) is scaled by it: the inside of a cup
-    receives nothing from a neighbour behind its wall. No gradient."""
+    receives nothing from a neighbour behind its wall. Other parts of the pixel's own body
+    (``bodies``: (O,) each object's body, () every object its own) are left out of the
+    average: they exchange no light through the interreflection, and their centres lie
+    inside the body (a cup's glaze), behind its own walls. No gradient."""
     from ..geometry import pixel_barycentrics
 
     bary, tri = pixel_barycentrics(pixels, triangles, clip)
@@ -543,10 +571,11 @@ def neighbour_visibility(st: SelfTransfer, *, model: jax.Array, vertex_object: j
     centres = model[:, :3, 3]
     num = jnp.zeros(position.shape[:1], jnp.float32)
     den = jnp.zeros(position.shape[:1], jnp.float32)
+    body = jnp.asarray(bodies if bodies else range(model.shape[0]), jnp.int32)
     for k in range(model.shape[0]):
         d = centres[k][None] - position
         d2 = jnp.maximum(jnp.sum(d * d, -1), 1e-12)
-        wk = jnp.where((obj != k) & visible[k], 1.0 / d2, 0.0)
+        wk = jnp.where((body[obj] != body[k]) & visible[k], 1.0 / d2, 0.0)
         wt, _, _ = _hidden_weights(st, model, vertex_object, pixels, bary, tri,
                                    d * jax.lax.rsqrt(d2)[:, None])
         num = num + wk * (1.0 - jnp.sum(wt, axis=(1, 2)))

@@ -121,6 +121,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
                 model=model, normals=mesh.normals, world_normals=wnorm,
                 vertex_slices=mesh.object_slices,
                 bounces=prep.interreflection.bounces if own_light else 0, to_out=to_out,
+                tail=prep.interreflection.tail,
                 quality=prep.lighting.quality, split_map=prep.lighting.split_map,
                 split_settings=prep.lighting.split_settings)
         attrs.append(corr)
@@ -196,7 +197,8 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
             # what the pixel's own object hides of its neighbours (a cup's inside)
             ir = ir * neighbour_visibility(
                 occ, model=model, vertex_object=mesh.vertex_object, pixels=pix,
-                triangles=tris, clip=clip, position=pos, visible=visible)[:, None]
+                triangles=tris, clip=clip, position=pos, visible=visible,
+                bodies=prep.interreflection.bodies)[:, None]
         radiance = radiance + ir
     # materialised: otherwise the interreflection's tail (its chunks' results put back in
     # slot order, the anchors' interpolation) was fused into each consumer's every channel

@@ -82,6 +82,14 @@ def _ir_mesh(obj: Any, mesh: Any, mode: str) -> Any:
     return mesh
 
 
+def _bodies(scene: Scene) -> tuple[int, ...]:
+    """Each object's body (the index of the body's first object); () when each object is
+    its own."""
+    first: dict[str, int] = {}
+    out = tuple(first.setdefault(o.body or f"\0{i}", i) for i, o in enumerate(scene.objects))
+    return () if out == tuple(range(len(out))) else out
+
+
 _DISPLAYS: dict[tuple, Any] = {}
 
 
@@ -372,7 +380,9 @@ def prepare(
             scene_white_xy=None if d.scene_white_xy is None else tuple(d.scene_white_xy)),
         buffers=PreparedBuffers(clusters=clusters, raster_config=cfg, ir_raster_config=ir_cfg,
                                 pixel_capacity=cap),
-        interreflection=PreparedInterreflection(mode=ir_mode, bounces=nb, texture_size=ts),
+        interreflection=PreparedInterreflection(mode=ir_mode, bounces=nb, texture_size=ts,
+                                                bodies=_bodies(scene),
+                                                tail=scene.interreflection.tail),
         names=tuple(o.name for o in scene.objects),
         occlusion=occ,
         surfaces=planes,

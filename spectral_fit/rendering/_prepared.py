@@ -52,7 +52,7 @@ TRACE_COUNT = {"render_frame": 0, "ir_senders": 0}
 #: version of :class:`Prepared`'s layout (its parts and their fields), part of the
 #: prepared-scene cache's keys: an entry pickled with another layout is never loaded
 #: (1: one flat class; 2: the named parts)
-PREPARED_LAYOUT = 6
+PREPARED_LAYOUT = 7
 
 
 class SceneMeshes(eqx.Module):
@@ -195,11 +195,20 @@ class PreparedInterreflection(eqx.Module):
         mode: "gather", "paper" or "none".
         bounces: number of bounces.
         texture_size: side of paper mode's pass-1 textures (texels).
+        bodies: (O,) the body each object belongs to (the index of its first object): the
+            parts of one mesh with several materials share a body, and the interreflection
+            passes no light between them
+            (:func:`~spectral_fit.rendering.interreflection.without_pairs`); () when every
+            object is its own body.
+        tail: "none" or "geometric": how a concave object's own light ends after
+            ``bounces`` steps (:func:`~spectral_fit.rendering._occlusion.vertex_correction`).
     """
 
     mode: str = eqx.field(static=True)
     bounces: int = eqx.field(static=True)
     texture_size: int = eqx.field(static=True)
+    bodies: tuple[int, ...] = eqx.field(static=True, default=())
+    tail: str = eqx.field(static=True, default="none")
 
 
 class Prepared(eqx.Module):

@@ -20,6 +20,7 @@ _EXPORTS: dict[str, str] = {
     "pass1_config": "_pass1",
     "plan_gather_pass1": "_pass1",
     "prepare_interreflection": "_pass1",
+    "without_pairs": "_pass1",
 }
 
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -122,6 +122,39 @@ class IRGeometry(eqx.Module):
         return pair_list(self.n_objects)
 
 
+def without_pairs(geom: IRGeometry, bodies: tuple[int, ...]) -> IRGeometry:
+    """``geom`` with the pairs of two parts of one body emptied (no samples, no depth map):
+    no light or shadow passes between them through this pass.
+
+    Parts of one mesh (materials of their own, one pose) touch along their shared edges and
+    their bounding spheres nest (a cup's glaze inside its body), while pass 1 represents the
+    sender as seen along the axis between the two centres, which holds for objects apart;
+    between two parts it let light through the wall. Their exchange is left out (what a cup's
+    inside and outside exchange is the light across its lip; the inside's own bounces and
+    every other object's light stay).
+
+    Args:
+        geom: pass 1 of O objects.
+        bodies: (O,) each object's body; () keeps every pair.
+    """
+    if not bodies:
+        return geom
+    keep_np = np.asarray([bodies[i] != bodies[j] for i, j in geom.pairs], bool)
+    if keep_np.all():
+        return geom
+    keep = jnp.asarray(keep_np)
+    f = keep.astype(jnp.float32)
+    changes = {}
+    if geom.s_area is not None:
+        changes.update(s_area=geom.s_area * f[:, None], s_cov=geom.s_cov * f[:, None],
+                       s_front=geom.s_front * f[:, None, None])
+    if geom.p_valid is not None:
+        changes.update(p_valid=geom.p_valid & keep[:, None])
+    names = tuple(changes)
+    return eqx.tree_at(lambda g: tuple(getattr(g, k) for k in names), geom,
+                       tuple(changes[k] for k in names))
+
+
 def _normalize(v: jax.Array) -> jax.Array:
     return v / jnp.sqrt(jnp.maximum(jnp.sum(v * v, axis=-1, keepdims=True), 1e-30))
 

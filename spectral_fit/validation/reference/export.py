@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from typing import Any
 
 import numpy as np
@@ -229,7 +230,7 @@ def scene_dict(
         bsdf = {"type": PLUGIN, "alpha": m.alpha, "beta": m.beta, "chi": m.chi, "mu": m.mu,
                 "n": m.n, "distribution": m.distribution, "geometry": m.geometry,
                 "s0": float(s[0]), "s1": float(s[1]), "s2": float(s[2])}
-        key = f"obj_{obj.name}"
+        key = "obj_" + re.sub(r"\W", "_", obj.name)  # Mitsuba's keys: no "." (a part's)
         if analytic_spheres and obj.shape in ("uv_sphere", "icosphere"):
             d[key] = {"type": "sphere", "center": list(obj.position),
                       "radius": float(obj.radius * obj.scale), "bsdf": bsdf}
