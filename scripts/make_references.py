@@ -8,7 +8,7 @@
 
 Sphere configs (benchmark, two_spheres): patches tiling the exact spheres
 (:func:`~spectral_fit.validation.reference.make_reference`). Scenes of any shape (any_shape,
-on_table, flat_faces, four_objects): the frame's 5×5 patch grid, kept where a patch and a
+on_table, flat_faces, four_objects, parts): the frame's 5×5 patch grid, kept where a patch and a
 one-pixel border around it show one object (our rasteriser's object ids, the same meshes) or,
 with a ``[[surfaces]]`` table, the table within 2 bounding radii of an object
 (:func:`~spectral_fit.validation.reference.make_mesh_reference`); their renders are kept in
@@ -41,9 +41,10 @@ DEFAULT_SPP = {"benchmark": 512, "two_spheres": 256}
 #: any_shape and on_table are those of their scripts' renders)
 MESH_CONFIGS = {"any_shape": "configs/any_shape.toml", "on_table": "configs/on_table.toml",
                 "flat_faces": "configs/flat_faces.toml",
-                "four_objects": "configs/four_objects.toml"}
-MESH_SPP = {"any_shape": 64, "on_table": 64, "flat_faces": 128, "four_objects": 128}
-MESH_PASSES = {"any_shape": 16, "on_table": 8, "flat_faces": 8, "four_objects": 8}
+                "four_objects": "configs/four_objects.toml", "parts": "configs/parts.toml"}
+MESH_SPP = {"any_shape": 64, "on_table": 64, "flat_faces": 128, "four_objects": 128,
+            "parts": 128}
+MESH_PASSES = {"any_shape": 16, "on_table": 8, "flat_faces": 8, "four_objects": 8, "parts": 8}
 
 
 def main(argv: list[str] | None = None) -> int:

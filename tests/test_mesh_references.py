@@ -1,5 +1,5 @@
 """The committed references of scenes of any shape (measurements/reference/{any_shape, on_table,
-flat_faces, four_objects}.npz): made from today's configs and meshes, patches where the
+flat_faces, four_objects, parts}.npz): made from today's configs and meshes, patches where the
 camera sees one object (checked with exact ray casts against the slabs, the spheres and the
 table plane, not with our rasteriser), labels reproduced from the stored spectra, noise as
 recorded; the region report's arithmetic; (slow) `spectral-fit validate` of every scene against
@@ -20,7 +20,7 @@ from spectral_fit.io import load_scene
 from spectral_fit.validation.reference import load_reference
 from spectral_fit.validation.reference.render import camera_rays, sphere_hits
 
-NAMES = ["any_shape", "on_table", "flat_faces", "four_objects"]
+NAMES = ["any_shape", "on_table", "flat_faces", "four_objects", "parts"]
 
 
 @pytest.fixture(scope="module", params=NAMES)
@@ -227,6 +227,7 @@ MISSED = {
     "flat_faces": {"objects, interreflection < 2 %": (0.08, 1.19, 8.53),
                    "objects, interreflection > 2 %": (1.78, 7.20, 13.10)},
     "two_spheres": {"objects, interreflection > 2 %": (0.18, 1.04, 3.29)},
+    "parts": {"objects, interreflection > 2 %": (0.30, 2.10, 2.61)},
 }
 
 
@@ -241,7 +242,8 @@ def test_validate_every_scene(name, tmp_path):
     > 2 % 1.78 / 7.20 / 13.10 (the back slab's face beside the front slab, 1.5× too bright:
     its samples lie 14 mm apart there, and the share of the sky the front slab hides falls
     from 0.75 to 0.1 within 15 mm of its edge); two_spheres > 2 % max 3.29 (the yellow
-    sphere's rim facing the red one). Met today: every other figure, all of
+    sphere's rim facing the red one); parts > 2 % p90 2.10 (the glaze inside the cup 8 % too
+    dark: its own glossy light). Met today: every other figure, all of
     benchmark's and four_objects' (the sphere references in gather, their regions split at
     2 %). The picture is written where asked."""
     import subprocess
