@@ -328,3 +328,13 @@ def test_geometric_tail_matches_the_series_closed_form():
     # basis mode: one ratio for all channels (their norms)
     one = x4[:, :1] + np.asarray(_series_rest(prev[:, :1], last[:, :1], per_channel=False))
     assert np.abs(one[:, 0] / exact[:, 0] - 1).max() < 0.01
+
+
+def test_look_at_a_point_from_itself_is_the_default_camera():
+    """Two parts whose boxes share a centre (a hollow ball's inner and outer surface) put a
+    pass-1 camera at its own target: finite, looking along −Z (their pair is emptied)."""
+    from spectral_fit.geometry import look_at
+
+    v = np.asarray(look_at([0.1, 0.2, 0.3], [0.1, 0.2, 0.3]))
+    np.testing.assert_allclose(v[:3, :3], np.eye(3), atol=1e-7)
+    np.testing.assert_allclose(v[:3, 3], [-0.1, -0.2, -0.3], atol=1e-7)

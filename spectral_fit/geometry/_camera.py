@@ -57,15 +57,17 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> jax.Array:
     """View matrix (world → OpenGL eye) of a camera at ``eye`` looking at ``target``, with
     ``up`` (default world +Y) appearing up in the image (gluLookAt).
 
-    Degenerate case: when the look direction is (nearly) parallel to ``up``, the camera is
+    Degenerate cases: when the look direction is (nearly) parallel to ``up``, the camera is
     treated as pitched from the default camera by ±90°: image up becomes +Z when looking along
-    +Y and −Z when looking along −Y (for up = +Y; in general ``up`` rotated likewise).
+    +Y and −Z when looking along −Y (for up = +Y; in general ``up`` rotated likewise). When
+    ``target`` is ``eye`` (two parts of one mesh with one centre), the camera looks along −Z.
     """
     eye = jnp.asarray(eye, jnp.float32)
     target = jnp.asarray(target, jnp.float32)
     up = jnp.asarray(up, jnp.float32)
     f = target - eye
-    f = f / jnp.linalg.norm(f)
+    fn = jnp.linalg.norm(f)
+    f = jnp.where(fn > 0.0, f / jnp.where(fn > 0.0, fn, 1.0), jnp.array([0.0, 0.0, -1.0]))
     upn = up / jnp.linalg.norm(up)
     s = jnp.cross(f, upn)
     sn = jnp.linalg.norm(s)
