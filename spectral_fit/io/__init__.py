@@ -47,6 +47,7 @@ _EXPORTS: dict[str, str] = {
     "face_labels": "_mesh",
     "icosphere": "_mesh",
     "is_closed_outward": "_mesh",
+    "load_labelled_mesh": "_mesh",
     "load_mesh": "_mesh",
     "load_obj": "_mesh",
     "load_ply": "_mesh",

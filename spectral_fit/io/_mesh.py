@@ -33,6 +33,7 @@ __all__ = [
     "load_obj",
     "load_ply",
     "face_labels",
+    "load_labelled_mesh",
     "select_faces",
     "vertex_normals",
     "is_closed_outward",
@@ -636,16 +637,22 @@ def face_labels(path: str | os.PathLike[str], *,
         InputError: the file is malformed, or ``ply_property`` is not an integer property of
             its faces (naming the file and ``face.<property>``).
     """
+    return load_labelled_mesh(path, ply_property=ply_property)[1]
+
+
+def load_labelled_mesh(path: str | os.PathLike[str], *, ply_property: str | None = None
+                       ) -> tuple[Mesh, dict[str, np.ndarray]]:
+    """:func:`load_mesh` and :func:`face_labels` of one file, read once."""
     suffix = Path(path).suffix.lower()
     if suffix == ".obj":
-        return _read_obj(path)[1]
+        return _read_obj(path)
     if suffix != ".ply":
         raise InputError(f"unknown mesh format {suffix!r} (.obj, .ply)", path=path)
-    scalars = _read_ply(path)[1]
+    mesh, scalars = _read_ply(path)
     if ply_property is None:
         ply_property = next((n for n in PLY_PART_PROPERTIES if n in scalars), None)
         if ply_property is None:
-            return {}
+            return mesh, {}
     values = scalars.get(ply_property)
     if values is None:
         raise InputError(f"the faces have no scalar property {ply_property!r} (they have "
@@ -656,7 +663,7 @@ def face_labels(path: str | os.PathLike[str], *,
         raise InputError(f"face property {ply_property!r} must hold integers", path=path,
                          field=f"face.{ply_property}")
     values = values.astype(np.int64)
-    return {str(v): values == v for v in np.unique(values)}
+    return mesh, {str(v): values == v for v in np.unique(values)}
 
 
 def select_faces(mesh: Mesh, mask: np.ndarray) -> Mesh:

@@ -250,26 +250,36 @@ class ObjectSpec:
         """The object's :class:`~spectral_fit.io.Mesh`: its UV sphere, icosphere or mesh
         file in the object's own frame (metres), or moved into the world by
         :meth:`model_matrix` (``world=True``)."""
-        from ._mesh import icosphere, load_mesh, select_faces, translate, uv_sphere
+        from ._mesh import (
+            icosphere,
+            load_labelled_mesh,
+            load_mesh,
+            select_faces,
+            translate,
+            uv_sphere,
+        )
 
         if self.shape == "uv_sphere":
             m = uv_sphere(self.radius, self.stacks, self.slices)
         elif self.shape == "icosphere":
             m = icosphere(self.radius, self.subdivisions)
-        else:
+        elif self.faces is None and not self.faces_except:
             m = load_mesh(self.mesh)
-            if self.faces is not None or self.faces_except:
-                m = select_faces(m, self.face_mask())
-            if any(self.part_origin):
-                m = m.transformed(translate(-np.asarray(self.part_origin)))
+        else:
+            m, labels = load_labelled_mesh(self.mesh, ply_property=self.face_property)
+            m = select_faces(m, self.face_mask(labels))
+        if any(self.part_origin):
+            m = m.transformed(translate(-np.asarray(self.part_origin)))
         return m.transformed(self.model_matrix()) if world else m
 
-    def face_mask(self) -> np.ndarray:
+    def face_mask(self, labels: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """``(T,)`` bool over the triangles of the whole mesh file: those this object takes
-        (a part: its labels; the rest of a body: every face no part takes)."""
+        (a part: its labels; the rest of a body: every face no part takes). ``labels``: the
+        file's :func:`~spectral_fit.io.face_labels` (read from it when None)."""
         from ._mesh import face_labels
 
-        labels = face_labels(self.mesh, ply_property=self.face_property)
+        if labels is None:
+            labels = face_labels(self.mesh, ply_property=self.face_property)
         some = next(iter(labels.values()))
         take = (np.ones(some.shape, bool) if self.faces is None
                 else np.any([labels[k] for k in self.faces], axis=0))
@@ -609,9 +619,9 @@ def _objects(r: _Reader, wl: np.ndarray) -> list[ObjectSpec]:
         if obj.mesh is not None and obj.mesh.suffix.lower() != ".ply":
             raise r.err("part_property", "only PLY files have face properties")
     r.finish()
-    from ._mesh import face_labels
+    from ._mesh import load_labelled_mesh
 
-    labels = face_labels(obj.mesh, ply_property=prop)  # type: ignore[arg-type]
+    whole, labels = load_labelled_mesh(obj.mesh, ply_property=prop)  # type: ignore[arg-type]
     if not labels:
         raise r.err("parts", f"{obj.mesh} names no sets of faces (OBJ: g, o or usemtl; PLY: "
                     "an integer face property such as material_index)")
@@ -648,10 +658,9 @@ def _objects(r: _Reader, wl: np.ndarray) -> list[ObjectSpec]:
     if (owner < 0).any():  # the faces no part takes keep the table's own material
         out.insert(0, dataclasses.replace(obj, body=obj.name, faces_except=tuple(taken),
                                           face_property=prop))
-    # each part's origin at its bounding box's centre (the mesh is read once more here)
-    whole = obj.make_mesh()
+    # each part's origin at its bounding box's centre
     for k, o in enumerate(out):
-        v = whole.vertices[np.unique(whole.triangles[o.face_mask()])]
+        v = whole.vertices[np.unique(whole.triangles[o.face_mask(labels)])]
         centre = 0.5 * (v.min(axis=0) + v.max(axis=0)).astype(np.float64)
         out[k] = dataclasses.replace(o, part_origin=tuple(float(x) for x in centre))
     return out
