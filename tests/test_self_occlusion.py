@@ -109,17 +109,24 @@ def test_integrating_sphere_matches_its_closed_form(port_scene, mode, bounces):
         assert np.median(s0) == pytest.approx(RHO, rel=0.02)
 
 
+def _sphere_exit(x: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Where rays (unit ``d`` (N, 3)) from points ``x`` (N, 3) inside or on the sphere of
+    radius R about the origin leave it: the far root of |x + s d| = R."""
+    b = np.sum(x * d, -1)
+    return x + (-b + np.sqrt(np.maximum(b * b - np.sum(x * x, -1) + R * R, 0.0)))[:, None] * d
+
+
 def test_gloss_self_transfer_against_ray_casting(port_scene):
     """The light a mirroring wall (χ = 1, n = 1.5) passes on inside an integrating sphere
     under a uniform sky of radiance 1, per receiver vertex: from the sky (the wall's mirror
-    direction escapes through the port) and from the wall's own diffuse radiance (held at 1),
-    against a second implementation: 6,000 Fibonacci directions per receiver cast at the
-    mesh in float64, Fresnel at each hit's angle, the mirror ray cast again. (A white
+    direction escapes through the port), from the wall's own diffuse radiance (held at 1),
+    and the sky reflected twice, against rays traced in the exact sphere (20,000 Fibonacci
+    directions per receiver, float64; each chord of a sphere meets the wall at the angle of
+    the one before, so every reflection of a ray has the same Fresnel factor). (A white
     furnace does not apply: the model's albedo α + β A + χ F exceeds 1, so with every term
     carried a closed glossy cavity has no finite radiance.)"""
     import jax
     import jax.numpy as jnp
-    from helpers.interreflection import ray_mesh
     from helpers.lighting import fresnel
 
     import spectral_fit.rendering._occlusion as occlusion
@@ -133,29 +140,36 @@ def test_gloss_self_transfer_against_ray_casting(port_scene):
     sky, albedo = occlusion._gloss_irradiance(
         st, 0, m, lit.env, jnp.eye(3), quality=lit.quality, split_map=lit.split_map,
         split_settings=lit.split_settings)
-    own = occlusion._own_gloss(st, 0, albedo, jnp.ones((st.transfer[0].shape[1], 4)))
-    e_sky, e_own = (np.asarray(occlusion._gloss_to_vertices(st, 0, x))[:, 1]
-                    for x in (sky, own))
+    n_p = st.transfer[0].shape[1]
+    own = occlusion._own_gloss(st, 0, albedo, jnp.ones((n_p, 4)))
+    twice = occlusion._own_gloss(st, 0, albedo, jnp.zeros((n_p, 4)), sky)  # via gloss_next
+    ours = np.stack([np.asarray(occlusion._gloss_to_vertices(st, 0, x))[:, 1]
+                     for x in (sky, own, twice)], axis=1)  # (V, 3)
 
-    v, t, n = bowl(R, 16, 32, port_deg=PORT_DEG)
-    k = 6000
-    dirs = fibonacci_directions(k)
+    v, _, n = bowl(R, 16, 32, port_deg=PORT_DEG)
     polar = np.degrees(np.arccos(np.clip(-v[:, 2] / R, -1.0, 1.0)))
-    for i in np.flatnonzero((polar > 10.0) & (polar < 90.0))[::37]:
+    port_z = R * np.cos(np.radians(PORT_DEG))
+    dirs = fibonacci_directions(20000)
+    rows = np.flatnonzero((polar > 10.0) & (polar < 90.0))[::7]
+    truth = []
+    for i in rows:
         d = dirs[dirs @ n[i] > 0.0]
-        hit, dist, nh = ray_mesh(v[i] + 1e-7 * n[i], d, v, n, t)
-        x = v[i] + dist[hit, None] * d[hit]
-        c = -np.sum(d[hit] * nh[hit], axis=1)
-        refl = d[hit] + 2.0 * c[:, None] * nh[hit]
-        escapes = np.array([not ray_mesh(x[j] + 1e-7 * nh[hit][j], refl[j:j + 1], v, n, t)[0][0]
-                            for j in range(len(x))])
-        wf = (d[hit] @ n[i]) * (4.0 * np.pi / k) * fresnel(np.clip(c, 0.0, 1.0), 1.5)
-        sky, own = np.sum(wf * escapes), np.sum(wf * ~escapes)
-        # 48 patches × 3 bins of the angle: the total within 20 % (it runs 5–17 % low),
-        # the sky's share (mirror rays that graze the port's rim) below 50° from the bottom
-        assert e_sky[i] + e_own[i] == pytest.approx(sky + own, rel=0.2), polar[i]
-        if polar[i] < 50.0:
-            assert e_sky[i] == pytest.approx(sky, rel=0.2), polar[i]
+        y1 = _sphere_exit(np.broadcast_to(v[i], d.shape), d)
+        c = np.clip(np.sum(d * y1, 1) / R, 0.0, 1.0)  # at y1, about its inward normal −y1/R
+        r1 = d - 2.0 * c[:, None] * y1 / R
+        y2 = _sphere_exit(y1, r1)
+        y3 = _sphere_exit(y2, r1 - 2.0 * c[:, None] * y2 / R)
+        wf = (d @ n[i]) * (4.0 * np.pi / len(dirs)) * fresnel(c, 1.5) * (y1[:, 2] < port_z)
+        out1, out2 = y2[:, 2] >= port_z, y3[:, 2] >= port_z
+        truth.append([np.sum(wf * out1), np.sum(wf * ~out1),
+                      np.sum(wf * fresnel(c, 1.5) * ~out1 * out2)])
+    ratio = ours[rows] / np.asarray(truth)
+    # 48 patches × 3 bins of the angle: per vertex within 35 % (measured 0.78–1.30: the
+    # port's edge crossing the direction grid), summed over the vertices within 6 % (measured
+    # sky 0.973, own light 0.976, sky twice 1.021)
+    assert np.all(np.abs(ratio - 1.0) < 0.35), (polar[rows], ratio)
+    total = ours[rows].sum(axis=0) / np.asarray(truth).sum(axis=0)
+    np.testing.assert_allclose(total, 1.0, atol=0.06)
 
 
 @pytest.mark.slow

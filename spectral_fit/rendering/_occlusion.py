@@ -25,20 +25,23 @@ Per frame (:func:`vertex_correction`, traced; every shape fixed by the meshes an
    hides is its own radiance there: diffuse, plus what its gloss and mirror send towards the
    receiver (:func:`_gloss_irradiance`, :func:`_own_gloss`: per pair of ``GLOSS_PATCHES``
    patches and bin of the angle at the sender, the environment along the sender's mirror
-   direction where the object leaves it open, else the object's own diffuse radiance there);
+   direction where the object leaves it open, else the object's own light there: its diffuse
+   radiance and the gloss the patch met sends back, :func:`_own_gloss`);
 4. the vertex's change of diffuse radiance α S (E − E_map)/π in the output channels (V, D),
    which the frame interpolates over the triangles and adds to the shading of its pixels.
 
 The gloss and mirror terms are scaled per pixel by the visibility of the mirror direction
 (:func:`own_reflection`: the pixel's triangle's three vertices, bilinear in the octahedral
 map, blended by the pixel's barycentrics), and the hidden share reflects the object's own
-diffuse radiance at the vertex nearest the hit instead, times β A(θr) + χ F (not in mode
-"none", which is the direct light alone).
+light instead, times β A(θr) + χ F: the diffuse radiance at the vertex nearest the hit and
+the gloss the hit's patch sends towards the pixel's (not in mode "none", which is the direct
+light alone).
 
 Errors: the hidden set is resolved to the directions' spacing (~0.15 rad at R = 24; the
 cosine-weighted visible fraction of a hemispherical bowl's inside, ½ exactly, comes out within
-±0.04 per vertex); the gloss part of the self-transfer runs 5–17 % low against ray casting
-inside a mirroring integrating sphere (48 patches, 3 angle bins); visibility carries no gradient
+±0.04 per vertex); the gloss part of the self-transfer is 0.8–1.3 of ray casting per vertex
+inside a mirroring integrating sphere (48 patches, 3 angle bins, the sky reflected once; twice:
+0.9–1.25); visibility carries no gradient
 (the correction is differentiable w.r.t. every material parameter).
 """
 
@@ -61,6 +64,8 @@ MAX_PATCHES = 256
 GLOSS_PATCHES = 48
 #: bins of cosθ at the sender in the self-transfer's gloss
 GLOSS_BINS = np.array([0.0, 0.3, 0.6, 1.0 + 1e-6])
+#: the refractive index whose Fresnel factor picks a triple's representative angle
+NOMINAL_N = 1.5
 
 
 class SelfTransfer(eqx.Module):
@@ -91,10 +96,13 @@ class SelfTransfer(eqx.Module):
         gloss_share: per listed object (U_o,) float32 the triple's bin's share of the pair's
             transfer.
         gloss_view: per listed object (U_o, 3) float32 a direction from sender q towards
-            receiver patch p with the bin's mean cosθ (object frame).
-        gloss_visible: per listed object (U_o,) float32 how much of the mirror direction of
-            ``gloss_view`` about ``gloss_normal[q]`` patch q's vertices see (area-weighted
-            mean of their bilinear visibility).
+            receiver patch p (the pair's mean azimuth) at the angle whose Fresnel factor is
+            the mean of the triple's directions that land on the object (object frame): the
+            angle of the albedo with which q reflects the object's own light.
+        gloss_visible: per listed object (U_o,) float32 how much of the triple's mirror
+            directions leave the object: each hidden direction of the pair mirrored about the
+            normal of the vertex it meets, that vertex's bilinear visibility of it, weighted as
+            the transfer.
         gloss_hit: per listed object (U_o, G_o) float32 where that mirror direction lands on
             the object instead, as shares of the gloss patches (each row sums to
             1 − ``gloss_visible``).
@@ -103,6 +111,20 @@ class SelfTransfer(eqx.Module):
         gloss_to_patches: per listed object (P_o, U_o) float32 what radiance sent along each
             triple adds to the patches' irradiance (the vertices' gloss irradiance,
             :func:`_gloss_to_vertices`, averaged over each patch as the Jacobi steps do).
+        gloss_next: per listed object (U_o, G_o) int32 the triple whose radiance arrives
+            along each share of ``gloss_hit``: the hit patch g sending towards the triple's
+            sender q, in the bin of the angle at g (U_o: none): the gloss of the hit, reflected
+            again by the sender (the light a cup's walls pass on from wall to wall).
+        gloss_open_view: per listed object (U_o, 3) float32 the view of the environment the
+            triple sends: mirrored about ``gloss_normal[q]``, the mean of the mirror directions
+            of the triple's hidden directions (each about its own hit's normal) weighted by how
+            much of each leaves the object (``gloss_view`` where none does).
+        gloss_slot: (V,) int32 each of ``prep.mesh``'s vertices' gloss patch, numbered over
+            the listed objects one after another (−1 for the vertices of convex objects).
+        gloss_triple: (G, G, J) int32 the triple (receiver slot, sender slot, bin of the angle
+            at the sender) in the listed objects' triples one object after another (its U
+            rows), the nearest bin that carries light where the bin itself carries none, and U
+            where the pair carries none (two objects, or patches that never see each other).
         objects: static indices of the listed (non-convex) objects.
         resolution: static R.
         env_level: static prefilter level of the environment along the directions.
@@ -127,6 +149,10 @@ class SelfTransfer(eqx.Module):
     gloss_hit: tuple[jax.Array, ...]
     gloss_from_patch: tuple[jax.Array, ...]
     gloss_to_patches: tuple[jax.Array, ...]
+    gloss_next: tuple[jax.Array, ...]
+    gloss_open_view: tuple[jax.Array, ...]
+    gloss_slot: jax.Array
+    gloss_triple: jax.Array
     objects: tuple[int, ...] = eqx.field(static=True)
     resolution: int = eqx.field(static=True)
     env_level: int = eqx.field(static=True)
@@ -233,24 +259,51 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
         shares.append(jnp.asarray(share, jnp.float32))
     if not objs:
         return None
-    per_object = (tuple(jnp.asarray(x) for x in col) for col in zip(*gloss, strict=True))
+    tables = [g[-1] for g in gloss]
+    per_object = (tuple(jnp.asarray(x) for x in col)
+                  for col in zip(*(g[:-1] for g in gloss), strict=True))
+    slot, triple = _gloss_slots(tables, [len(g[4]) for g in gloss],
+                                [vertex_slices[o] for o in objs], [g[2] for g in gloss],
+                                len(vertices))
     return SelfTransfer(jnp.asarray(dirs), jnp.asarray(row),
                         jnp.asarray(np.concatenate(hidden_rows)),
                         jnp.asarray(np.concatenate(hit_rows)), tuple(weights),
                         tuple(transfers), tuple(patch_of), tuple(shares), *per_object,
+                        jnp.asarray(slot), jnp.asarray(triple),
                         tuple(objs), int(resolution), env_level_for(env, resolution))
 
 
+def _gloss_slots(tables: list[np.ndarray], counts: list[int], slices: list[tuple[int, int]],
+                 g_ofs: list[np.ndarray], v_total: int) -> tuple[np.ndarray, np.ndarray]:
+    """:class:`SelfTransfer`'s ``gloss_slot`` (V,) and ``gloss_triple`` (G, G, J) from each
+    listed object's triple table (G_o, G_o, J) (local triples, U_o = ``counts`` where none),
+    vertex range and gloss patches (V_o,)."""
+    n_j = len(GLOSS_BINS) - 1
+    n_total = sum(t.shape[0] for t in tables)
+    u_total = sum(counts)
+    slot = np.full(v_total, -1, np.int32)
+    triple = np.full((n_total, n_total, n_j), u_total, np.int32)
+    g0 = u0 = 0
+    for tab, u_o, (a, b), g_of in zip(tables, counts, slices, g_ofs, strict=True):
+        n_g = tab.shape[0]
+        slot[a:b] = g0 + g_of
+        triple[g0:g0 + n_g, g0:g0 + n_g] = np.where(tab < u_o, u0 + tab, u_total)
+        g0, u0 = g0 + n_g, u0 + u_o
+    return slot, triple
+
+
 def _gloss_used(tg: np.ndarray, g_of: np.ndarray, normal: np.ndarray, share: np.ndarray,
-                view: np.ndarray, visible: np.ndarray, lands: np.ndarray, *,
-                p_of: np.ndarray, vertex_share: np.ndarray, area: np.ndarray
-                ) -> tuple[np.ndarray, ...]:
+                view: np.ndarray, visible: np.ndarray, lands: np.ndarray,
+                land_bin: np.ndarray, open_view: np.ndarray, *, p_of: np.ndarray,
+                vertex_share: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, ...]:
     """:func:`_gloss_pairs`' arrays (``tg`` (V, G), ``g_of`` (V,), ``normal`` (G, 3) and, per
     (pair, bin), ``share`` (G, G, J), ``view`` (G, G, J, 3), ``visible`` (G, G, J), ``lands``
-    (G·G·J, G)) kept for the U triples that carry light, with the maps from the gloss patches
-    to the P patches ``p_of`` (V,) (``vertex_share`` (V,): each vertex's area share of its
-    patch; ``area`` (V,)): the :class:`SelfTransfer` fields from ``gloss_transfer`` to
-    ``gloss_to_patches``."""
+    (G·G·J, G), ``land_bin`` (G·G·J, G) the bin of the angle at each landing patch,
+    ``open_view`` (G, G, J, 3) the view of the environment the triple sends) kept for
+    the U triples that carry light, with the maps from the gloss patches to the P patches
+    ``p_of`` (V,) (``vertex_share`` (V,): each vertex's area share of its patch; ``area``
+    (V,)): the :class:`SelfTransfer` fields from ``gloss_transfer`` to ``gloss_next``, and
+    the object's triple table (G, G, J) (:func:`_triple_table`)."""
     n_g = normal.shape[0]
     n_j = share.shape[-1]
     n_p = int(p_of.max()) + 1
@@ -265,10 +318,31 @@ def _gloss_used(tg: np.ndarray, g_of: np.ndarray, normal: np.ndarray, share: np.
     by_pair = np.zeros((n_p, n_g, n_g))
     np.add.at(by_pair, (p_of, g_of), vertex_share[:, None] * tg.astype(np.float64))
     to_patches = by_pair[:, p_u, q_u] * s_u[None]
+    table = _triple_table(share)
+    # the radiance arriving at sender q from where its mirror direction lands (patch g): g's
+    # own triple towards q, in the bin of the angle there
+    nxt = table[q_u[:, None], np.arange(n_g)[None], land_bin[used]]
     f32 = np.float32
     return (tg.astype(f32), g_of.astype(np.int32), normal.astype(f32), pair, s_u.astype(f32),
             view.reshape(-1, 3)[used].astype(f32), visible.reshape(-1)[used].astype(f32),
-            lands[used].astype(f32), from_patch.astype(f32), to_patches.astype(f32))
+            lands[used].astype(f32), from_patch.astype(f32), to_patches.astype(f32),
+            nxt.astype(np.int32), open_view.reshape(-1, 3)[used].astype(f32), table)
+
+
+def _triple_table(share: np.ndarray) -> np.ndarray:
+    """(G, G, J) int32 the index among the triples that carry light (``share`` (G, G, J) > 0,
+    in flat order) of each (receiver, sender, bin); where that bin carries none, the pair's
+    nearest bin that does; U (one past the last) where the pair carries none."""
+    n_g, _, n_j = share.shape
+    carries = share > 0
+    index = np.cumsum(carries.reshape(-1)).reshape(share.shape) - 1
+    u = int(carries.sum())
+    out = np.full(share.shape, u, np.int64)
+    for j in range(n_j):
+        for k in sorted(range(n_j), key=lambda k: (abs(k - j), -k)):
+            free = out[..., j] == u
+            out[..., j] = np.where(free & carries[..., k], index[..., k], out[..., j])
+    return out.astype(np.int32)
 
 
 def _gloss_pairs(v: np.ndarray, n: np.ndarray, area: np.ndarray, sv: Any, w: np.ndarray,
@@ -279,13 +353,14 @@ def _gloss_pairs(v: np.ndarray, n: np.ndarray, area: np.ndarray, sv: Any, w: np.
     of each; ``hit`` their hit triangles, rows of ``t`` (T, 3)) as shares of sender
     patches (V, G); each patch's mean normal (G, 3); per pair (receiver p, sender q) and
     bin j of the angle at the sender (J = len(GLOSS_BINS) − 1 bins of cosθ), the bin's share
-    of the pair's transfer (G, G, J), a direction from q towards p with the bin's mean
-    cosθ about q's normal, azimuth that of the pair's mean direction (G, G, J, 3), the share
-    of its mirror direction that q's vertices see (G, G, J) and where the rest lands, as
-    shares of the G patches (G·G·J, G). Resolving cosθ matters: Fresnel rises steeply
-    towards grazing angles, and the hits next to a receiver, all grazing, point every way
-    about it (their mean direction is along the normal)."""
-    from ..geometry import octahedral_taps
+    of the pair's transfer (G, G, J), a direction from q towards p (the pair's mean
+    azimuth; the angle of the directions that land on the object, ``gloss_view``)
+    (G, G, J, 3), the share of the mirror directions that leaves the object (G, G, J) and
+    where the rest lands, as shares of the G patches (G·G·J, G) (:func:`_gloss_landing`),
+    the bin of the angle at each landing patch (G·G·J, G), and the view of the environment
+    the triple sends (G, G, J, 3) (``gloss_open_view``). Resolving cosθ matters: Fresnel
+    rises steeply towards grazing angles, and the hits next to a receiver, all grazing, point
+    every way about it (their mean direction is along the normal)."""
 
     n_g = int(g_of.max()) + 1
     n_j = len(GLOSS_BINS) - 1
@@ -301,7 +376,7 @@ def _gloss_pairs(v: np.ndarray, n: np.ndarray, area: np.ndarray, sv: Any, w: np.
         aw = wj * area[rows]
         np.add.at(toward, (g_of[rows], q), aw[:, None] * d_hit)
         c = np.clip(np.sum(d_hit * n[t[hit, j]], axis=1), 0.0, 1.0)
-        k = np.clip(np.searchsorted(GLOSS_BINS, c, side="right") - 1, 0, n_j - 1)
+        k = _bin_of(c)
         np.add.at(bin_w, (g_of[rows], q, k), aw)
         np.add.at(cos_sum, (g_of[rows], q, k), aw * c)
     normal = np.zeros((n_g, 3))
@@ -320,27 +395,100 @@ def _gloss_pairs(v: np.ndarray, n: np.ndarray, area: np.ndarray, sv: Any, w: np.
     sin_b = np.sqrt(1.0 - cos_b ** 2)
     view = cos_b[..., None] * normal[None, :, None] + sin_b[..., None] * tang[:, :, None]
     mirror = 2.0 * cos_b[..., None] * normal[None, :, None] - view  # (G, G, J, 3)
-    idx, wt = (np.asarray(x).reshape(n_g, n_g, n_j, 4) for x in octahedral_taps(
-        jnp.asarray(mirror.reshape(-1, 3), jnp.float32), sv.resolution))
-    lands = np.zeros((n_g, n_g, n_j, n_g))
-    for q in range(n_g):  # area- and tap-weighted over the sender's vertices
-        mine = np.flatnonzero(g_of == q)
-        aq = area[mine] / max(float(area[mine].sum()), 1e-30)
-        taps = idx[:, q].reshape(-1)  # the taps of (p, q, j), (G·J·4,)
-        vv, kk = np.nonzero(sv.hidden[mine][:, taps])
-        wgt = aq[vv] * wt[:, q].reshape(-1)[kk]
-        tri = t[sv.hit_triangle[mine[vv], taps[kk]]]
-        pj = kk // 4  # (p, j) flat
-        acc = np.zeros((n_g * n_j, n_g))
-        for c in range(3):
-            np.add.at(acc, (pj, g_of[tri[:, c]]), wgt * sv.hit_bary[mine[vv], taps[kk], c])
-        lands[:, q] = acc.reshape(n_g, n_j, n_g)
+    visible, lands, escape, cos_e, cos_l = _gloss_landing(n, area, sv, w, rows, cols, t, hit,
+                                                          g_of)
     used = share > 0
-    visible = np.where(used, 1.0 - lands.sum(axis=-1), 0.0)
+    visible = np.where(used, visible, 0.0)
     lands = np.where(used[..., None], lands, 0.0)
+    # the view whose mirror direction about q's normal leaves the object where the triple's
+    # directions do (the environment the triple sends): their mean angle to the normal, the
+    # azimuth of their mean (a mean of directions spread in azimuth points nearer the normal
+    # than any of them); where none leaves, the bin's view
+    nq = normal[None, :, None]
+    e_t = escape - np.sum(escape * nq, -1, keepdims=True) * nq
+    size = np.linalg.norm(e_t, axis=-1, keepdims=True)
+    e_t = np.where(size > 1e-9, e_t / np.maximum(size, 1e-30), -tang[:, :, None])
+    open_view = (cos_e[..., None] * nq
+                 - np.sqrt(np.maximum(1.0 - cos_e ** 2, 0.0))[..., None] * e_t)
+    open_view = np.where((visible > 0)[..., None], open_view, view)
+    # the view of what the object sends back (its own light, reflected with the lobe's albedo
+    # at this angle): the landing directions' Fresnel-matched angle, the pair's azimuth
+    land_view = (cos_l[..., None] * nq
+                 + np.sqrt(np.maximum(1.0 - cos_l ** 2, 0.0))[..., None] * tang[:, :, None])
+    view = np.where((visible < 1)[..., None], land_view, view)
+    # the angle at each landing patch between its normal and the way back to the sender
+    back = np.clip(-(mirror.reshape(-1, 3) @ normal.T), 0.0, 1.0)  # (G·G·J, G)
+    land_bin = _bin_of(back)
     f32 = np.float32
     return (tg.astype(f32), g_of.astype(np.int32), normal.astype(f32), share.astype(f32),
-            view.astype(f32), visible.astype(f32), lands.reshape(-1, n_g).astype(f32))
+            view.astype(f32), visible.astype(f32), lands.reshape(-1, n_g).astype(f32),
+            land_bin, open_view.astype(f32))
+
+
+def _gloss_landing(n: np.ndarray, area: np.ndarray, sv: Any, w: np.ndarray,
+                   rows: np.ndarray, cols: np.ndarray, t: np.ndarray, hit: np.ndarray,
+                   g_of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the gloss triples' mirror directions go, from the hidden directions themselves
+    (``rows``, ``cols``, ``hit`` as :func:`_gloss_pairs`; weights ``w`` (V, K) times the
+    receiver's ``area``): each direction from vertex v that meets the object at vertex h
+    (the hit triangle's corner nearest the hit) is mirrored about h's normal, and h's
+    visibility of the mirrored direction (bilinear in its octahedral map) says how much of it
+    leaves the object, and where the rest lands (the hit triangles' corners, as gloss
+    patches). Per triple (receiver patch, sender patch, bin of the angle at h) (G, G, J):
+    the share that leaves, the shares that land (G, G, J, G), the mean leaving direction
+    (G, G, J, 3) (weighted, not unit), and the cosines (G, G, J) whose Fresnel factor (at
+    ``NOMINAL_N``) is the mean of the leaving directions' and of the landing ones' (at their
+    angles to their normals; F is convex in cosθ, so the mean angle's would be low). Every
+    direction of a pair counts with its own angle, so a triple whose few leaving directions
+    point elsewhere than its mean (up, out of a cup's opening) sends the environment of
+    those."""
+    from ..geometry import octahedral_taps
+    from ..lighting import fresnel_dielectric
+
+    n_g = int(g_of.max()) + 1
+    n_j = len(GLOSS_BINS) - 1
+    h = t[hit, np.argmax(sv.hit_bary[rows, cols], axis=-1)]
+    d = -sv.directions.astype(np.float64)[cols]  # from the hit back to the receiver
+    c = np.clip(np.sum(d * n[h], axis=1), 0.0, 1.0)
+    r = 2.0 * c[:, None] * n[h] - d
+    r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-30)
+    u = (g_of[rows] * n_g + g_of[h]) * n_j + _bin_of(c)
+    wt = w[rows, cols] * area[rows]
+    idx, tw = (np.asarray(x) for x in octahedral_taps(r, sv.resolution))  # (S, 4)
+    hid = sv.hidden[h[:, None], idx].astype(bool)
+    leaves = 1.0 - np.sum(tw * hid, axis=1)
+    m = n_g * n_g * n_j
+    total = np.bincount(u, wt, minlength=m)
+    visible = np.bincount(u, wt * leaves, minlength=m) / np.maximum(total, 1e-30)
+    escape = np.stack([np.bincount(u, wt * leaves * r[:, k], minlength=m) for k in range(3)],
+                      axis=-1)
+    grid = np.linspace(0.0, 1.0, 257)
+    f_grid = np.asarray(fresnel_dielectric(grid, NOMINAL_N), np.float64)  # falling
+    f_c = np.interp(c, grid, f_grid)
+
+    def matched(weight: np.ndarray) -> np.ndarray:
+        f_mean = np.bincount(u, weight * f_c, minlength=m) / np.maximum(
+            np.bincount(u, weight, minlength=m), 1e-30)
+        return np.interp(f_mean, f_grid[::-1], grid[::-1]).reshape(n_g, n_g, n_j)
+
+    cos_e, cos_l = matched(wt * leaves), matched(wt * (1.0 - leaves))
+    lands = np.zeros((m, n_g))
+    ss, kk = np.nonzero(hid)
+    tri = t[sv.hit_triangle[h[ss], idx[ss, kk]]]
+    bary = sv.hit_bary[h[ss], idx[ss, kk]]
+    for corner in range(3):
+        np.add.at(lands, (u[ss], g_of[tri[:, corner]]),
+                  wt[ss] * tw[ss, kk] * bary[:, corner])
+    lands /= np.maximum(total, 1e-30)[:, None]
+    return (visible.reshape(n_g, n_g, n_j), lands.reshape(n_g, n_g, n_j, n_g),
+            escape.reshape(n_g, n_g, n_j, 3), cos_e, cos_l)
+
+
+def _bin_of(cos: Any) -> Any:
+    """The bin of ``GLOSS_BINS`` (cosθ at a sender) of each cosine (NumPy or JAX arrays)."""
+    xp = jnp if isinstance(cos, jax.Array) else np
+    k = xp.searchsorted(xp.asarray(GLOSS_BINS[1:-1], cos.dtype), cos, side="right")
+    return k.astype(xp.int32)
 
 
 def _to_object(model: jax.Array, d_world: jax.Array) -> jax.Array:
@@ -366,12 +514,14 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
                       vertex_slices: tuple[tuple[int, int], ...], bounces: int,
                       to_out: jax.Array, quality: str = "fast", split_map: Any = None,
                       split_settings: Any = None, tail: str = "none"
-                      ) -> tuple[jax.Array, jax.Array]:
+                      ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The change (V, D) of every vertex's diffuse radiance in the output channels of
     ``to_out`` (C, D) that its own object's shape makes (hidden environment, own diffuse
-    light; rows of convex objects 0), and that diffuse radiance itself (V, D) (0 for convex
-    objects). ``normals`` object-frame, ``world_normals`` (V, 3) world; ``lut`` the frame's
-    irradiance map table (or None: the environment's own irradiance). With ``bounces``, the
+    light; rows of convex objects 0), that diffuse radiance itself (V, D) (0 for convex
+    objects), and the radiance (U + 1, D) the objects' gloss and mirror send along their
+    triples (``gloss_triple``'s rows; the last row 0, as every row without ``bounces``).
+    ``normals`` object-frame, ``world_normals`` (V, 3) world; ``lut`` the frame's irradiance
+    map table (or None: the environment's own irradiance). With ``bounces``, the
     light the object's own gloss and mirror send into its hidden directions is added first
     (:func:`_gloss_irradiance`; ``quality``, ``split_map``, ``split_settings`` as the
     frame's shading). ``tail="geometric"`` (with ``bounces`` >= 3) completes the object's own
@@ -391,6 +541,7 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
     table = None if lut is None else _lut_env(env, lut)
     out = jnp.zeros((v_total, d_out), jnp.float32)
     own = jnp.zeros((v_total, d_out), jnp.float32)
+    sent = []
     for i, o in enumerate(st.objects):
         a, b = vertex_slices[o]
         m = mats[o]
@@ -413,6 +564,7 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
         if env.product_tensor is None:  # bands: the grid's rounding may not make light negative
             e0 = jnp.maximum(e0, 0.0)
         e = e0
+        glossy = jnp.zeros((st.gloss_pair[i].shape[0], d_out), jnp.float32)
         if bounces:
             # the light the object's gloss and mirror send along the triples: from the
             # environment (fixed) and from its own diffuse radiance (linear in B)
@@ -424,28 +576,32 @@ def vertex_correction(st: SelfTransfer, *, env: Any, lut: Any, mats: list[Any],
             # radiance, G the gloss along the triples, run on the patches: B is linear in e,
             # so B_{k+1} = B(E0) + B(T_pp B_k) with E0 and T_pp = T the patch shares of e0 and
             # of T's rows (P × P: each step costs P² instead of V × P), the triples' light
-            # reaching the patches by ``gloss_to_patches``; the vertices read the last B once
+            # reaching the patches by ``gloss_to_patches``; the vertices read the last B once.
+            # The triples' radiance g = spec + own gloss of (B, g) steps along with B.
             to_p = st.gloss_to_patches[i]  # (P, U)
             e_p = jax.ops.segment_sum(e0 * st.patch_share[i][:, None], st.patch_of[i],
                                       num_segments=to_p.shape[0]) + to_p @ spec
             b0 = (m.alpha / math.pi) * _filtered_irradiance(m, env, e_p)  # (P, C)
-            patch = b0
+            patch, sent_i = b0, spec
             steps = []
             for _ in range(bounces - 1):
-                e_own = st.patch_transfer[i] @ patch + to_p @ _own_gloss(st, i, albedo, patch)
+                sent_i = spec + _own_gloss(st, i, albedo, patch, sent_i)
+                e_own = st.patch_transfer[i] @ patch + to_p @ (sent_i - spec)
                 new = b0 + (m.alpha / math.pi) * _filtered_irradiance(m, env, e_own)
                 steps.append(new - patch)
                 patch = new
             if tail == "geometric" and len(steps) >= 2:
                 patch = patch + _series_rest(steps[-2], steps[-1],
                                              per_channel=env.product_tensor is None)
-            e = e0 + st.transfer[i] @ patch + _gloss_to_vertices(
-                st, i, spec + _own_gloss(st, i, albedo, patch))
+            sent_i = spec + _own_gloss(st, i, albedo, patch, sent_i)
+            e = e0 + st.transfer[i] @ patch + _gloss_to_vertices(st, i, sent_i)
+            glossy = sent_i @ to_out
         delta = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e - e_map)) @ to_out
         full = ((m.alpha / math.pi) * _filtered_irradiance(m, env, e)) @ to_out
         out = out.at[a:b].set(delta)
         own = own.at[a:b].set(full)
-    return out, own
+        sent.append(glossy)
+    return out, own, jnp.concatenate([*sent, jnp.zeros((1, d_out), jnp.float32)])
 
 
 def _series_rest(prev: jax.Array, last: jax.Array, *, per_channel: bool) -> jax.Array:
@@ -481,8 +637,9 @@ def _gloss_irradiance(st: SelfTransfer, i: int, m: Any, env: Any, rot: jax.Array
     view = st.gloss_view[i] @ rot.T  # (U, 3)
     moments = lobe_moment_table(m.mu, m.n, settings=split_settings,
                                 distribution=m.distribution, geometry=m.geometry)
-    spec = specular_at(m, env, senders, view, quality=quality, split_map=split_map,
-                       split_settings=split_settings, moments=moments)  # (U, C)
+    spec = specular_at(m, env, senders, st.gloss_open_view[i] @ rot.T, quality=quality,
+                       split_map=split_map, split_settings=split_settings,
+                       moments=moments)  # (U, C)
     nv = jnp.sum(senders * view, axis=-1, keepdims=True)  # (U, 1)
     albedo = lobe_albedo(m, moments, nv, mirror=mirror_needed([m]))
     return spec * st.gloss_visible[i][:, None], jnp.where(nv > 0.0, albedo, 0.0)
@@ -498,22 +655,34 @@ def _gloss_to_vertices(st: SelfTransfer, i: int, radiance: jax.Array) -> jax.Arr
     return jnp.einsum("vq,vqc->vc", st.gloss_transfer[i], pair[st.gloss_patch_of[i]])
 
 
-def _own_gloss(st: SelfTransfer, i: int, albedo: jax.Array, patch: jax.Array) -> jax.Array:
+def _own_gloss(st: SelfTransfer, i: int, albedo: jax.Array, patch: jax.Array,
+               sent: jax.Array | None = None) -> jax.Array:
     """The radiance (U, C) the listed object ``i``'s gloss and mirror send along its triples
-    from its own diffuse radiance ``patch`` (P_o, C) (per patch): each sender reflects, with
-    ``albedo`` (U, 1) (:func:`_gloss_irradiance`), what its mirror direction meets of the
-    object (``gloss_hit``, the radiance averaged over the gloss patches)."""
-    return albedo * (st.gloss_hit[i] @ (st.gloss_from_patch[i] @ patch))
+    from its own light: each sender reflects, with ``albedo`` (U, 1)
+    (:func:`_gloss_irradiance`), what its mirror direction meets of the object
+    (``gloss_hit``): the diffuse radiance ``patch`` (P_o, C) (per patch, averaged over the
+    gloss patches) and, with ``sent`` (U, C) (the triples' radiance of the step before), the
+    gloss of the patch it meets sent back towards the sender (``gloss_next``)."""
+    seen = st.gloss_from_patch[i] @ patch  # (G, C)
+    if sent is not None:
+        padded = jnp.concatenate([sent, jnp.zeros((1, sent.shape[1]), sent.dtype)])
+        seen = seen[None] + padded[st.gloss_next[i]]  # (U, G, C)
+        return albedo * jnp.einsum("ug,ugc->uc", st.gloss_hit[i], seen)
+    return albedo * (st.gloss_hit[i] @ seen)
 
 
 def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Array,
                    pixels: Any, triangles: jax.Array, clip: jax.Array, normal: jax.Array,
-                   view: jax.Array, vertex_radiance: jax.Array | None
+                   view: jax.Array, vertex_radiance: jax.Array | None,
+                   sent: jax.Array | None = None, object_normals: jax.Array | None = None
                    ) -> tuple[jax.Array, jax.Array | None]:
     """What each pixel's own object puts in its mirror direction: the visibility (N,) of the
     direction (1 where nothing of the object is in the way, and for convex objects), and the
-    object's diffuse radiance seen there times the hidden share (N, D) (from
-    ``vertex_radiance`` (V, D) at the vertex nearest each hit; None: not computed). Bilinear
+    object's radiance seen there times the hidden share (N, D) (from ``vertex_radiance``
+    (V, D), the diffuse radiance at the vertex nearest each hit, and with ``sent`` (U + 1, D)
+    (:func:`vertex_correction`'s third value) and ``object_normals`` (V, 3) (object frame)
+    the gloss and mirror of the hit's gloss patch towards the pixel's, in the bin of the angle
+    at the hit; None: not computed). Bilinear
     in the octahedral map at the three vertices of each listed pixel's triangle (``pixels`` a
     :class:`~spectral_fit.geometry.PixelList` over rows of ``triangles``, ``clip`` the
     vertices' clip positions), blended by the pixel's barycentrics
@@ -527,8 +696,15 @@ def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Arr
     vis = 1.0 - jnp.sum(wt, axis=(1, 2))
     if vertex_radiance is None:
         return vis, None
-    seen = jnp.einsum("njk,njkd->nd", wt, vertex_radiance[st.hit_vertex[rr, idx[:, None, :]]])
-    return vis, seen
+    hit = st.hit_vertex[rr, idx[:, None, :]]  # (N, 3, 4)
+    seen = vertex_radiance[hit]
+    if sent is not None:
+        back = -st.directions[idx]  # (N, 4, 3) from the hit towards the pixel, object frame
+        cos = jnp.clip(jnp.einsum("njkc,nkc->njk", object_normals[hit], back), 0.0, 1.0)
+        recv = jnp.maximum(st.gloss_slot[tri], 0)[:, :, None]
+        seen = seen + sent[st.gloss_triple[recv, jnp.maximum(st.gloss_slot[hit], 0),
+                                           _bin_of(cos)]]
+    return vis, jnp.einsum("njk,njkd->nd", wt, seen)
 
 
 def _hidden_weights(st: SelfTransfer, model: jax.Array, vertex_object: jax.Array,

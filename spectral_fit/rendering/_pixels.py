@@ -116,7 +116,7 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         # none of their own light (neither diffuse bounces nor its reflection)
         own_light = prep.interreflection.mode != "none"
         with jax.named_scope("self_occlusion"):
-            corr, own_radiance = vertex_correction(
+            corr, own_radiance, own_sent = vertex_correction(
                 occ, env=prep.lighting.env, lut=prep.lighting.irradiance_lut, mats=mats,
                 model=model, normals=mesh.normals, world_normals=wnorm,
                 vertex_slices=mesh.object_slices,
@@ -157,7 +157,8 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         spec_vis, spec_seen = own_reflection(
             occ, model=model, vertex_object=mesh.vertex_object, pixels=pix, triangles=tris,
             clip=clip, normal=nrm, view=vdir,
-            vertex_radiance=own_radiance if own_light else None)
+            vertex_radiance=own_radiance if own_light else None,
+            sent=own_sent if own_light else None, object_normals=mesh.normals)
     with jax.named_scope("shading"):
         lit = prep.lighting
         if lit.quality == "fast":
