@@ -117,3 +117,17 @@ def write_obj(path, vertices, triangles, normals) -> None:
     lines += [f"f {a + 1}//{a + 1} {b + 1}//{b + 1} {c + 1}//{c + 1}" for a, b, c in triangles]
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
+
+
+def quad(origin, edge_a, edge_b, na: int, nb: int):
+    """A flat rectangle origin + s·edge_a + t·edge_b (s, t in [0, 1]) as na × nb cells of two
+    triangles, wound and normalled towards edge_a × edge_b."""
+    origin, edge_a, edge_b = (np.asarray(x, np.float64) for x in (origin, edge_a, edge_b))
+    a, b = np.meshgrid(np.linspace(0, 1, na + 1), np.linspace(0, 1, nb + 1), indexing="ij")
+    v = origin + a.reshape(-1, 1) * edge_a + b.reshape(-1, 1) * edge_b
+    i = np.arange(len(v)).reshape(na + 1, nb + 1)
+    t = np.concatenate([np.stack([i[:-1, :-1], i[1:, :-1], i[1:, 1:]], -1).reshape(-1, 3),
+                        np.stack([i[:-1, :-1], i[1:, 1:], i[:-1, 1:]], -1).reshape(-1, 3)])
+    normal = np.cross(edge_a, edge_b)
+    normal /= np.linalg.norm(normal)
+    return v, t, np.broadcast_to(normal, v.shape).copy()
