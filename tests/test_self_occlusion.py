@@ -177,10 +177,10 @@ def test_gloss_lobe_cut_by_an_edge_against_quadrature(tmp_path):
     5 cm wall, seen at θr ≈ 60° so that the pixels' lobes sweep across the wall's top edge;
     the direct light alone (mode "none"), per pixel against a float64 quadrature of the
     Gaussian/V-cavity lobe (200 × 256 half vectors) with each reflected ray tested against
-    the wall. Away from the edge's shadow both agree; across it the frame's lobe follows the
-    visibility of its mirror direction, while the lobe's tail at this angle reaches ~11° past
-    it: the light is right in sum, the transition too narrow (docs: "Lobes cut by an
-    edge")."""
+    the wall. Away from the edge's shadow both agree; across it the frame reads the lobe's
+    visibility at 3 directions along it in the octahedral grid (0.15 rad apart), while the
+    lobe's tail at this angle reaches ~11° past its mirror direction: right in sum, the
+    profile in the grid's steps (docs: "Lobes cut by an edge")."""
     import jax.numpy as jnp
     from helpers.lighting import fresnel
     from helpers.shapes import quad
@@ -243,17 +243,19 @@ def test_gloss_lobe_cut_by_an_edge_against_quadrature(tmp_path):
                                                                <= half)
         rows.append((f.sum(), (f * ~hidden).sum(), value))
     albedo, truth, value = np.asarray(rows).T
-    # both sides of the transition: within 1 % of the albedo (measured 0.3 %: the split sum
-    # against the quadrature, and nothing where the whole lobe is hidden)
+    # both sides of the transition: where the whole lobe is open within 1 % of the albedo
+    # (measured 0.3 %: the split sum against the quadrature), where it is hidden within 4 %
+    # (measured 2.2 %: the outer lobe direction sees past the wall's top)
     open_, shut = truth > 0.995 * albedo, truth < 0.005 * albedo
     assert open_.sum() > 100 and shut.sum() > 50
-    assert np.all(np.abs(value - truth)[open_ | shut] <= 0.01 * albedo[open_ | shut])
-    # across it the light is where it belongs in sum (measured 0.996 of the quadrature), but
-    # the transition is narrower than the lobe's: one pixel 0.27 of the albedo off
+    assert np.all(np.abs(value - truth)[open_] <= 0.01 * albedo[open_])
+    assert np.all(np.abs(value - truth)[shut] <= 0.04 * albedo[shut])
+    # across it the light is where it belongs in sum (measured 0.975 of the quadrature); one
+    # pixel 0.23 of the albedo off (the grid's steps; along the mirror direction alone 0.27)
     across = ~(open_ | shut)
     assert across.sum() > 50
     assert abs(value[across].sum() / truth[across].sum() - 1.0) < 0.05
-    assert np.all(np.abs(value - truth) <= 0.35 * albedo)
+    assert np.all(np.abs(value - truth) <= 0.3 * albedo)
 
 
 @pytest.mark.slow

@@ -71,6 +71,7 @@ _EXPORTS: dict[str, str] = {
     "lobe_factor": "_lobe",
     "lobe_moment_table": "_split_sum",
     "split_sum_albedo": "_split_sum",
+    "split_sum_moments": "_split_sum",
     "lookup": "_environment",
     "lookup_level": "_environment",
     "make_environment": "_synthetic",

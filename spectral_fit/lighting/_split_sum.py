@@ -34,6 +34,7 @@ __all__ = [
     "lobe_moment_table",
     "gloss_split_sum",
     "split_sum_albedo",
+    "split_sum_moments",
 ]
 
 
@@ -145,6 +146,14 @@ def split_sum_albedo(table: jax.Array, nv: jax.Array) -> jax.Array:
     :func:`lobe_moment_table` (size, 4): the gloss per unit β under a uniform sky of radiance 1,
     as :func:`gloss_split_sum` uses it."""
     return _interp_moments(jnp.asarray(table), jnp.clip(jnp.asarray(nv), 0.0, 1.0))[..., 0]
+
+
+def split_sum_moments(table: jax.Array, nv: jax.Array) -> jax.Array:
+    """The gloss lobe's moments (..., 4) (A, δ, var_t, var_b) at cosθr = ``nv`` (...,) from a
+    :func:`lobe_moment_table` (size, 4): albedo, off-specular shift (rad, away from the
+    normal) and angular variances along and across the plane of incidence (rad²), as
+    :func:`gloss_split_sum` uses them."""
+    return _interp_moments(jnp.asarray(table), jnp.clip(jnp.asarray(nv), 0.0, 1.0))
 
 
 def _interp_moments(table: jax.Array, nv: jax.Array) -> jax.Array:

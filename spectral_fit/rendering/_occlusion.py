@@ -30,9 +30,10 @@ Per frame (:func:`vertex_correction`, traced; every shape fixed by the meshes an
 4. the vertex's change of diffuse radiance α S (E − E_map)/π in the output channels (V, D),
    which the frame interpolates over the triangles and adds to the shading of its pixels.
 
-The gloss and mirror terms are scaled per pixel by the visibility of the mirror direction
-(:func:`own_reflection`: the pixel's triangle's three vertices, bilinear in the octahedral
-map, blended by the pixel's barycentrics), and the hidden share reflects the object's own
+The gloss and mirror terms are scaled per pixel by the visibility of the mirror direction,
+the gloss lobe's read at three directions over it (:func:`own_reflection`: the pixel's
+triangle's three vertices, bilinear in the octahedral map, blended by the pixel's
+barycentrics), and the hidden share reflects the object's own
 light instead, times β A(θr) + χ F: the diffuse radiance at the vertex nearest the hit and
 the gloss the hit's patch sends towards the pixel's (not in mode "none", which is the direct
 light alone).
@@ -674,7 +675,8 @@ def _own_gloss(st: SelfTransfer, i: int, albedo: jax.Array, patch: jax.Array,
 def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Array,
                    pixels: Any, triangles: jax.Array, clip: jax.Array, normal: jax.Array,
                    view: jax.Array, vertex_radiance: jax.Array | None,
-                   sent: jax.Array | None = None, object_normals: jax.Array | None = None
+                   sent: jax.Array | None = None, object_normals: jax.Array | None = None,
+                   mats: list[Any] | None = None, split_settings: Any = None
                    ) -> tuple[jax.Array, jax.Array | None]:
     """What each pixel's own object puts in its mirror direction: the visibility (N,) of the
     direction (1 where nothing of the object is in the way, and for convex objects), and the
@@ -682,7 +684,12 @@ def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Arr
     (V, D), the diffuse radiance at the vertex nearest each hit, and with ``sent`` (U + 1, D)
     (:func:`vertex_correction`'s third value) and ``object_normals`` (V, 3) (object frame)
     the gloss and mirror of the hit's gloss patch towards the pixel's, in the bin of the angle
-    at the hit; None: not computed). Bilinear
+    at the hit; None: not computed). With ``mats`` (the objects' materials) the gloss lobe's
+    visibility is read over the lobe (:func:`_lobe_directions`: 3 directions about its mean
+    direction along the plane of incidence, spread by its angular variance there) and the
+    mirror's along the mirror direction, the two blended by their albedos β A(θr) and
+    χ F(θr); what hides the lobe is what hides the mirror direction, scaled to the lobe's
+    hidden share. Without ``mats``, everything along the mirror direction. Bilinear
     in the octahedral map at the three vertices of each listed pixel's triangle (``pixels`` a
     :class:`~spectral_fit.geometry.PixelList` over rows of ``triangles``, ``clip`` the
     vertices' clip positions), blended by the pixel's barycentrics
@@ -692,19 +699,103 @@ def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Arr
 
     bary, tri = pixel_barycentrics(pixels, triangles, clip)  # (N, 3) each
     refl = 2.0 * jnp.sum(normal * view, -1, keepdims=True) * normal - view
-    wt, rr, idx = _hidden_weights(st, model, vertex_object, pixels, bary, tri, refl)
-    vis = 1.0 - jnp.sum(wt, axis=(1, 2))
-    if vertex_radiance is None:
-        return vis, None
-    hit = st.hit_vertex[rr, idx[:, None, :]]  # (N, 3, 4)
-    seen = vertex_radiance[hit]
-    if sent is not None:
-        back = -st.directions[idx]  # (N, 4, 3) from the hit towards the pixel, object frame
-        cos = jnp.clip(jnp.einsum("njkc,nkc->njk", object_normals[hit], back), 0.0, 1.0)
-        recv = jnp.maximum(st.gloss_slot[tri], 0)[:, :, None]
-        seen = seen + sent[st.gloss_triple[recv, jnp.maximum(st.gloss_slot[hit], 0),
-                                           _bin_of(cos)]]
-    return vis, jnp.einsum("njk,njkd->nd", wt, seen)
+
+    def along(d: jax.Array) -> tuple[jax.Array, jax.Array | None]:
+        """The visibility (N,) of world directions ``d`` (N, 3) and the radiance (N, D) of
+        what hides them."""
+        wt, rr, idx = _hidden_weights(st, model, vertex_object, pixels, bary, tri, d)
+        vis = 1.0 - jnp.sum(wt, axis=(1, 2))
+        if vertex_radiance is None:
+            return vis, None
+        hit = st.hit_vertex[rr, idx[:, None, :]]  # (N, 3, 4)
+        seen = vertex_radiance[hit]
+        if sent is not None:
+            back = -st.directions[idx]  # (N, 4, 3) from the hit towards the pixel, object frame
+            cos = jnp.clip(jnp.einsum("njkc,nkc->njk", object_normals[hit], back), 0.0, 1.0)
+            recv = jnp.maximum(st.gloss_slot[tri], 0)[:, :, None]
+            seen = seen + sent[st.gloss_triple[recv, jnp.maximum(st.gloss_slot[hit], 0),
+                                               _bin_of(cos)]]
+        return vis, jnp.einsum("njk,njkd->nd", wt, seen)
+
+    vis, seen = along(refl)
+    if mats is None:
+        return vis, seen
+    obj = vertex_object[tri[:, 0]]
+    w_gloss, w_mirror, dirs, w_dirs = _lobe_directions(mats, obj, normal, view,
+                                                       split_settings=split_settings)
+    vis_l = jnp.zeros_like(vis)
+    for d, w in zip(dirs, w_dirs, strict=True):
+        wt_d, _, _ = _hidden_weights(st, model, vertex_object, pixels, bary, tri, d)
+        vis_l = vis_l + w * (1.0 - jnp.sum(wt_d, axis=(1, 2)))
+    seen_l = None
+    if seen is not None:  # what hides the mirror direction, for the lobe's hidden share
+        hid_m = 1.0 - vis
+        seen_l = seen * jnp.where(hid_m > 1e-3, (1.0 - vis_l) / jnp.maximum(hid_m, 1e-3),
+                                  0.0)[:, None]
+    total = w_gloss + w_mirror
+    safe = jnp.where(total > 0.0, total, 1.0)
+    g, m_ = jnp.where(total > 0.0, w_gloss / safe, 0.0), jnp.where(total > 0.0, w_mirror / safe,
+                                                                   1.0)
+    vis = g * vis_l + m_ * vis
+    if seen is not None:
+        seen = g[:, None] * seen_l + m_[:, None] * seen
+    return vis, seen
+
+
+#: nodes and weights of the 3-point Gauss–Hermite rule of a unit normal distribution
+_HERMITE = ((-math.sqrt(3.0), 1.0 / 6.0), (0.0, 2.0 / 3.0), (math.sqrt(3.0), 1.0 / 6.0))
+
+
+def _lobe_directions(mats: list[Any], obj: jax.Array, normal: jax.Array, view: jax.Array, *,
+                     split_settings: Any
+                     ) -> tuple[jax.Array, jax.Array, list[jax.Array], list[jax.Array]]:
+    """Per pixel (object ``obj`` (N,), world ``normal`` and ``view`` (N, 3)): the albedos
+    (N,) of its material's gloss β A(θr) and mirror χ F(θr), and 3 world directions (N, 3)
+    with weights (N,) over its gloss lobe: the lobe's mean direction (the mirror direction
+    tilted by the off-specular shift δ in the plane of incidence) moved by ±√3 σ and 0 within
+    that plane, the lobe's long axis at grazing angles (σ² the lobe's angular variance
+    there; 3-point Gauss–Hermite weights), those below the surface's horizon left out and
+    the rest renormalised (the split sum's moments,
+    :func:`~spectral_fit.lighting.split_sum_moments`). The directions carry no gradient; the
+    albedos do."""
+    from ..lighting import fresnel_dielectric, lobe_moment_table, split_sum_moments
+
+    nv = jnp.clip(jnp.sum(normal * view, -1), 0.0, 1.0)
+    mom = jnp.zeros((nv.shape[0], 4), jnp.float32)
+    beta = jnp.zeros_like(nv)
+    chi_f = jnp.zeros_like(nv)
+    for o, m in enumerate(mats):
+        table = lobe_moment_table(m.mu, m.n, settings=split_settings,
+                                  distribution=m.distribution, geometry=m.geometry)
+        mine = obj == o
+        mom = jnp.where(mine[:, None], split_sum_moments(table, nv), mom)
+        beta = jnp.where(mine, m.beta, beta)
+        chi_f = jnp.where(mine, m.chi * fresnel_dielectric(nv, m.n), chi_f)
+    w_gloss = beta * mom[:, 0]
+    n_, v_ = jax.lax.stop_gradient(normal), jax.lax.stop_gradient(view)
+    mom = jax.lax.stop_gradient(mom)
+    refl = 2.0 * nv[:, None] * n_ - v_
+    t = refl - jnp.sum(refl * n_, -1, keepdims=True) * n_
+    spare = jnp.where(jnp.abs(n_[:, :1]) < 0.9, jnp.array([[1.0, 0.0, 0.0]]),
+                      jnp.array([[0.0, 1.0, 0.0]]))
+    spare = spare - jnp.sum(spare * n_, -1, keepdims=True) * n_
+    size = jnp.linalg.norm(t, axis=-1, keepdims=True)
+    t = jnp.where(size > 1e-6, t, spare)
+    t = t / jnp.maximum(jnp.linalg.norm(t, axis=-1, keepdims=True), 1e-12)
+    theta = jnp.arccos(jnp.clip(nv, 0.0, 1.0)) + mom[:, 1]
+    c, s = jnp.cos(theta)[:, None], jnp.sin(theta)[:, None]
+    mean = c * n_ + s * t
+    along = -s * n_ + c * t
+    sd_t = jnp.sqrt(jnp.maximum(mom[:, 2], 0.0))[:, None]
+    dirs, weights = [], []
+    for a, wa in _HERMITE:
+        d = mean + a * sd_t * along
+        d = d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+        dirs.append(d)
+        weights.append(jnp.where(jnp.sum(d * n_, -1) > 0.0, wa, 0.0))
+    total = sum(weights)
+    weights = [w / jnp.where(total > 0.0, total, 1.0) for w in weights]
+    return w_gloss, chi_f, dirs, weights
 
 
 def _hidden_weights(st: SelfTransfer, model: jax.Array, vertex_object: jax.Array,

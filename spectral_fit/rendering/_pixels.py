@@ -158,7 +158,8 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
             occ, model=model, vertex_object=mesh.vertex_object, pixels=pix, triangles=tris,
             clip=clip, normal=nrm, view=vdir,
             vertex_radiance=own_radiance if own_light else None,
-            sent=own_sent if own_light else None, object_normals=mesh.normals)
+            sent=own_sent if own_light else None, object_normals=mesh.normals, mats=mats,
+            split_settings=prep.lighting.split_settings)
     with jax.named_scope("shading"):
         lit = prep.lighting
         if lit.quality == "fast":
