@@ -145,7 +145,7 @@ def split_sum_albedo(table: jax.Array, nv: jax.Array) -> jax.Array:
     """The gloss lobe's directional albedo A(θr) (...,) at cosθr = ``nv`` (...,) from a
     :func:`lobe_moment_table` (size, 4): the gloss per unit β under a uniform sky of radiance 1,
     as :func:`gloss_split_sum` uses it."""
-    return _interp_moments(jnp.asarray(table), jnp.clip(jnp.asarray(nv), 0.0, 1.0))[..., 0]
+    return split_sum_moments(table, nv)[..., 0]
 
 
 def split_sum_moments(table: jax.Array, nv: jax.Array) -> jax.Array:

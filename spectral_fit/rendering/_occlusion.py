@@ -700,24 +700,19 @@ def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Arr
     bary, tri = pixel_barycentrics(pixels, triangles, clip)  # (N, 3) each
     refl = 2.0 * jnp.sum(normal * view, -1, keepdims=True) * normal - view
 
-    def along(d: jax.Array) -> tuple[jax.Array, jax.Array | None]:
-        """The visibility (N,) of world directions ``d`` (N, 3) and the radiance (N, D) of
-        what hides them."""
-        wt, rr, idx = _hidden_weights(st, model, vertex_object, pixels, bary, tri, d)
-        vis = 1.0 - jnp.sum(wt, axis=(1, 2))
-        if vertex_radiance is None:
-            return vis, None
+    wt, rr, idx = _hidden_weights(st, model, vertex_object, pixels, bary, tri, refl)
+    vis = 1.0 - jnp.sum(wt, axis=(1, 2))
+    seen = None
+    if vertex_radiance is not None:
         hit = st.hit_vertex[rr, idx[:, None, :]]  # (N, 3, 4)
-        seen = vertex_radiance[hit]
+        radiance = vertex_radiance[hit]
         if sent is not None:
             back = -st.directions[idx]  # (N, 4, 3) from the hit towards the pixel, object frame
             cos = jnp.clip(jnp.einsum("njkc,nkc->njk", object_normals[hit], back), 0.0, 1.0)
             recv = jnp.maximum(st.gloss_slot[tri], 0)[:, :, None]
-            seen = seen + sent[st.gloss_triple[recv, jnp.maximum(st.gloss_slot[hit], 0),
-                                               _bin_of(cos)]]
-        return vis, jnp.einsum("njk,njkd->nd", wt, seen)
-
-    vis, seen = along(refl)
+            radiance = radiance + sent[st.gloss_triple[recv, jnp.maximum(st.gloss_slot[hit], 0),
+                                                       _bin_of(cos)]]
+        seen = jnp.einsum("njk,njkd->nd", wt, radiance)
     if mats is None:
         return vis, seen
     obj = vertex_object[tri[:, 0]]
