@@ -10,7 +10,10 @@ from .._runtime.lazy import lazy_exports
 #: public name -> private module of this package that defines it
 _EXPORTS: dict[str, str] = {
     "FIGURE_FORMATS": "_compare",
+    "SAMPLES": "_compare",
     "TARGETS": "_compare",
+    "check_samples": "_compare",
+    "pixel_means": "_compare",
     "delta_e_figure": "_compare",
     "delta_e_patches": "_compare",
     "scene_white_xyz": "_compare",

@@ -1,12 +1,14 @@
 """Validation of rendered frames against the committed path-traced references.
 
 For each interreflection mode, render the reference's scene config at its frame size with our
-renderer (spectral output), take the mean spectrum over each reference patch (5×5 pixels on
-the spheres), convert both to CIE XYZ and CIELAB against the scene white, and report ΔE00
-statistics per region: "direct" patches (interreflection below 5 % of the luminance in the
-reference) and "interreflection" patches (the rest). The reference's interreflection-on
-spectra (path depth 16) are the target of every mode; "none" is additionally compared with
-the reference's single-bounce spectra (depth 2), which checks the direct shading alone.
+renderer (spectral output; each pixel the mean of ``SAMPLES``² sub-pixels, as the reference's
+pixels are area means: a box pixel filter), take the mean spectrum over each reference patch
+(5×5 pixels on the spheres), convert both to CIE XYZ and CIELAB against the scene white, and
+report ΔE00 statistics per region: "direct" patches (interreflection below 5 % of the
+luminance in the reference) and "interreflection" patches (the rest). The reference's
+interreflection-on spectra (path depth 16) are the target of every mode; "none" is
+additionally compared with the reference's single-bounce spectra (depth 2), which checks the
+direct shading alone.
 
 Scene white (docs/conventions.md, 'Colorimetry and display'): a perfect white Lambertian facing the
 camera under the environment (the same white the display exposure uses).
@@ -26,7 +28,8 @@ import numpy as np
 
 from .._runtime.paths import REPO_ROOT
 
-__all__ = ["TARGETS", "scene_white_xyz", "delta_e_patches", "validate", "delta_e_figure"]
+__all__ = ["TARGETS", "SAMPLES", "scene_white_xyz", "delta_e_patches", "pixel_means",
+           "check_samples", "validate", "delta_e_figure"]
 
 ROOT = REPO_ROOT
 
@@ -66,6 +69,29 @@ def reference_scene(reference: str | os.PathLike[str]) -> tuple[Any, Path, Any]:
     return ref, cfg, scene
 
 
+#: sub-pixels per side of each pixel of our frames (the references' pixels are area means)
+SAMPLES = 2
+
+
+def check_samples(samples: Any) -> int:
+    from .._runtime.errors import InputError
+
+    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or not (
+            1 <= int(samples) <= 4):
+        raise InputError(f"must be an integer from 1 to 4, got {samples!r}", field="samples")
+    return int(samples)
+
+
+def pixel_means(image: Any, samples: int) -> np.ndarray:
+    """The area mean of each pixel (H, W, C) of an image rendered at ``samples`` × its size in
+    each direction (H·samples, W·samples, C): the box pixel filter of the reference."""
+    img = np.asarray(image, np.float64)
+    h, w = img.shape[0] // samples, img.shape[1] // samples
+    if img.shape[:2] != (h * samples, w * samples):
+        raise ValueError(f"image {img.shape[:2]} is not {samples} × a frame's size")
+    return img.reshape(h, samples, w, samples, *img.shape[2:]).mean(axis=(1, 3))
+
+
 def delta_e_patches(xyz: np.ndarray, xyz_ref: np.ndarray, white: np.ndarray) -> np.ndarray:
     """ΔE00 (P,) between patch colours (P, 3) and reference colours (P, 3) (absolute XYZ),
     CIELAB against ``white`` (3,)."""
@@ -92,8 +118,11 @@ def validate(
     modes: tuple[str, ...] = ("none", "paper", "gather"),
     basis_k: int | None = 8,
     figure: str | os.PathLike[str] | None = None,
+    samples: int = SAMPLES,
 ) -> dict[str, Any]:
-    """ΔE00 of our frames vs a committed reference, per mode and region (see module doc).
+    """ΔE00 of our frames vs a committed reference, per mode and region (see module doc);
+    each pixel of ours the mean of ``samples``² sub-pixels (the reference's pixels are area
+    means; 1: the pixel centres; the basis-vs-bands comparison, ours against ours, at 1).
 
     Returns a JSON-able dict: ``{"reference", "config", "white_xyz", "patches",
     "modes": {mode: {"interreflection": stats, "direct": stats, "all": stats, "available"}},
@@ -112,13 +141,16 @@ def validate(
 
     # the picture is written last: its name is checked before any frame is rendered
     check_suffix(figure, FIGURE_FORMATS, "figure", "the ΔE00 figure is a picture")
+    samples = check_samples(samples)
     ref, cfg, scene = reference_scene(reference)
     wl = scene.wavelengths
     size = tuple(ref.metadata.get("frame", (scene.width, scene.height)))
+    fine = (size[0] * samples, size[1] * samples)
     xyz_ref = ref.xyz()
     xyz_ref_direct = ref.xyz(direct=True)
     ir = ref.interreflection
     out: dict[str, Any] = {"reference": ref.name, "config": str(ref.config),
+                           "samples": samples,
                            "patches": {"all": ref.num_patches, "interreflection": int(ir.sum()),
                                        "direct": int((~ir).sum())},
                            "modes": {}, "targets": TARGETS}
@@ -128,7 +160,7 @@ def validate(
     for mode in modes:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            prep = prepare(scene, size=size, mode=mode)
+            prep = prepare(scene, size=fine, mode=mode)
             frame = jax.block_until_ready(render_frame(prep, spectral=True))
         unavailable = any("not available" in str(w.message) for w in caught)
         if white is None:
@@ -139,11 +171,11 @@ def validate(
             white = scene_white_xyz(env @ xyz_weights(wl), scene.environment.rotation_y_deg,
                                     np.asarray(prep.camera.view)[2, :3])
             out["white_xyz"] = white.tolist()
-        spec = np.asarray(frame.spectral, np.float64)
+        spec = pixel_means(frame.spectral, samples)
         xyz = radiance_to_xyz(ref.patch_means(spec), wl)
         de = delta_e_patches(xyz, xyz_ref, white)
         de_by_mode[mode] = de
-        frames[mode] = np.asarray(frame.rgb)
+        frames[mode] = pixel_means(frame.rgb, samples)
         out["modes"][mode] = {"available": not unavailable, "all": _stats(de),
                               "direct": _stats(de[~ir]), "interreflection": _stats(de[ir])}
         if mode == "none":

@@ -11,7 +11,11 @@ against the scene white (:func:`~spectral_fit.validation.scene_white_xyz`).
 
 Our frame: the config as it is (its interreflection mode, self-visibility on), spectral output
 on the reference's bands; for a table, the surface layer's spectral radiance at the table
-pixels (:func:`spectral_fit.rendering.surface_layer`).
+pixels (:func:`spectral_fit.rendering.surface_layer`). Each pixel of the reference is the
+mean over its area (a box pixel filter); ours is rendered at ``samples`` × the frame's size
+in each direction and averaged over each pixel's ``samples``² sub-pixels
+(:func:`pixel_means`), so that a feature a few pixels wide (a cup's lip) is compared as the
+same area mean and not as one point at the pixel's centre against it.
 """
 
 from __future__ import annotations
@@ -23,12 +27,14 @@ from typing import Any
 import numpy as np
 
 from .._runtime.paths import REPO_ROOT
+from ._compare import SAMPLES, check_samples, pixel_means
 
 __all__ = ["SCENE_TARGETS", "IR_THRESHOLD", "scene_regions", "region_report", "validate_scene",
            "validate_reference", "scene_figure"]
 
 #: interreflection share of the luminance that splits the object regions
 IR_THRESHOLD = 0.02
+
 
 #: ΔE00 targets per region (median, 90th percentile, max)
 SCENE_TARGETS: dict[str, dict[str, float]] = {
@@ -77,31 +83,34 @@ def region_report(ref: Any, de: np.ndarray) -> dict[str, Any]:
     return out
 
 
-def _our_patches(ref: Any, scene: Any) -> tuple[np.ndarray, np.ndarray, Any]:
-    """Our patch spectra (P, L) over the reference's boxes, our display frame (H, W, 3), and
-    the prepared scene."""
+def _our_patches(ref: Any, scene: Any, samples: int = SAMPLES
+                 ) -> tuple[np.ndarray, np.ndarray, Any]:
+    """Our patch spectra (P, L) over the reference's boxes (each pixel the mean of
+    ``samples``² sub-pixels), our display frame (H·samples, W·samples, 3), and the prepared
+    scene."""
     import jax
 
     from ..rendering import prepare, render_frame
 
-    prep = prepare(scene)
+    prep = prepare(scene, size=(scene.width * samples, scene.height * samples))
     frame = jax.block_until_ready(render_frame(prep, spectral=True))
-    spec = np.asarray(frame.spectral, np.float64)
-    ours = ref.patch_means(spec)
+    ours = ref.patch_means(pixel_means(frame.spectral, samples))
     table = np.asarray(ref.object_index) < 0
     if table.any():
         from ..rendering import surface_layer
 
         wl = scene.wavelengths
         layer = jax.block_until_ready(surface_layer(prep, out=np.eye(wl.size, dtype=np.float32)))
-        ours[table] = ref.patch_means(np.asarray(layer.radiance, np.float64))[table]
+        ours[table] = ref.patch_means(pixel_means(layer.radiance, samples))[table]
     return ours, np.asarray(frame.rgb), prep
 
 
 def validate_scene(reference: str | os.PathLike[str], *,
-                   figure: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+                   figure: str | os.PathLike[str] | None = None,
+                   samples: int = SAMPLES) -> dict[str, Any]:
     """ΔE00 of our frame of the reference's config against the reference's depth-16 patch
-    means, per region (:func:`region_report`), per object, and for the table.
+    means, per region (:func:`region_report`), per object, and for the table; our pixels
+    the means of ``samples``² sub-pixels (1: the pixel centres alone).
 
     Returns a JSON-able dict ``{"reference", "config", "layout", "mode", "patches",
     "regions": {region: {n, median, p90, max, targets, pass, ok, reference_noise_de}},
@@ -122,7 +131,8 @@ def validate_scene(reference: str | os.PathLike[str], *,
     if frame_size != (scene.width, scene.height):
         raise InputError(f"the reference's frame {frame_size} differs from its config's",
                          path=cfg, field="frame")
-    ours, _, prep = _our_patches(ref, scene)
+    samples = check_samples(samples)
+    ours, _, prep = _our_patches(ref, scene, samples)
     env = load_environment(scene, wl)
     white = scene_white_xyz(np.asarray(env) @ xyz_weights(wl), scene.environment.rotation_y_deg,
                             np.asarray(prep.camera.view)[2, :3])
@@ -133,7 +143,8 @@ def validate_scene(reference: str | os.PathLike[str], *,
         "reference": ref.name, "config": str(ref.config),
         "layout": ref.metadata.get("layout", "spheres"),
         "mode": scene.interreflection.mode, "patches": int(ref.num_patches),
-        "reference_spp": ref.metadata.get("spp"), "white_xyz": white.tolist(),
+        "reference_spp": ref.metadata.get("spp"), "samples": samples,
+        "white_xyz": white.tolist(),
         "regions": regions,
         "per_object": {n: _stats(de[obj == i]) for i, n in enumerate(ref.object_names)},
         "ok": all(r["ok"] for r in regions.values()),
@@ -148,19 +159,21 @@ def validate_scene(reference: str | os.PathLike[str], *,
 def validate_reference(reference: str | os.PathLike[str], *,
                        modes: tuple[str, ...] = ("none", "paper", "gather"),
                        basis_k: int | None = 8,
-                       figure: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+                       figure: str | os.PathLike[str] | None = None,
+                       samples: int = SAMPLES) -> dict[str, Any]:
     """Any committed reference: a grid-layout one through :func:`validate_scene`; a sphere
     one (benchmark, two_spheres) through :func:`~spectral_fit.validation.validate` (its
     figures unchanged) with ``"regions"`` added: :func:`region_report` of the config's
-    interreflection mode (``"regions"["mode"]``) when that mode is among ``modes``."""
+    interreflection mode (``"regions"["mode"]``) when that mode is among ``modes``. Our
+    pixels are the means of ``samples``² sub-pixels in both."""
     from ..io import load_scene
     from ._compare import validate
     from .reference import load_reference
 
     ref = load_reference(reference)
     if ref.metadata.get("layout", "spheres") == "grid":
-        return validate_scene(reference, figure=figure)
-    res = validate(reference, modes=modes, basis_k=basis_k, figure=figure)
+        return validate_scene(reference, figure=figure, samples=samples)
+    res = validate(reference, modes=modes, basis_k=basis_k, figure=figure, samples=samples)
     cfg = REPO_ROOT / ref.config if not os.path.isabs(ref.config) else Path(ref.config)
     mode = load_scene(cfg).interreflection.mode
     if mode in res["delta_e"]:

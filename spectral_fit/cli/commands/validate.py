@@ -24,6 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--k", type=int, default=8,
                    help="sphere references: also compare a K-coefficient basis render with "
                    "bands (0: skip)")
+    p.add_argument("--samples", type=int, default=2,
+                   help="sub-pixels per side of each of our pixels, averaged: the references' "
+                   "pixels are area means (default 2; 1: pixel centres only)")
     p.add_argument("-o", "--figure", default=None,
                    help="false-colour ΔE00 picture of one reference, .png, .pdf or .svg "
                    "(default <output>/<name>_delta_e.png; the JSON goes to stdout with --json)")
@@ -51,7 +54,8 @@ def _one(name: str, args: argparse.Namespace, modes: tuple[str, ...]) -> dict[st
     ref = load_reference(name)
     figure = args.figure if args.figure and not args.all else str(
         Path(args.output) / f"{ref.name}_delta_e.png")
-    res = validate_reference(name, modes=modes, basis_k=args.k or None, figure=figure)
+    res = validate_reference(name, modes=modes, basis_k=args.k or None, figure=figure,
+                             samples=args.samples)
     if "modes" not in res:  # a scene of any shape
         if not args.json:
             _print_regions(res["regions"], ref.name)
@@ -88,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
     if args.k is not None and args.k < 0:
         raise InputError(f"must be >= 0, got {args.k}", field="--k")
     check_suffix(args.figure, FIGURE_FORMATS, "figure", "the ΔE00 figure is a picture")
+    if not 1 <= args.samples <= 4:
+        raise InputError(f"must be from 1 to 4, got {args.samples}", field="--samples")
     names = sorted(p.stem for p in REFERENCE_DIR.glob("*.npz")) if args.all else [
         args.reference]
     results = {}

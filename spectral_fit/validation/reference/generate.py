@@ -15,7 +15,26 @@ from ...io import Scene
 from .data import Reference
 from .render import objects_crop, render_spectral, sphere_patches
 
-__all__ = ["make_reference", "preview_png"]
+__all__ = ["make_reference", "preview_png", "scene_sha256"]
+
+#: config tables the path tracer does not read (our renderer's own settings): a reference
+#: stays valid when only these change
+RENDERER_TABLES = ("interreflection", "display")
+
+
+def scene_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 of what a reference depends on in a scene config: its parsed TOML without the
+    tables of :data:`RENDERER_TABLES` (comments, layout and our renderer's settings do not
+    count; the files it names are digested separately)."""
+    import hashlib
+    import json
+    import tomllib
+
+    with open(path, "rb") as f:
+        data = tomllib.load(f)
+    for key in RENDERER_TABLES:
+        data.pop(key, None)
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 _REPO = REPO_ROOT
 
@@ -341,6 +360,7 @@ def make_mesh_reference(
                            if np.isfinite(render.get("seconds", np.nan)) else None),
         "renders": int(2 * passes * -(-wl.size // 3)),
         "config_sha256": hashlib.sha256(Path(scene.path).read_bytes()).hexdigest(),
+        "scene_sha256": scene_sha256(scene.path),
         "meshes_sha256": {o.name: hashlib.sha256(Path(o.mesh).read_bytes()).hexdigest()
                           for o in scene.objects if o.mesh is not None},
         "crop": [x0, y0, x1 - x0, y1 - y0],
