@@ -245,6 +245,15 @@ def test_pixel_means_are_the_area_means_of_the_sub_pixels():
             check_samples(bad)
 
 
+def test_cli_validate_refuses_samples_outside_the_range(capsys):
+    """`spectral-fit validate --samples 0` exits 2 naming the option, before rendering."""
+    from spectral_fit.cli import main
+
+    assert main(["validate", "any_shape", "--samples", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--samples" in err and "Traceback" not in err
+
+
 # --------------------------------------------------------------------------------------------
 # slow: `spectral-fit validate` of every committed scene
 

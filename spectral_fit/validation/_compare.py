@@ -73,12 +73,14 @@ def reference_scene(reference: str | os.PathLike[str]) -> tuple[Any, Path, Any]:
 SAMPLES = 2
 
 
-def check_samples(samples: Any) -> int:
+def check_samples(samples: Any, *, field: str = "samples") -> int:
+    """``samples`` as an int, or :class:`~spectral_fit.InputError` naming ``field`` unless it
+    is an integer from 1 to 4 (sub-pixels per side of each of our pixels)."""
     from .._runtime.errors import InputError
 
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or not (
             1 <= int(samples) <= 4):
-        raise InputError(f"must be an integer from 1 to 4, got {samples!r}", field="samples")
+        raise InputError(f"must be an integer from 1 to 4, got {samples!r}", field=field)
     return int(samples)
 
 

@@ -35,7 +35,6 @@ __all__ = ["SCENE_TARGETS", "IR_THRESHOLD", "scene_regions", "region_report", "v
 #: interreflection share of the luminance that splits the object regions
 IR_THRESHOLD = 0.02
 
-
 #: ΔE00 targets per region (median, 90th percentile, max)
 SCENE_TARGETS: dict[str, dict[str, float]] = {
     "objects, interreflection < 2 %": {"median": 0.3, "p90": 0.8, "max": 2.0},

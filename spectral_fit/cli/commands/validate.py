@@ -81,7 +81,7 @@ def _one(name: str, args: argparse.Namespace, modes: tuple[str, ...]) -> dict[st
 def run(args: argparse.Namespace) -> int:
     from ..._runtime.errors import InputError
     from ..._runtime.fileio import check_suffix
-    from ...validation import FIGURE_FORMATS
+    from ...validation import FIGURE_FORMATS, check_samples
     from ...validation.reference import REFERENCE_DIR
 
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
@@ -92,8 +92,7 @@ def run(args: argparse.Namespace) -> int:
     if args.k is not None and args.k < 0:
         raise InputError(f"must be >= 0, got {args.k}", field="--k")
     check_suffix(args.figure, FIGURE_FORMATS, "figure", "the ΔE00 figure is a picture")
-    if not 1 <= args.samples <= 4:
-        raise InputError(f"must be from 1 to 4, got {args.samples}", field="--samples")
+    check_samples(args.samples, field="--samples")
     names = sorted(p.stem for p in REFERENCE_DIR.glob("*.npz")) if args.all else [
         args.reference]
     results = {}
