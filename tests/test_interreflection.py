@@ -208,16 +208,21 @@ def brute_force_gloss(x, nrm, view, c, r, mu, eta, n_theta=500, n_phi=1000):
     return float(np.sum(f * w))
 
 
+def _mirroring_at_the_neighbour():
+    """Points of sphere 0 facing sphere 1, with views whose mirror direction points at the
+    neighbour's centre: (x, n, v) (6, 3) each and their G-buffer."""
+    x, n = facing_points(C0, C1, [0.0, 20.0, 35.0], azimuths_deg=(0.0, 120.0))
+    d = C1 - x
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    v = 2 * np.sum(n * d, 1, keepdims=True) * n - d
+    return x, n, v, gbuffer(x, n, v, [0] * len(x), CAP)
+
+
 def test_gloss_and_mirror_against_brute_force(gather_geom, uniform_env):
     """Glossy / mirror receiver, grey Lambertian neighbour, uniform sky: the added radiance is
     (ρ − 1) ∫_sphere f_gloss cos dω (brute force), resp. (ρ − 1) F(θr) where the mirror ray hits
     the neighbour."""
-    x, n = facing_points(C0, C1, [0.0, 20.0, 35.0], azimuths_deg=(0.0, 120.0))
-    # views whose mirror direction points at the neighbour's centre
-    d = C1 - x
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    v = 2 * np.sum(n * d, 1, keepdims=True) * n - d
-    rec = gbuffer(x, n, v, [0] * len(x), CAP)
+    x, n, v, rec = _mirroring_at_the_neighbour()
     rho = 0.25
     neigh = material(reflectance=np.full(3, rho))
     gl = run(gather_geom, [material(alpha=0.0, beta=1.0, mu=0.1), neigh], uniform_env,
@@ -228,6 +233,32 @@ def test_gloss_and_mirror_against_brute_force(gather_geom, uniform_env):
         assert gl[k] == pytest.approx(ref, rel=0.05), k
         ref_m = (rho - 1) * float(fresnel_dielectric(float(v[k] @ n[k]), 1.5))
         assert mr[k] == pytest.approx(ref_m, rel=0.01), k
+
+
+def test_hidden_sky_as_a_share_of_the_receivers_own_gloss(gather_geom, uniform_env):
+    """With ``own_gloss`` the sky a neighbour hides in a glossy receiver's lobe is taken off as
+    min(1, own / the lobe nodes' sky) of the nodes' hidden sky. Under a uniform unit sky, a
+    grey Lambertian neighbour (ρ) adds ρ X − X to the nodes' reading (X: the lobe's share the
+    neighbour covers): with own = 0 nothing is taken off (ρ X: ρ/(ρ − 1) times the plain
+    result); with own far above the nodes' sky the share is 1 (the plain result); below it,
+    what is taken off grows linearly with own."""
+    x, _, _, rec = _mirroring_at_the_neighbour()
+    rho = 0.25
+    mats = [material(alpha=0.0, beta=1.0, mu=0.1), material(reflectance=np.full(3, rho))]
+    fn = jax.jit(lambda g, m, e, r, own: interreflection_from(g, m, e, r, own_gloss=own))
+
+    def with_own(value):
+        own = np.full((CAP, 3), value, np.float32)
+        return np.asarray(fn(gather_geom, mats, uniform_env, rec, own))[:len(x), 0]
+
+    plain = run(gather_geom, mats, uniform_env, rec)[:len(x), 0]
+    assert np.all(plain < 0)  # the neighbour hides more sky than it sends
+    light = with_own(0.0)
+    np.testing.assert_allclose(light, rho / (rho - 1) * plain, rtol=1e-4)
+    np.testing.assert_allclose(with_own(1e3), plain, rtol=1e-5)
+    taken1, taken2 = light - with_own(0.01), light - with_own(0.02)
+    assert np.all(taken1 > 0)
+    np.testing.assert_allclose(taken2, 2 * taken1, rtol=1e-3)
 
 
 def _mirror_x(p):

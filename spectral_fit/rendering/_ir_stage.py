@@ -31,9 +31,11 @@ _IR_WARNED: set[str] = set()
 
 
 def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Material],
-                     gb: GBuffer, to_out: jax.Array | None) -> tuple[jax.Array | None, jax.Array]:
+                     gb: GBuffer, to_out: jax.Array | None,
+                     own_gloss: jax.Array | None = None) -> tuple[jax.Array | None, jax.Array]:
     """Interreflection radiance (N, D) to add, in the output channels of ``to_out`` (C, D)
-    (the C channels when ``to_out`` is None; None when off), and the pass-1 overflow flag."""
+    (the C channels when ``to_out`` is None; None when off), and the pass-1 overflow flag;
+    ``own_gloss`` (N, D): the receivers' own environment gloss (gather mode)."""
     no = jnp.zeros((), bool)
     ir, lit = prep.interreflection, prep.lighting
     if ir.mode == "none" or len(geoms) < 2:
@@ -53,7 +55,7 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
              if ir.mode == "paper" and lit.split_map is not None else None)
     extra = interreflection_from(geom, mats, lit.env, gb, mode=ir.mode, bounces=ir.bounces,
                                  image_shape=prep.camera.shape, output=to_out,
-                                 split_sum=split)
+                                 split_sum=split, own_gloss=own_gloss)
     return extra, jnp.asarray(geom.overflow, bool)
 
 

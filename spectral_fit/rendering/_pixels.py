@@ -162,7 +162,14 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
             split_settings=prep.lighting.split_settings)
     with jax.named_scope("shading"):
         lit = prep.lighting
-        if lit.quality == "fast":
+        # the environment's gloss of each pixel, for the gather to take off the share of it
+        # that a neighbour hides (fast quality; the other qualities keep the lobe nodes' own
+        # reading of the hidden sky)
+        own_gloss = None
+        if lit.quality == "fast" and prep.interreflection.mode == "gather" and n_obj > 1:
+            radiance, own_gloss = _shade_out(prep, mats, gb, counts, to_out, mirror_table,
+                                             spec_vis, spec_seen, with_gloss=True)
+        elif lit.quality == "fast":
             radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table, spec_vis,
                                   spec_seen)
         else:
@@ -187,11 +194,12 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
 
         ir = gather_receivers(senders, mats, prep.lighting.env, gb,
                               image_shape=prep.camera.shape,
-                              output=None if spectral else to_out)
+                              output=None if spectral else to_out, own_gloss=own_gloss)
         ir_overflow = jnp.asarray(senders.geometry.overflow, bool)
     else:
         geoms = _ir_geometries(prep, model, visible)
-        ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out)
+        ir, ir_overflow = _interreflection(prep, geoms, mats, gb, None if spectral else to_out,
+                                           own_gloss)
     if ir is not None:
         if occ is not None and n_obj > 1:
             from ._occlusion import neighbour_visibility

@@ -279,19 +279,22 @@ def _chunked(fn: Any, counts: Sequence[jax.Array], out_channels: int,
 def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[jax.Array],
                to_out: jax.Array, mirror_table: jax.Array,
                spec_vis: jax.Array | None = None,
-               spec_seen: jax.Array | None = None) -> jax.Array:
-    """Environment shading (eq. 5, quality "fast") of the G-buffer samples straight into the
-    output channels (N, K): ``to_out`` (C, K) maps radiance channels to them. The gloss and
-    mirror depend on λ only through the environment, so they are looked up in K channels (the
-    split-sum levels' principal spectra times ``to_out``; ``mirror_table`` = the map's texels
-    + 2 pole rows times ``to_out``); the diffuse term α S(λ) I_d(N)/π is one lookup of a
-    per-object table (the irradiance map filtered by S(λ), times α/π, times ``to_out``, built
-    per frame: 2,050 rows). In chunks of slots, chunks past each object's covered count
-    skipped; the objects whose materials share a distribution and geometry share one traced
-    shading body (their per-object tables and parameters selected by object), which halves
-    the compilation of a two-object frame. ``spec_vis`` (N,), ``spec_seen`` (N, K): the
-    gloss and mirror scaled by the first, the object's own light reflected from the second
-    (see :func:`_shade_samples`)."""
+               spec_seen: jax.Array | None = None, *,
+               with_gloss: bool = False) -> Any:
+    """Environment shading (eq. 5, quality "fast") of the G-buffer samples straight into the output
+    channels (N, K) (``with_gloss``: and, as a second (N, K) array, the part of it that is the
+    environment's gloss and mirror, after the object's own visibility and before its own
+    reflected light: what a neighbour can hide of it): ``to_out`` (C, K) maps radiance channels
+    to them. The gloss and mirror depend on λ only through the environment, so they are looked
+    up in K channels (the split-sum levels' principal spectra times ``to_out``; ``mirror_table``
+    = the map's texels + 2 pole rows times ``to_out``); the diffuse term α S(λ) I_d(N)/π is one
+    lookup of a per-object table (the irradiance map filtered by S(λ), times α/π, times
+    ``to_out``, built per frame: 2,050 rows). In chunks of slots, chunks past each object's
+    covered count skipped; the objects whose materials share a distribution and geometry share
+    one traced shading body (their per-object tables and parameters selected by object), which
+    halves the compilation of a two-object frame. ``spec_vis`` (N,), ``spec_seen`` (N, K): the
+    gloss and mirror scaled by the first, the object's own light reflected from the second (see
+    :func:`_shade_samples`)."""
     from ..lighting import fast_lookup, lobe_moment_table
 
     env = prep.lighting.env
@@ -332,13 +335,18 @@ def _shade_out(prep: Prepared, mats: list[Material], gb: GBuffer, counts: list[j
                 diffuse = fast_lookup(_lut_env(env, dflat[o]), nn)
             if sv is not None:
                 spec = spec * sv[:, None]
+            env_spec = spec
             if seen is not None:
                 spec = spec + lobe_albedo(m, moments[o], nv,
                                           mirror=group_mirror is not None) * seen
-            return jnp.where(nv > 0.0, diffuse + spec, 0.0)
+            res = diffuse + spec
+            if with_gloss:
+                res = jnp.concatenate([res, env_spec], axis=-1)
+            return jnp.where(nv > 0.0, res, 0.0)
 
-        res = _chunked(shade, [counts[i] for i in members], k_out,
+        res = _chunked(shade, [counts[i] for i in members], 2 * k_out if with_gloss else k_out,
                        [slices[i] for i in members])
         for i, r in zip(members, res, strict=True):
             out[i] = r
-    return jnp.concatenate(out)
+    res = jnp.concatenate(out)
+    return (res[:, :k_out], res[:, k_out:]) if with_gloss else res

@@ -67,12 +67,14 @@ def _reflect_diffuse(sh: _Shading, net: jax.Array, obj: jax.Array) -> jax.Array:
 def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
              diffuse: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
              obj: jax.Array, *,
-             grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
+             grid: tuple[jax.Array, tuple[int, int], int] | None = None,
+             own: jax.Array | None = None) -> jax.Array:
     """Interreflection (N, D) at receivers (pos, nrm, view (N, 3), obj (N,)) in ``sh``'s output
     channels, given their diffuse term ``diffuse`` (N, D) (α S ⊙ the net light they receive,
-    :func:`_reflect_diffuse`) and the senders' mip ``atlas`` (in the output channels)."""
+    :func:`_reflect_diffuse`) and the senders' mip ``atlas`` (in the output channels);
+    ``own`` (N, D): the receivers' own environment gloss (:func:`_lobe_quadrature`)."""
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
-    out = diffuse + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid)
+    out = diffuse + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid, own)
     out, ok = _less_hidden_sources(geom, sh, out, pos, nrm, view, obj)
     return jnp.where(ok[:, None], out, 0.0)
 
@@ -190,7 +192,8 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
 
 def gather_receivers(state: GatherSenders, materials: Sequence[Material], env: EnvironmentMap,
                      receivers: GBuffer, *, image_shape: tuple[int, int] | None = None,
-                     gloss_step: int = GLOSS_STEP, output: Any = None) -> jax.Array:
+                     gloss_step: int = GLOSS_STEP, output: Any = None,
+                     own_gloss: Any = None) -> jax.Array:
     """The receivers' side of the gather interreflection: radiance (N, C) (or (N, D) with
     ``output``) to add at ``receivers``, from :func:`gather_senders`'s state of the same
     objects, ``materials`` and ``env`` (options as :func:`interreflection_from`; the
@@ -202,13 +205,13 @@ def gather_receivers(state: GatherSenders, materials: Sequence[Material], env: E
     image_shape = _check_image_shape(image_shape)
     diffuse_at = "samples" if state.net is not None else "receivers"
     return _gather_receivers(state, materials, env, receivers, diffuse_at, image_shape,
-                             gloss_step, output)
+                             gloss_step, output, own_gloss)
 
 
 def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
                       env: EnvironmentMap, receivers: GBuffer, diffuse_at: str,
                       image_shape: tuple[int, int] | None, gloss_step: int,
-                      output: jax.Array | None) -> jax.Array:
+                      output: jax.Array | None, own: Any = None) -> jax.Array:
     geom, snd, atlas, net = state.geometry, state.senders, state.atlas, state.net
     senders = [j for _, j in geom.pairs]
     sh = _shading(materials, env)
@@ -231,14 +234,20 @@ def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
         else:
             diffuse = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, pos, nrm, obj),
                                        obj)
+    if own is not None:
+        own = jnp.asarray(own, jnp.float32)
+        if own.shape != (pos.shape[0], sh.channels):
+            raise InputError(f"expected shape {(pos.shape[0], sh.channels)}, got {own.shape}",
+                             field="own_gloss")
     if not on_accelerator() and pos.shape[0] > _RECEIVER_CHUNK:
         return _receive_valid_first(geom, sh, atlas, tables, diffuse, pos, nrm,
-                                    receivers.view, obj, grid)
+                                    receivers.view, obj, grid, own)
     if diffuse is None:
         with jax.named_scope("ir_receiver_diffuse"):
             diffuse = _interpolate_net(geom, net, pos, nrm, obj, tables=tables)
     with jax.named_scope("ir_receiver_gloss"):
-        return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid)
+        return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid,
+                        own=own)
 
 
 #: CPU layout: receivers per chunk of the per-receiver terms of :func:`_receive_valid_first`
@@ -249,7 +258,8 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
                          tables: tuple[jax.Array, ...] | None,
                          diffuse: jax.Array | None, pos: jax.Array, nrm: jax.Array,
                          view: jax.Array, obj: jax.Array,
-                         grid: tuple[jax.Array, tuple[int, int], int] | None) -> jax.Array:
+                         grid: tuple[jax.Array, tuple[int, int], int] | None,
+                         own: jax.Array | None = None) -> jax.Array:
     """:func:`_receive` (N, D) for many receivers on the CPU layout, at a cost that follows
     the number of valid receivers (obj >= 0) rather than N: a renderer's receivers are
     fixed-capacity slot lists, of which the covered pixels fill ~55–60 % (the capacities'
@@ -265,6 +275,8 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
     pos, nrm, view, obj = pos[order], nrm[order], view[order], obj[order]
     if diffuse is not None:
         diffuse = diffuse[order]
+    if own is not None:
+        own = own[order]
     step = 0
     at = None
     pixel = jnp.full(obj.shape, -1, jnp.int32)
@@ -292,7 +304,7 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
                         size=_RECEIVER_CHUNK)
     base, ok, active = out[:3]
     with jax.named_scope("ir_receiver_gloss"):
-        res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active)
+        res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active, own)
         if at is not None:
             own, a_idx, a_w = out[3:]
             res = jnp.where(own[:, None], res, taps_sum(res, a_idx, a_w))
@@ -302,7 +314,7 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
 def _gather_mode(geom: IRGeometry, materials: Sequence[Material], env: EnvironmentMap,
                  receivers: GBuffer, bounces: int, diffuse_at: str = "samples",
                  image_shape: tuple[int, int] | None = None, gloss_step: int = 1,
-                 output: jax.Array | None = None) -> jax.Array:
+                 output: jax.Array | None = None, own: Any = None) -> jax.Array:
     state = _gather_senders(geom, materials, env, bounces, diffuse_at)
     return _gather_receivers(state, materials, env, receivers, diffuse_at, image_shape,
-                             gloss_step, output)
+                             gloss_step, output, own)

@@ -15,6 +15,7 @@ channels; computed batched and by components as the diffuse transfer (see ``_dif
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -70,8 +71,11 @@ def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, 
 
 def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
                      pair: jax.Array, sender: jax.Array, pos: jax.Array, dirs: jax.Array,
-                     wts: jax.Array, edge: jax.Array, sigma_env: jax.Array) -> jax.Array:
-    """Σ_q wts_q h_q [L_j(y_q → x) − L_env(ω_q)] (N, C): the net radiance that the sender of
+                     wts: jax.Array, edge: jax.Array, sigma_env: jax.Array, *,
+                     parts: bool = False) -> Any:
+    """Σ_q wts_q h_q [L_j(y_q → x) − L_env(ω_q)] (N, C) (``parts``: the tuple of the
+    sender's light Σ_q wts_q h_q L_j, the hidden sky Σ_q wts_q h_q L_env and the sky at all
+    the nodes Σ_q wts_q L_env, each (N, C)): the net radiance that the sender of
     ``pair`` (N,) adds along the rays (pos (N, 3), dirs (N, Q, 3)), weighted by ``wts``
     (N, Q). h and y: where the ray meets the sender's depth map (:func:`_march`); the
     sender's radiance there is the view-independent part from the sample mip atlas (at the
@@ -111,9 +115,15 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     wc = wq * cov
     ein = "nq,nqc->nc"
     out = jnp.einsum(ein, wq, taps_sum(lum_atlas, idx, w))  # L·cov
-    out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1) - hidden) @ sh.basis
+    if parts:
+        out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1)) @ sh.basis
+    else:
+        out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1) - hidden) @ sh.basis
     if mirror is not None:
         out = out + sh.to_output(jnp.einsum(ein, wc, mirror.reshape(n, nq, -1)))
+    if parts:
+        return (out, jnp.einsum(ein, wc, hidden) @ sh.basis,
+                jnp.einsum(ein, wts, hidden) @ sh.basis)
     return out
 
 
@@ -155,7 +165,8 @@ _LOBE_REACH = 5.0
 
 def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
                  pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
-                 grid: tuple[jax.Array, tuple[int, int], int] | None = None) -> jax.Array:
+                 grid: tuple[jax.Array, tuple[int, int], int] | None = None,
+                 own: jax.Array | None = None) -> jax.Array:
     """Gloss and mirror interreflection (N, C): β A(x) Σ_q w_q (neighbour − hidden environment)
     over the receiver's lobe nodes, χ F(θr) (…) along R. Receivers whose lobe cannot reach a
     neighbour are sorted last, into chunks (``_GLOSS_CHUNKS``) that are skipped; with the
@@ -167,11 +178,11 @@ def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shad
     image of the neighbour: smooth at the pixel scale)."""
     active, gap, refl = _lobe_reach(geom, sh, pos, nrm, view, obj)
     if grid is None:
-        return _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active)
-    own, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl, gap,
-                                     math.sqrt(2.0) * sh.mats["mu"][jnp.maximum(obj, 0)])
-    res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active & own)
-    return jnp.where(own[:, None], res, taps_sum(res, a_idx, a_w))
+        return _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active, own)
+    itself, a_idx, a_w = _image_anchors(grid[0], obj, grid[1], grid[2], pos, refl, gap,
+                                        math.sqrt(2.0) * sh.mats["mu"][jnp.maximum(obj, 0)])
+    res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active & itself, own)
+    return jnp.where(itself[:, None], res, taps_sum(res, a_idx, a_w))
 
 
 def _lobe_reach(geom: IRGeometry, sh: _Shading, pos: jax.Array, nrm: jax.Array,
@@ -203,11 +214,17 @@ def _lobe_reach(geom: IRGeometry, sh: _Shading, pos: jax.Array, nrm: jax.Array,
 
 def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
                      pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
-                     active: jax.Array) -> jax.Array:
+                     active: jax.Array, own: jax.Array | None = None) -> jax.Array:
     """The gloss and mirror interreflection (N, C) of :func:`_lobe_gather` at the ``active``
     (N,) receivers (zero at the others), by the lobe quadrature in chunks, the active
     receivers first and the chunks past them skipped (one chunk of all with the accelerator
-    layout)."""
+    layout).
+
+    ``own`` (N, C): the environment's gloss and mirror the frame shaded at each receiver.
+    With it, the sky the neighbours hide is taken off as the nodes' hidden sky times
+    min(1, own / the nodes' sky over the whole lobe), per channel: at most the hidden share
+    of the receiver's own gloss (the nodes and the frame's split sum read the lobe's sky
+    differently at grazing angles; a band whose diffuse light is dim went below zero)."""
     k_per = geom.n_objects - 1
     c = sh.channels
     mats = sh.mats
@@ -224,7 +241,7 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     same = len({(m.distribution, m.geometry) for m in materials}) == 1
 
     def run(args: tuple[jax.Array, ...]) -> jax.Array:
-        x, nn, vv, ob, act = args
+        x, nn, vv, ob, act, *mine = args
         o = jnp.maximum(ob, 0)
         mu, eta = mats["mu"][o], mats["n"][o]
         beta, chi = mats["beta"][o], mats["chi"][o]
@@ -249,24 +266,42 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
         albedo = _albedo_at(sh.albedo, ob, nv)
         lobe_sigma = math.sqrt(2.0) * mu
         acc = jnp.zeros((x.shape[0], c), x.dtype)
+        hid = sky = None
+        g_w = (beta * albedo)[:, None]
+        if sh.mirror:
+            rdir = 2.0 * nv[:, None] * nn - vv
+            m_w = (chi * fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), eta))[:, None]
         for k in range(k_per):
             pair = o * k_per + k
             along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x, dirs, wts,
-                                     _EDGE * lobe_sigma, 0.5 * lobe_sigma)
-            acc = acc + (beta * albedo)[:, None] * along
+                                     _EDGE * lobe_sigma, 0.5 * lobe_sigma, parts=bool(mine))
+            m_along = None
             if sh.mirror:
-                rdir = 2.0 * nv[:, None] * nn - vv
                 m_along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x,
                                            rdir[:, None], jnp.ones_like(mu)[:, None],
-                                           jnp.full_like(mu, 0.02), jnp.zeros_like(mu))
-                fres = fresnel_dielectric(jnp.clip(nv, 0.0, 1.0), eta)
-                acc = acc + (chi * fres)[:, None] * m_along
+                                           jnp.full_like(mu, 0.02), jnp.zeros_like(mu),
+                                           parts=bool(mine))
+            if not mine:
+                acc = acc + g_w * along
+                if m_along is not None:
+                    acc = acc + m_w * m_along
+                continue
+            acc = acc + g_w * along[0]
+            h, sk = g_w * along[1], g_w * along[2]
+            if m_along is not None:
+                acc = acc + m_w * m_along[0]
+                h, sk = h + m_w * m_along[1], sk + m_w * m_along[2]
+            hid = h if hid is None else hid + h
+            sky = sk  # the same nodes for every neighbour
+        if mine:
+            share = jnp.where(sky > 1e-30, mine[0] / jnp.where(sky > 1e-30, sky, 1.0), 1.0)
+            acc = acc - hid * jnp.clip(share, 0.0, 1.0)
         return jnp.where(act[:, None], acc, 0.0)
 
     zz = jnp.asarray((0.0, 0.0, 1.0), nrm.dtype)
     if nc == 1:  # one chunk (accelerator layout, or few receivers): no sort, loop or cond
         res = run((pos, jnp.where(active[:, None], nrm, zz), jnp.where(active[:, None], view, zz),
-                   obj, active))
+                   obj, active, *([] if own is None else [own])))
     else:
         # the active receivers first, each part in index order (a stable partition, found
         # by counting: a sort of the N keys cost more than the whole rest of the bookkeeping)
@@ -279,7 +314,8 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
             ix = jnp.minimum(sl, n - 1)
             act = active[ix] & (sl < n)
             return run((pos[ix], jnp.where(act[:, None], nrm[ix], zz),
-                        jnp.where(act[:, None], view[ix], zz), obj[ix], act))
+                        jnp.where(act[:, None], view[ix], zz), obj[ix], act,
+                        *([] if own is None else [own[ix]])))
 
         def step(_: None, a: tuple[jax.Array, jax.Array]) -> tuple[None, jax.Array]:
             i, sl = a

@@ -105,6 +105,7 @@ def interreflection_from(
     gloss_step: int = GLOSS_STEP,
     output: Any = None,
     split_sum: tuple[Any, Any] | None = None,
+    own_gloss: Any = None,
 ) -> jax.Array:
     """Shading pass of the interreflection: radiance (N, C) to ADD to
     ``shade(materials[obj], env, normal, view)`` at every receiver (eq. 6).
@@ -137,6 +138,12 @@ def interreflection_from(
             its :class:`~spectral_fit.lighting.SplitSum` settings): the pass-1 textures'
             gloss by the split sum, as the frame's quality "fast" shades (default: the
             "render" quadrature, ~100× the cost).
+        own_gloss: gather mode: (N, C) (or (N, D) with ``output``) the environment's gloss
+            and mirror the caller shaded at each receiver: what a neighbour hides of them is
+            taken off as the hidden share of this (the lobe nodes' hidden sky over all their
+            sky) instead of as the nodes' own reading of the hidden sky (which differs from the
+            caller's split-sum reading at grazing angles by more than a dim band's diffuse
+            light, and took such bands below zero). None: the nodes' reading.
 
     Returns:
         (N, C) float32, W·sr⁻¹·m⁻²·nm⁻¹ per band (or coefficients); (N, D) with ``output``.
@@ -158,7 +165,7 @@ def interreflection_from(
         out = _paper_mode(geometry, materials, env, receivers, split_sum)
         return out if output is None else out @ jnp.asarray(output, jnp.float32)
     return _gather_mode(geometry, materials, env, receivers, bounces, diffuse_at,
-                        image_shape, gloss_step, output)
+                        image_shape, gloss_step, output, own_gloss)
 
 
 def interreflection(
