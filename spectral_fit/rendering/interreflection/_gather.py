@@ -295,9 +295,9 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
             active, gap, refl = _lobe_reach(geom, sh, x, nn, vv, ob)
             if at is None:
                 return base, ok, active
-            own, a_idx, a_w = _image_anchors(px, ob, shape, step, x, refl, gap,
-                                             math.sqrt(2.0) * mu[jnp.maximum(ob, 0)], at=at)
-            return base, ok, active & own, own, a_idx, a_w
+            itself, a_idx, a_w = _image_anchors(px, ob, shape, step, x, refl, gap,
+                                                math.sqrt(2.0) * mu[jnp.maximum(ob, 0)], at=at)
+            return base, ok, active & itself, itself, a_idx, a_w
 
     extra = [] if diffuse is None else [diffuse]
     out = prefix_chunks(terms, count, [pos, nrm, view, obj, pixel, *extra],
@@ -306,8 +306,8 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
     with jax.named_scope("ir_receiver_gloss"):
         res = _lobe_quadrature(geom, atlas, sh, pos, nrm, view, obj, active, own)
         if at is not None:
-            own, a_idx, a_w = out[3:]
-            res = jnp.where(own[:, None], res, taps_sum(res, a_idx, a_w))
+            itself, a_idx, a_w = out[3:]
+            res = jnp.where(itself[:, None], res, taps_sum(res, a_idx, a_w))
         return jnp.where(ok[:, None], base + res, 0.0)[rank]
 
 
