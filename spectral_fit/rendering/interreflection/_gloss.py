@@ -15,7 +15,6 @@ channels; computed batched and by components as the diffuse transfer (see ``_dif
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -71,17 +70,17 @@ def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, 
 
 def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
                      pair: jax.Array, sender: jax.Array, pos: jax.Array, dirs: jax.Array,
-                     wts: jax.Array, edge: jax.Array, sigma_env: jax.Array, *,
-                     parts: bool = False) -> Any:
-    """Σ_q wts_q h_q [L_j(y_q → x) − L_env(ω_q)] (N, C) (``parts``: the tuple of the
-    sender's light Σ_q wts_q h_q L_j, the hidden sky Σ_q wts_q h_q L_env and the sky at all
-    the nodes Σ_q wts_q L_env, each (N, C)): the net radiance that the sender of
-    ``pair`` (N,) adds along the rays (pos (N, 3), dirs (N, Q, 3)), weighted by ``wts``
-    (N, Q). h and y: where the ray meets the sender's depth map (:func:`_march`); the
-    sender's radiance there is the view-independent part from the sample mip atlas (at the
-    footprint of the lobe's spread ``edge`` (N,) radians times the distance, with its normal
-    and coverage) plus :func:`_specular` towards the receiver point; the environment it
-    hides is prefiltered to ``sigma_env`` (N,)."""
+                     wts: jax.Array, edge: jax.Array, sigma_env: jax.Array
+                     ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """What the sender of ``pair`` (N,) changes along the rays (pos (N, 3), dirs (N, Q, 3)),
+    weighted by ``wts`` (N, Q), as three (N, C) parts: the sender's light Σ_q wts_q h_q L_j(y_q
+    → x), the sky it hides Σ_q wts_q h_q L_env(ω_q), and the sky at all the nodes Σ_q wts_q
+    L_env(ω_q) (the net change is the first less the second). h and y: where the ray meets
+    the sender's depth map (:func:`_march`); the sender's radiance there is the
+    view-independent part from the sample mip atlas (at the footprint of the lobe's spread
+    ``edge`` (N,) radians times the distance, with its normal and coverage) plus
+    :func:`_specular` towards the receiver point; the environment it hides is prefiltered to
+    ``sigma_env`` (N,)."""
     n, nq = dirs.shape[:2]
     g = geom.gather_size
     lum_atlas, geo_atlas = atlas
@@ -115,16 +114,11 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     wc = wq * cov
     ein = "nq,nqc->nc"
     out = jnp.einsum(ein, wq, taps_sum(lum_atlas, idx, w))  # L·cov
-    if parts:
-        out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1)) @ sh.basis
-    else:
-        out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1) - hidden) @ sh.basis
+    out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1)) @ sh.basis
     if mirror is not None:
         out = out + sh.to_output(jnp.einsum(ein, wc, mirror.reshape(n, nq, -1)))
-    if parts:
-        return (out, jnp.einsum(ein, wc, hidden) @ sh.basis,
-                jnp.einsum(ein, wts, hidden) @ sh.basis)
-    return out
+    return (out, jnp.einsum(ein, wc, hidden) @ sh.basis,
+            jnp.einsum(ein, wts, hidden) @ sh.basis)
 
 
 def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: jax.Array,
@@ -274,18 +268,12 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
         for k in range(k_per):
             pair = o * k_per + k
             along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x, dirs, wts,
-                                     _EDGE * lobe_sigma, 0.5 * lobe_sigma, parts=bool(mine))
+                                     _EDGE * lobe_sigma, 0.5 * lobe_sigma)
             m_along = None
             if sh.mirror:
                 m_along = _neighbour_along(geom, atlas, sh, pair, senders[pair], x,
                                            rdir[:, None], jnp.ones_like(mu)[:, None],
-                                           jnp.full_like(mu, 0.02), jnp.zeros_like(mu),
-                                           parts=bool(mine))
-            if not mine:
-                acc = acc + g_w * along
-                if m_along is not None:
-                    acc = acc + m_w * m_along
-                continue
+                                           jnp.full_like(mu, 0.02), jnp.zeros_like(mu))
             acc = acc + g_w * along[0]
             h, sk = g_w * along[1], g_w * along[2]
             if m_along is not None:
@@ -293,9 +281,11 @@ def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
                 h, sk = h + m_w * m_along[1], sk + m_w * m_along[2]
             hid = h if hid is None else hid + h
             sky = sk  # the same nodes for every neighbour
-        if mine:
-            share = jnp.where(sky > 1e-30, mine[0] / jnp.where(sky > 1e-30, sky, 1.0), 1.0)
-            acc = acc - hid * jnp.clip(share, 0.0, 1.0)
+        if hid is not None:
+            if mine:  # the hidden sky as a share of the receiver's own environment gloss
+                share = jnp.where(sky > 1e-30, mine[0] / jnp.where(sky > 1e-30, sky, 1.0), 1.0)
+                hid = hid * jnp.clip(share, 0.0, 1.0)
+            acc = acc - hid
         return jnp.where(act[:, None], acc, 0.0)
 
     zz = jnp.asarray((0.0, 0.0, 1.0), nrm.dtype)
