@@ -404,9 +404,9 @@ def test_live_session_puts_shadows_on_the_table(tables):
     assert darker[table_px].sum() > 30  # the contact shadows
     assert darker[table_px].mean() < 0.25  # and only around the spheres
     assert session.surface_builds == 1
-    traces = (STEP_TRACES["step"], session.recompiles)
+    traces = (STEP_TRACES["step"], STEP_TRACES["relight"], session.recompiles)
     lost, _, _ = small_frame(only3, eye, seed=2)
     session.process(lost)  # the shadow of the lost sphere's object goes at once
     assert session.surface_builds == 2
     session.process(img)
-    assert (STEP_TRACES["step"], session.recompiles) == traces
+    assert (STEP_TRACES["step"], STEP_TRACES["relight"], session.recompiles) == traces

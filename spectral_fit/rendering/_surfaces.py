@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.backend import materialise_each
 from .._runtime.errors import InputError
 
 __all__ = ["SurfaceLayer", "SurfaceTexture", "SurfaceTransfer", "build_surface_transfer",
@@ -758,10 +759,13 @@ def _bilinear(tex: jax.Array, u: jax.Array, v: jax.Array, outside: jax.Array) ->
     """Bilinear lookups (N, K) of ``tex`` (T, T, K) at region coordinates ``u``, ``v`` (N,)
     in [−1, 1] (the module's texel convention); ``outside`` (K,) beyond the region. The
     four neighbours of every texel are packed side by side ((T − 1)², 4K), one gather per
-    lookup; interpolated as a + f (b − a), so equal neighbours give their value exactly."""
+    lookup; interpolated as a + f (b − a), so equal neighbours give their value exactly.
+    The texel coordinates are computed into memory first (``materialise_each(cut=True)``):
+    XLA:CPU otherwise recomputes their whole expression (a frame's rays and the ray–plane
+    intersection) inside the gather and each of its consumers, 4× the lookup's time at
+    720×480."""
     t, kc = tex.shape[0], tex.shape[-1]
-    x = (u + 1.0) * 0.5 * t - 0.5
-    y = (1.0 - v) * 0.5 * t - 0.5
+    x, y = materialise_each((u + 1.0) * 0.5 * t - 0.5, (1.0 - v) * 0.5 * t - 0.5, cut=True)
     inside = (x > -0.5) & (x < t - 0.5) & (y > -0.5) & (y < t - 0.5)
     x0 = jnp.clip(jnp.floor(x), 0, t - 2)
     y0 = jnp.clip(jnp.floor(y), 0, t - 2)
