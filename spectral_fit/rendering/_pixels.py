@@ -166,12 +166,12 @@ def _pixels_impl(prep: Prepared, materials: Any, model: jax.Array, view: jax.Arr
         # that a neighbour hides (fast quality; the other qualities keep the lobe nodes' own
         # reading of the hidden sky)
         own_gloss = None
-        if lit.quality == "fast" and prep.interreflection.mode == "gather" and n_obj > 1:
-            radiance, own_gloss = _shade_out(prep, mats, gb, counts, to_out, mirror_table,
-                                             spec_vis, spec_seen, with_gloss=True)
-        elif lit.quality == "fast":
+        if lit.quality == "fast":
+            with_gloss = prep.interreflection.mode == "gather" and n_obj > 1
             radiance = _shade_out(prep, mats, gb, counts, to_out, mirror_table, spec_vis,
-                                  spec_seen)
+                                  spec_seen, with_gloss=with_gloss)
+            if with_gloss:
+                radiance, own_gloss = radiance
         else:
             radiance = _shade_samples(mats, lit.env, gb, lit.batch_size, lit.irradiance_lut,
                                       lit.quality, prep.buffers.pixel_capacity,
