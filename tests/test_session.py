@@ -223,11 +223,33 @@ def test_model_error_table(base, tmp_path):
     for i, (body, field, words) in enumerate((
             ("object = 1.5", "model_error.object", "<= 1"),
             ('object = "guess"', "model_error.object", "auto"),
-            ("glossy = 0.1", "model_error.glossy", "unknown"))):
+            ("glossy = 0.1", "model_error.glossy", "unknown"),
+            ("[model_error.level]\nobject = -0.01", "model_error.level.object", ">= 0"),
+            ("[model_error.level]\nglossy = 0.01", "model_error.level.glossy", "unknown"))):
         d = _copy(base, tmp_path / f"bad{i}")
         _replace_in(d / "session.toml", "[dark]", f"[model_error]\n{body}\n\n[dark]")
         e = _error(d)
         assert e.field == field and words in str(e), (e.field, str(e))
+
+
+def test_level_error_table(base, tmp_path):
+    """``[model_error.level]``: the model's error common to a reading's bands, a fraction per
+    kind, beside the per-band fractions; written by ``write_session`` and read back."""
+    assert load_session(base / "s").level_error == {}
+    d = _copy(base, tmp_path / "lvl")
+    _replace_in(d / "session.toml", "[dark]", '[model_error]\ninterreflection = "auto"\n\n'
+                "[model_error.level]\nobject = 0.005\ninterreflection = 0.02\n\n[dark]")
+    s = load_session(d)
+    assert s.level_error == {"object": 0.005, "interreflection": 0.02}
+    assert s.model_error == {"interreflection": "auto"}
+    from spectral_fit.io import write_session
+
+    m = write_session(tmp_path / "w", scene=str(s.scene_path), wavelengths=s.wavelengths,
+                      readings=[{"id": "a", "object": s.readings[0].object,
+                                 "aim": s.readings[0].aim, "position": s.readings[0].position,
+                                 "spectra": s.readings[0].repeats}],
+                      calibration={"mode": "none"}, level_error={"object": 0.01})
+    assert load_session(m).level_error == {"object": 0.01}
 
 
 def test_bounds_and_prior_tables(base, tmp_path):

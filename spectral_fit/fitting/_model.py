@@ -30,6 +30,7 @@ __all__ = [
     "predict",
     "residuals",
     "interreflection_term",
+    "whiten_levels",
 ]
 
 
@@ -87,11 +88,33 @@ def predict(problem: FitProblem, values: jax.Array, scale: Any = 1.0) -> jax.Arr
     return scale * jnp.concatenate([spots, counts])
 
 
+def whiten_levels(z: jax.Array, readings: Any) -> jax.Array:
+    """Residuals (or their Jacobian) already divided by σ, ``z`` (B, L[, F]), whitened for
+    each row's level error: with v = measured/σ, u = v/|v| and
+    c = 1 − 1/√(1 + ℓ²|v|²), z − c u (uᵀz), whose squared norm is the generalised
+    least-squares cost (model − measured)ᵀ C⁻¹ (model − measured) of the covariance
+    C = diag(σ²) + ℓ² m mᵀ (m the measured row): the level, common to a row's bands, counts
+    once per row instead of once per band (the Sherman–Morrison form of C⁻¹; the planner's
+    reading covariance). Unchanged where ``readings.level`` is None or 0."""
+    lvl = readings.level
+    if lvl is None:
+        return z
+    v = readings.measured / readings.sigma
+    s2 = jnp.sum(v * v, axis=1)
+    u = v / jnp.sqrt(jnp.maximum(s2, 1e-30))[:, None]
+    c = 1.0 - jax.lax.rsqrt(1.0 + lvl * lvl * s2)
+    if z.ndim == 3:
+        return z - (c[:, None] * jnp.einsum("bl,blf->bf", u, z))[:, None, :] * u[:, :, None]
+    return z - (c * jnp.sum(u * z, axis=1))[:, None] * u
+
+
 def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
-    """Weighted residuals (B·L + K,) ((model − measured)/σ · √w_b, then the K priors'
-    (p − mean)/σ) at unconstrained ``y``."""
+    """Weighted residuals (B·L + K,) ((model − measured)/σ, whitened for the rows' level
+    error (:func:`whiten_levels`), · √w_b, then the K priors' (p − mean)/σ) at unconstrained
+    ``y``."""
     vals, scale = physical_from_y(problem, y)
     r = (predict(problem, vals, scale) - problem.readings.measured) / problem.readings.sigma
+    r = whiten_levels(r, problem.readings)
     r = (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
     return jnp.concatenate([r, prior_residuals(problem, y)])
 

@@ -277,6 +277,9 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
     sigma = with_model_error(sigma, measured, row_kinds(session, n_img),
                              {k: _stated(v) for k, v in session.model_error.items()})
     sigma = np.maximum(sigma, 1e-12)
+    kinds_rows = row_kinds(session, n_img)
+    level = (np.array([float(session.level_error.get(k, 0.0)) for k in kinds_rows])
+             if any(v > 0 for v in session.level_error.values()) else None)
     band = band_matrix(session.wavelengths, session.bandwidth_nm)
     calib = _calibration(session, env, band)
     # what is free
@@ -300,7 +303,8 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
         readings=FitReadings(average=avg, background=jnp.asarray(bg, dtype),
                              measured=jnp.asarray(measured, dtype),
                              sigma=jnp.asarray(sigma, dtype),
-                             response=jnp.asarray(response, dtype)),
+                             response=jnp.asarray(response, dtype),
+                             level=None if level is None else jnp.asarray(level, dtype)),
         instrument=FitInstrument(calibration=jnp.asarray(calib, dtype),
                                  band=jnp.asarray(band, dtype)),
         surfaces=FitSurfaces(reflectance=jnp.asarray(refl, dtype), sci=jnp.asarray(sci, dtype),

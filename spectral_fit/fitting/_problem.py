@@ -44,6 +44,10 @@ class FitReadings(eqx.Module):
             holds C channel counts in its first C columns (the rest 0, σ 1), modelled as
             ``response[i] @ (k(λ) · mean radiance)`` (exposure × sensitivity × Δλ); S = 0
             without photographs.
+        level: (B,) the model's error common to all bands of a row, 1σ as a fraction of its
+            measured radiance (``[model_error.level]``; 0: none): the rows are weighted by the
+            covariance diag(σ²) + ℓ² m mᵀ (:func:`~spectral_fit.fitting.whiten_levels`);
+            None: none anywhere.
     """
 
     average: FieldAverage
@@ -51,6 +55,7 @@ class FitReadings(eqx.Module):
     measured: jax.Array
     sigma: jax.Array
     response: jax.Array
+    level: jax.Array | None = None
 
 
 class FitInstrument(eqx.Module):

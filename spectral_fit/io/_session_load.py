@@ -286,7 +286,11 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                                source="default")
     # the model's own error per reading kind: a fraction, or "auto" ------------------------
     mt = ctx.table(data, "model_error", "model_error")
-    ctx.finish(mt, DATA_KINDS, "model_error")
+    ctx.finish(mt, DATA_KINDS + ("level",), "model_error")
+    lt = ctx.table(mt, "level", "model_error.level")
+    ctx.finish(lt, DATA_KINDS, "model_error.level")
+    level_error = {k: ctx.number(lt, k, f"model_error.level.{k}", lo=0.0, hi=1.0)
+                   for k in DATA_KINDS if k in lt}
     model_error: dict[str, float | str] = {}
     for k in DATA_KINDS:
         if k in mt:
@@ -305,7 +309,8 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                    instrument=instrument, calibration=mode, bandwidth_nm=bandwidth,
                    reference=reference, white=white,
                    dark=dark, noise=noise, objects=objects, readings=tuple(readings),
-                   lines=lines, model_error=model_error, images=images)
+                   lines=lines, model_error=model_error, level_error=level_error,
+                   images=images)
 
 
 
