@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -236,7 +237,7 @@ def test_cli_plan(small, tmp_path, capsys):
     out = tmp_path / "p"
     rc = main(["plan", str(cfg), "--budget", "2", "--out", str(out), "--objects", "red",
                "--elevation", "0,30,2", "--azimuth=-30,30,2", "--aims-per-object", "8",
-               "--field-angles", "1", "--draws", "2", "--no-picture"])
+               "--field-angles", "1", "--draws", "2", "--highlights", "0,4", "--no-picture"])
     assert rc == 0
     err = capsys.readouterr().err
     assert "red.mu" in err and "stderr after" in err
@@ -244,6 +245,9 @@ def test_cli_plan(small, tmp_path, capsys):
     rc = main(["plan", str(cfg), "--budget", "2", "--out", str(out), "--field-angles", "5"])
     assert rc == 2
     assert "field_angles_deg" in capsys.readouterr().err
+    rc = main(["plan", str(cfg), "--budget", "2", "--out", str(out), "--highlights", "0,90"])
+    assert rc == 2
+    assert "highlight_offsets_deg" in capsys.readouterr().err
 
 
 def test_information_woodbury_matches_direct_inverse():
@@ -335,3 +339,62 @@ def test_cli_fit_suggests_readings(small, tmp_path, capsys):
     assert np.all(after <= now * (1 + 1e-9)) and after.max() < now.max()
     assert (out / "suggested" / "session.toml").is_file()
     assert json.loads((out / "fit.json").read_text())["suggested"]["readings"] == sug["readings"]
+
+
+def _sphere_highlight(c: np.ndarray, r: float, p: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The point of a sphere (centre c, radius r) that mirrors direction s towards p: its
+    normal bisects s and the direction to p (fixed-point iteration, closed-form geometry)."""
+    x = c + r * (p - c + s * np.linalg.norm(p - c)) / np.linalg.norm(p - c + s * np.linalg.norm(
+        p - c))
+    for _ in range(50):
+        v = (p - x) / np.linalg.norm(p - x)
+        h = (v + s) / np.linalg.norm(v + s)
+        x = c + r * h
+    return x
+
+
+def test_highlight_candidates_lie_on_the_sources_mirror_points(small):
+    """The region's highlight aim points against the sphere's analytic mirror point of a
+    source, on the bundled scene's 100 × 100 UV spheres: the 0° aim point within 3° (at the
+    centre) of the analytic point, and every aim point's mirror direction, from the sphere's
+    true normal, within 2° of its offset from the source. The environment's brightest
+    direction is where the map is brightest."""
+    from spectral_fit.fitting._plan_candidates import _highlight_points
+
+    _, small_scene, _ = small
+    env = fitting.scene_environment(small_scene)
+    src = fitting.bright_directions(env, 2)
+    assert src.shape[1] == 3 and len(src) >= 1
+    from spectral_fit.lighting import lookup
+
+    peak = float(np.asarray(env.texels).sum(-1).max())
+    assert float(np.asarray(lookup(env, src[0])).sum()) >= 0.5 * peak
+    s = np.array([-0.5, 0.45, -0.74])
+    s /= np.linalg.norm(s)
+    scene = load_scene(Path(__file__).resolve().parent.parent / "configs" / "two_spheres.toml")
+    geoms = fitting.scene_geometry(scene)
+    checked = 0
+    for o, obj in enumerate(scene.objects):
+        c = np.asarray(obj.position, np.float64)
+        r = float(np.linalg.norm(np.asarray(geoms[o].vertices) - c, axis=1).mean())
+        for p in (c + 0.3 * np.array([0.0, 0.2, 1.0]), c + 0.3 * np.array([-0.5, 0.5, 0.7])):
+            pts = _highlight_points(geoms[o], p, s[None], (0.0, 4.0, 8.0),
+                                    math.cos(math.radians(80.0)))
+            assert len(pts) == 3
+            want = _sphere_highlight(c, r, p, s)
+            got = (pts[0] - c) / np.linalg.norm(pts[0] - c)
+            assert np.degrees(np.arccos(got @ (want - c) / r)) <= 3.0
+            for k, x in zip((0.0, 4.0, 8.0), pts, strict=True):
+                n = (x - c) / np.linalg.norm(x - c)
+                v = (p - x) / np.linalg.norm(p - x)
+                m = 2 * (n @ v) * n - v
+                assert abs(np.degrees(np.arccos(np.clip(m @ s, -1, 1))) - k) <= 2.0
+            checked += 1
+    assert checked == 4
+    # the candidates of a region carry them (and none without the offsets)
+    region = fitting.Region(objects=("red",), aims_per_object=4, elevation_steps=1,
+                            azimuth_steps=1, field_angles_deg=(1.0,))
+    with_hl = fitting.plan_candidates(scene, region, geoms, sources=s[None])
+    without = fitting.plan_candidates(scene, region.__class__(
+        **{**region.__dict__, "highlight_offsets_deg": ()}), geoms, sources=s[None])
+    assert len(with_hl) > len(without)

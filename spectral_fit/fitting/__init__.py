@@ -36,6 +36,7 @@ _EXPORTS: dict[str, str] = {
     "Sphere": "_radiance_cache",
     "TOLERANCES": "_plan_design",
     "band_matrix": "_prepare",
+    "bright_directions": "_plan",
     "build_gloss_nodes": "_gloss_nodes",
     "build_radiance_cache": "_cache_build",
     "cached_radiance": "_cache_model",

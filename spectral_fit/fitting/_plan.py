@@ -37,7 +37,7 @@ from ._plan_design import (
 )
 from ._plan_information import candidate_information, session_information
 
-__all__ = ["PlanResult", "plan_measurements"]
+__all__ = ["PlanResult", "bright_directions", "plan_measurements"]
 
 #: a candidate is kept when at least this fraction of its field lies on its object
 _MIN_COVERAGE = 0.99
@@ -218,7 +218,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     # the candidates ----------------------------------------------------------------------
     t1 = time.perf_counter()
     say("casting the candidates' central rays ...")
-    cands = plan_candidates(scene, region, geoms, margin_m=2.0 * sigma_aim_m)
+    cands = plan_candidates(scene, region, geoms, margin_m=2.0 * sigma_aim_m,
+                            sources=bright_directions(env, region.highlight_sources))
     _check_budget(budget, len(cands), region)
     say(f"{len(cands)} candidates; their sensitivities at {draws} parameter draws ...")
     info = candidate_information(scene, cands, values, free=unknowns, fit_scale=fit_scale,
@@ -274,6 +275,38 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
                   "session": None if session is None else str(session.path),
                   "region": region.path, "interreflection": "none (object readings)"},
         timings=timings)
+
+
+def bright_directions(env: Any, count: int, *, separation_deg: float = 10.0,
+                      contrast: float = 4.0) -> np.ndarray:
+    """(S, 3) world directions of the environment's ``count`` brightest sources (S <= count),
+    brightest first, where a highlight tells the gloss apart from the mirror.
+
+    The map's texels (radiance summed over its channels) in order of radiance: each pick is
+    the brightest texel more than ``separation_deg`` from every earlier pick and at least
+    ``contrast`` times the map's median radiance (a uniform map has none); its direction is
+    the radiance-weighted mean of the texels within ``separation_deg`` that reach half its
+    radiance (a lamp's core)."""
+    from ..lighting import texel_directions
+
+    if count <= 0:
+        return np.zeros((0, 3))
+    tex = np.asarray(env.texels, np.float64)
+    L = tex.sum(axis=-1).ravel()
+    d = texel_directions(*tex.shape[:2]).reshape(-1, 3) @ np.asarray(env.rotation,
+                                                                       np.float64).T
+    floor = contrast * float(np.median(L))
+    cos_sep = math.cos(math.radians(separation_deg))
+    out: list[np.ndarray] = []
+    for i in np.argsort(-L):
+        if L[i] < floor or len(out) == count:
+            break
+        if any(float(d[i] @ q) >= cos_sep for q in out):
+            continue
+        core = (d @ d[i] >= cos_sep) & (L >= 0.5 * L[i])
+        m = (L[core, None] * d[core]).sum(axis=0)
+        out.append(m / np.linalg.norm(m))
+    return np.asarray(out).reshape(-1, 3)
 
 
 def _centre(scene: Scene, session: Session | None, fo: FitOptions, env: Any, geoms: Any,

@@ -56,6 +56,11 @@ class Region:
         aims_per_object: aim points sampled evenly over each object's surface.
         max_view_angle_deg: largest angle between the surface normal at the aim point and the
             direction to the instrument.
+        highlight_offsets_deg: besides the sampled aim points, from every position the aim
+            points whose mirror direction lies this many degrees from a bright source of the
+            environment (0: the source's highlight itself); () for none.
+        highlight_sources: how many of the environment's brightest sources (at least 10°
+            apart) get highlight aim points.
         path: the region file (for error messages), or None.
     """
 
@@ -72,6 +77,8 @@ class Region:
     field_angles_deg: tuple[float, ...] = (1.0, 0.2)
     aims_per_object: int = 32
     max_view_angle_deg: float = 80.0
+    highlight_offsets_deg: tuple[float, ...] = (0.0, 2.0, 4.0, 8.0)
+    highlight_sources: int = 2
     path: str | None = None
 
     def error(self, field: str, message: str) -> InputError:
@@ -107,6 +114,13 @@ class Region:
         if not 0.0 < self.max_view_angle_deg < 90.0:
             raise self.error("max_view_angle_deg", f"must lie in (0, 90), got "
                              f"{self.max_view_angle_deg}")
+        for k in self.highlight_offsets_deg:
+            if not 0.0 <= k <= 45.0:
+                raise self.error("highlight_offsets_deg", f"each offset must lie in [0, 45] "
+                                 f"degrees, got {k}")
+        if not 0 <= self.highlight_sources <= 16:
+            raise self.error("highlight_sources", f"must be an integer in [0, 16], got "
+                             f"{self.highlight_sources}")
         return self
 
 
@@ -132,7 +146,7 @@ def _numbers(v: Any, key: str, path: Path, n: int | None = None) -> tuple[float,
 
 _KEYS = ("frame", "objects", "distances_m", "elevation_deg", "elevation_steps", "azimuth_deg",
          "azimuth_steps", "centre", "positions", "aims", "field_angles_deg", "aims_per_object",
-         "max_view_angle_deg")
+         "max_view_angle_deg", "highlight_offsets_deg", "highlight_sources")
 
 
 def load_region(path: str | os.PathLike[str]) -> Region:
@@ -169,6 +183,9 @@ def load_region(path: str | os.PathLike[str]) -> Region:
     for key in ("distances_m", "field_angles_deg"):
         if key in data:
             kw[key] = _numbers(data[key], key, p)
+    if "highlight_offsets_deg" in data:
+        v = data["highlight_offsets_deg"]
+        kw["highlight_offsets_deg"] = () if v == [] else _numbers(v, "highlight_offsets_deg", p)
     for key in ("elevation_deg", "azimuth_deg"):
         if key in data:
             kw[key] = _numbers(data[key], key, p, 2)
@@ -192,7 +209,7 @@ def load_region(path: str | os.PathLike[str]) -> Region:
                                  field=f"aims.{name}")
             aims[name] = tuple(_numbers(x, f"aims.{name}[{i}]", p, 3) for i, x in enumerate(pts))
         kw["aims"] = aims
-    for key in ("elevation_steps", "azimuth_steps", "aims_per_object"):
+    for key in ("elevation_steps", "azimuth_steps", "aims_per_object", "highlight_sources"):
         if key in data:
             kw[key] = _number(data, key, p, integer=True)
     if "max_view_angle_deg" in data:
@@ -219,6 +236,37 @@ def _surface_points(geom: ObjectGeometry, n: int) -> tuple[np.ndarray, np.ndarra
     fib = fibonacci_directions(n)[:, [0, 2, 1]]  # the lattice's pole along +Y
     pick = np.unique(np.argmax(fib @ d.T, axis=1))
     return cen[pick], nrm[pick]
+
+
+def _highlight_points(geom: ObjectGeometry, position: np.ndarray, sources: np.ndarray,
+                      offsets: Sequence[float], cos_max: float) -> np.ndarray:
+    """(M, 3) aim points on the object, seen from ``position``, whose mirror direction lies
+    ``offsets`` degrees from each of the (S, 3) world ``sources`` directions (M <= S·len(offsets)):
+    of the triangle centroids that face the position (within the view limit) and the source,
+    the one whose angle between mirror direction and source is closest to each offset, kept
+    when that angle is within 1.5° of it."""
+    v = np.asarray(geom.vertices, np.float64)
+    nr = np.asarray(geom.normals, np.float64)
+    t = np.asarray(geom.triangles)
+    cen = v[t].mean(axis=1)
+    nrm = nr[t].mean(axis=1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    view = position[None] - cen
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+    cos_v = np.einsum("ij,ij->i", view, nrm)
+    mirror = 2.0 * cos_v[:, None] * nrm - view
+    out = []
+    for s in np.asarray(sources, np.float64):
+        ok = (cos_v >= cos_max) & (nrm @ s > 0.0)
+        if not ok.any():
+            continue
+        ang = np.degrees(np.arccos(np.clip(mirror[ok] @ s, -1.0, 1.0)))
+        pts = cen[ok]
+        for k in offsets:
+            i = int(np.argmin(np.abs(ang - k)))
+            if abs(ang[i] - k) <= 1.5:
+                out.append(pts[i])
+    return np.asarray(out).reshape(-1, 3)
 
 
 def _snap_to_surface(region: Region, name: str, geom: ObjectGeometry, radius: float
@@ -273,11 +321,15 @@ def _positions(region: Region, centre: np.ndarray) -> np.ndarray:
 
 
 def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeometry], *,
-                    margin_m: float = 0.0, resolution: int = 6) -> list[dict[str, Any]]:
+                    margin_m: float = 0.0, resolution: int = 6,
+                    sources: np.ndarray | None = None) -> list[dict[str, Any]]:
     """The readings the instrument can take from the region.
 
     Args:
         geometries: the scene's objects (:func:`~spectral_fit.fitting.scene_geometry`).
+        sources: (S, 3) world directions of the environment's bright sources, brightest
+            first: the region's ``highlight_sources`` first of them get highlight aim points
+            (``highlight_offsets_deg``) from every position; None: none.
         margin_m: an aiming error the field must stay on its object for: the field widened
             by 2 × margin_m / distance (radians) and sampled by a ``resolution``² camera must
             see only its object (so no aim error up to ``margin_m`` moves the field over the
@@ -318,12 +370,19 @@ def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeo
             pts, nrm = _snap_to_surface(region, name, geometries[o], radii[o])
         else:
             pts, nrm = _surface_points(geometries[o], region.aims_per_object)
+        bright = (np.zeros((0, 3)) if sources is None or not region.highlight_offsets_deg
+                  else np.asarray(sources, np.float64)[:region.highlight_sources])
         for p in pos:
             v = p[None] - pts
             dist = np.linalg.norm(v, axis=1)
             facing = np.einsum("ij,ij->i", v, nrm) / dist >= cos_max
             for a, d in zip(pts[facing], dist[facing], strict=True):
                 raw.append({"object": name, "position": p, "aim": a, "distance_m": float(d)})
+            if len(bright) and name not in region.aims:
+                for a in _highlight_points(geometries[o], p, bright,
+                                           region.highlight_offsets_deg, cos_max):
+                    raw.append({"object": name, "position": p, "aim": a,
+                                "distance_m": float(np.linalg.norm(p - a))})
     if not raw:
         raise region.error("objects", "no aim point of any object faces an instrument position "
                            "of the region (unreachable region)")

@@ -235,7 +235,7 @@ def _scores(base: np.ndarray, cand: np.ndarray, mask: np.ndarray
 
 
 def select_readings(candidates: np.ndarray, budget: int, *, base: np.ndarray | None = None,
-                    mask: np.ndarray | None = None, max_passes: int = 20,
+                    mask: np.ndarray | None = None, max_passes: int = 20, starts: int | None = None,
                     progress: Callable[[str], None] | None = None) -> tuple[list[int], float]:
     """Choose ``budget`` of N candidates (without repeats) minimising :func:`plan_objective`
     of ``base`` + the chosen informations.
@@ -243,12 +243,18 @@ def select_readings(candidates: np.ndarray, budget: int, *, base: np.ndarray | N
     Greedy (each step adds the candidate with the lowest smooth criterion, a p-power mean
     of the scaled variances, which also rewards identifying a parameter while others are
     still undetermined), then exchange passes (swap a chosen reading for any other while
-    the worst scaled variance drops, ties broken by the smooth criterion) until none helps.
+    the worst scaled variance drops, ties broken by the smooth criterion) until none helps;
+    from ``starts`` first readings (the best ``starts`` by the smooth criterion), keeping the
+    best result: one greedy path can end in a local optimum of single exchanges far from the
+    best (when the budget leaves parameters nearly undetermined, a parameter may need two
+    particular readings at once).
 
     Args:
         candidates: (N, D, F, F) each candidate's information (tolerance units).
         base: (D, F, F) information already there (existing readings, priors); default 0.
         mask: (F,) unknowns the criterion looks at (default all; e.g. not the scale).
+        starts: first readings to start the greedy from (at least 1; default every
+            candidate when there are at most 64, else 1).
 
     Returns:
         the chosen indices (in the order chosen) and the criterion's value.
@@ -262,9 +268,30 @@ def select_readings(candidates: np.ndarray, budget: int, *, base: np.ndarray | N
     base = np.zeros((D, F, F)) if base is None else np.asarray(base, np.float64)
     mask = np.ones(F, bool) if mask is None else np.asarray(mask, bool)
     say = progress or (lambda _m: None)
-    chosen: list[int] = []
-    total = base.copy()
-    for step in range(budget):
+    _, soft0 = _scores(base, candidates, mask)
+    n_starts = (N if N <= 64 else 1) if starts is None else max(1, int(starts))
+    firsts = [int(c) for c in np.argsort(soft0, kind="stable")[:n_starts]]
+    best_key, best_chosen = None, None
+    for k, first in enumerate(firsts):
+        key, chosen = _greedy_exchange(candidates, budget, base, mask, first, max_passes,
+                                       say if k == 0 else (lambda _m: None))
+        if best_key is None or key < best_key:
+            best_key, best_chosen = key, chosen
+        if len(firsts) > 1:
+            say(f"start {k + 1}/{len(firsts)}: worst scaled variance {key[0]:.4g}")
+    assert best_chosen is not None
+    total = base + candidates[best_chosen].sum(axis=0)
+    return best_chosen, plan_objective(total, mask=mask)
+
+
+def _greedy_exchange(candidates: np.ndarray, budget: int, base: np.ndarray, mask: np.ndarray,
+                     first: int, max_passes: int, say: Callable[[str], None]
+                     ) -> tuple[tuple[float, float], list[int]]:
+    """One greedy path from ``first`` and its exchange passes: ((worst, smooth), chosen)."""
+    chosen = [first]
+    total = base + candidates[first]
+    say(f"greedy 1/{budget}: candidate {first}")
+    for step in range(1, budget):
         _, soft = _scores(total, candidates, mask)
         soft[chosen] = np.inf
         c = int(np.argmin(soft))
@@ -290,7 +317,7 @@ def select_readings(candidates: np.ndarray, budget: int, *, base: np.ndarray | N
         say(f"exchange pass {npass + 1}: worst scaled variance {best[0]:.4g}")
         if not improved:
             break
-    return chosen, plan_objective(total, mask=mask)
+    return best, chosen
 
 
 def draws_in_box(centre: np.ndarray, lower: np.ndarray, upper: np.ndarray, *, n: int,

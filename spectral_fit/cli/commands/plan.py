@@ -36,6 +36,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="field angles to consider, degrees, from 0.2, 1, 2 (comma-separated)")
     p.add_argument("--aims-per-object", type=int, default=None,
                    help="aim points sampled over each object's surface")
+    p.add_argument("--highlights", default=None,
+                   help="aim points whose mirror direction lies these many degrees from the "
+                   "environment's bright sources, from every position (comma-separated; "
+                   "'none' for none; default 0,2,4,8)")
     p.add_argument("--noise", type=float, default=0.01,
                    help="relative noise of one reading (default 0.01)")
     p.add_argument("--aim-sigma-mm", type=float, default=1.0,
@@ -100,6 +104,9 @@ def region_from_args(args: argparse.Namespace) -> Region:
         kw["field_angles_deg"] = tuple(_floats(args.field_angles, "--field-angles"))
     if args.aims_per_object is not None:
         kw["aims_per_object"] = args.aims_per_object
+    if args.highlights:
+        kw["highlight_offsets_deg"] = (() if args.highlights.strip().lower() == "none"
+                                       else tuple(_floats(args.highlights, "--highlights")))
     return dataclasses.replace(region, **kw).checked()
 
 
