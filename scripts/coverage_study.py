@@ -6,6 +6,11 @@ robust standard errors (the default) and with the linearised ones alone.
 
     python scripts/coverage_study.py --sessions 200 --out out/coverage
     python scripts/coverage_study.py --sessions 0 --path-traced 20 --spp 64 --out out/coverage_pt
+    python scripts/coverage_study.py --sessions 200 --state-model-error --out out/coverage_stated
+
+``--state-model-error``: the simulated sessions state the injected error's size
+(``[model_error.level]`` = --level and ``[model_error.tilt]`` = --tilt for every kind), so
+the fit weights each reading by diag(σ²) + ℓ² m mᵀ + t² (m∘x)(m∘x)ᵀ.
 
 ``--path-traced N``: also N sessions rendered by the Mitsuba reference (our whole model as one
 BSDF, path depth 16, read by its simulated spectroradiometer: 0.4 % repeatability, 5 nm
@@ -39,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise", type=float, default=0.01, help="noise per band (fraction)")
     ap.add_argument("--level", type=float, default=0.01, help="model error: level (1σ)")
     ap.add_argument("--tilt", type=float, default=0.005, help="model error: tilt (1σ)")
+    ap.add_argument("--state-model-error", action="store_true",
+                    help="the sessions state the level and tilt ([model_error.level], .tilt)")
     ap.add_argument("--path-traced", type=int, default=0, metavar="N",
                     help="also N sessions path-traced with Mitsuba (the 'validate' extra)")
     ap.add_argument("--spp", type=int, default=64, help="samples per pixel of those")
@@ -51,6 +58,10 @@ def main(argv: list[str] | None = None) -> int:
 
     scene = load_scene(fitting.DEMO_CONFIG)
     session = load_session(fitting.DEMO_SESSION, scene=scene)
+    if args.state_model_error:
+        kinds = ("object", "interreflection")
+        session = session.replace(level_error={k: args.level for k in kinds},
+                                  tilt_error={k: args.tilt for k in kinds})
     out: dict = {"config": str(fitting.DEMO_CONFIG.relative_to(REPO)),
                  "session": str(fitting.DEMO_SESSION.relative_to(REPO)), "studies": {}}
     studies = {}

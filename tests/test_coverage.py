@@ -59,25 +59,25 @@ def test_robust_errors_match_the_scatter_under_a_level_error(small):
     assert np.mean(ratios["linear"] > 2.0) >= 0.7, ratios["linear"]
 
 
-def test_stated_level_error_gives_errors_that_match_the_scatter(small):
-    """The same kind of study with a pure level error (2 % per reading, no tilt) that the
-    session states for both of its kinds (``[model_error.level]``, object and interreflection
-    0.02): the fit weights each reading by
-    diag(σ²) + ℓ² m mᵀ (generalised least squares), so its plain linearised errors match
-    the spread of 60 estimates (within a factor 1.5 each way: the spread of 60 draws is
-    uncertain by ~9 %), and its estimates scatter less than those of the fit that weights
-    the bands as independent (the efficient estimator; asserted no more than 10 % above for
-    every parameter, and below on average)."""
+def test_stated_model_error_gives_errors_that_match_the_scatter(small):
+    """The same kind of study, the injected level (2 %) and tilt (1 %) stated in the session
+    for both of its kinds (``[model_error.level]``, ``[model_error.tilt]``): the fit weights
+    each reading by diag(σ²) + ℓ² m mᵀ + t² (m∘x)(m∘x)ᵀ (generalised least squares), so its
+    plain linearised errors match the spread of 60 estimates (within a factor 1.5 each way:
+    the spread of 60 draws is uncertain by ~9 %), and its estimates scatter less than those of
+    the fit that weights the bands as independent (the efficient estimator; asserted no more
+    than 10 % above for every parameter, and below on average)."""
     scene, session, prep, env, clean = small
     truths = _truths(scene, prep, 60)
     opts = fitting.FitOptions(spot_resolution=RES, starts=1, holdout=False, aim_step_m=0.0,
                               errors="linear")
+    kinds = ("object", "interreflection")
+    stated = session.replace(level_error=dict.fromkeys(kinds, 0.02),
+                             tilt_error=dict.fromkeys(kinds, 0.01))
     spread = {}
-    for name, sess in (("gls", session.replace(level_error={"object": 0.02,
-                                                          "interreflection": 0.02})),
-                       ("ols", session)):
+    for name, sess in (("gls", stated), ("ols", session)):
         st = fitting.coverage_study(scene, sess, truths=truths, seed=9, noise=0.003,
-                                    level=0.02, tilt=0.0, options=opts)
+                                    level=0.02, tilt=0.01, options=opts)
         assert all(s == "converged" for s in st.status)
         spread[name] = np.std(st.estimate - st.truth, axis=0, ddof=1)
         if name == "gls":
@@ -87,33 +87,42 @@ def test_stated_level_error_gives_errors_that_match_the_scatter(small):
     assert np.mean(spread["gls"] / spread["ols"]) < 1.0, spread
 
 
-def test_level_whitening_is_the_generalised_least_squares_cost():
-    """|whiten_levels(z)|² per row against zᵀ (D^-½ C D^-½)⁻¹ z with C = diag(σ²) + ℓ² m mᵀ
-    inverted directly, for residuals and (column by column) a Jacobian; rows with ℓ = 0 are
-    unchanged."""
+def test_whitening_is_the_generalised_least_squares_cost():
+    """|whiten_correlated(z)|² per row against zᵀ (D^-½ C D^-½)⁻¹ z with
+    C = diag(σ²) + ℓ² m mᵀ + t² (m∘x)(m∘x)ᵀ inverted directly (x from −1 to 1 over the
+    bands), for residuals and (column by column) a Jacobian, with a level alone, a tilt alone
+    and both; rows with ℓ = t = 0 are unchanged."""
     import jax.numpy as jnp
 
     rng = np.random.default_rng(4)
     B, L, F = 5, 12, 3
     m = rng.uniform(0.1, 2.0, (B, L))
     sig = 0.01 * m + 1e-3
-    lvl = np.array([0.0, 0.005, 0.02, 0.1, 1.0])
+    x = np.linspace(-1.0, 1.0, L)
     z = rng.standard_normal((B, L))
     J = rng.standard_normal((B, L, F))
+    for lvl, tlt in ((np.array([0.0, 0.005, 0.02, 0.1, 1.0]), None),
+                     (None, np.array([0.0, 0.003, 0.01, 0.1, 0.5])),
+                     (np.array([0.0, 0.005, 0.0, 0.1, 1.0]), np.array([0.0, 0.0, 0.01, 0.1, 0.5]))):
+        class R:
+            measured, sigma = jnp.asarray(m), jnp.asarray(sig)
+            level = None if lvl is None else jnp.asarray(lvl)
+            tilt = None if tlt is None else jnp.asarray(tlt)
 
-    class R:
-        measured, sigma, level = (jnp.asarray(x) for x in (m, sig, lvl))
-
-    wz = np.asarray(fitting.whiten_levels(jnp.asarray(z), R))
-    wJ = np.asarray(fitting.whiten_levels(jnp.asarray(J), R))
-    for b in range(B):
-        C = np.diag(sig[b] ** 2) + lvl[b] ** 2 * np.outer(m[b], m[b])
-        Cw = C / np.outer(sig[b], sig[b])
-        want = z[b] @ np.linalg.solve(Cw, z[b])
-        assert float(wz[b] @ wz[b]) == pytest.approx(want, rel=1e-5)
-        assert np.allclose(wJ[b].T @ wJ[b], J[b].T @ np.linalg.solve(Cw, J[b]), rtol=1e-4,
-                           atol=1e-5)
-    assert np.array_equal(wz[0], z[0].astype(wz.dtype))
+        wz = np.asarray(fitting.whiten_correlated(jnp.asarray(z), R))
+        wJ = np.asarray(fitting.whiten_correlated(jnp.asarray(J), R))
+        for b in range(B):
+            C = np.diag(sig[b] ** 2)
+            if lvl is not None:
+                C = C + lvl[b] ** 2 * np.outer(m[b], m[b])
+            if tlt is not None:
+                C = C + tlt[b] ** 2 * np.outer(m[b] * x, m[b] * x)
+            Cw = C / np.outer(sig[b], sig[b])
+            want = z[b] @ np.linalg.solve(Cw, z[b])
+            assert float(wz[b] @ wz[b]) == pytest.approx(want, rel=1e-5)
+            assert np.allclose(wJ[b].T @ wJ[b], J[b].T @ np.linalg.solve(Cw, J[b]), rtol=1e-4,
+                               atol=1e-5)
+        assert np.allclose(wz[0], z[0], rtol=1e-6, atol=1e-7)
 
 
 def test_clopper_pearson_against_closed_forms():

@@ -225,7 +225,8 @@ def test_model_error_table(base, tmp_path):
             ('object = "guess"', "model_error.object", "auto"),
             ("glossy = 0.1", "model_error.glossy", "unknown"),
             ("[model_error.level]\nobject = -0.01", "model_error.level.object", ">= 0"),
-            ("[model_error.level]\nglossy = 0.01", "model_error.level.glossy", "unknown"))):
+            ("[model_error.level]\nglossy = 0.01", "model_error.level.glossy", "unknown"),
+            ("[model_error.tilt]\nobject = 2", "model_error.tilt.object", "<= 1"))):
         d = _copy(base, tmp_path / f"bad{i}")
         _replace_in(d / "session.toml", "[dark]", f"[model_error]\n{body}\n\n[dark]")
         e = _error(d)
@@ -233,14 +234,17 @@ def test_model_error_table(base, tmp_path):
 
 
 def test_level_error_table(base, tmp_path):
-    """``[model_error.level]``: the model's error common to a reading's bands, a fraction per
-    kind, beside the per-band fractions; written by ``write_session`` and read back."""
+    """``[model_error.level]`` and ``[model_error.tilt]``: the model's error shared by a
+    reading's bands, fractions per kind, beside the per-band fractions; written by
+    ``write_session`` and read back."""
     assert load_session(base / "s").level_error == {}
     d = _copy(base, tmp_path / "lvl")
     _replace_in(d / "session.toml", "[dark]", '[model_error]\ninterreflection = "auto"\n\n'
-                "[model_error.level]\nobject = 0.005\ninterreflection = 0.02\n\n[dark]")
+                "[model_error.level]\nobject = 0.005\ninterreflection = 0.02\n\n"
+                "[model_error.tilt]\nobject = 0.002\n\n[dark]")
     s = load_session(d)
     assert s.level_error == {"object": 0.005, "interreflection": 0.02}
+    assert s.tilt_error == {"object": 0.002}
     assert s.model_error == {"interreflection": "auto"}
     from spectral_fit.io import write_session
 
@@ -248,8 +252,10 @@ def test_level_error_table(base, tmp_path):
                       readings=[{"id": "a", "object": s.readings[0].object,
                                  "aim": s.readings[0].aim, "position": s.readings[0].position,
                                  "spectra": s.readings[0].repeats}],
-                      calibration={"mode": "none"}, level_error={"object": 0.01})
+                      calibration={"mode": "none"}, level_error={"object": 0.01},
+                      tilt_error={"object": 0.003})
     assert load_session(m).level_error == {"object": 0.01}
+    assert load_session(m).tilt_error == {"object": 0.003}
 
 
 def test_bounds_and_prior_tables(base, tmp_path):

@@ -72,7 +72,7 @@ _EXPORTS: dict[str, str] = {
     "recovery_table": "_report",
     "render_uncertainty": "_render_uncertainty",
     "residuals": "_model",
-    "whiten_levels": "_model",
+    "whiten_correlated": "_model",
     "run_demo_fit": "_report",
     "scaled_variances": "_plan_design",
     "scene_environment": "_prepare",

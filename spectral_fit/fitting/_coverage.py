@@ -186,4 +186,6 @@ def coverage_study(scene: Scene, session: Session, *, sessions: int = 200, seed:
                          status=status, model_error=merr,
                          options={"sessions": int(truths.shape[0]), "seed": seed,
                                   "noise": noise, "level": level, "tilt": tilt,
-                                  "model_error": dict(sess.model_error)})
+                                  "model_error": dict(sess.model_error),
+                                  "level_error": dict(sess.level_error),
+                                  "tilt_error": dict(sess.tilt_error)})

@@ -86,8 +86,9 @@ class FitResult:
             cache during the fit.
         model_error: {kind: relative error of the model} added to the readings' σ in
             quadrature (stated in the session's ``[model_error]``, or estimated there with
-            "auto"; :mod:`spectral_fit.fitting._model_error`), and {"level.KIND": ℓ} the
-            stated level errors common to a reading's bands (``[model_error.level]``).
+            "auto"; :mod:`spectral_fit.fitting._model_error`), and {"level.KIND": ℓ,
+            "tilt.KIND": t} the stated errors shared by a reading's bands
+            (``[model_error.level]``, ``[model_error.tilt]``).
         profile: with ``options.profile``, {label: interval} of every unknown from the
             profile likelihood (:func:`~spectral_fit.fitting._profile.profile_intervals`:
             value, lower, upper, how each end was found, the held values and their Δχ²);
@@ -366,6 +367,7 @@ def fit(scene: Scene | str | os.PathLike[str], session: Session | str | os.PathL
     reading_kinds = row_kinds(session, prep.n_image_rows)
     model_error = {k: float(v) for k, v in session.model_error.items() if not isinstance(v, str)}
     model_error.update({f"level.{k}": float(v) for k, v in session.level_error.items()})
+    model_error.update({f"tilt.{k}": float(v) for k, v in session.tilt_error.items()})
     auto = sorted(k for k, v in session.model_error.items() if v == "auto")
     if auto and np.isfinite(costs[best]):
         # estimated and solved again in turn (the first solve fitted every kind with the

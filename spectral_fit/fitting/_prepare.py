@@ -278,8 +278,9 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
                              {k: _stated(v) for k, v in session.model_error.items()})
     sigma = np.maximum(sigma, 1e-12)
     kinds_rows = row_kinds(session, n_img)
-    level = (np.array([float(session.level_error.get(k, 0.0)) for k in kinds_rows])
-             if any(v > 0 for v in session.level_error.values()) else None)
+    level, tilt = (np.array([float(table.get(k, 0.0)) for k in kinds_rows])
+                   if any(v > 0 for v in table.values()) else None
+                   for table in (session.level_error, session.tilt_error))
     band = band_matrix(session.wavelengths, session.bandwidth_nm)
     calib = _calibration(session, env, band)
     # what is free
@@ -304,7 +305,8 @@ def _prepare_fit(scene: Scene, session: Session, *, options: FitOptions | None,
                              measured=jnp.asarray(measured, dtype),
                              sigma=jnp.asarray(sigma, dtype),
                              response=jnp.asarray(response, dtype),
-                             level=None if level is None else jnp.asarray(level, dtype)),
+                             level=None if level is None else jnp.asarray(level, dtype),
+                             tilt=None if tilt is None else jnp.asarray(tilt, dtype)),
         instrument=FitInstrument(calibration=jnp.asarray(calib, dtype),
                                  band=jnp.asarray(band, dtype)),
         surfaces=FitSurfaces(reflectance=jnp.asarray(refl, dtype), sci=jnp.asarray(sci, dtype),

@@ -44,10 +44,11 @@ class FitReadings(eqx.Module):
             holds C channel counts in its first C columns (the rest 0, σ 1), modelled as
             ``response[i] @ (k(λ) · mean radiance)`` (exposure × sensitivity × Δλ); S = 0
             without photographs.
-        level: (B,) the model's error common to all bands of a row, 1σ as a fraction of its
-            measured radiance (``[model_error.level]``; 0: none): the rows are weighted by the
-            covariance diag(σ²) + ℓ² m mᵀ (:func:`~spectral_fit.fitting.whiten_levels`);
-            None: none anywhere.
+        level, tilt: (B,) the model's error shared by all bands of a row, 1σ as fractions of
+            its measured radiance: a level, and a tilt from −1 at the first band to +1 at the
+            last (``[model_error.level]``, ``[model_error.tilt]``; 0: none): the rows are
+            weighted by the covariance diag(σ²) + ℓ² m mᵀ + t² (m∘x)(m∘x)ᵀ
+            (:func:`~spectral_fit.fitting.whiten_correlated`); None: none anywhere.
     """
 
     average: FieldAverage
@@ -56,6 +57,7 @@ class FitReadings(eqx.Module):
     sigma: jax.Array
     response: jax.Array
     level: jax.Array | None = None
+    tilt: jax.Array | None = None
 
 
 class FitInstrument(eqx.Module):

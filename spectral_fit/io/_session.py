@@ -145,11 +145,13 @@ class Session:
     #: quadrature: {kind: fraction, or "auto" (the fit estimates it from its residuals)};
     #: kinds not named: 0
     model_error: dict[str, float | str] = dataclasses.field(default_factory=dict)
-    #: the part of the model's error common to all bands of a reading (a level), 1σ as a
-    #: fraction of the reading, per kind (``[model_error.level]``): the fit weights each
-    #: reading by the covariance diag(σ²) + ℓ² L Lᵀ (generalised least squares); kinds not
-    #: named: 0
+    #: the part of the model's error shared by all bands of a reading, 1σ as fractions of the
+    #: reading, per kind: a level (``[model_error.level]``) and a tilt from −1 at the first
+    #: band to +1 at the last (``[model_error.tilt]``); the fit weights each reading by the
+    #: covariance diag(σ²) + ℓ² L Lᵀ + t² (L∘x)(L∘x)ᵀ (generalised least squares); kinds
+    #: not named: 0
     level_error: dict[str, float] = dataclasses.field(default_factory=dict)
+    tilt_error: dict[str, float] = dataclasses.field(default_factory=dict)
     #: camera photographs used as readings (``[[images]]``)
     images: tuple[ImageReading, ...] = ()
 

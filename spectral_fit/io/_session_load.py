@@ -286,11 +286,13 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                                source="default")
     # the model's own error per reading kind: a fraction, or "auto" ------------------------
     mt = ctx.table(data, "model_error", "model_error")
-    ctx.finish(mt, DATA_KINDS + ("level",), "model_error")
-    lt = ctx.table(mt, "level", "model_error.level")
-    ctx.finish(lt, DATA_KINDS, "model_error.level")
-    level_error = {k: ctx.number(lt, k, f"model_error.level.{k}", lo=0.0, hi=1.0)
-                   for k in DATA_KINDS if k in lt}
+    ctx.finish(mt, DATA_KINDS + ("level", "tilt"), "model_error")
+    shared: dict[str, dict[str, float]] = {}
+    for part in ("level", "tilt"):
+        lt = ctx.table(mt, part, f"model_error.{part}")
+        ctx.finish(lt, DATA_KINDS, f"model_error.{part}")
+        shared[part] = {k: ctx.number(lt, k, f"model_error.{part}.{k}", lo=0.0, hi=1.0)
+                        for k in DATA_KINDS if k in lt}
     model_error: dict[str, float | str] = {}
     for k in DATA_KINDS:
         if k in mt:
@@ -309,7 +311,8 @@ def parse_session(data: dict[str, Any], *, path: str | os.PathLike[str], text: s
                    instrument=instrument, calibration=mode, bandwidth_nm=bandwidth,
                    reference=reference, white=white,
                    dark=dark, noise=noise, objects=objects, readings=tuple(readings),
-                   lines=lines, model_error=model_error, level_error=level_error,
+                   lines=lines, model_error=model_error, level_error=shared["level"],
+                   tilt_error=shared["tilt"],
                    images=images)
 
 

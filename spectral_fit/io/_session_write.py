@@ -66,6 +66,7 @@ def write_session(
     noise: dict[str, float] | None = None,
     model_error: dict[str, float | str] | None = None,
     level_error: dict[str, float] | None = None,
+    tilt_error: dict[str, float] | None = None,
     notes: str = "",
     units: str = "W.sr^-1.m^-2.nm^-1",
     images: list[dict[str, Any]] | None = None,
@@ -86,7 +87,8 @@ def write_session(
         model_error: optional ``{kind: relative error of the model, or "auto"}`` (estimated
             by the fit).
         level_error: optional ``{kind: the model's error common to a reading's bands}``, a
-            fraction of the reading (``[model_error.level]``).
+            fraction of the reading (``[model_error.level]``); ``tilt_error`` the same for a
+            tilt over the bands (``[model_error.tilt]``).
         images: camera photographs: dicts with ``id``, ``pixels`` (H, W) mosaic or (H, W, C)
             counts (written as ``images/<id>.npy``, or a 16-bit ``.png`` with ``format =
             "png"``), ``sensitivities`` (C, L) (written as a
@@ -116,9 +118,10 @@ def write_session(
     if model_error:
         out += ["", "[model_error]"] + [f"{k} = {toml_value(v)}"
                                         for k, v in model_error.items()]
-    if level_error:
-        out += ["", "[model_error.level]"] + [f"{k} = {toml_value(v)}"
-                                              for k, v in level_error.items()]
+    for part, table in (("level", level_error), ("tilt", tilt_error)):
+        if table:
+            out += ["", f"[model_error.{part}]"] + [f"{k} = {toml_value(v)}"
+                                                     for k, v in table.items()]
     if dark is not None:
         d = np.atleast_2d(dark)
         names = []
