@@ -251,8 +251,9 @@ def test_cli_plan(small, tmp_path, capsys):
 
 
 def test_information_woodbury_matches_direct_inverse():
-    """The information with an aiming error and a level error (Woodbury) against Jᵀ C⁻¹ J
-    with the covariance C = diag(σ²) + σ_aim² G Gᵀ (+ level² m mᵀ) inverted directly."""
+    """The information with an aiming error, a level and a tilt error (Woodbury) against
+    Jᵀ C⁻¹ J with the covariance C = diag(σ²) + σ_aim² G Gᵀ (+ level² m mᵀ
+    + tilt² (m∘x)(m∘x)ᵀ) inverted directly."""
     rng = np.random.default_rng(0)
     D, B, L, F = 2, 3, 7, 4
     J = rng.standard_normal((D, B, L, F))
@@ -263,6 +264,9 @@ def test_information_woodbury_matches_direct_inverse():
     got = fitting.reading_information(J, sigma, G, tol, sigma_aim_m=0.3)
     level = fitting.reading_information(J, sigma, G, tol, sigma_aim_m=0.3, level=0.2,
                                         mean=mean)
+    both = fitting.reading_information(J, sigma, G, tol, sigma_aim_m=0.3, level=0.2, tilt=0.1,
+                                       mean=mean)
+    x = np.linspace(-1.0, 1.0, L)
     for d in range(D):
         for b in range(B):
             C = np.diag(sigma[d, b] ** 2) + 0.09 * G[d, b] @ G[d, b].T
@@ -272,6 +276,10 @@ def test_information_woodbury_matches_direct_inverse():
             # and with the model's level error: + level² m mᵀ
             C = C + 0.04 * np.outer(mean[d, b], mean[d, b])
             np.testing.assert_allclose(level[d, b], Js.T @ np.linalg.solve(C, Js), rtol=1e-9,
+                                       atol=1e-12)
+            # and a tilt: + tilt² (m∘x)(m∘x)ᵀ
+            C = C + 0.01 * np.outer(mean[d, b] * x, mean[d, b] * x)
+            np.testing.assert_allclose(both[d, b], Js.T @ np.linalg.solve(C, Js), rtol=1e-9,
                                        atol=1e-12)
 
 

@@ -137,7 +137,8 @@ def _unknowns(scene: Scene, session: Session | None, region: Region, free_params
 
 def plan_measurements(scene: Scene, session: Session | None = None, *, budget: int,
                       region: Region | None = None, noise: float = 0.01,
-                      sigma_aim_m: float = 1e-3, level_error: float = 0.005, draws: int = 8,
+                      sigma_aim_m: float = 1e-3, level_error: float = 0.005,
+                      tilt_error: float = 0.0, draws: int = 8,
                       spot_resolution: int = 4,
                       free: tuple[str, ...] = DEFAULT_FREE, seed: int = 0, chunk: int = 256,
                       fit_options: FitOptions | None = None,
@@ -157,6 +158,9 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
             (0.005: the renderer against the path-traced reference at object spots,
             docs/fitting.md), in every reading's information, planned and measured: a plan
             does not lean on one reading's level.
+        tilt_error: the model's error as a tilt over a reading's bands (a fraction, from −1
+            at the first band to +1 at the last; the fit's ``[model_error.tilt]``), in every
+            reading's information like the level; 0: none.
         draws: D, parameter draws the criterion takes its worst case over (the centre and a
             Latin hypercube of the ranges).
         spot_resolution: R of the candidates' fields (R×R camera, disc pixels).
@@ -178,7 +182,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     if not isinstance(budget, int) or budget < 1:
         raise InputError(f"must be an integer >= 1, got {budget!r}", field="budget")
     for name, v, lo, hi in (("noise", noise, 1e-6, 1.0), ("sigma_aim_m", sigma_aim_m, 0.0, 0.1),
-                            ("level_error", level_error, 0.0, 0.5)):
+                            ("level_error", level_error, 0.0, 0.5),
+                            ("tilt_error", tilt_error, 0.0, 0.5)):
         if not (lo <= v <= hi):
             raise InputError(f"must lie in [{lo:g}, {hi:g}], got {v}", field=name)
     if not 1 <= draws <= 64:
@@ -224,7 +229,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     say(f"{len(cands)} candidates; their sensitivities at {draws} parameter draws ...")
     info = candidate_information(scene, cands, values, free=unknowns, fit_scale=fit_scale,
                                  scale=scale, noise=noise, sigma_aim_m=sigma_aim_m,
-                                 level=level_error, spot_resolution=spot_resolution,
+                                 level=level_error, tilt=tilt_error,
+                                 spot_resolution=spot_resolution,
                                  session=session, env=env,
                                  geometries=geoms, chunk=chunk, progress=say)
     ok = info["coverage"] >= _MIN_COVERAGE
@@ -241,7 +247,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     if prep_s is not None and prep_s.n_image_rows == 0:
         base = base + session_information(prep_s, values, scale=scale, unknowns=unknowns,
                                           fit_scale=fit_scale, tol=tol, sigma_aim_m=sigma_aim_m,
-                                          resolution=fo.spot_resolution, level=level_error)
+                                          resolution=fo.spot_resolution, level=level_error,
+                                          tilt=tilt_error)
 
     # the choice ------------------------------------------------------------------------------
     t1 = time.perf_counter()
@@ -270,7 +277,7 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
         centre={names[o]: {p: float(values0[o, k]) for k, p in enumerate(PARAMETERS)}
                 for o in sorted({o for o, _ in unknowns})},
         settings={"budget": budget, "noise": noise, "sigma_aim_m": sigma_aim_m,
-                  "level_error": level_error,
+                  "level_error": level_error, "tilt_error": tilt_error,
                   "draws": draws, "spot_resolution": spot_resolution, "seed": seed,
                   "session": None if session is None else str(session.path),
                   "region": region.path, "interreflection": "none (object readings)"},

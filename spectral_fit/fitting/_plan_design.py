@@ -165,32 +165,36 @@ def reading_sensitivity(problem: FitProblem, values: np.ndarray, *,
 
 
 def reading_information(J: np.ndarray, sigma: np.ndarray, grad: np.ndarray, tol: np.ndarray,
-                        *, sigma_aim_m: float, level: float = 0.0,
+                        *, sigma_aim_m: float, level: float = 0.0, tilt: float = 0.0,
                         mean: np.ndarray | None = None) -> np.ndarray:
     """(D, B, F, F) Fisher information of each reading in tolerance units.
 
     The reading's error covariance is diag(σ²) + σ_aim² (g_u g_uᵀ + g_v g_vᵀ) + level² m mᵀ:
     independent noise per band, an aiming error of σ_aim in each direction across the axis,
     which moves every band together (g the aiming gradient), and the model's error common to
-    the reading's bands, a fraction ``level`` of its radiance m (what the fit's robust errors
-    allow for: docs/fitting.md); its inverse by the Woodbury identity.
+    the reading's bands, a fraction ``level`` of its radiance m, and a ``tilt`` t² (m∘x)(m∘x)ᵀ
+    with x from −1 at the first band to +1 at the last (the fit's ``[model_error.level]``,
+    ``[model_error.tilt]``: docs/measurements.md); its inverse by the Woodbury identity.
 
     Args:
         J: (D, B, L, F) Jacobian (physical units); sigma: (D, B, L) or (B, L) noise of the
             mean reading; grad: (D, B, L, 2) aiming gradient (per metre); tol: (D, F)
-            tolerances; sigma_aim_m: aiming error (m, 1σ per direction); level: the model's
-            level error (fraction); mean: (D, B, L) or (B, L) the readings' radiance (needed
-            when ``level`` > 0).
+            tolerances; sigma_aim_m: aiming error (m, 1σ per direction); level, tilt: the
+            model's level and tilt errors (fractions); mean: (D, B, L) or (B, L) the
+            readings' radiance (needed when ``level`` or ``tilt`` > 0).
     """
     sig = np.broadcast_to(sigma, J.shape[:3])
     Jt = J * tol[:, None, None, :] / sig[..., None]  # whitened, tolerance units
     cols = []
     if sigma_aim_m > 0:
         cols.append(grad * sigma_aim_m / sig[..., None])  # (D, B, L, 2)
+    if (level > 0 or tilt > 0) and mean is None:
+        raise ValueError("a level or tilt error needs the readings' radiance (mean)")
     if level > 0:
-        if mean is None:
-            raise ValueError("a level error needs the readings' radiance (mean)")
         cols.append((level * np.broadcast_to(mean, J.shape[:3]) / sig)[..., None])
+    if tilt > 0:
+        x = np.linspace(-1.0, 1.0, J.shape[2])
+        cols.append((tilt * np.broadcast_to(mean, J.shape[:3]) * x / sig)[..., None])
     info = np.einsum("dblf,dblg->dbfg", Jt, Jt)
     if cols:
         G = np.concatenate(cols, axis=-1)  # (D, B, L, H)

@@ -75,7 +75,7 @@ def prepare_candidates(scene: Scene, candidates: list[dict[str, Any]], *,
 def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values: np.ndarray,
                           *, free: tuple[tuple[int, int], ...], fit_scale: bool = False,
                           scale: np.ndarray | None = None, noise: float = 0.01,
-                          sigma_aim_m: float = 1e-3, level: float = 0.0,
+                          sigma_aim_m: float = 1e-3, level: float = 0.0, tilt: float = 0.0,
                           spot_resolution: int = 4,
                           session: Session | None = None, env: Any = None,
                           geometries: Any = None, chunk: int = 256,
@@ -91,7 +91,8 @@ def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values
         values: (D, O, 6) physical parameters of each draw; ``scale`` (D,) the global scale.
         noise: relative noise of a reading (σ = noise × max(L, 1e-3 × its peak band)).
         sigma_aim_m: aiming error (m, 1σ per direction across the axis).
-        level: the model's error common to a reading's bands (a fraction of it).
+        level: the model's error common to a reading's bands (a fraction of it); tilt: its
+            tilt over the bands (a fraction, from −1 at the first band to +1 at the last).
         prepared: :func:`prepare_candidates` of these candidates (default: prepared here).
 
     Returns:
@@ -121,7 +122,7 @@ def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values
         peak = m.max(axis=-1, keepdims=True)
         sigma = noise * np.maximum(m, 1e-3 * np.maximum(peak, 1e-30))
         info = reading_information(J, sigma, g, tol, sigma_aim_m=sigma_aim_m, level=level,
-                                   mean=m)
+                                   tilt=tilt, mean=m)
         parts["information"].append(np.swapaxes(info, 0, 1)[:n])
         parts["coverage"].append(prep.coverage[:n])
         parts["mean"].append(np.swapaxes(m, 0, 1)[:n])
@@ -134,9 +135,9 @@ def candidate_information(scene: Scene, candidates: list[dict[str, Any]], values
 def session_information(prep: Any, values: np.ndarray, *, scale: np.ndarray,
                         unknowns: tuple[tuple[int, int], ...], fit_scale: bool,
                         tol: np.ndarray, sigma_aim_m: float, resolution: int,
-                        level: float = 0.0) -> np.ndarray:
+                        level: float = 0.0, tilt: float = 0.0) -> np.ndarray:
     """(D, F, F) information of the session's readings (their standard errors, the same
-    aiming error and model level error) and of its priors, in tolerance units."""
+    aiming error and model level and tilt errors) and of its priors, in tolerance units."""
     pr = prep.problem
     s = prep.session
     dist = np.array([np.linalg.norm(r.aim - r.position) for r in s.readings])
@@ -145,7 +146,8 @@ def session_information(prep: Any, values: np.ndarray, *, scale: np.ndarray,
                                   aim_distances=dist, field_angles_deg=fields,
                                   spot_resolution=resolution)
     info = reading_information(J, np.asarray(pr.readings.sigma, np.float64), g, tol,
-                               sigma_aim_m=sigma_aim_m, level=level, mean=m).sum(axis=1)
+                               sigma_aim_m=sigma_aim_m, level=level, tilt=tilt,
+                               mean=m).sum(axis=1)
     for j, _, sd in pr.prior:
         jj = unknowns.index(pr.free[j])
         info[:, jj, jj] += (tol[:, jj] / sd) ** 2

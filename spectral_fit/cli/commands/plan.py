@@ -47,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--level-error", type=float, default=0.005,
                    help="the model's error common to a reading's bands, a fraction of it "
                    "(default 0.005)")
+    p.add_argument("--tilt-error", type=float, default=0.0,
+                   help="the model's error as a tilt over a reading's bands, a fraction "
+                   "(as the session's [model_error.tilt]; default 0)")
     p.add_argument("--draws", type=int, default=8,
                    help="parameter draws the worst case is taken over (default 8)")
     p.add_argument("--spot-resolution", type=int, default=4,
@@ -125,11 +128,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = plan_measurements(scene, session, budget=args.budget, region=region,
                                 noise=args.noise, sigma_aim_m=args.aim_sigma_mm * 1e-3,
-                                level_error=args.level_error,
+                                level_error=args.level_error, tilt_error=args.tilt_error,
                                 draws=args.draws, spot_resolution=args.spot_resolution,
                                 seed=args.seed, progress=_say)
     except InputError as exc:
-        if exc.field in ("budget", "noise", "sigma_aim_m", "level_error", "draws",
+        if exc.field in ("budget", "noise", "sigma_aim_m", "level_error", "tilt_error", "draws",
                          "spot_resolution"):
             opt = {"sigma_aim_m": "--aim-sigma-mm"}.get(exc.field,
                                                        "--" + exc.field.replace("_", "-"))
