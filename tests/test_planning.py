@@ -386,9 +386,9 @@ def test_highlight_candidates_lie_on_the_sources_mirror_points(small):
         c = np.asarray(obj.position, np.float64)
         r = float(np.linalg.norm(np.asarray(geoms[o].vertices) - c, axis=1).mean())
         for p in (c + 0.3 * np.array([0.0, 0.2, 1.0]), c + 0.3 * np.array([-0.5, 0.5, 0.7])):
-            pts = _highlight_points(geoms[o], p, s[None], (0.0, 4.0, 8.0),
-                                    math.cos(math.radians(80.0)))
-            assert len(pts) == 3
+            pts, what = _highlight_points(geoms[o], p, s[None], (0.0, 4.0, 8.0),
+                                          math.cos(math.radians(80.0)))
+            assert len(pts) == 3 and [w["source"] for w in what] == [0, 0, 0]
             want = _sphere_highlight(c, r, p, s)
             got = (pts[0] - c) / np.linalg.norm(pts[0] - c)
             assert np.degrees(np.arccos(got @ (want - c) / r)) <= 3.0
@@ -406,3 +406,5 @@ def test_highlight_candidates_lie_on_the_sources_mirror_points(small):
     without = fitting.plan_candidates(scene, region.__class__(
         **{**region.__dict__, "highlight_offsets_deg": ()}), geoms, sources=s[None])
     assert len(with_hl) > len(without)
+    assert not any("highlight" in c for c in without)
+    assert {c["highlight"]["source"] for c in with_hl if "highlight" in c} == {0}

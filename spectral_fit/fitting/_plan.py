@@ -223,8 +223,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     # the candidates ----------------------------------------------------------------------
     t1 = time.perf_counter()
     say("casting the candidates' central rays ...")
-    cands = plan_candidates(scene, region, geoms, margin_m=2.0 * sigma_aim_m,
-                            sources=bright_directions(env, region.highlight_sources))
+    sources = bright_directions(env, region.highlight_sources)
+    cands = plan_candidates(scene, region, geoms, margin_m=2.0 * sigma_aim_m, sources=sources)
     _check_budget(budget, len(cands), region)
     say(f"{len(cands)} candidates; their sensitivities at {draws} parameter draws ...")
     info = candidate_information(scene, cands, values, free=unknowns, fit_scale=fit_scale,
@@ -280,7 +280,8 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
                   "level_error": level_error, "tilt_error": tilt_error,
                   "draws": draws, "spot_resolution": spot_resolution, "seed": seed,
                   "session": None if session is None else str(session.path),
-                  "region": region.path, "interreflection": "none (object readings)"},
+                  "region": region.path, "interreflection": "none (object readings)",
+                  "bright_sources": [[round(float(x), 6) for x in d] for d in sources]},
         timings=timings)
 
 
@@ -366,6 +367,8 @@ def _chosen_readings(cands: list[dict[str, Any]], idx: list[int]) -> list[dict[s
                     "position": np.asarray(r["position"]),
                     "field_angle_deg": float(r["field_angle_deg"]),
                     "distance_m": float(r["distance_m"]), "candidate": int(c)})
+        if "highlight" in r:
+            out[-1]["highlight"] = dict(r["highlight"])
     return out
 
 

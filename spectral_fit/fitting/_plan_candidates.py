@@ -239,12 +239,14 @@ def _surface_points(geom: ObjectGeometry, n: int) -> tuple[np.ndarray, np.ndarra
 
 
 def _highlight_points(geom: ObjectGeometry, position: np.ndarray, sources: np.ndarray,
-                      offsets: Sequence[float], cos_max: float) -> np.ndarray:
+                      offsets: Sequence[float], cos_max: float
+                      ) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(M, 3) aim points on the object, seen from ``position``, whose mirror direction lies
     ``offsets`` degrees from each of the (S, 3) world ``sources`` directions (M <= S·len(offsets)):
     of the triangle centroids that face the position (within the view limit) and the source,
     the one whose angle between mirror direction and source is closest to each offset, kept
-    when that angle is within 1.5° of it."""
+    when that angle is within 1.5° of it. Also, per point, ``{"source": index, "offset_deg":
+    the angle}``."""
     v = np.asarray(geom.vertices, np.float64)
     nr = np.asarray(geom.normals, np.float64)
     t = np.asarray(geom.triangles)
@@ -255,8 +257,8 @@ def _highlight_points(geom: ObjectGeometry, position: np.ndarray, sources: np.nd
     view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
     cos_v = np.einsum("ij,ij->i", view, nrm)
     mirror = 2.0 * cos_v[:, None] * nrm - view
-    out = []
-    for s in np.asarray(sources, np.float64):
+    out, info = [], []
+    for si, s in enumerate(np.asarray(sources, np.float64)):
         ok = (cos_v >= cos_max) & (nrm @ s > 0.0)
         if not ok.any():
             continue
@@ -266,7 +268,8 @@ def _highlight_points(geom: ObjectGeometry, position: np.ndarray, sources: np.nd
             i = int(np.argmin(np.abs(ang - k)))
             if abs(ang[i] - k) <= 1.5:
                 out.append(pts[i])
-    return np.asarray(out).reshape(-1, 3)
+                info.append({"source": si, "offset_deg": round(float(ang[i]), 2)})
+    return np.asarray(out).reshape(-1, 3), info
 
 
 def _snap_to_surface(region: Region, name: str, geom: ObjectGeometry, radius: float
@@ -337,7 +340,8 @@ def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeo
 
     Returns:
         dicts with ``object``, ``position`` (3,), ``aim`` (3,), ``field_angle_deg`` and
-        ``distance_m`` (position to aim point), in a deterministic order.
+        ``distance_m`` (position to aim point), and for highlight aim points ``highlight``
+        ({``source``: index into ``sources``, ``offset_deg``}), in a deterministic order.
 
     Raises:
         InputError (naming the region file and field): an unknown object, a position inside
@@ -379,10 +383,11 @@ def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeo
             for a, d in zip(pts[facing], dist[facing], strict=True):
                 raw.append({"object": name, "position": p, "aim": a, "distance_m": float(d)})
             if len(bright) and name not in region.aims:
-                for a in _highlight_points(geometries[o], p, bright,
-                                           region.highlight_offsets_deg, cos_max):
+                hl, what = _highlight_points(geometries[o], p, bright,
+                                             region.highlight_offsets_deg, cos_max)
+                for a, w in zip(hl, what, strict=True):
                     raw.append({"object": name, "position": p, "aim": a,
-                                "distance_m": float(np.linalg.norm(p - a))})
+                                "distance_m": float(np.linalg.norm(p - a)), "highlight": w})
     if not raw:
         raise region.error("objects", "no aim point of any object faces an instrument position "
                            "of the region (unreachable region)")

@@ -39,8 +39,9 @@ def plan_session_toml(result: PlanResult, *, scene_ref: str, units: str = "W.sr^
 
 
 def _picture(result: PlanResult, scene: Scene, path: Path) -> None:
-    """Top (x–z) and side (z–y) views: objects as circles, instrument positions numbered,
-    aim lines to the aim points."""
+    """Top (x–z) and side (z–y) views: objects as circles, instrument positions numbered
+    (``h``: a highlight reading), aim lines to the aim points, and arrows towards the
+    environment's bright sources whose highlights were candidates."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -67,7 +68,19 @@ def _picture(result: PlanResult, scene: Scene, path: Path) -> None:
             ax.plot([p[a], t[a]], [p[b], t[b]], "-", color=col, lw=0.8, alpha=0.8)
             ax.plot(p[a], p[b], "^", color=col, ms=7)
             ax.plot(t[a], t[b], "o", color=col, ms=3)
-            labels.setdefault((round(p[a], 3), round(p[b], 3)), []).append(str(n + 1))
+            labels.setdefault((round(p[a], 3), round(p[b], 3)), []).append(
+                f"{n + 1}h" if "highlight" in rd else str(n + 1))
+        centre = np.mean([np.asarray(o.position, np.float64) for o in scene.objects], axis=0)
+        span = max(np.ptp([np.asarray(r["position"], np.float64)[[a, b]] for r in result.chosen]
+                          + [centre[[a, b]]], axis=0).max(), 0.05)
+        for si, d in enumerate(result.settings.get("bright_sources", [])):
+            d = np.asarray(d, np.float64)
+            tip = (centre[a] + 0.45 * span * d[a], centre[b] + 0.45 * span * d[b])
+            ax.annotate("", xy=tip, xytext=(centre[a], centre[b]),
+                        arrowprops={"arrowstyle": "->", "color": "0.5", "lw": 1.0})
+            ax.text(tip[0], tip[1], f" source {si + 1}", fontsize=8, color="0.35",
+                    ha="left", va="center")
+            ax.plot([tip[0]], [tip[1]], alpha=0.0)  # in the autoscaled limits
         for (u, v), text in labels.items():  # readings from one place share a label
             ax.annotate(",".join(text), (u, v), textcoords="offset points", xytext=(4, 4),
                         fontsize=9)
@@ -77,8 +90,9 @@ def _picture(result: PlanResult, scene: Scene, path: Path) -> None:
         ax.set_aspect("equal")
         ax.autoscale_view()
         ax.grid(alpha=0.3)
-    fig.suptitle(f"{len(result.chosen)} planned readings (triangle: instrument, dot: aim point); "
-                 f"worst standard error {result.objective_after:.3g} tolerances")
+    fig.suptitle(f"{len(result.chosen)} planned readings (triangle: instrument, dot: aim point, "
+                 f"h: on a bright source's highlight); worst standard error "
+                 f"{result.objective_after:.3g} tolerances")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)

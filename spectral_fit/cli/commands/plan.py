@@ -144,7 +144,9 @@ def run(args: argparse.Namespace) -> int:
     for n, r in enumerate(res.chosen):
         _say(f"  {n + 1:2d} {r['object']:>10s}  field {r['field_angle_deg']:g} deg  position "
              f"{[round(float(x), 3) for x in r['position']]}  aim "
-             f"{[round(float(x), 4) for x in r['aim']]}")
+             f"{[round(float(x), 4) for x in r['aim']]}"
+             + (f"  (highlight of source {r['highlight']['source'] + 1}, "
+                f"{r['highlight']['offset_deg']:g} deg off)" if "highlight" in r else ""))
     _say(f"  {'parameter':>14s} {'tolerance':>10s} {'stderr before':>14s} "
          f"{'stderr after':>13s} {'worst/tol':>9s}")
     for j, u in enumerate(res.unknowns):
