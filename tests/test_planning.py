@@ -367,7 +367,7 @@ def test_highlight_candidates_lie_on_the_sources_mirror_points(small):
     centre) of the analytic point, and every aim point's mirror direction, from the sphere's
     true normal, within 2° of its offset from the source. The environment's brightest
     direction is where the map is brightest."""
-    from spectral_fit.fitting._plan_candidates import _highlight_points
+    from spectral_fit.fitting._plan_candidates import _centroids, _highlight_points
 
     _, small_scene, _ = small
     env = fitting.scene_environment(small_scene)
@@ -386,7 +386,7 @@ def test_highlight_candidates_lie_on_the_sources_mirror_points(small):
         c = np.asarray(obj.position, np.float64)
         r = float(np.linalg.norm(np.asarray(geoms[o].vertices) - c, axis=1).mean())
         for p in (c + 0.3 * np.array([0.0, 0.2, 1.0]), c + 0.3 * np.array([-0.5, 0.5, 0.7])):
-            pts, what = _highlight_points(geoms[o], p, s[None], (0.0, 4.0, 8.0),
+            pts, what = _highlight_points(_centroids(geoms[o]), p, s[None], (0.0, 4.0, 8.0),
                                           math.cos(math.radians(80.0)))
             assert len(pts) == 3 and [w["source"] for w in what] == [0, 0, 0]
             want = _sphere_highlight(c, r, p, s)

@@ -217,18 +217,23 @@ def load_region(path: str | os.PathLike[str]) -> Region:
     return Region(**kw).checked()
 
 
+def _centroids(geom: ObjectGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) triangle centroids of the object and (T, 3) unit normals there (the mean of
+    the vertex normals)."""
+    v = np.asarray(geom.vertices, np.float64)
+    t = np.asarray(geom.triangles)
+    nrm = np.asarray(geom.normals, np.float64)[t].mean(axis=1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    return v[t].mean(axis=1), nrm
+
+
 def _surface_points(geom: ObjectGeometry, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(n', 3) points on the object's surface and their (n', 3) unit normals, spread evenly
     over the directions from its centre (a Fibonacci set of n directions, each taking the
     triangle centroid nearest in direction; duplicates dropped). Centroids lie strictly
     inside a triangle, so the central ray of a field hits it unambiguously."""
-    v = np.asarray(geom.vertices, np.float64)
-    nr = np.asarray(geom.normals, np.float64)
-    t = np.asarray(geom.triangles)
     c = np.asarray(geom.centre, np.float64)
-    cen = v[t].mean(axis=1)
-    nrm = nr[t].mean(axis=1)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    cen, nrm = _centroids(geom)
     d = cen - c
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     from ..geometry import fibonacci_directions
@@ -238,21 +243,17 @@ def _surface_points(geom: ObjectGeometry, n: int) -> tuple[np.ndarray, np.ndarra
     return cen[pick], nrm[pick]
 
 
-def _highlight_points(geom: ObjectGeometry, position: np.ndarray, sources: np.ndarray,
-                      offsets: Sequence[float], cos_max: float
+def _highlight_points(centroids: tuple[np.ndarray, np.ndarray], position: np.ndarray,
+                      sources: np.ndarray, offsets: Sequence[float], cos_max: float
                       ) -> tuple[np.ndarray, list[dict[str, Any]]]:
-    """(M, 3) aim points on the object, seen from ``position``, whose mirror direction lies
+    """(M, 3) aim points on the object (its :func:`_centroids`), seen from ``position``, whose
+    mirror direction lies
     ``offsets`` degrees from each of the (S, 3) world ``sources`` directions (M <= S·len(offsets)):
     of the triangle centroids that face the position (within the view limit) and the source,
     the one whose angle between mirror direction and source is closest to each offset, kept
     when that angle is within 1.5° of it. Also, per point, ``{"source": index, "offset_deg":
     the angle}``."""
-    v = np.asarray(geom.vertices, np.float64)
-    nr = np.asarray(geom.normals, np.float64)
-    t = np.asarray(geom.triangles)
-    cen = v[t].mean(axis=1)
-    nrm = nr[t].mean(axis=1)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    cen, nrm = centroids
     view = position[None] - cen
     view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
     cos_v = np.einsum("ij,ij->i", view, nrm)
@@ -376,15 +377,16 @@ def plan_candidates(scene: Scene, region: Region, geometries: Sequence[ObjectGeo
             pts, nrm = _surface_points(geometries[o], region.aims_per_object)
         bright = (np.zeros((0, 3)) if sources is None or not region.highlight_offsets_deg
                   else np.asarray(sources, np.float64)[:region.highlight_sources])
+        tri = _centroids(geometries[o]) if len(bright) and name not in region.aims else None
         for p in pos:
             v = p[None] - pts
             dist = np.linalg.norm(v, axis=1)
             facing = np.einsum("ij,ij->i", v, nrm) / dist >= cos_max
             for a, d in zip(pts[facing], dist[facing], strict=True):
                 raw.append({"object": name, "position": p, "aim": a, "distance_m": float(d)})
-            if len(bright) and name not in region.aims:
-                hl, what = _highlight_points(geometries[o], p, bright,
-                                             region.highlight_offsets_deg, cos_max)
+            if tri is not None:
+                hl, what = _highlight_points(tri, p, bright, region.highlight_offsets_deg,
+                                             cos_max)
                 for a, w in zip(hl, what, strict=True):
                     raw.append({"object": name, "position": p, "aim": a,
                                 "distance_m": float(np.linalg.norm(p - a)), "highlight": w})
