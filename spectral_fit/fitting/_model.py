@@ -129,15 +129,21 @@ def whiten_correlated(z: jax.Array, readings: Any, rows: jax.Array | None = None
     return z - jnp.einsum("blk,bk->bl", V, jnp.einsum("bkj,bj->bk", M, Vz))
 
 
+def reading_residuals(pred: jax.Array, problem: FitProblem, reading_weights: jax.Array
+                      ) -> jax.Array:
+    """(B, L) weighted residuals of predicted readings ``pred`` (B, L): (model − measured)/σ,
+    whitened for the rows' level and tilt errors around the prediction held constant
+    (:func:`whiten_correlated`), times √w_b."""
+    rd = problem.readings
+    r = whiten_correlated((pred - rd.measured) / rd.sigma, rd, jax.lax.stop_gradient(pred))
+    return r * jnp.sqrt(reading_weights)[:, None]
+
+
 def residuals(y: jax.Array, problem: FitProblem, reading_weights: jax.Array) -> jax.Array:
-    """Weighted residuals (B·L + K,) ((model − measured)/σ, whitened for the rows' level
-    and tilt errors (:func:`whiten_correlated`), · √w_b, then the K priors' (p − mean)/σ)
-    at unconstrained ``y``."""
+    """Weighted residuals (B·L + K,) (:func:`reading_residuals`, then the K priors'
+    (p − mean)/σ) at unconstrained ``y``."""
     vals, scale = physical_from_y(problem, y)
-    pred = predict(problem, vals, scale)
-    r = (pred - problem.readings.measured) / problem.readings.sigma
-    r = whiten_correlated(r, problem.readings, jax.lax.stop_gradient(pred))
-    r = (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
+    r = reading_residuals(predict(problem, vals, scale), problem, reading_weights).reshape(-1)
     return jnp.concatenate([r, prior_residuals(problem, y)])
 
 

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._model import predict, whiten_correlated
+from ._model import predict, reading_residuals, whiten_correlated
 from ._options import FitOptions
 from ._params import physical_from_y, prior_residuals
 from ._problem import FitProblem
@@ -96,9 +96,7 @@ def _residuals_aux(y: jax.Array, problem: FitProblem, reading_weights: jax.Array
                    ) -> tuple[jax.Array, jax.Array]:
     vals, scale = physical_from_y(problem, y)
     pred = predict(problem, vals, scale)
-    r = whiten_correlated((pred - problem.readings.measured) / problem.readings.sigma,
-                          problem.readings, jax.lax.stop_gradient(pred))
-    r = (r * jnp.sqrt(reading_weights)[:, None]).reshape(-1)
+    r = reading_residuals(pred, problem, reading_weights).reshape(-1)
     return jnp.concatenate([r, prior_residuals(problem, y)]), pred
 
 
@@ -114,10 +112,9 @@ def _residuals_jacobian(y: jax.Array, problem: FitProblem, reading_weights: jax.
 
     (jp, jq), pred = jax.jacfwd(model, has_aux=True)(y)  # (B, L, F), (K, F); (B, L)
     rd = problem.readings
-    sw = jnp.sqrt(reading_weights)[:, None]
-    r = (whiten_correlated((pred - rd.measured) / rd.sigma, rd, pred) * sw).reshape(-1)
-    J = (whiten_correlated(jp / rd.sigma[..., None], rd, pred) * sw[..., None]).reshape(
-        r.shape[0], y.shape[0])
+    r = reading_residuals(pred, problem, reading_weights).reshape(-1)
+    J = (whiten_correlated(jp / rd.sigma[..., None], rd, pred)
+         * jnp.sqrt(reading_weights)[:, None, None]).reshape(r.shape[0], y.shape[0])
     return (jnp.concatenate([r, prior_residuals(problem, y)]), jnp.concatenate([J, jq]),
             pred)
 
