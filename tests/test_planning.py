@@ -281,13 +281,27 @@ def test_information_woodbury_matches_direct_inverse():
             C = C + 0.01 * np.outer(mean[d, b] * x, mean[d, b] * x)
             np.testing.assert_allclose(both[d, b], Js.T @ np.linalg.solve(C, Js), rtol=1e-9,
                                        atol=1e-12)
+    # a level and a tilt per reading (a session's stated errors per kind)
+    lv, tv = np.array([0.2, 0.0, 0.05]), np.array([0.0, 0.1, 0.3])
+    each = fitting.reading_information(J, sigma, G, tol, sigma_aim_m=0.3, level=lv, tilt=tv,
+                                       mean=mean)
+    for d in range(D):
+        for b in range(B):
+            C = (np.diag(sigma[d, b] ** 2) + 0.09 * G[d, b] @ G[d, b].T
+                 + lv[b] ** 2 * np.outer(mean[d, b], mean[d, b])
+                 + tv[b] ** 2 * np.outer(mean[d, b] * x, mean[d, b] * x))
+            Js = J[d, b] * tol[d]
+            np.testing.assert_allclose(each[d, b], Js.T @ np.linalg.solve(C, Js), rtol=1e-9,
+                                       atol=1e-12)
 
 
-def test_session_information_matches_the_fit(small, tmp_path):
+@pytest.mark.parametrize("stated", [False, True], ids=["plain", "stated_level_tilt"])
+def test_session_information_matches_the_fit(small, tmp_path, stated):
     """With a session (noiseless own-model readings of 10 spots, calibration "global": the
     scale is a nuisance unknown), the plan's standard errors before equal the fit's own
-    (Jacobian) standard errors at its optimum (no aiming error, no model level error), and
-    the plan lowers the worst one."""
+    (Jacobian) standard errors at its optimum (no aiming error; no model level error, or the
+    level and tilt the session states, which the fit's generalised least squares and the
+    planner's Woodbury information both take), and the plan lowers the worst one."""
     from helpers.fitting import spots, write_session
 
     cfg, scene, _ = small
@@ -295,10 +309,14 @@ def test_session_information_matches_the_fit(small, tmp_path):
     clean = fitting.simulate_readings(scene, spots(), options=opts)
     session = load_session(write_session(tmp_path / "s", cfg, clean, scene.wavelengths),
                            scene=scene)
+    if stated:
+        session = session.replace(level_error={"object": 0.02}, tilt_error={"object": 0.01})
     res = fitting.fit(scene, session, options=opts, starts=1, holdout=False, aim_step_m=0.0)
     plan = fitting.plan_measurements(scene, session, budget=2, region=REGION,
-                                     sigma_aim_m=0.0, level_error=0.0, draws=2,
-                                     fit_options=opts)
+                                     sigma_aim_m=0.0, level_error=None if stated else 0.0,
+                                     draws=2, fit_options=opts)
+    assert plan.settings["level_error"] == (0.02 if stated else 0.0)
+    assert plan.settings["tilt_error"] == (0.01 if stated else 0.0)
     assert plan.unknowns[-1] == "scale" and "yellow.alpha" not in plan.unknowns
     for j, label in enumerate(plan.unknowns[:-1]):
         obj, p = label.split(".")

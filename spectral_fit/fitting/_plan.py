@@ -137,8 +137,8 @@ def _unknowns(scene: Scene, session: Session | None, region: Region, free_params
 
 def plan_measurements(scene: Scene, session: Session | None = None, *, budget: int,
                       region: Region | None = None, noise: float = 0.01,
-                      sigma_aim_m: float = 1e-3, level_error: float = 0.005,
-                      tilt_error: float = 0.0, draws: int = 8,
+                      sigma_aim_m: float = 1e-3, level_error: float | None = None,
+                      tilt_error: float | None = None, draws: int = 8,
                       spot_resolution: int = 4,
                       free: tuple[str, ...] = DEFAULT_FREE, seed: int = 0, chunk: int = 256,
                       fit_options: FitOptions | None = None,
@@ -154,13 +154,16 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
         region: where the instrument can stand and aim (default :class:`Region`()).
         noise: relative noise of one planned reading (0.01: 1 %).
         sigma_aim_m: aiming error (metres, 1σ per direction across the measuring axis).
-        level_error: the model's error common to a reading's bands, a fraction of the reading
-            (0.005: the renderer against the path-traced reference at object spots,
-            docs/fitting.md), in every reading's information, planned and measured: a plan
-            does not lean on one reading's level.
+        level_error: the model's error common to a reading's bands, a fraction of the reading,
+            in every reading's information, planned and measured: a plan does not lean on one
+            reading's level. Default (None): what the session states for object readings
+            (``[model_error.level]``), else 0.005 (the renderer against the path-traced
+            reference at object spots, docs/fitting.md). The session's readings of a kind
+            it states a level for take that level.
         tilt_error: the model's error as a tilt over a reading's bands (a fraction, from −1
             at the first band to +1 at the last; the fit's ``[model_error.tilt]``), in every
-            reading's information like the level; 0: none.
+            reading's information like the level. Default (None): what the session states
+            for object readings, else 0 (none).
         draws: D, parameter draws the criterion takes its worst case over (the centre and a
             Latin hypercube of the ranges).
         spot_resolution: R of the candidates' fields (R×R camera, disc pixels).
@@ -181,6 +184,10 @@ def plan_measurements(scene: Scene, session: Session | None = None, *, budget: i
     region = (region or Region()).checked()
     if not isinstance(budget, int) or budget < 1:
         raise InputError(f"must be an integer >= 1, got {budget!r}", field="budget")
+    if level_error is None:
+        level_error = session.level_error.get("object", 0.005) if session else 0.005
+    if tilt_error is None:
+        tilt_error = session.tilt_error.get("object", 0.0) if session else 0.0
     for name, v, lo, hi in (("noise", noise, 1e-6, 1.0), ("sigma_aim_m", sigma_aim_m, 0.0, 0.1),
                             ("level_error", level_error, 0.0, 0.5),
                             ("tilt_error", tilt_error, 0.0, 0.5)):

@@ -165,7 +165,8 @@ def reading_sensitivity(problem: FitProblem, values: np.ndarray, *,
 
 
 def reading_information(J: np.ndarray, sigma: np.ndarray, grad: np.ndarray, tol: np.ndarray,
-                        *, sigma_aim_m: float, level: float = 0.0, tilt: float = 0.0,
+                        *, sigma_aim_m: float, level: float | np.ndarray = 0.0,
+                        tilt: float | np.ndarray = 0.0,
                         mean: np.ndarray | None = None) -> np.ndarray:
     """(D, B, F, F) Fisher information of each reading in tolerance units.
 
@@ -180,21 +181,25 @@ def reading_information(J: np.ndarray, sigma: np.ndarray, grad: np.ndarray, tol:
         J: (D, B, L, F) Jacobian (physical units); sigma: (D, B, L) or (B, L) noise of the
             mean reading; grad: (D, B, L, 2) aiming gradient (per metre); tol: (D, F)
             tolerances; sigma_aim_m: aiming error (m, 1σ per direction); level, tilt: the
-            model's level and tilt errors (fractions); mean: (D, B, L) or (B, L) the
-            readings' radiance (needed when ``level`` or ``tilt`` > 0).
+            model's level and tilt errors (fractions), one for every reading or (B,) one per
+            reading; mean: (D, B, L) or (B, L) the readings' radiance (needed when ``level``
+            or ``tilt`` > 0).
     """
     sig = np.broadcast_to(sigma, J.shape[:3])
+    B = J.shape[1]
+    lev = np.broadcast_to(np.asarray(level, np.float64), (B,))[None, :, None]
+    til = np.broadcast_to(np.asarray(tilt, np.float64), (B,))[None, :, None]
     Jt = J * tol[:, None, None, :] / sig[..., None]  # whitened, tolerance units
     cols = []
     if sigma_aim_m > 0:
         cols.append(grad * sigma_aim_m / sig[..., None])  # (D, B, L, 2)
-    if (level > 0 or tilt > 0) and mean is None:
+    if (np.any(lev > 0) or np.any(til > 0)) and mean is None:
         raise ValueError("a level or tilt error needs the readings' radiance (mean)")
-    if level > 0:
-        cols.append((level * np.broadcast_to(mean, J.shape[:3]) / sig)[..., None])
-    if tilt > 0:
+    if np.any(lev > 0):
+        cols.append((lev * np.broadcast_to(mean, J.shape[:3]) / sig)[..., None])
+    if np.any(til > 0):
         x = np.linspace(-1.0, 1.0, J.shape[2])
-        cols.append((tilt * np.broadcast_to(mean, J.shape[:3]) * x / sig)[..., None])
+        cols.append((til * np.broadcast_to(mean, J.shape[:3]) * x / sig)[..., None])
     info = np.einsum("dblf,dblg->dbfg", Jt, Jt)
     if cols:
         G = np.concatenate(cols, axis=-1)  # (D, B, L, H)

@@ -137,9 +137,16 @@ def session_information(prep: Any, values: np.ndarray, *, scale: np.ndarray,
                         tol: np.ndarray, sigma_aim_m: float, resolution: int,
                         level: float = 0.0, tilt: float = 0.0) -> np.ndarray:
     """(D, F, F) information of the session's readings (their standard errors, the same
-    aiming error and model level and tilt errors) and of its priors, in tolerance units."""
+    aiming error, the model's level and tilt errors) and of its priors, in tolerance units.
+
+    Where the session states a level (``[model_error.level]``), its readings take the level
+    stated for their kind (0 for a kind it leaves out), as the fit weights them; where it
+    states none, every reading takes ``level``. The same for the tilt."""
     pr = prep.problem
     s = prep.session
+    level, tilt = (np.array([table.get(r.kind, 0.0) for r in s.readings], np.float64)
+                   if any(v > 0 for v in table.values()) else default
+                   for table, default in ((s.level_error, level), (s.tilt_error, tilt)))
     dist = np.array([np.linalg.norm(r.aim - r.position) for r in s.readings])
     fields = np.array([r.field_angle_deg for r in s.readings])
     m, J, g = reading_sensitivity(pr, values, free=unknowns, fit_scale=fit_scale, scale=scale,

@@ -44,12 +44,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="relative noise of one reading (default 0.01)")
     p.add_argument("--aim-sigma-mm", type=float, default=1.0,
                    help="aiming error, mm (1 sigma per direction; default 1)")
-    p.add_argument("--level-error", type=float, default=0.005,
+    p.add_argument("--level-error", type=float, default=None,
                    help="the model's error common to a reading's bands, a fraction of it "
-                   "(default 0.005)")
-    p.add_argument("--tilt-error", type=float, default=0.0,
+                   "(default: the session's [model_error.level] for object readings, else "
+                   "0.005; the session's readings take their kind's stated level)")
+    p.add_argument("--tilt-error", type=float, default=None,
                    help="the model's error as a tilt over a reading's bands, a fraction "
-                   "(as the session's [model_error.tilt]; default 0)")
+                   "(default: the session's [model_error.tilt] for object readings, else 0)")
     p.add_argument("--draws", type=int, default=8,
                    help="parameter draws the worst case is taken over (default 8)")
     p.add_argument("--spot-resolution", type=int, default=4,
