@@ -194,6 +194,138 @@ def test_white_furnace(tmp_path):
     np.testing.assert_allclose(e / math.pi, 1.0, atol=0.02)
 
 
+TWO = """
+[frame]
+width = 96
+height = 64
+
+[camera]
+fov_y_deg = 60.0
+position = [0.0, 0.35, 0.45]
+look_at = [0.0, 0.0, 0.0]
+
+[environment]
+file = "sky.exr"
+
+[spectral]
+start_nm = 400.0
+end_nm = 700.0
+step_nm = 100.0
+
+[interreflection]
+mode = "gather"
+bounces = 1
+
+[[objects]]
+name = "black"
+shape = "icosphere"
+subdivisions = 4
+radius = {r}
+position = [{xa}, {h}, 0.0]
+
+[objects.material]
+reflectance = 1.0
+alpha = 0.0
+beta = 0.0
+chi = 0.0
+
+[[objects]]
+name = "white"
+shape = "icosphere"
+subdivisions = 4
+radius = {r}
+position = [{xb}, {h}, 0.0]
+
+[objects.material]
+reflectance = 1.0
+alpha = 1.0
+beta = 0.0
+chi = 0.0
+
+[[surfaces]]
+name = "table"
+reflectance = 0.0
+resolution = 64
+margin = 1.0
+"""
+
+
+def _cosine_directions(n_t: int, n_p: int, normals: np.ndarray) -> np.ndarray:
+    """(N, n_t·n_p, 3) directions over the hemisphere of each of ``normals`` (N, 3), each
+    carrying π/(n_t·n_p) of projected solid angle (a product rule in sin²θ and φ)."""
+    t = (np.arange(n_t) + 0.5) / n_t
+    phi = (np.arange(n_p) + 0.5) / n_p * 2.0 * math.pi
+    s, p = np.meshgrid(np.sqrt(t), phi, indexing="ij")
+    local = np.stack([s * np.cos(p), s * np.sin(p), np.sqrt(1.0 - s * s)], -1).reshape(-1, 3)
+    n = np.asarray(normals, np.float64).reshape(-1, 3)
+    a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    t1 = np.cross(a, n)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    frames = np.stack([t1, np.cross(n, t1), n], axis=1)  # (N, 3, 3)
+    return np.einsum("kj,nji->nki", local, frames)
+
+
+def _ray_sphere(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float):
+    """(hit, distance) of rays from points ``o`` (..., 3) along ``d`` (..., 3)."""
+    oc = c - o
+    b = np.sum(d * oc, -1)
+    disc = b * b - (np.sum(oc * oc, -1) - r * r)
+    return (disc > 0) & (b > 0), b - np.sqrt(np.maximum(disc, 0.0))
+
+
+def test_neighbours_light_towards_the_plane(tmp_path):
+    """A black and a white diffuse sphere side by side over a black plane under a uniform sky
+    L0 = 1: the black one hides part of the white one's sky, so the white one's side facing
+    it, and the plane under the gap that sees that side, are darker. Against a float64
+    quadrature with exact ray–sphere tests: what the black sphere takes from the white one's
+    vertices (``neighbour_irradiance``), and what that changes of the plane's irradiance
+    between them (texels, with the term against without)."""
+    from spectral_fit.rendering import neighbour_irradiance
+
+    r, h, xa, xb = R, 1.1 * R, -0.065, 0.065
+    write_spectral_exr(tmp_path / "sky.exr", WL, np.ones((32, 64, WL.size), np.float32))
+    (tmp_path / "scene.toml").write_text(TWO.format(r=r, h=h, xa=xa, xb=xb))
+    prep = prepare(tmp_path / "scene.toml", occlusion=False)
+    a, b = np.array([xa, h, 0.0]), np.array([xb, h, 0.0])
+
+    def lost(y: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """(N,) the sky irradiance the black sphere takes from points y with normals n."""
+        d = _cosine_directions(16, 32, n)  # (N, K, 3)
+        hit, _ = _ray_sphere(y[:, None], d, a, r)
+        return -math.pi / d.shape[1] * np.sum(hit & (d[..., 1] > 0), axis=1)
+
+    # the white sphere's vertices facing the black one
+    nb = neighbour_irradiance(prep)
+    mesh = prep.ir_mesh
+    white = np.where(np.asarray(mesh.vertex_object) == 1)[0]
+    v = np.asarray(mesh.vertices, np.float64)[white] + b  # object frame: centred at 0
+    n = np.asarray(mesh.normals, np.float64)[white]
+    facing = np.where(n[:, 0] < -0.3)[0][::5]
+    got = np.asarray(nb, np.float64)[white[facing], 0]
+    want = lost(v[facing], n[facing])
+    assert want.min() < -0.3  # a large effect: up to 1/5 of the sky
+    np.testing.assert_allclose(got, want, atol=0.03 * math.pi)
+    # the plane between them (its irradiance with and without the neighbours' term)
+    st = prep.surfaces[0]
+    with_nb = np.asarray(surface_texels(prep, st, None, prep.model, neighbours=nb))[:, 0]
+    without = np.asarray(surface_texels(prep, st, None, prep.model))[:, 0]
+    x = _texel_centres(st)
+    pick = np.where((np.abs(x[:, 0]) < 0.02) & (np.abs(x[:, 2]) < 0.05))[0][::4]
+    up = _cosine_directions(60, 120, np.array([0.0, 1.0, 0.0]))[0]
+    want_t = []
+    for p in x[pick]:
+        ha, ta = _ray_sphere(p, up, a, r)
+        hb, tb = _ray_sphere(p, up, b, r)
+        on_b = hb & ~(ha & (ta < tb))
+        y = p + up[on_b] * tb[on_b, None]
+        # the white sphere's radiance changes by α ΔE/π at each point the plane sees
+        want_t.append(math.pi / len(up) * np.sum(lost(y, (y - b) / r)) / math.pi)
+    want_t = np.array(want_t)
+    got_t = with_nb[pick] - without[pick]
+    assert want_t.min() < -0.04  # 2–4 % of the plane's irradiance there
+    np.testing.assert_allclose(got_t, want_t, rtol=0.15, atol=0.004)
+
+
 def test_gradient_against_finite_differences(tmp_path):
     """∂(plane radiance)/∂α of the object, through the layer, against a central difference."""
     import jax

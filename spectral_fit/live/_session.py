@@ -420,6 +420,7 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         textures in the camera's linear RGB and :func:`relight_codes`), what the objects see
         of the planes' change)."""
         from ..rendering import (
+            neighbour_irradiance,
             surface_ratio_textures,
             surface_textures,
             surface_transfer,
@@ -429,10 +430,13 @@ class LiveSession(FramesInFlight, GrowAhead, SendersReuse):
         prep = self.prep
         transfers = surface_transfer(self.scene.surfaces, prep.lighting.env, prep.ir_mesh,
                                      model, visible=vis)
+        near = neighbour_irradiance(prep, prep.materials, model=jnp.asarray(model, jnp.float32),
+                                    visible=jnp.asarray(vis, bool))
         textures = surface_textures(prep, transfers, prep.materials, model=model,
-                                    out=camera_spectral_matrix(prep, self.camera))
+                                    out=camera_spectral_matrix(prep, self.camera),
+                                    neighbours=near)
         relit = (surface_ratio_textures(textures), relight_codes(self.camera))
-        changes = table_changes(prep, transfers, prep.materials, model)
+        changes = table_changes(prep, transfers, prep.materials, model, neighbours=near)
         self.surface_builds += 1
         return vis, model, jax.block_until_ready(relit), jax.block_until_ready(changes)
 

@@ -59,6 +59,7 @@ _EXPORTS: dict[str, str] = {
     "surface_pixels": "_surfaces",
     "surface_vertices": "_surfaces",
     "table_changes": "_surfaces",
+    "neighbour_irradiance": "_surfaces",
     "TableChange": "_surfaces",
     "surface_ratio": "_surfaces",
     "surface_ratio_lookup": "_surfaces",

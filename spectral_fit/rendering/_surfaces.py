@@ -18,8 +18,10 @@ transport in two ways:
    sub-points of each bright source of the map (their own flux times n·ω, taken out of
    their cells): sharp shadows of small lamps. h_k(x) ∈ {0, 1}: an object lies along the ray
    from x in direction k. L_obj is the radiance of the vertex the ray meets towards x: its
-   diffuse light α S(λ) E(n)/π (E from the frame's irradiance map of the grounded
-   environment) and its gloss and mirror along −d_k (as the frame shades its pixels).
+   diffuse light α S(λ) E/π (E from the frame's irradiance map of the grounded
+   environment, plus what the other objects change of it: their light less the sky they
+   hide, from the gather interreflection) and its gloss and mirror along −d_k (as the frame
+   shades its pixels).
 
 Visibility (precomputed per pose, no gradient): for each direction the objects' meshes are
 projected along it onto the plane (an oblique parallel projection: a point X goes to
@@ -60,7 +62,7 @@ from .._runtime.errors import InputError
 __all__ = ["SurfaceLayer", "SurfaceTexture", "SurfaceTransfer", "build_surface_transfer",
            "TableChange", "draw_surfaces", "surface_layer", "surface_pixels", "surface_vertices",
            "surface_ratio", "surface_ratio_lookup", "surface_ratio_textures", "surface_texels",
-           "table_changes",
+           "table_changes", "neighbour_irradiance",
            "surface_textures", "surface_transfer"]
 
 #: cosine-weighted directions over each plane's hemisphere (their cells carry the environment)
@@ -369,12 +371,15 @@ def surface_transfer(surfaces: Any, env: Any, ir_mesh: Any, model: Any, *,
 
 
 def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Array, *,
-                   passes: int = 2) -> jax.Array:
+                   passes: int = 2, neighbours: jax.Array | None = None) -> jax.Array:
     """The plane's irradiance E(x) (T², C) in the environment's channels with the objects at
     ``model`` (their radiance from their materials; the hidden environment from ``st``'s
     poses). ``passes`` 2: the objects' radiance towards the plane is computed again with
     what they see of the plane's own change (:class:`TableChange`: a sphere's underside
-    over its contact shadow is darker than over a uniform table); 1: over a uniform table."""
+    over its contact shadow is darker than over a uniform table); 1: over a uniform table.
+    ``neighbours`` (V, C): what the other objects change of the irradiance at each vertex of
+    ``prep.ir_mesh`` (:func:`neighbour_irradiance`), added to the vertices' irradiance map
+    (None: nothing)."""
     from ._materials import _as_stacked
     from ._shading import _filtered_irradiance, _irradiance_at, _lut_env, specular_at
 
@@ -388,6 +393,8 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
     world = jnp.einsum("vij,vj->vi", rot, mesh.vertices) + model[mesh.vertex_object][:, :3, 3]
     e_map = _irradiance_at(env, table, nrm)
+    if neighbours is not None:
+        e_map = e_map + neighbours
     n_pair = nrm[st.pair_vertex]
     lt = prep.lighting
     spec = [specular_at(m, env, n_pair, st.pair_view, quality=lt.quality,
@@ -418,6 +425,41 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
         if step + 1 < passes:  # the next pass sees this one's change
             change = TableChange.of(st, e, env)
     return e
+
+
+def neighbour_irradiance(prep: Any, materials: Any = None, *, model: Any = None,
+                         visible: Any = None) -> jax.Array | None:
+    """(V, C) the change of the irradiance at each vertex of ``prep.ir_mesh`` (posed by
+    ``model``) that the other objects make: their light, less the environment they hide
+    (the gather interreflection's samples' net light after its bounces, interpolated as the
+    frame's pixels get it; :func:`~spectral_fit.rendering.render_senders`,
+    ``interreflection.gather_irradiance``). The objects' radiance towards a plane takes it:
+    a sphere's side facing its neighbour is darker, and so is the table in the gap between
+    them. None unless the interreflection is the gather mode with two objects or more."""
+    from ._ir_stage import render_senders
+    from .interreflection import gather_irradiance
+
+    ir = prep.interreflection
+    if ir.mode != "gather" or prep.num_objects < 2 or ir.bounces < 1:
+        return None
+    model = jnp.asarray(prep.model if model is None else model, jnp.float32)
+    state = render_senders(prep, materials, model=model, visible=visible)
+    mesh = prep.ir_mesh
+    m = model[mesh.vertex_object]
+    world = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.vertices) + m[:, :3, 3]
+    nrm = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.normals)
+    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
+    return gather_irradiance(state, world, nrm, mesh.vertex_object)
+
+
+def _neighbours(prep: Any, materials: Any, model: Any, neighbours: Any) -> jax.Array | None:
+    """``neighbours`` as given, or :func:`neighbour_irradiance` for "auto"."""
+    if isinstance(neighbours, str):
+        if neighbours != "auto":
+            raise InputError(f"expected 'auto', None or an array, got {neighbours!r}",
+                             field="neighbours")
+        return neighbour_irradiance(prep, materials, model=model)
+    return neighbours
 
 
 class TableChange(eqx.Module):
@@ -540,13 +582,16 @@ class TableChange(eqx.Module):
 
 
 def table_changes(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = None,
-                  materials: Any = None, model: Any = None) -> tuple[TableChange, ...]:
+                  materials: Any = None, model: Any = None, *,
+                  neighbours: Any = "auto") -> tuple[TableChange, ...]:
     """Each plane's :class:`TableChange` for the objects' ``materials`` (default the
     config's) at ``model`` (default the prepared poses), with its diffuse part at the
     camera mesh's vertices: what :func:`surface_vertices` and :func:`surface_pixels` add to
     the objects. :func:`prepare` keeps it for the configured materials
-    (``Prepared.surface_changes``)."""
+    (``Prepared.surface_changes``). ``neighbours``: as :func:`surface_texels` ("auto":
+    :func:`neighbour_irradiance` of these materials and poses)."""
     model = jnp.asarray(prep.model if model is None else model, jnp.float32)
+    neighbours = _neighbours(prep, materials, model, neighbours)
     env = prep.lighting.env
     mesh = prep.mesh
     m = model[mesh.vertex_object]
@@ -555,7 +600,8 @@ def table_changes(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = Non
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
     out = []
     for st in (prep.surfaces if transfers is None else transfers):
-        ch = TableChange.of(st, surface_texels(prep, st, materials, model), env)
+        ch = TableChange.of(st, surface_texels(prep, st, materials, model,
+                                               neighbours=neighbours), env)
         parts = [ch.diffuse(world[a:a + 4096], nrm[a:a + 4096], mesh.vertex_object[a:a + 4096])
                  for a in range(0, world.shape[0], 4096)]
         out.append(eqx.tree_at(lambda c: c.vertex_irradiance, ch,
@@ -638,7 +684,8 @@ def _pixel_rays(prep: Any, view: jax.Array) -> tuple[tuple[jax.Array, ...], jax.
 
 
 def surface_textures(prep: Any, transfers: tuple[SurfaceTransfer, ...], materials: Any = None,
-                     *, model: Any = None, out: Any = None) -> tuple[SurfaceTexture, ...]:
+                     *, model: Any = None, out: Any = None,
+                     neighbours: Any = "auto") -> tuple[SurfaceTexture, ...]:
     """Each plane's radiance ρ E(x)/π over its region, in output channels.
 
     Args:
@@ -650,6 +697,9 @@ def surface_textures(prep: Any, transfers: tuple[SurfaceTransfer, ...], material
             the shadows are those of the transfers' poses).
         out: (L, K) spectral radiance → output channels (default: absolute XYZ); e.g. a video
             camera's spectral weights.
+        neighbours: (V, C) what the other objects change of the irradiance at the vertices
+            of ``prep.ir_mesh`` (:func:`neighbour_irradiance`, computed once and passed to
+            both this and :func:`table_changes`); "auto": computed here; None: left out.
 
     Returns:
         one :class:`SurfaceTexture` per plane (differentiable in ``materials``).
@@ -661,9 +711,10 @@ def surface_textures(prep: Any, transfers: tuple[SurfaceTransfer, ...], material
     if out is None:
         out = jnp.asarray(xyz_weights(np.asarray(col.wavelengths)), jnp.float32)
     out = jnp.asarray(out, jnp.float32)
+    neighbours = _neighbours(prep, materials, model, neighbours) if transfers else None
     result = []
     for st in transfers:
-        e = surface_texels(prep, st, materials, model)  # (T², C)
+        e = surface_texels(prep, st, materials, model, neighbours=neighbours)  # (T², C)
         scale = st.reflectance / math.pi
         t = st.resolution
         tex = (((e @ col.to_spectrum) * scale) @ out).reshape(t, t, -1)

@@ -12,6 +12,7 @@ _EXPORTS: dict[str, str] = {
     "GatherSenders": "_gather",
     "IRGeometry": "_pass1",
     "MODES": "_options",
+    "gather_irradiance": "_gather",
     "gather_receivers": "_gather",
     "gather_senders": "_gather",
     "interreflection": "_transport",

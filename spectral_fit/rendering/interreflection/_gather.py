@@ -53,7 +53,7 @@ from ._pass1 import IRGeometry
 from ._schedule import GLOSS_STEP, _image_anchors, _partition, _pixel_slots
 from ._shading import _Shading, _shading, _times_reflectance
 
-__all__ = ["GatherSenders", "gather_senders", "gather_receivers"]
+__all__ = ["GatherSenders", "gather_senders", "gather_receivers", "gather_irradiance"]
 
 
 def _reflect_diffuse(sh: _Shading, net: jax.Array, obj: jax.Array) -> jax.Array:
@@ -248,6 +248,31 @@ def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
     with jax.named_scope("ir_receiver_gloss"):
         return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid,
                         own=own)
+
+
+def gather_irradiance(state: GatherSenders, positions: jax.Array, normals: jax.Array,
+                      objects: jax.Array) -> jax.Array | None:
+    """The change (N, C) of the irradiance at points on the objects that the other objects
+    make (their light, less the environment they hide), in the environment's channels:
+    π × the diffuse net light of ``state``'s samples (kept as ΔE/π, what α S(λ) turns into
+    radiance), interpolated as the frame's receivers get it.
+
+    Args:
+        state: :func:`gather_senders` of the objects (diffuse transfer at the samples).
+        positions, normals: (N, 3) world points on the objects and their unit normals.
+        objects: (N,) int the object each point lies on.
+
+    Returns:
+        (N, C), 0 where a point faces no neighbour; None when ``state`` holds no samples'
+        net light (``diffuse_at`` = "receivers" with one bounce).
+    """
+    if state.net is None:
+        return None
+    pos = jnp.asarray(positions, jnp.float32)
+    nrm = jnp.asarray(normals, jnp.float32)
+    obj = jnp.asarray(objects, jnp.int32)
+    # the samples' net light is kept as ΔE/π (what α S(λ) turns into radiance)
+    return math.pi * _interpolate_net(state.geometry, state.net, pos, nrm, obj)
 
 
 #: CPU layout: receivers per chunk of the per-receiver terms of :func:`_receive_valid_first`
