@@ -469,7 +469,11 @@ class TableChange(eqx.Module):
     Attributes:
         fine: (T, T, C) the change of radiance over the region (environment channels).
         coarse: (G², C) the same averaged over G × G cells, and ``centres`` (G², 3) their
-            world centres, ``area`` () their area (m²): the diffuse sum.
+            world centres, ``area`` () their area (m²): the diffuse sum far from a point.
+        near: (G·S, G·S, C) the same over cells S times smaller, ``near_centres``
+            (G·S, G·S, 3), ``near_area`` (): the diffuse sum next to a point (the 3 × 3
+            coarse cells around its foot on the plane), where a contact shadow changes within
+            a coarse cell.
         origin, axes, half: the region (as :class:`SurfaceTransfer`).
         spheres: (O, 4) the objects' bounding spheres: a cell behind another object than
             the point's own is hidden from it (exact for spheres).
@@ -481,6 +485,9 @@ class TableChange(eqx.Module):
     coarse: jax.Array
     centres: jax.Array
     area: jax.Array
+    near: jax.Array
+    near_centres: jax.Array
+    near_area: jax.Array
     origin: jax.Array
     axes: jax.Array
     half: jax.Array
@@ -488,41 +495,66 @@ class TableChange(eqx.Module):
     vertex_irradiance: jax.Array | None = None
 
     @staticmethod
-    def of(st: SurfaceTransfer, e: jax.Array, env: Any, cells: int = 16) -> TableChange:
+    def of(st: SurfaceTransfer, e: jax.Array, env: Any, cells: int = 16,
+           split: int = 4) -> TableChange:
         """From the plane's irradiance ``e`` (T², C) (bands: ρ applies per channel; in basis
-        coefficients the change is not carried, zero)."""
+        coefficients the change is not carried, zero): ``cells`` × ``cells`` coarse cells,
+        each split into ``split`` × ``split`` near-field cells (at most the texels)."""
         t = st.resolution
-        g = min(int(cells), t)
-        while t % g:
-            g -= 1
         if env.product_tensor is None:
             dl = (e - st.upper[None, :]) * (st.reflectance / math.pi)[None, :]
         else:
             dl = jnp.zeros_like(e)
-        fine = dl.reshape(t, t, -1)
-        f = t // g
-        coarse = fine.reshape(g, f, g, f, -1).mean(axis=(1, 3)).reshape(g * g, -1)
-        c = (jnp.arange(g, dtype=jnp.float32) + 0.5) * 2.0 / g - 1.0
-        u = jnp.tile(c, g)  # column index fastest, row 0 at +t2
-        v = -jnp.repeat(c, g)
-        centres = st.origin + st.half * (u[:, None] * st.axes[0] + v[:, None] * st.axes[1])
-        return TableChange(fine=fine, coarse=coarse, centres=centres,
-                           area=(2.0 * st.half / g) ** 2, origin=st.origin, axes=st.axes,
-                           half=st.half, spheres=st.spheres)
+        return TableChange.from_fine(dl.reshape(t, t, -1), origin=st.origin, axes=st.axes,
+                                     half=st.half, spheres=st.spheres, cells=cells,
+                                     split=split)
 
-    def diffuse(self, points: jax.Array, normals: jax.Array, owner: jax.Array | None = None
-                ) -> jax.Array:
-        """The change (N, C) of the irradiance at ``points`` (N, 3) with ``normals`` (N, 3):
-        Σ_cells ΔL cosθ_p cosθ_x A / max(d², A/π) over the cells in front of the point's
-        tangent plane (a point on a cell sees it as its hemisphere: no singularity at the
-        contact), cells behind an object other than the point's ``owner`` (N,) int left
-        out."""
-        rel = self.centres[None, :, :] - points[:, None, :]  # (N, G², 3)
+    @staticmethod
+    def from_fine(fine: jax.Array, *, origin: jax.Array, axes: jax.Array, half: Any,
+                  spheres: jax.Array, cells: int = 16, split: int = 4) -> TableChange:
+        """From the change of radiance ``fine`` (T, T, C) over the square region of half
+        side ``half`` about ``origin`` (``axes`` (3, 3): t1, t2, normal; texel row 0 at +t2,
+        the module's convention) and the objects' bounding ``spheres`` (O, 4)."""
+        fine = jnp.asarray(fine, jnp.float32)
+        axes = jnp.asarray(axes, jnp.float32)
+        origin = jnp.asarray(origin, jnp.float32)
+        half = jnp.asarray(half, jnp.float32)
+        t = fine.shape[0]
+        g = min(int(cells), t)
+        while t % g:
+            g -= 1
+        sub = max(min(int(split), t // g), 1)
+        while (t // g) % sub:
+            sub -= 1
+
+        def cells_of(n: int) -> tuple[jax.Array, jax.Array]:
+            f = t // n
+            mean = fine.reshape(n, f, n, f, -1).mean(axis=(1, 3))
+            c = (jnp.arange(n, dtype=jnp.float32) + 0.5) * 2.0 / n - 1.0
+            u = jnp.tile(c, n)  # column index fastest, row 0 at +t2
+            v = -jnp.repeat(c, n)
+            centres = origin + half * (u[:, None] * axes[0] + v[:, None] * axes[1])
+            return mean, centres.reshape(n, n, 3)
+
+        coarse, centres = cells_of(g)
+        near, near_centres = cells_of(g * sub)
+        return TableChange(fine=fine, coarse=coarse.reshape(g * g, -1),
+                           centres=centres.reshape(g * g, 3), area=(2.0 * half / g) ** 2,
+                           near=near, near_centres=near_centres,
+                           near_area=(2.0 * half / (g * sub)) ** 2, origin=origin,
+                           axes=axes, half=half, spheres=jnp.asarray(spheres, jnp.float32))
+
+    def _kernel(self, points: jax.Array, normals: jax.Array, owner: jax.Array | None,
+                centres: jax.Array, area: jax.Array) -> jax.Array:
+        """(N, M) cosθ_p cosθ_x A / max(d², A/π) from each point to cells of area ``area``
+        at ``centres`` ((M, 3) shared, or (N, M, 3) per point), 0 behind the point's tangent
+        plane and where the segment passes through an object other than ``owner``."""
+        rel = (centres[None] if centres.ndim == 2 else centres) - points[:, None, :]
         dist2 = jnp.sum(rel * rel, -1)
         inv = jax.lax.rsqrt(jnp.maximum(dist2, 1e-12))
         cos_p = jnp.maximum(jnp.sum(rel * normals[:, None, :], -1), 0.0) * inv
         cos_x = jnp.maximum(-(rel @ self.axes[2]), 0.0) * inv
-        k = cos_p * cos_x * (self.area / jnp.maximum(dist2, self.area / math.pi))
+        k = cos_p * cos_x * (area / jnp.maximum(dist2, area / math.pi))
         if owner is not None:
             for j in range(self.spheres.shape[0]):
                 c, r = self.spheres[j, :3], self.spheres[j, 3]
@@ -533,7 +565,45 @@ class TableChange(eqx.Module):
                 q = points[:, None, :] + s_[..., None] * rel - c
                 hit = (jnp.sum(q * q, -1) < r * r) & (owner != j)[:, None]
                 k = jnp.where(hit, 0.0, k)
-        return k @ self.coarse
+        return k
+
+    def diffuse(self, points: jax.Array, normals: jax.Array, owner: jax.Array | None = None
+                ) -> jax.Array:
+        """The change (N, C) of the irradiance at ``points`` (N, 3) with ``normals`` (N, 3):
+        Σ_cells ΔL cosθ_p cosθ_x A / max(d², A/π) over the cells in front of the point's
+        tangent plane (a point on a cell sees it as its hemisphere: no singularity at the
+        contact), cells behind an object other than the point's ``owner`` (N,) int left
+        out. The coarse cells everywhere but the 3 × 3 around the point's foot on the
+        plane, which are summed over their near-field cells."""
+        g = math.isqrt(self.coarse.shape[0])
+        sub = self.near.shape[0] // g
+        far = self._kernel(points, normals, owner, self.centres, self.area) @ self.coarse
+        # the coarse cell under each point and its 3 × 3 block (cells outside: none)
+        rel = points - self.origin
+        col = jnp.floor((_dot(rel.T, self.axes[0]) / self.half + 1.0) * 0.5 * g)
+        row = jnp.floor((1.0 - _dot(rel.T, self.axes[1]) / self.half) * 0.5 * g)
+        off = jnp.arange(-1, 2, dtype=jnp.int32)
+        br = jnp.clip(row, -2, g + 1).astype(jnp.int32)[:, None] + off  # (N, 3)
+        bc = jnp.clip(col, -2, g + 1).astype(jnp.int32)[:, None] + off
+        in_r, in_c = (br >= 0) & (br < g), (bc >= 0) & (bc < g)
+        br, bc = jnp.clip(br, 0, g - 1), jnp.clip(bc, 0, g - 1)
+        m = points.shape[0]
+        idx = (br[:, :, None] * g + bc[:, None, :]).reshape(m, 9)
+        inside = (in_r[:, :, None] & in_c[:, None, :]).reshape(m, 9)
+        k_c = self._kernel(points, normals, owner, self.centres[idx], self.area)
+        far = far - jnp.einsum("nm,nmc->nc", jnp.where(inside, k_c, 0.0), self.coarse[idx])
+        # the same block in near-field cells: row a·S + i, column b·S + j
+        step = jnp.arange(sub, dtype=jnp.int32)
+        rr = (br * sub)[:, :, None] + step  # (N, 3, S)
+        cc = (bc * sub)[:, :, None] + step
+        shape = (m, 3, sub, 3, sub)
+        rows = jnp.broadcast_to(rr[:, :, :, None, None], shape).reshape(m, -1)
+        cols = jnp.broadcast_to(cc[:, None, None, :, :], shape).reshape(m, -1)
+        ok = jnp.broadcast_to(in_r[:, :, None, None, None] & in_c[:, None, None, :, None],
+                              shape).reshape(m, -1)
+        k_n = self._kernel(points, normals, owner, self.near_centres[rows, cols],
+                           self.near_area)
+        return far + jnp.einsum("nm,nmc->nc", jnp.where(ok, k_n, 0.0), self.near[rows, cols])
 
     def mirrored(self, points: jax.Array, normals: jax.Array, views: jax.Array,
                  owner: jax.Array | None = None, table: jax.Array | None = None
