@@ -57,6 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.backend import materialise_each
+from .._runtime.dispatch import array_jit
 from .._runtime.errors import InputError
 
 __all__ = ["SurfaceLayer", "SurfaceTexture", "SurfaceTransfer", "build_surface_transfer",
@@ -646,7 +647,7 @@ class TableChange(eqx.Module):
            pair_view: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(the diffuse change (V, C) at every vertex, the mirrored change (U, C) of every
         (vertex, direction) pair)."""
-        return (self.diffuse(world, nrm, owner),
+        return (_diffuse_chunks(self, world, nrm, owner),
                 self.mirrored(world[pair_vertex], nrm[pair_vertex], pair_view,
                               owner[pair_vertex]))
 
@@ -672,12 +673,40 @@ def table_changes(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = Non
     for st in (prep.surfaces if transfers is None else transfers):
         ch = TableChange.of(st, surface_texels(prep, st, materials, model,
                                                neighbours=neighbours), env)
-        parts = [ch.diffuse(world[a:a + 4096], nrm[a:a + 4096], mesh.vertex_object[a:a + 4096])
-                 for a in range(0, world.shape[0], 4096)]
         out.append(eqx.tree_at(lambda c: c.vertex_irradiance, ch,
-                               jnp.concatenate(parts, axis=0),
+                               _diffuse_chunks(ch, world, nrm, mesh.vertex_object),
                                is_leaf=lambda x: x is None))
     return tuple(out)
+
+
+#: points per compiled call of :func:`_diffuse_chunks`
+_CHUNK = 4096
+
+
+def _diffuse_chunk(change: TableChange, points: jax.Array, normals: jax.Array,
+                   owner: jax.Array) -> jax.Array:
+    return change.diffuse(points, normals, owner)
+
+
+_diffuse_jit = array_jit(_diffuse_chunk)
+
+
+def _diffuse_chunks(change: TableChange, points: jax.Array, normals: jax.Array,
+                    owner: jax.Array) -> jax.Array:
+    """``change.diffuse`` (N, C) in chunks of :data:`_CHUNK` points (the last one padded), one
+    compiled program for every chunk (eagerly, its many small operations each compiled
+    apart took ~15 s at a scene's first preparation)."""
+    n = points.shape[0]
+    parts = []
+    for a in range(0, n, _CHUNK):
+        k = min(_CHUNK, n - a)
+        pad = _CHUNK - k
+        args = [jnp.pad(x[a:a + k], ((0, pad),) + ((0, 0),) * (x.ndim - 1))
+                for x in (points, normals, owner)]
+        if pad:  # padded points: a unit normal, far above the plane (their result is dropped)
+            args[1] = args[1].at[k:, 1].set(1.0)
+        parts.append(_diffuse_jit(change, *args)[:k])
+    return jnp.concatenate(parts, axis=0)
 
 
 def surface_vertices(prep: Any, changes: tuple[TableChange, ...], mats: list[Any],
