@@ -381,6 +381,14 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     ``neighbours`` (V, C): what the other objects change of the irradiance at each vertex of
     ``prep.ir_mesh`` (:func:`neighbour_irradiance`), added to the vertices' irradiance map
     (None: nothing)."""
+    return _texels_jit(prep, st, materials, jnp.asarray(model, jnp.float32),
+                       passes=max(int(passes), 1), neighbours=neighbours)
+
+
+def _surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Array, *,
+                    passes: int, neighbours: jax.Array | None) -> jax.Array:
+    """:func:`surface_texels`, traced (compiled once per scene: eagerly its operations were
+    each compiled apart, ~20 s in every new process)."""
     from ._materials import _as_stacked
     from ._shading import _filtered_irradiance, _irradiance_at, _lut_env, specular_at
 
@@ -428,6 +436,9 @@ def surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.Ar
     return e
 
 
+_texels_jit = array_jit(_surface_texels)
+
+
 def neighbour_irradiance(prep: Any, materials: Any = None, *, model: Any = None,
                          visible: Any = None) -> jax.Array | None:
     """(V, C) the change of the irradiance at each vertex of ``prep.ir_mesh`` (posed by
@@ -438,19 +449,28 @@ def neighbour_irradiance(prep: Any, materials: Any = None, *, model: Any = None,
     a sphere's side facing its neighbour is darker, and so is the table in the gap between
     them. None unless the interreflection is the gather mode with two objects or more."""
     from ._ir_stage import render_senders
-    from .interreflection import gather_irradiance
 
     ir = prep.interreflection
     if ir.mode != "gather" or prep.num_objects < 2 or ir.bounces < 1:
         return None
     model = jnp.asarray(prep.model if model is None else model, jnp.float32)
     state = render_senders(prep, materials, model=model, visible=visible)
-    mesh = prep.ir_mesh
+    if state.net is None:
+        return None
+    return _vertex_net_jit(state, prep.ir_mesh, model)
+
+
+def _vertex_net(state: Any, mesh: Any, model: jax.Array) -> jax.Array:
+    from .interreflection import gather_irradiance
+
     m = model[mesh.vertex_object]
     world = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.vertices) + m[:, :3, 3]
     nrm = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.normals)
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
     return gather_irradiance(state, world, nrm, mesh.vertex_object)
+
+
+_vertex_net_jit = array_jit(_vertex_net)
 
 
 def _neighbours(prep: Any, materials: Any, model: Any, neighbours: Any) -> jax.Array | None:
