@@ -18,7 +18,8 @@ from spectral_fit.rendering import prepare, surface_layer, surface_texels
 WL = np.arange(400.0, 701.0, 100.0)
 R = 0.05
 
-CONFIG = """
+#: the frame, camera, environment and bands of the test scenes
+HEADER = """
 [frame]
 width = 96
 height = 64
@@ -35,7 +36,9 @@ file = "{env}"
 start_nm = 400.0
 end_nm = 700.0
 step_nm = 100.0
+"""
 
+CONFIG = HEADER + """
 [interreflection]
 mode = "none"
 
@@ -194,24 +197,7 @@ def test_white_furnace(tmp_path):
     np.testing.assert_allclose(e / math.pi, 1.0, atol=0.02)
 
 
-TWO = """
-[frame]
-width = 96
-height = 64
-
-[camera]
-fov_y_deg = 60.0
-position = [0.0, 0.35, 0.45]
-look_at = [0.0, 0.0, 0.0]
-
-[environment]
-file = "sky.exr"
-
-[spectral]
-start_nm = 400.0
-end_nm = 700.0
-step_nm = 100.0
-
+TWO = HEADER + """
 [interreflection]
 mode = "gather"
 bounces = 1
@@ -284,7 +270,7 @@ def test_neighbours_light_towards_the_plane(tmp_path):
 
     r, h, xa, xb = R, 1.1 * R, -0.065, 0.065
     write_spectral_exr(tmp_path / "sky.exr", WL, np.ones((32, 64, WL.size), np.float32))
-    (tmp_path / "scene.toml").write_text(TWO.format(r=r, h=h, xa=xa, xb=xb))
+    (tmp_path / "scene.toml").write_text(TWO.format(env="sky.exr", r=r, h=h, xa=xa, xb=xb))
     prep = prepare(tmp_path / "scene.toml", occlusion=False)
     a, b = np.array([xa, h, 0.0]), np.array([xb, h, 0.0])
 
