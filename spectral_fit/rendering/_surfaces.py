@@ -397,10 +397,7 @@ def _surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.A
     env = prep.lighting.env
     lut = prep.lighting.irradiance_lut
     table = None if lut is None else _lut_env(env, lut)
-    rot = model[mesh.vertex_object][:, :3, :3]
-    nrm = jnp.einsum("vij,vj->vi", rot, mesh.normals)
-    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
-    world = jnp.einsum("vij,vj->vi", rot, mesh.vertices) + model[mesh.vertex_object][:, :3, 3]
+    world, nrm = _posed(mesh, model)
     e_map = _irradiance_at(env, table, nrm)
     if neighbours is not None:
         e_map = e_map + neighbours
@@ -436,6 +433,15 @@ def _surface_texels(prep: Any, st: SurfaceTransfer, materials: Any, model: jax.A
     return e
 
 
+def _posed(mesh: Any, model: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The mesh's vertices (V, 3) and unit normals (V, 3) placed in the world by ``model``
+    (O, 4, 4)."""
+    from ._camera import _normals_to_world, _to_world
+
+    return (_to_world(mesh.vertices, mesh.vertex_object, model),
+            _normals_to_world(mesh.normals, mesh.vertex_object, model))
+
+
 _texels_jit = array_jit(_surface_texels)
 
 
@@ -463,10 +469,7 @@ def neighbour_irradiance(prep: Any, materials: Any = None, *, model: Any = None,
 def _vertex_net(state: Any, mesh: Any, model: jax.Array) -> jax.Array:
     from .interreflection import gather_irradiance
 
-    m = model[mesh.vertex_object]
-    world = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.vertices) + m[:, :3, 3]
-    nrm = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.normals)
-    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
+    world, nrm = _posed(mesh, model)
     return gather_irradiance(state, world, nrm, mesh.vertex_object)
 
 
@@ -685,10 +688,7 @@ def table_changes(prep: Any, transfers: tuple[SurfaceTransfer, ...] | None = Non
     neighbours = _neighbours(prep, materials, model, neighbours)
     env = prep.lighting.env
     mesh = prep.mesh
-    m = model[mesh.vertex_object]
-    world = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.vertices) + m[:, :3, 3]
-    nrm = jnp.einsum("vij,vj->vi", m[:, :3, :3], mesh.normals)
-    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
+    world, nrm = _posed(mesh, model)
     out = []
     for st in (prep.surfaces if transfers is None else transfers):
         ch = TableChange.of(st, surface_texels(prep, st, materials, model,
