@@ -197,37 +197,27 @@ def test_white_furnace(tmp_path):
     np.testing.assert_allclose(e / math.pi, 1.0, atol=0.02)
 
 
+#: one diffuse icosphere of the two-sphere scene
+BALL = """
+[[objects]]
+name = "{name}"
+shape = "icosphere"
+subdivisions = 4
+radius = {r}
+position = [{x}, {h}, 0.0]
+
+[objects.material]
+reflectance = 1.0
+alpha = {alpha}
+beta = 0.0
+chi = 0.0
+"""
+
 TWO = HEADER + """
 [interreflection]
 mode = "gather"
 bounces = 1
-
-[[objects]]
-name = "black"
-shape = "icosphere"
-subdivisions = 4
-radius = {r}
-position = [{xa}, {h}, 0.0]
-
-[objects.material]
-reflectance = 1.0
-alpha = 0.0
-beta = 0.0
-chi = 0.0
-
-[[objects]]
-name = "white"
-shape = "icosphere"
-subdivisions = 4
-radius = {r}
-position = [{xb}, {h}, 0.0]
-
-[objects.material]
-reflectance = 1.0
-alpha = 1.0
-beta = 0.0
-chi = 0.0
-
+{balls}
 [[surfaces]]
 name = "table"
 reflectance = 0.0
@@ -270,7 +260,9 @@ def test_neighbours_light_towards_the_plane(tmp_path):
 
     r, h, xa, xb = R, 1.1 * R, -0.065, 0.065
     write_spectral_exr(tmp_path / "sky.exr", WL, np.ones((32, 64, WL.size), np.float32))
-    (tmp_path / "scene.toml").write_text(TWO.format(env="sky.exr", r=r, h=h, xa=xa, xb=xb))
+    balls = "".join(BALL.format(name=n, r=r, x=x, h=h, alpha=al)
+                    for n, x, al in (("black", xa, 0.0), ("white", xb, 1.0)))
+    (tmp_path / "scene.toml").write_text(TWO.format(env="sky.exr", balls=balls))
     prep = prepare(tmp_path / "scene.toml", occlusion=False)
     a, b = np.array([xa, h, 0.0]), np.array([xb, h, 0.0])
 

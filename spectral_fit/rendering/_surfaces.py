@@ -723,7 +723,7 @@ def _diffuse_chunks(change: TableChange, points: jax.Array, normals: jax.Array,
         pad = _CHUNK - k
         args = [jnp.pad(x[a:a + k], ((0, pad),) + ((0, 0),) * (x.ndim - 1))
                 for x in (points, normals, owner)]
-        if pad:  # padded points: a unit normal, far above the plane (their result is dropped)
+        if pad:  # padded points: at the origin with a unit normal (their result is dropped)
             args[1] = args[1].at[k:, 1].set(1.0)
         parts.append(_diffuse_jit(change, *args)[:k])
     return jnp.concatenate(parts, axis=0)
