@@ -60,23 +60,7 @@ def _box_hidden(p: np.ndarray, env, n: int = 400) -> np.ndarray:
     """(1/π) ∫ cos⁺ hit L dω over the hemisphere of +z at p against the front slab's exact box
     (float64, an n × 2n midpoint grid in (sin²θ, φ): cosine-weighted cells of equal weight),
     L our environment lookup at the cell centres; (C,)."""
-    from spectral_fit.lighting import lookup
-
-    u = (np.arange(n) + 0.5) / n
-    phi = (np.arange(2 * n) + 0.5) * math.pi / n
-    st = np.sqrt(u)[:, None]
-    d = np.stack([np.broadcast_to(st * np.cos(phi), (n, 2 * n)),
-                  np.broadcast_to(st * np.sin(phi), (n, 2 * n)),
-                  np.broadcast_to(np.sqrt(1 - u)[:, None], (n, 2 * n))], -1).reshape(-1, 3)
-    lo, hi = FRONT - HALF, FRONT + HALF
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (lo - p) / d, (hi - p) / d
-    near = np.nanmax(np.minimum(t1, t2), -1)
-    far = np.nanmin(np.maximum(t1, t2), -1)
-    hit = far >= np.maximum(near, 0.0)
-    radiance = np.asarray(jax.vmap(lambda w: lookup(env, w))(jnp.asarray(d[hit], jnp.float32)),
-                          np.float64)
-    return radiance.sum(0) / d.shape[0]
+    return _box_hidden_grid(np.asarray(p)[None], env, n)[0]
 
 
 #: points on the back slab's face (normal +z): under the front slab far from and close to its
@@ -153,3 +137,80 @@ def test_senders_radiate_no_negative_light_beside_a_close_neighbour(slabs):
     live = np.asarray(st.geometry.s_area) > 0
     assert live.sum() > 100
     assert toward[live].min() >= -1e-6 * np.abs(toward[live]).max()
+
+
+def _box_hidden_grid(points: np.ndarray, env, n: int = 100) -> np.ndarray:
+    """:func:`_box_hidden` at many points (P, 3) with the normal +z: the directions' radiance
+    looked up once, each point's hits against the exact box in NumPy; (P, C)."""
+    from spectral_fit.lighting import lookup
+
+    u = (np.arange(n) + 0.5) / n
+    phi = (np.arange(2 * n) + 0.5) * math.pi / n
+    st = np.sqrt(u)[:, None]
+    d = np.stack([np.broadcast_to(st * np.cos(phi), (n, 2 * n)),
+                  np.broadcast_to(st * np.sin(phi), (n, 2 * n)),
+                  np.broadcast_to(np.sqrt(1 - u)[:, None], (n, 2 * n))], -1).reshape(-1, 3)
+    radiance = np.asarray(jax.jit(jax.vmap(lambda w: lookup(env, w)))(
+        jnp.asarray(d, jnp.float32)), np.float64)
+    lo, hi = FRONT - HALF, FRONT + HALF
+    out = []
+    for p in points:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - p) / d, (hi - p) / d
+        near = np.nanmax(np.minimum(t1, t2), -1)
+        far = np.nanmin(np.maximum(t1, t2), -1)
+        out.append(radiance[far >= np.maximum(near, 0.0)].sum(0) / d.shape[0])
+    return np.asarray(out)
+
+
+def test_anchored_diffuse_beside_a_close_neighbour(slabs):
+    """An image of the back slab's face across the front slab's side face (33 × 33 pixels
+    0.75 mm apart, from 8 mm under the front slab to 16 mm beside it), the front slab black:
+    the frame's diffuse interreflection is minus the environment the front slab hides there.
+    Against a float64 quadrature over the exact box, in units of the unoccluded
+    irradiance/π, on rows between the anchors' rows: under the front slab, in the gap within
+    8 mm of its edge, within 10 % (measured 8.9 %: the march's own accuracy 1–5 mm from an
+    edge, test above), where the samples' net light interpolated alone (no image; the back
+    slab's samples are 7 mm apart and the hidden share of the sky changes from ~0.9 to ~0.5
+    across the edge) is off by more than 15 % (measured 22 %); beside it within 6 %
+    (measured 4.8 %; the interpolation alone 5.8 %). And equal to the per-receiver sums
+    (``diffuse_at="receivers"``) at the anchors."""
+    from spectral_fit.geometry import GBuffer
+    from spectral_fit.lighting import irradiance
+    from spectral_fit.rendering.interreflection import interreflection_from
+
+    gather = importlib.import_module("spectral_fit.rendering.interreflection._gather")
+    env = make_env(linear_env_texels([1.0, 0.8, 0.6], [0.5, 0.2, -0.1]))
+    mats = [material(alpha=1.0, beta=0.0, reflectance=(1.0, 1.0, 1.0)),
+            material(alpha=0.0, beta=0.0, reflectance=(0.0, 0.0, 0.0))]
+    side = 33
+    edge = FRONT[0] + HALF[0]
+    xs = edge - 0.008 + 0.00075 * np.arange(side)
+    ys = -0.012 + 0.00075 * np.arange(side)
+    xy = np.stack(np.meshgrid(xs, ys[::-1]), -1).reshape(-1, 2)  # row 0 on top
+    pos, nrm = _points(xy)
+    n = len(xy)
+    rec = GBuffer(position=pos, normal=nrm, view=nrm, object=jnp.zeros(n, jnp.int32),
+                  pixel=jnp.arange(n, dtype=jnp.int32))
+
+    def frame(**kw: object) -> np.ndarray:
+        return np.asarray(jax.jit(lambda g, r: interreflection_from(g, mats, env, r, **kw))(
+            slabs, rec))
+
+    anchored = frame(image_shape=(side, side))
+    plain = frame()
+    rows = np.arange(n) // side % 4 == 2  # every 4th row, between the anchors' rows
+    want = -_box_hidden_grid(np.asarray(pos, np.float64)[rows], env)
+    sky = (np.asarray(irradiance(env, jnp.asarray([0.0, 0.0, 1.0]))) / math.pi).max()
+    assert want.min() < -0.5 * sky  # the gap hides most of the sky
+    beside = xy[rows, 0] > edge + 0.0005
+    err = np.abs(anchored[rows] - want).max(-1) / sky
+    assert err[beside].max() < 0.06, err.reshape(-1, side).max(0)
+    assert err[~beside].max() < 0.10, err.reshape(-1, side).max(0)
+    plain_err = np.abs(plain[rows] - want).max(-1) / sky
+    assert plain_err[~beside].max() > 0.15, plain_err.reshape(-1, side).max(0)
+    # at the anchors the correction is exact: the transfer summed at the receiver itself
+    anchors = (np.arange(n) // side % gather.DIFFUSE_STEP == 0) & (
+        np.arange(n) % side % gather.DIFFUSE_STEP == 0)
+    direct = frame(diffuse_at="receivers", image_shape=(side, side))
+    np.testing.assert_allclose(anchored[anchors], direct[anchors], rtol=1e-4, atol=1e-6 * sky)

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...lighting import EnvironmentMap, dot3, irradiance, taps_sum
-from ._march import _CONE_NODES, _cover
+from ._march import _CONE_NODES, _CONE_STEPS, _MARCH_STEPS, _cover
 from ._pass1 import _MIN_COS, IRGeometry, _normalize, pair_list
 from ._shading import _Shading, _source_terms, _specular, _times_reflectance
 
@@ -190,7 +190,8 @@ def _coverage_factor(omega: jax.Array, w: jax.Array) -> jax.Array:
 
 def _covers(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, x: jax.Array,
             nx: jax.Array, *, nodes: tuple[int, int] | None = None,
-            irr: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+            steps: int = _MARCH_STEPS, irr: jax.Array | None = None
+            ) -> tuple[jax.Array, jax.Array]:
     """:func:`~._march._cover` of the neighbours ``pair`` (R, k) of receivers ``x`` (R, 3)
     world, unit normals ``nx`` (R, 3): their projected solid angles (R, k) and the
     environment they hide, summed over the k neighbours, in the map's C channels (R, C): in
@@ -199,7 +200,7 @@ def _covers(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, x: jax.Array
     is). ``irr`` (R, C): that irradiance where the caller has it already."""
     r, k = pair.shape
     omega, hidden = _cover(geom, env, pair.reshape(-1), jnp.repeat(x, k, axis=0),
-                           jnp.repeat(nx, k, axis=0), nodes=nodes)
+                           jnp.repeat(nx, k, axis=0), nodes=nodes, steps=steps)
     hidden = jnp.sum(hidden.reshape(r, k, -1), 1) @ env.spectral_basis
     if env.product_tensor is None:  # bands (a basis's coefficients may be negative)
         if irr is None:
@@ -397,11 +398,14 @@ def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> j
 
 
 def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: jax.Array,
-                    nrm: jax.Array, obj: jax.Array) -> jax.Array:
+                    nrm: jax.Array, obj: jax.Array, *, nodes: tuple[int, int] = _CONE_NODES,
+                    steps: int = _CONE_STEPS, chunk: int = _CHUNK) -> jax.Array:
     """:func:`_diffuse_net` (N, C) at arbitrary receivers, each gathering from all samples of
-    its object's neighbours (receivers sorted by object, chunks of ``_CHUNK``; chunks of
-    receivers that see no neighbour are skipped). The reference for the interpolated
-    :func:`_interpolate_net`, and ``diffuse_at="receivers"``."""
+    its object's neighbours (receivers sorted by object, chunks of ``chunk``; chunks of
+    receivers that see no neighbour, or whose ``obj`` is −1, are skipped), the hidden
+    environment by a quadrature of ``nodes`` (rings, azimuths) marched in ``steps``. The
+    reference for the interpolated :func:`_interpolate_net`, ``diffuse_at="receivers"``, and
+    the screen-space anchors' correction of the interpolation."""
     n_obj = geom.n_objects
     k_per = n_obj - 1
     p_count, m_count = geom.s_area.shape
@@ -418,19 +422,19 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
     n = pos.shape[0]
     key = jnp.where(_sees(geom, pos, nrm, obj), obj, n_obj)
     order = jnp.argsort(key)
-    nc = -(-n // _CHUNK)
-    pad = nc * _CHUNK - n
-    xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, _CHUNK, 3)
+    nc = -(-n // chunk)
+    pad = nc * chunk - n
+    xs = jnp.pad((pos - origin)[order], ((0, pad), (0, 0))).reshape(nc, chunk, 3)
     ns = jnp.concatenate([nrm[order], jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], nrm.dtype),
-                                                       (pad, 3))]).reshape(nc, _CHUNK, 3)
-    ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, _CHUNK)
+                                                       (pad, 3))]).reshape(nc, chunk, 3)
+    ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, chunk)
     c = env.channels
 
     def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
         w, tu, tv = _form_factor_block(x0, nx, tuple(b[o] for b in blocks))
         pair = jnp.broadcast_to(jnp.arange(k_per, dtype=jnp.int32) + o * k_per,
                                 (x0.shape[0], k_per))
-        omega, hidden = _covers(geom, env, pair, x0 + origin, nx, nodes=_CONE_NODES)
+        omega, hidden = _covers(geom, env, pair, x0 + origin, nx, nodes=nodes, steps=steps)
         w = w * jnp.repeat(_coverage_factor(omega, w), m_count, axis=-1)
         w = jnp.where(sel[:, None], w, 0.0)
         lsum, _ = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else
@@ -439,16 +443,16 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
                            jnp.full(x0.shape[:1], o, jnp.int32))
         return jnp.where(sel[:, None], net, 0.0)
 
-    def chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
+    def one_chunk(args: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
         x0, nx, kk = args
-        acc = jnp.zeros((_CHUNK, c), lum.dtype)
+        acc = jnp.zeros((chunk, c), lum.dtype)
         for o in range(n_obj):
             sel = kk == o
             acc = acc + jax.lax.cond(jnp.any(sel), lambda s, o=o: block(o, x0, nx, s),
-                                     lambda s: jnp.zeros((_CHUNK, c), lum.dtype), sel)
+                                     lambda s: jnp.zeros((chunk, c), lum.dtype), sel)
         return acc
 
-    res = jax.lax.map(chunk, (xs, ns, ks)).reshape(nc * _CHUNK, c)[:n]
+    res = jax.lax.map(one_chunk, (xs, ns, ks)).reshape(nc * chunk, c)[:n]
     return jnp.zeros((n, c), lum.dtype).at[order].set(res)
 
 

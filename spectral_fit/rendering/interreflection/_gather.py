@@ -33,6 +33,7 @@ from ._diffuse import (
     _interpolate_net,
     _irradiance_at,
     _net_tables,
+    _reverse_pairs,
     _sample_coverage,
     _sample_diffuse,
     _sample_diffuse_net,
@@ -50,7 +51,14 @@ from ._options import (
     _check_receivers,
 )
 from ._pass1 import IRGeometry
-from ._schedule import GLOSS_STEP, _image_anchors, _partition, _pixel_slots
+from ._schedule import (
+    DIFFUSE_STEP,
+    GLOSS_STEP,
+    _diffuse_anchors,
+    _image_anchors,
+    _partition,
+    _pixel_slots,
+)
 from ._shading import _Shading, _shading, _times_reflectance
 
 __all__ = ["GatherSenders", "gather_senders", "gather_receivers", "gather_irradiance"]
@@ -225,6 +233,9 @@ def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
         atlas = (atlas[0] @ sh.output, atlas[1])
     grid = None if image_shape is None or gloss_step < 2 else (receivers.pixel, image_shape,
                                                                 gloss_step)
+    # pixels of one image: the samples' interpolated light corrected at screen-space anchors
+    image = None if image_shape is None or diffuse_at != "samples" else (
+        receivers.pixel, image_shape, snd, env)
     tables = None
     with jax.named_scope("ir_receiver_diffuse"):
         if diffuse_at == "samples":
@@ -241,10 +252,12 @@ def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
                              field="own_gloss")
     if not on_accelerator() and pos.shape[0] > _RECEIVER_CHUNK:
         return _receive_valid_first(geom, sh, atlas, tables, diffuse, pos, nrm,
-                                    receivers.view, obj, grid, own)
+                                    receivers.view, obj, grid, own, image)
     if diffuse is None:
         with jax.named_scope("ir_receiver_diffuse"):
             diffuse = _interpolate_net(geom, net, pos, nrm, obj, tables=tables)
+            if image is not None:
+                diffuse = _anchored_diffuse(geom, sh, diffuse, pos, nrm, obj, *image)
     with jax.named_scope("ir_receiver_gloss"):
         return _receive(geom, sh, atlas, diffuse, pos, nrm, receivers.view, obj, grid=grid,
                         own=own)
@@ -275,6 +288,72 @@ def gather_irradiance(state: GatherSenders, positions: jax.Array, normals: jax.A
     return math.pi * _interpolate_net(state.geometry, state.net, pos, nrm, obj)
 
 
+#: the diffuse anchors are evaluated where a neighbour's samples come nearer than this many
+#: of the receiving object's sample spacings (seen along the receiver's normal): farther
+#: away the sky the neighbour hides changes slowly between the samples
+_ANCHOR_NEAR = 2.0
+#: anchors per chunk of their per-receiver sums (chunks past the anchors near a neighbour
+#: are skipped; a few dozen of them is a common count)
+_ANCHOR_CHUNK = 64
+
+
+def _near_neighbour(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array
+                    ) -> jax.Array:
+    """(N,) bool: receivers (pos, unit nrm (N, 3), obj (N,), −1 = none) that lie within
+    ``_ANCHOR_NEAR`` sample spacings of a neighbour's samples, plus half the neighbour's
+    spacing. The spacing of the receiving object's samples that face the neighbour (the
+    pair's g × g window, 2·extent/g a side) is stretched by 1/|n·a| on a face the pair's axis
+    a meets obliquely (at most 5×): there they are far apart, and the sky a close neighbour
+    hides changes between them."""
+    k_per = geom.n_objects - 1
+    g = geom.gather_size
+    rev = jnp.asarray(_reverse_pairs(geom.n_objects))
+    o = jnp.maximum(obj, 0)
+    live = geom.s_area > 0
+    near = jnp.zeros(obj.shape, bool)
+    for k in range(k_per):
+        pair = o * k_per + k  # (i, j): samples on the neighbour j
+        q = rev[pair]  # (j, i): the samples on i facing j
+        d = geom.s_pos[pair] - pos[:, None]  # (N, M, 3)
+        d2 = jnp.where(live[pair], jnp.sum(d * d, -1), jnp.inf)
+        dmin = jnp.sqrt(jnp.min(d2, -1))
+        cos_a = jnp.maximum(jnp.abs(dot3(nrm, geom.frame[q][:, 2])), 0.2)
+        reach = _ANCHOR_NEAR * (2.0 * geom.extent[q] / g) / cos_a + geom.extent[pair] / g
+        near = near | (dmin < reach)
+    return near & (obj >= 0)
+
+
+def _anchored_diffuse(geom: IRGeometry, sh: _Shading, base: jax.Array, pos: jax.Array,
+                      nrm: jax.Array, obj: jax.Array, pixel: jax.Array,
+                      shape: tuple[int, int], snd: _Senders, env: EnvironmentMap
+                      ) -> jax.Array:
+    """The diffuse term (N, D) of receivers that are pixels of one image (``pixel`` (N,),
+    ``shape`` (H, W)): ``base`` (N, D), the samples' net light interpolated to them
+    (:func:`_interpolate_net`, reflected: α S ⊙ net in ``sh``'s output channels), corrected
+    by the difference between the transfer summed at the receiver itself
+    (:func:`_direct_diffuse`: the neighbours' samples' form factors and the environment
+    they hide, marched from the receiver) and that interpolation. The difference is
+    evaluated at screen-space anchors every ``DIFFUSE_STEP``-th row and column that lie near
+    a neighbour (:func:`_near_neighbour`; at most ⌈H/step⌉·⌈W/step⌉ of them, a fixed
+    shape) and blended between them (:func:`_diffuse_anchors`). The samples lie where the
+    pass-1 raster along each pair's axis puts them: on a face that axis meets obliquely they
+    are centimetres apart, and the sky a neighbour a few millimetres away hides changes
+    within that distance."""
+    n = obj.shape[0]
+    evaluate, idx, wts = _diffuse_anchors(pixel, obj, shape, DIFFUSE_STEP, pos, nrm)
+    cap = min(n, -(-shape[0] // DIFFUSE_STEP) * -(-shape[1] // DIFFUSE_STEP))
+    _, order = _partition(evaluate)
+    sel = order[:cap]  # the anchors first (each is a distinct pixel: at most cap of them)
+    a_pos, a_nrm = pos[sel], nrm[sel]
+    a_obj = jnp.where(evaluate[sel], obj[sel], -1)
+    a_obj = jnp.where(_near_neighbour(geom, a_pos, a_nrm, a_obj), a_obj, -1)
+    own = _reflect_diffuse(sh, _direct_diffuse(geom, snd, env, a_pos, a_nrm, a_obj,
+                                               chunk=_ANCHOR_CHUNK), a_obj)
+    corr = jnp.zeros_like(base).at[sel].set(jnp.where((a_obj >= 0)[:, None],
+                                                      own - base[sel], 0.0))
+    return base + jnp.where(evaluate[:, None], corr, taps_sum(corr, idx, wts))
+
+
 #: CPU layout: receivers per chunk of the per-receiver terms of :func:`_receive_valid_first`
 _RECEIVER_CHUNK = 4096
 
@@ -284,7 +363,8 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
                          diffuse: jax.Array | None, pos: jax.Array, nrm: jax.Array,
                          view: jax.Array, obj: jax.Array,
                          grid: tuple[jax.Array, tuple[int, int], int] | None,
-                         own: jax.Array | None = None) -> jax.Array:
+                         own: jax.Array | None = None, image: tuple[Any, ...] | None = None
+                         ) -> jax.Array:
     """:func:`_receive` (N, D) for many receivers on the CPU layout, at a cost that follows
     the number of valid receivers (obj >= 0) rather than N: a renderer's receivers are
     fixed-capacity slot lists, of which the covered pixels fill ~55–60 % (the capacities'
@@ -293,7 +373,9 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
     given ``diffuse`` (N, D); the hidden sources; the lobe's reach; the image anchors) run in
     chunks of ``_RECEIVER_CHUNK`` with the chunks past them skipped, the lobe quadrature runs
     on the active ones as in :func:`_lobe_gather`, and the result goes back to the slots'
-    order. Equal to :func:`_receive` (the same arithmetic per receiver)."""
+    order. Equal to :func:`_receive` (the same arithmetic per receiver). ``image`` = (pixel
+    (N,), image shape, senders, environment): the interpolated diffuse light corrected at
+    screen-space anchors (:func:`_anchored_diffuse`)."""
     valid = obj >= 0
     rank, order = _partition(valid)
     count = jnp.sum(valid.astype(jnp.int32))
@@ -302,6 +384,13 @@ def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array,
         diffuse = diffuse[order]
     if own is not None:
         own = own[order]
+    if image is not None and diffuse is None:
+        with jax.named_scope("ir_receiver_diffuse"):
+            base = prefix_chunks(
+                lambda x, nn, ob: _interpolate_net(geom, None, x, nn, ob, tables=tables),
+                count, [pos, nrm, obj], size=_RECEIVER_CHUNK)
+            diffuse = _anchored_diffuse(geom, sh, base, pos, nrm, obj, image[0][order],
+                                        *image[1:])
     step = 0
     at = None
     pixel = jnp.full(obj.shape, -1, jnp.int32)

@@ -47,14 +47,14 @@ def _depth_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, side: int
     return idx, w
 
 
-def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array
-           ) -> tuple[jax.Array, jax.Array]:
+def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *,
+           steps: int = _MARCH_STEPS) -> tuple[jax.Array, jax.Array]:
     """Where the rays (pos (N, 3), dirs (N, Q, 3)) first meet the sender of ``pair`` (N,):
     the ray parameter t (N, Q) (m) and whether they do (N, Q) float. The sender is its pass-1
     raster (``geom.s_front``: coverage, front-surface height along the pair's axis and the
     depth of the solid behind it, at the raster's full resolution, bilinear; covered where
     the interpolated coverage exceeds ½, the silhouette to a fraction of a texel): the ray
-    is stepped ``_MARCH_STEPS`` times over its chord of the sender's bounding sphere, and
+    is stepped ``steps`` times over its chord of the sender's bounding sphere, and
     meets the sender at the first step that is covered and inside the first solid layer
     (behind the front surface by at most its depth, or 1.5 steps for a thin sheet), refined
     to the crossing of the surface between that step and the previous one (t differentiable
@@ -73,7 +73,7 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array
     half = jnp.where(h2 > 0.0, jnp.sqrt(jnp.where(h2 > 0.0, h2, 1.0)), 0.0)  # (finite grads)
     t0 = jnp.maximum(tp - half, 0.0)
     t1 = jnp.maximum(tp + half, t0)
-    k = (jnp.arange(_MARCH_STEPS, dtype=pos.dtype) + 0.5) / _MARCH_STEPS
+    k = (jnp.arange(steps, dtype=pos.dtype) + 0.5) / steps
     t = t0[..., None] + (t1 - t0)[..., None] * k  # (N, Q, K)
     rel0 = pos[:, None] - cj  # (N, 1, 3)
     coord = [dot3(rel0, fr[:, None, a])[..., None] + t * dot3(dirs, fr[:, None, a])[..., None]
@@ -85,7 +85,7 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array
     cov = jnp.sum(taps[..., 0] * w, -1)
     surf = jnp.sum(taps[..., 1] * w, -1) / jnp.maximum(cov, 1e-6)
     depth = jnp.sum(taps[..., 2] * w, -1) / jnp.maximum(cov, 1e-6)
-    step = (t1 - t0)[..., None] / _MARCH_STEPS
+    step = (t1 - t0)[..., None] / steps
     thick = jnp.maximum(1.5 * step * jnp.abs(dot3(dirs, fr[:, None, 2]))[..., None], depth)
     below = coord[2] - surf  # > 0: in front of the surface (towards the receiver)
     inside = (cov > 0.5) & (below <= 0.0) & (below >= -thick) & (half[..., None] > 0.0)
@@ -102,9 +102,10 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array
 
 
 
-#: the quadrature of :func:`_cover` at receivers (``diffuse_at="receivers"``): rings ×
-#: azimuths
-_CONE_NODES = (8, 16)
+#: the quadrature of :func:`_cover` at receivers (the diffuse anchors of an image, and
+#: ``diffuse_at="receivers"``): rings × azimuths, and the steps of its march
+_CONE_NODES = (12, 24)
+_CONE_STEPS = 24
 #: the quadrature of :func:`_cover` at every sender sample (rings × azimuths): the environment
 #: a neighbour hides and its projected solid angle, once per sample and frame
 _COVER_NODES = (6, 12)
@@ -158,15 +159,15 @@ def _cover_nodes(geom: IRGeometry, pair: jax.Array, pos: jax.Array, nrm: jax.Arr
 
 
 def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Array,
-           nrm: jax.Array, *, nodes: tuple[int, int] | None = None
-           ) -> tuple[jax.Array, jax.Array]:
+           nrm: jax.Array, *, nodes: tuple[int, int] | None = None,
+           steps: int = _MARCH_STEPS) -> tuple[jax.Array, jax.Array]:
     """What the sender of ``pair`` (N,) takes from the sky of points ``pos`` (N, 3) with unit
     normals ``nrm`` (N, 3): its projected solid angle Ω (N,) (sr)
     and the environment it hides, (1/π) ∫ max(0, n·ω) hit(ω) L_env(ω) dω (N, r) in the map's
     r principal channels, each node's radiance prefiltered to ``_BLUR`` of the nodes' spacing
     (a wider prefilter carries the light of the seen directions beside the neighbour's edge
     into the hidden nodes: a third more hidden light beside a cup under a bright band of sky)
-    (``nodes``, default ``_COVER_NODES``, :func:`_cover_nodes`).
+    (``nodes``, default ``_COVER_NODES``, :func:`_cover_nodes`; ``steps`` of the march).
     The hits come from the sender's depth map (:func:`_march`), so the sender's actual shape
     hides the sky, not its bounding sphere nor the few sender samples a near point sees at
     grazing angles.
@@ -185,7 +186,7 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
 
     def group(args: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
         d, ww = args
-        _, hit = _march(geom, pair, pos, d)
+        _, hit = _march(geom, pair, pos, d, steps=steps)
         wh = jax.lax.stop_gradient(ww * hit)
         lv = _env_blur(env, d, jnp.broadcast_to(sigma[:, None], hit.shape))  # (N, q, r)
         return jnp.sum(wh, -1), jnp.einsum("nq,nqc->nc", wh, lv)

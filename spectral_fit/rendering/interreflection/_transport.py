@@ -122,12 +122,17 @@ def interreflection_from(
             lighting only); ignored by "paper" (eq. 6 has one).
         diffuse_at: gather mode: where the diffuse transfer (form-factor sums) is evaluated:
             "samples" (default: at the receiving objects' own pass-1 samples, interpolated to
-            the receivers) or "receivers" (at every receiver; ~10× the cost on a frame).
+            the receivers; with ``image_shape`` corrected by the sums at every 8th row and
+            column near a neighbour) or "receivers" (at every receiver; ~10× the cost on a
+            frame).
         image_shape: gather mode: (H, W) of the image whose pixels the receivers are
             (``receivers.pixel`` = row·W + column): the gloss/mirror quadrature then runs at
             every ``gloss_step``-th row and column and is interpolated bilinearly between
             (receivers at silhouettes, and those that are not pixels, are evaluated
-            themselves). None: at every receiver.
+            themselves), and the diffuse transfer is summed at the receivers themselves at
+            every 8th row and column that lies near a neighbour, the difference from the
+            samples' interpolated light blended between them over each face. None: at every
+            receiver, and the diffuse transfer from the samples alone.
         gloss_step: that subsampling step in pixels (1 = none).
         output: optional (C, D) linear map into the caller's output channels (the frame's
             channels → XYZ or camera RGB): returns ``result @ output``. Gather mode then
