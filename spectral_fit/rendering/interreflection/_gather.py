@@ -294,7 +294,7 @@ def gather_irradiance(state: GatherSenders, positions: jax.Array, normals: jax.A
 _ANCHOR_NEAR = 2.0
 #: anchors per chunk of their per-receiver sums (chunks past the anchors near a neighbour
 #: are skipped; a few dozen of them is a common count)
-_ANCHOR_CHUNK = 64
+_ANCHOR_CHUNK = 32
 
 
 def _near_neighbour(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array
