@@ -601,21 +601,21 @@ class TableChange(eqx.Module):
         plane, which are summed over their near-field cells."""
         g = math.isqrt(self.coarse.shape[0])
         sub = self.near.shape[0] // g
-        far = self._kernel(points, normals, owner, self.centres, self.area) @ self.coarse
         # the coarse cell under each point and its 3 × 3 block (cells outside: none)
         rel = points - self.origin
         col = jnp.floor((_dot(rel.T, self.axes[0]) / self.half + 1.0) * 0.5 * g)
         row = jnp.floor((1.0 - _dot(rel.T, self.axes[1]) / self.half) * 0.5 * g)
+        cell = jnp.arange(g * g)
+        block = ((jnp.abs(cell // g - row[:, None]) <= 1)
+                 & (jnp.abs(cell % g - col[:, None]) <= 1))  # (N, G²)
+        k = self._kernel(points, normals, owner, self.centres, self.area)
+        far = jnp.where(block, 0.0, k) @ self.coarse
         off = jnp.arange(-1, 2, dtype=jnp.int32)
         br = jnp.clip(row, -2, g + 1).astype(jnp.int32)[:, None] + off  # (N, 3)
         bc = jnp.clip(col, -2, g + 1).astype(jnp.int32)[:, None] + off
         in_r, in_c = (br >= 0) & (br < g), (bc >= 0) & (bc < g)
         br, bc = jnp.clip(br, 0, g - 1), jnp.clip(bc, 0, g - 1)
         m = points.shape[0]
-        idx = (br[:, :, None] * g + bc[:, None, :]).reshape(m, 9)
-        inside = (in_r[:, :, None] & in_c[:, None, :]).reshape(m, 9)
-        k_c = self._kernel(points, normals, owner, self.centres[idx], self.area)
-        far = far - jnp.einsum("nm,nmc->nc", jnp.where(inside, k_c, 0.0), self.coarse[idx])
         # the same block in near-field cells: row a·S + i, column b·S + j
         step = jnp.arange(sub, dtype=jnp.int32)
         rr = (br * sub)[:, :, None] + step  # (N, 3, S)
