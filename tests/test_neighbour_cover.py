@@ -131,12 +131,51 @@ def test_senders_radiate_no_negative_light_beside_a_close_neighbour(slabs):
             material(alpha=1.0, beta=1.0, mu=0.08, reflectance=(0.1, 0.2, 0.6))]
     st = jax.jit(lambda g: gather_senders(g, mats, env, bounces=2))(slabs)
     snd = st.senders
-    centre = 4  # the 3 × 3 view grid's middle: towards the receiver's centre
-    toward = (np.asarray(snd.lum)
-              + np.asarray(snd.spec)[:, :, centre] @ np.asarray(env.spectral_basis))
+    # towards every view of the 3 × 3 grid that spans the receiver: the view-independent part
+    # plus the gloss there and the bounce's change of it (carried with the mirror's views)
+    toward = (np.asarray(snd.lum)[:, :, None]
+              + np.asarray(snd.spec) @ np.asarray(env.spectral_basis) + np.asarray(snd.mirror))
     live = np.asarray(st.geometry.s_area) > 0
     assert live.sum() > 100
     assert toward[live].min() >= -1e-6 * np.abs(toward[live]).max()
+
+
+def test_bounced_gloss_follows_the_view(slabs):
+    """The front slab's side face, whose gloss lobe looks along the back slab's face beside
+    it; the back slab a pure gloss (α = 0). From there the back slab's gloss leaves into the
+    open sky, while towards the front slab (the view the bounce's correction is found for)
+    the front slab hides it. The single bounce agrees with a float64 quadrature over the
+    side face's hemisphere (rays cast against the back slab's mesh, the back slab shaded
+    towards the point) within 15 % of its largest channel, and more bounces change the side
+    face's interreflection by less than 5 % of it: the bounce's change of the back slab's
+    gloss reaches each view in the share the front slab hides there. (Carried to every view
+    alike, it took 23 % off with 2 bounces and 44 % with 3.)"""
+    from helpers.interreflection import brute_force_single_bounce, gbuffer
+
+    from spectral_fit.rendering.interreflection import interreflection_from
+
+    env = make_env(linear_env_texels([1.0, 0.8, 0.6], [0.5, 0.2, -0.1]))
+    mats = [material(alpha=0.0, beta=1.0, mu=0.08, reflectance=(0.9, 0.5, 0.1)),
+            material(alpha=1.0, beta=1.0, mu=0.08, reflectance=(0.1, 0.2, 0.6))]
+    x = np.asarray([[FRONT[0] + HALF[0], y, FRONT[2] - 0.003] for y in (-0.035, -0.02, 0.0,
+                                                                        0.015)])
+    n = np.tile([1.0, 0.0, 0.0], (len(x), 1))
+    v = np.tile(np.asarray([0.5, 0.1, 1.0]) / np.linalg.norm([0.5, 0.1, 1.0]), (len(x), 1))
+    rec = gbuffer(x, n, v, [1] * len(x), 8)
+    got = {b: np.asarray(jax.jit(lambda g, r, b=b: interreflection_from(
+        g, mats, env, r, bounces=b))(slabs, rec), np.float64)[:len(x)] for b in (1, 2, 3)}
+    back = _slab(BACK)
+    for k in range(len(x)):
+        bd, bg = brute_force_single_bounce(x[k], n[k], v[k], mats[1], (back, mats[0]), BACK,
+                                           float(np.linalg.norm(HALF)), env, cone=(32, 64),
+                                           lobe=(32, 48))
+        want = bd + bg
+        scale = np.abs(want).max()
+        assert scale > 0.05
+        np.testing.assert_allclose(got[1][k], want, atol=0.15 * scale, err_msg=str(k))
+        for b in (2, 3):
+            np.testing.assert_allclose(got[b][k], got[1][k], atol=0.05 * scale,
+                                       err_msg=f"{k}, {b} bounces")
 
 
 def _box_hidden_grid(points: np.ndarray, env, n: int = 100) -> np.ndarray:

@@ -47,31 +47,56 @@ _VIEW_GRID = (-1.0, 0.0, 1.0)
 def _view_frames(geom: IRGeometry) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """Per sample (P, M): the unit axis a towards the receiver's centre, a tangent frame e1, e2,
     and T = tanθc of the receiver's bounding sphere seen from the sample."""
-    to_c = geom.centre_i[:, None, :] - geom.s_pos
+    return _view_frame_at(geom.s_pos, geom.centre_i[:, None, :], geom.radius_i[:, None],
+                          geom.frame[:, None, 0, :])
+
+
+def _view_frame_at(pos: jax.Array, centre: jax.Array, radius: jax.Array, s: jax.Array
+                   ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """The view grid's frame at points ``pos`` (..., 3) of a sender (:func:`_view_frames`):
+    the receiver's bounding sphere (``centre`` (..., 3), ``radius`` (...)) and the pair's
+    first raster axis ``s`` (..., 3), broadcast together."""
+    to_c = centre - pos
     dist = jnp.sqrt(jnp.maximum(jnp.sum(to_c * to_c, -1), 1e-30))
     a = to_c / dist[..., None]
-    s = geom.frame[:, None, 0, :]
     e1 = _normalize(s - jnp.sum(s * a, -1, keepdims=True) * a)
     e2 = jnp.cross(a, e1)
-    sin_c = jnp.clip(geom.radius_i[:, None] / dist, 0.05, 0.95)
+    sin_c = jnp.clip(radius / dist, 0.05, 0.95)
     return a, e1, e2, sin_c / jnp.sqrt(1.0 - sin_c * sin_c)
 
 
-def _sample_specular(geom: IRGeometry, sh: _Shading, frames: tuple[jax.Array, ...]
-                     ) -> tuple[jax.Array, jax.Array | None]:
-    """Each sample's view-dependent radiance towards the 3 × 3 view grid: gloss (P, M, 9, r)
-    in the map's r channels and mirror (P, M, 9, C) (or None)."""
+def _grid_views(geom: IRGeometry, frames: tuple[jax.Array, ...]) -> jax.Array:
+    """Each sample's 3 × 3 view grid (P, M, 9, 3): unit directions a + tanθc (u e1 + v e2),
+    u, v in ``_VIEW_GRID`` (index 3·iu + iv), those below a rim sample's horizon lifted just
+    above it."""
     a, e1, e2, tan_c = frames
-    p_count, m_count = geom.s_area.shape
-    senders = np.asarray([j for _, j in geom.pairs], np.int32)
     views = []
     for gu in _VIEW_GRID:
         for gv in _VIEW_GRID:
             views.append(_normalize(a + tan_c[..., None] * (gu * e1 + gv * e2)))
     v = jnp.stack(views, 2)  # (P, M, 9, 3)
     nrm = jnp.broadcast_to(geom.s_nrm[:, :, None], v.shape)
-    # views below a rim sample's horizon: evaluated just above it
-    v = _normalize(v + jnp.maximum(0.0, _MIN_COS - jnp.sum(v * nrm, -1, keepdims=True)) * nrm)
+    return _normalize(v + jnp.maximum(0.0, _MIN_COS - jnp.sum(v * nrm, -1, keepdims=True))
+                      * nrm)
+
+
+def _grid_tents(frame: tuple[jax.Array, ...], d: jax.Array) -> jax.Array:
+    """Weights (..., 9) of unit directions ``d`` (..., 3) on a sample's view grid (order of
+    :func:`_grid_views`), the grid's ``frame`` = (a, e1, e2, tanθc) broadcast to ``d``."""
+    a, e1, e2, tan_c = frame
+    den = jnp.maximum(dot3(d, a), 1e-9) * tan_c
+    tu, tv = _tents(dot3(d, e1) / den), _tents(dot3(d, e2) / den)
+    return jnp.stack([tu[iu] * tv[iv] for iu in range(3) for iv in range(3)], -1)
+
+
+def _sample_specular(geom: IRGeometry, sh: _Shading, frames: tuple[jax.Array, ...]
+                     ) -> tuple[jax.Array, jax.Array | None]:
+    """Each sample's view-dependent radiance towards the 3 × 3 view grid: gloss (P, M, 9, r)
+    in the map's r channels and mirror (P, M, 9, C) (or None)."""
+    p_count, m_count = geom.s_area.shape
+    senders = np.asarray([j for _, j in geom.pairs], np.int32)
+    v = _grid_views(geom, frames)  # (P, M, 9, 3)
+    nrm = jnp.broadcast_to(geom.s_nrm[:, :, None], v.shape)
     obj = jnp.broadcast_to(jnp.asarray(senders)[:, None, None], v.shape[:3])
     g, m = _specular(sh, obj.reshape(-1), nrm.reshape(-1, 3), v.reshape(-1, 3))
     shape = (p_count, m_count, len(_VIEW_GRID) ** 2)

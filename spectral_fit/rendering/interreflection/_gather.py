@@ -30,6 +30,7 @@ from ._atlas import _build_mips
 from ._diffuse import (
     _VIEW_GRID,
     _direct_diffuse,
+    _grid_views,
     _interpolate_net,
     _irradiance_at,
     _net_tables,
@@ -43,6 +44,7 @@ from ._diffuse import (
     _view_frames,
 )
 from ._gloss import _hidden_source_gloss, _lobe_gather, _lobe_quadrature, _lobe_reach
+from ._march import _mirror_hidden
 from ._options import (
     _check_diffuse_at,
     _check_image_shape,
@@ -59,7 +61,7 @@ from ._schedule import (
     _partition,
     _pixel_slots,
 )
-from ._shading import _Shading, _shading, _times_reflectance
+from ._shading import _Shading, _shading, _specular, _times_reflectance
 
 __all__ = ["GatherSenders", "gather_senders", "gather_receivers", "gather_irradiance"]
 
@@ -72,7 +74,7 @@ def _reflect_diffuse(sh: _Shading, net: jax.Array, obj: jax.Array) -> jax.Array:
                         * _times_reflectance(sh.env, mats["reflectance"][o], net))
 
 
-def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
+def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[Any, ...],
              diffuse: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
              obj: jax.Array, *,
              grid: tuple[jax.Array, tuple[int, int], int] | None = None,
@@ -81,10 +83,22 @@ def _receive(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
     channels, given their diffuse term ``diffuse`` (N, D) (α S ⊙ the net light they receive,
     :func:`_reflect_diffuse`) and the senders' mip ``atlas`` (in the output channels);
     ``own`` (N, D): the receivers' own environment gloss (:func:`_lobe_quadrature`)."""
+    dif, gloss = _receive_parts(geom, sh, atlas, diffuse, pos, nrm, view, obj, grid=grid,
+                                own=own)
+    return dif + gloss
+
+
+def _receive_parts(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, ...],
+                   diffuse: jax.Array, pos: jax.Array, nrm: jax.Array, view: jax.Array,
+                   obj: jax.Array, *,
+                   grid: tuple[jax.Array, tuple[int, int], int] | None = None,
+                   own: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """:func:`_receive` in two parts (N, D): the diffuse term and the gloss and mirror, each 0
+    where the receiver gets no interreflection."""
     # gloss and mirror: quadrature of the receiver's lobe, each node ray against the senders
-    out = diffuse + _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid, own)
-    out, ok = _less_hidden_sources(geom, sh, out, pos, nrm, view, obj)
-    return jnp.where(ok[:, None], out, 0.0)
+    gloss = _lobe_gather(geom, atlas, sh, pos, nrm, view, obj, grid, own)
+    gloss, ok = _less_hidden_sources(geom, sh, gloss, pos, nrm, view, obj)
+    return (jnp.where(ok[:, None], diffuse, 0.0), jnp.where(ok[:, None], gloss, 0.0))
 
 
 def _less_hidden_sources(geom: IRGeometry, sh: _Shading, out: jax.Array, pos: jax.Array,
@@ -109,14 +123,17 @@ class GatherSenders(eqx.Module):
     Attributes:
         geometry: :class:`IRGeometry` (gather mode).
         senders: the senders' samples as the last gather saw them.
-        atlas: (radiance (P, A, C), normal·coverage and coverage (P, A, 4)) mip atlases.
+        atlas: (radiance (P, A, C), normal·coverage and coverage (P, A, 4), and after a
+            bounce (the change of the samples' gloss towards their receivers (P, A, C), the
+            share of it each view of the grid shows (P, A, 9)), each times coverage, else
+            None) mip atlases.
         net: (P, M, C) diffuse net light at the samples, or None (``diffuse_at`` =
             "receivers" with one bounce).
     """
 
     geometry: IRGeometry
     senders: _Senders
-    atlas: tuple[jax.Array, jax.Array]
+    atlas: tuple[Any, ...]
     net: jax.Array | None
 
 
@@ -153,20 +170,53 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         geo_atlas = _build_mips(jnp.concatenate([geom.s_nrm * cov, cov], -1),
                                 geom.gather_size)
 
-    def senders_with(lum: jax.Array) -> tuple[_Senders, jax.Array]:
+    def senders_with(lum: jax.Array, bounced: tuple[jax.Array, jax.Array] | None = None
+                     ) -> tuple[_Senders, tuple[jax.Array, ...]]:
+        """The senders with view-independent radiance ``lum`` (P, M, C) and, after a bounce,
+        its change of their gloss towards their receivers (``geom.s_view``) (P, M, C) with the
+        share of it each view of the grid shows (P, M, 9): in bands the views' radiance then
+        stays non-negative (the change may cancel at most the view's own radiance)."""
+        view_part, view_atlas = mirror, None
+        if bounced is not None:
+            change, shown = bounced
+            dview = change[:, :, None] * shown[..., None]  # (P, M, 9, C)
+            if toward is not None:
+                dview = jnp.maximum(dview, -toward - lum[:, :, None])
+            view_part = dview if mirror is None else mirror + dview
+            with jax.named_scope("ir_atlas"):  # two atlases: each tap sum consumed whole
+                view_atlas = (_build_mips(change * cov, geom.gather_size),
+                              _build_mips(shown * cov, geom.gather_size))
         snd = _Senders(pos=geom.s_pos, nrm=geom.s_nrm, area=geom.s_area, frames=frames,
-                       lum=lum, spec=spec, mirror=mirror)
+                       lum=lum, spec=spec, mirror=view_part)
         with jax.named_scope("ir_atlas"):
-            atlas = (_build_mips(lum * cov, geom.gather_size), geo_atlas)
+            atlas = (_build_mips(lum * cov, geom.gather_size), geo_atlas, view_atlas)
         return snd, atlas
 
-    toward = None  # the senders' gloss towards their receivers' centres, where it bounds
+    toward = None  # the senders' gloss towards their view grids, where it bounds
     if bounces > 1 and env.product_tensor is None:  # bands (a basis's may be negative)
-        centre = len(_VIEW_GRID) ** 2 // 2  # the view grid's direction to the centre
-        toward = spec[:, :, centre] @ env.spectral_basis
+        toward = spec @ env.spectral_basis  # (P, M, 9, C)
         if mirror is not None:
-            toward = toward + mirror[:, :, centre]
+            toward = toward + mirror
         toward = jax.lax.stop_gradient(jnp.maximum(toward, 0.0))
+    shown = None  # which views of the grid the bounce's change of gloss reaches
+    if bounces > 1:
+        # the grid's views and the one the bounce's change is found towards (the sample's
+        # view of the nearest point of its receiver's bounding sphere)
+        views = jnp.concatenate([_grid_views(geom, frames), geom.s_view[:, :, None]], 2)
+        mu = sh.mats["mu"][jnp.asarray(senders, jnp.int32)][:, None, None]
+        cos_v = jnp.maximum(jnp.sum(views * geom.s_nrm[:, :, None], -1), 0.05)
+        hid = _mirror_hidden(geom, views, math.sqrt(2.0) * mu * jnp.sqrt(cos_v))
+        # the gloss each view shows of the environment (summed over the channels)
+        g_ref, m_ref = _specular(sh, jnp.repeat(jnp.asarray(senders, jnp.int32), m_count),
+                                 geom.s_nrm.reshape(-1, 3), geom.s_view.reshape(-1, 3))
+        g_ref = g_ref @ env.spectral_basis + (0.0 if m_ref is None else m_ref)
+        g_all = spec @ env.spectral_basis + (0.0 if mirror is None else mirror)
+        g_all = jnp.concatenate([g_all, g_ref.reshape(p_count, m_count, 1, -1)], 2)
+        hidden = hid * jnp.sum(jnp.maximum(g_all, 0.0), -1)  # (P, M, 10)
+        # each view's hidden gloss against that of the bounce's view, at most all of it
+        shown = jnp.where(hid[..., -1:] > 0.05, jnp.clip(
+            hidden[..., :-1] / jnp.maximum(hidden[..., -1:], 1e-30), 0.0, 1.0), 1.0)
+        shown = jax.lax.stop_gradient(shown)
     lum = l0
     snd, atlas = senders_with(lum)
     s_obj = jnp.where(live.reshape(-1), jnp.asarray(np.repeat(senders, m_count), jnp.int32),
@@ -182,18 +232,19 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         if b == bounces - 1:
             break
         with jax.named_scope("ir_sample_bounce"):
-            extra = _receive(geom, sh, atlas,
-                             _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj),
-                             s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj)
-        lum = l0 + jnp.where(live[..., None], extra.reshape(l0.shape), 0.0)
+            dif, gloss = _receive_parts(
+                geom, sh, atlas, _reflect_diffuse(sh, net.reshape(-1, net.shape[-1]), s_obj),
+                s_pos, s_nrm, geom.s_view.reshape(-1, 3), s_obj)
+        lum = l0 + jnp.where(live[..., None], dif.reshape(l0.shape), 0.0)
+        if toward is not None:  # towards the receiver's centre, never below zero
+            lum = jnp.maximum(lum, -toward[:, :, len(_VIEW_GRID) ** 2 // 2])
         # the bounce's change of a sample's gloss (the environment its neighbour hides in the
-        # lobe, less the neighbour's light there) is carried by the view-independent part:
-        # where it takes away more than the sample's diffuse light it may cancel at most the
-        # gloss the sample shows towards its neighbour (the view grid's centre), never more:
-        # a sample's radiance towards its receivers stays non-negative, band by band
-        if toward is not None:
-            lum = jnp.maximum(lum, -toward)
-        snd, atlas = senders_with(lum)
+        # lobe, less the neighbour's light there), found towards its receiver, is carried
+        # towards each view of its grid in the share of the gloss a neighbour hides there: a
+        # view that grazes past the neighbour (a slab's face seen from beside the other slab)
+        # keeps its open gloss
+        change = jnp.where(live[..., None], gloss.reshape(l0.shape), 0.0)
+        snd, atlas = senders_with(lum, (change, shown))
     return GatherSenders(geometry=geom, senders=snd, atlas=atlas,
                          net=net if diffuse_at == "samples" else None)
 
@@ -230,7 +281,10 @@ def _gather_receivers(state: GatherSenders, materials: Sequence[Material],
     sh = dataclasses.replace(sh, output=None if output is None else jnp.asarray(output,
                                                                               jnp.float32))
     if output is not None:
-        atlas = (atlas[0] @ sh.output, atlas[1])
+        view_atlas = atlas[2]
+        if view_atlas is not None:  # the change of gloss mapped, the views' shares kept
+            view_atlas = (view_atlas[0] @ sh.output, view_atlas[1])
+        atlas = (atlas[0] @ sh.output, atlas[1], view_atlas)
     grid = None if image_shape is None or gloss_step < 2 else (receivers.pixel, image_shape,
                                                                 gloss_step)
     # pixels of one image: the samples' interpolated light corrected at screen-space anchors
@@ -358,7 +412,7 @@ def _anchored_diffuse(geom: IRGeometry, sh: _Shading, base: jax.Array, pos: jax.
 _RECEIVER_CHUNK = 4096
 
 
-def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[jax.Array, jax.Array],
+def _receive_valid_first(geom: IRGeometry, sh: _Shading, atlas: tuple[Any, ...],
                          tables: tuple[jax.Array, ...] | None,
                          diffuse: jax.Array | None, pos: jax.Array, nrm: jax.Array,
                          view: jax.Array, obj: jax.Array,

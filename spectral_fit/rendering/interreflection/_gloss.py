@@ -15,6 +15,7 @@ channels; computed batched and by components as the diffuse transfer (see ``_dif
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -30,7 +31,7 @@ from ...lighting import (
     visible_nodes,
 )
 from ._atlas import _mip_taps
-from ._diffuse import _hidden_sources
+from ._diffuse import _grid_tents, _hidden_sources, _view_frame_at
 from ._march import _march
 from ._pass1 import IRGeometry, _normalize
 from ._schedule import _image_anchors, _partition
@@ -68,7 +69,7 @@ def _lobe_nodes(nrm: jax.Array, view: jax.Array, mu: jax.Array, eta: jax.Array, 
     return light, f / jnp.maximum(jnp.sum(f), 1e-30)
 
 
-def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+def _neighbour_along(geom: IRGeometry, atlas: tuple[Any, ...], sh: _Shading,
                      pair: jax.Array, sender: jax.Array, pos: jax.Array, dirs: jax.Array,
                      wts: jax.Array, edge: jax.Array, sigma_env: jax.Array
                      ) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -83,7 +84,7 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     ``sigma_env`` (N,)."""
     n, nq = dirs.shape[:2]
     g = geom.gather_size
-    lum_atlas, geo_atlas = atlas
+    lum_atlas, geo_atlas, view_atlas = atlas
     cj = geom.centre_j[pair]  # (N, 3)
     t, hit = _march(geom, pair, pos, dirs)
     d = pos[:, None] + t[..., None] * dirs - cj[:, None]  # the hit, from the sender's centre
@@ -113,12 +114,45 @@ def _neighbour_along(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _
     wq = wts * hit
     wc = wq * cov
     ein = "nq,nqc->nc"
-    out = jnp.einsum(ein, wq, taps_sum(lum_atlas, idx, w))  # L·cov
+    lum = taps_sum(lum_atlas, idx, w)  # L·cov
+    if view_atlas is not None:  # a bounce's change of the sender's gloss, towards x
+        lum = lum + _bounced_gloss(geom, sh, view_atlas, idx, w, pair, pos, t, dirs, cov,
+                                   lum, spec, mirror)
+    out = jnp.einsum(ein, wq, lum)
     out = out + jnp.einsum(ein, wc, spec.reshape(n, nq, -1)) @ sh.basis
     if mirror is not None:
         out = out + sh.to_output(jnp.einsum(ein, wc, mirror.reshape(n, nq, -1)))
     return (out, jnp.einsum(ein, wc, hidden) @ sh.basis,
             jnp.einsum(ein, wts, hidden) @ sh.basis)
+
+
+def _bounced_gloss(geom: IRGeometry, sh: _Shading, view_atlas: tuple[jax.Array, jax.Array],
+                   idx: jax.Array,
+                   w: jax.Array, pair: jax.Array, pos: jax.Array, t: jax.Array,
+                   dirs: jax.Array, cov: jax.Array, lum: jax.Array, spec: jax.Array,
+                   mirror: jax.Array | None) -> jax.Array:
+    """The bounce's change of the sender's gloss (N, Q, C) times coverage at the hits of the
+    rays (pos (N, 3) + t (N, Q) dirs (N, Q, 3)) on the sender of ``pair`` (N,), towards the
+    receiver point: the change towards the receiving object (``IRGeometry.s_view``) read
+    from ``view_atlas`` at the mip taps (``idx``, ``w``) of the hits, times the share its
+    view grid shows in the direction of the point (tents on the grid at the hit). In bands,
+    at most the sender's radiance towards the point there (``lum`` (N, Q, C), L·cov, plus
+    ``spec``, ``mirror`` (N·Q, ·) of :func:`_specular` times ``cov`` (N, Q)) is taken
+    away."""
+    n, nq = dirs.shape[:2]
+    hit_pos = pos[:, None] + t[..., None] * dirs
+    frame = _view_frame_at(hit_pos, geom.centre_i[pair][:, None], geom.radius_i[pair][:, None],
+                           geom.frame[pair][:, None, 0])
+    tents = _grid_tents(frame, -dirs)  # (N, Q, 9)
+    # each atlas's tap sum consumed whole (see :func:`_neighbour_along`)
+    shown = jnp.sum(tents * taps_sum(view_atlas[1], idx, w), -1) / jnp.maximum(cov, 1e-6)
+    change = taps_sum(view_atlas[0], idx, w) * jnp.clip(shown, 0.0, 1.0)[..., None]
+    if sh.env.product_tensor is None:  # bands: the radiance towards x stays non-negative
+        own = cov[..., None] * (spec.reshape(n, nq, -1) @ sh.basis)
+        if mirror is not None:
+            own = own + cov[..., None] * sh.to_output(mirror).reshape(n, nq, -1)
+        change = jnp.maximum(change, -jax.lax.stop_gradient(jnp.maximum(lum + own, 0.0)))
+    return change
 
 
 def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: jax.Array,
@@ -157,7 +191,7 @@ _GLOSS_ACCEL_CHUNK = 65536
 _LOBE_REACH = 5.0
 
 
-def _lobe_gather(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+def _lobe_gather(geom: IRGeometry, atlas: tuple[Any, ...], sh: _Shading,
                  pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
                  grid: tuple[jax.Array, tuple[int, int], int] | None = None,
                  own: jax.Array | None = None) -> jax.Array:
@@ -206,7 +240,7 @@ def _lobe_reach(geom: IRGeometry, sh: _Shading, pos: jax.Array, nrm: jax.Array,
     return (obj >= 0) & (nv_all > 0.0) & reach, gap, refl_all
 
 
-def _lobe_quadrature(geom: IRGeometry, atlas: tuple[jax.Array, jax.Array], sh: _Shading,
+def _lobe_quadrature(geom: IRGeometry, atlas: tuple[Any, ...], sh: _Shading,
                      pos: jax.Array, nrm: jax.Array, view: jax.Array, obj: jax.Array,
                      active: jax.Array, own: jax.Array | None = None) -> jax.Array:
     """The gloss and mirror interreflection (N, C) of :func:`_lobe_gather` at the ``active``

@@ -102,6 +102,35 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
 
 
 
+def _mirror_hidden(geom: IRGeometry, views: jax.Array, sigma: jax.Array) -> jax.Array:
+    """The share (P, M, V) of each sample's gloss lobe towards each of its ``views``
+    (P, M, V, 3) that its object's neighbours hide: five rays, the mirror direction about
+    the sample's normal (weight 0.4) and four tilted from it by the lobe's width ``sigma``
+    (P, M, V) radians (0.15 each), each marched through every neighbour's depth map as
+    :func:`_march` does (the sender of pair p is the receiving object of the pairs (j, k),
+    k over its neighbours). Geometry alone, no gradient."""
+    k_per = geom.n_objects - 1
+    p_count, m_count, n_v = views.shape[:3]
+    sender = jnp.asarray([j for _, j in geom.pairs], jnp.int32)
+    nrm = geom.s_nrm[:, :, None]
+    refl = _normalize(2.0 * jnp.sum(views * nrm, -1, keepdims=True) * nrm - views)
+    t1 = _normalize(jnp.cross(refl, jnp.broadcast_to(nrm, refl.shape))
+                    + jnp.where(jnp.abs(refl[..., :1]) < 0.9, 1.0, 0.0) * 1e-3
+                    * jnp.asarray([1.0, 0.0, 0.0]))
+    t2 = jnp.cross(refl, t1)
+    tilt = jnp.tan(jnp.clip(sigma, 0.0, 1.0))[..., None]
+    rays = [refl] + [_normalize(refl + sg * tilt * tv) for tv in (t1, t2) for sg in (-1.0, 1.0)]
+    weight = jnp.asarray([0.4, 0.15, 0.15, 0.15, 0.15])
+    dirs = jnp.stack(rays, -2).reshape(-1, n_v * 5, 3)  # (P·M, V·5, 3)
+    pos = geom.s_pos.reshape(-1, 3)
+    hit = jnp.zeros(dirs.shape[:2], pos.dtype)
+    for k in range(k_per):
+        pair = jnp.repeat(sender * k_per + k, m_count)
+        hit = jnp.maximum(hit, _march(geom, pair, pos, dirs)[1])
+    share = jnp.sum(hit.reshape(-1, n_v, 5) * weight, -1)
+    return jax.lax.stop_gradient(share.reshape(p_count, m_count, n_v))
+
+
 #: the quadrature of :func:`_cover` at receivers (the diffuse anchors of an image, and
 #: ``diffuse_at="receivers"``): rings × azimuths, and the steps of its march
 _CONE_NODES = (12, 24)
