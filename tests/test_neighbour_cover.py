@@ -146,10 +146,10 @@ def test_bounced_gloss_follows_the_view(slabs):
     open sky, while towards the front slab (the view the bounce's correction is found for)
     the front slab hides it. The single bounce agrees with a float64 quadrature over the
     side face's hemisphere (rays cast against the back slab's mesh, the back slab shaded
-    towards the point) within 15 % of its largest channel, and more bounces change the side
-    face's interreflection by less than 5 % of it: the bounce's change of the back slab's
-    gloss reaches each view in the share the front slab hides there. (Carried to every view
-    alike, it took 23 % off with 2 bounces and 44 % with 3.)"""
+    towards the point) within 15 % of its largest channel, and a second bounce changes the
+    side face's interreflection by less than 5 % of it (measured 1 %): the bounce's change of
+    the back slab's gloss reaches each view in the share the front slab hides there.
+    (Carried to every view alike, it took 23 % off.)"""
     from helpers.interreflection import brute_force_single_bounce, gbuffer
 
     from spectral_fit.rendering.interreflection import interreflection_from
@@ -157,25 +157,22 @@ def test_bounced_gloss_follows_the_view(slabs):
     env = make_env(linear_env_texels([1.0, 0.8, 0.6], [0.5, 0.2, -0.1]))
     mats = [material(alpha=0.0, beta=1.0, mu=0.08, reflectance=(0.9, 0.5, 0.1)),
             material(alpha=1.0, beta=1.0, mu=0.08, reflectance=(0.1, 0.2, 0.6))]
-    x = np.asarray([[FRONT[0] + HALF[0], y, FRONT[2] - 0.003] for y in (-0.035, -0.02, 0.0,
-                                                                        0.015)])
+    x = np.asarray([[FRONT[0] + HALF[0], y, FRONT[2] - 0.003] for y in (-0.035, 0.0)])
     n = np.tile([1.0, 0.0, 0.0], (len(x), 1))
     v = np.tile(np.asarray([0.5, 0.1, 1.0]) / np.linalg.norm([0.5, 0.1, 1.0]), (len(x), 1))
     rec = gbuffer(x, n, v, [1] * len(x), 8)
     got = {b: np.asarray(jax.jit(lambda g, r, b=b: interreflection_from(
-        g, mats, env, r, bounces=b))(slabs, rec), np.float64)[:len(x)] for b in (1, 2, 3)}
+        g, mats, env, r, bounces=b))(slabs, rec), np.float64)[:len(x)] for b in (1, 2)}
     back = _slab(BACK)
     for k in range(len(x)):
         bd, bg = brute_force_single_bounce(x[k], n[k], v[k], mats[1], (back, mats[0]), BACK,
-                                           float(np.linalg.norm(HALF)), env, cone=(32, 64),
-                                           lobe=(32, 48))
+                                           float(np.linalg.norm(HALF)), env, cone=(24, 48),
+                                           lobe=(24, 32))
         want = bd + bg
         scale = np.abs(want).max()
         assert scale > 0.05
         np.testing.assert_allclose(got[1][k], want, atol=0.15 * scale, err_msg=str(k))
-        for b in (2, 3):
-            np.testing.assert_allclose(got[b][k], got[1][k], atol=0.05 * scale,
-                                       err_msg=f"{k}, {b} bounces")
+        np.testing.assert_allclose(got[2][k], got[1][k], atol=0.05 * scale, err_msg=str(k))
 
 
 def _box_hidden_grid(points: np.ndarray, env, n: int = 100) -> np.ndarray:
