@@ -193,13 +193,12 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         return snd, atlas
 
     toward = None  # the senders' gloss towards their view grids, where it bounds
-    if bounces > 1 and env.product_tensor is None:  # bands (a basis's may be negative)
-        toward = spec @ env.spectral_basis  # (P, M, 9, C)
-        if mirror is not None:
-            toward = toward + mirror
-        toward = jax.lax.stop_gradient(jnp.maximum(toward, 0.0))
     shown = None  # which views of the grid the bounce's change of gloss reaches
     if bounces > 1:
+        # the environment's gloss and mirror each sample shows towards its grid's views
+        g_all = spec @ env.spectral_basis + (0.0 if mirror is None else mirror)  # (P, M, 9, C)
+        if env.product_tensor is None:  # bands (a basis's may be negative)
+            toward = jax.lax.stop_gradient(jnp.maximum(g_all, 0.0))
         # the grid's views and the one the bounce's change is found towards (the sample's
         # view of the nearest point of its receiver's bounding sphere)
         views = jnp.concatenate([_grid_views(geom, frames), geom.s_view[:, :, None]], 2)
@@ -210,7 +209,6 @@ def _gather_senders(geom: IRGeometry, materials: Sequence[Material], env: Enviro
         g_ref, m_ref = _specular(sh, jnp.repeat(jnp.asarray(senders, jnp.int32), m_count),
                                  geom.s_nrm.reshape(-1, 3), geom.s_view.reshape(-1, 3))
         g_ref = g_ref @ env.spectral_basis + (0.0 if m_ref is None else m_ref)
-        g_all = spec @ env.spectral_basis + (0.0 if mirror is None else mirror)
         g_all = jnp.concatenate([g_all, g_ref.reshape(p_count, m_count, 1, -1)], 2)
         hidden = hid * jnp.sum(jnp.maximum(g_all, 0.0), -1)  # (P, M, 10)
         # each view's hidden gloss against that of the bounce's view, at most all of it
