@@ -30,7 +30,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...lighting import EnvironmentMap, dot3, irradiance, taps_sum
-from ._march import _CONE_NODES, _CONE_STEPS, _MARCH_STEPS, _cover
+from ._march import (
+    _CONE_NODES,
+    _CONE_POINTS,
+    _CONE_STEPS,
+    _MARCH_STEPS,
+    BrightPoints,
+    _cover,
+    bright_points,
+)
 from ._pass1 import _MIN_COS, IRGeometry, _normalize, pair_list
 from ._shading import _Shading, _source_terms, _specular, _times_reflectance
 
@@ -215,17 +223,18 @@ def _coverage_factor(omega: jax.Array, w: jax.Array) -> jax.Array:
 
 def _covers(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, x: jax.Array,
             nx: jax.Array, *, nodes: tuple[int, int] | None = None,
-            steps: int = _MARCH_STEPS, irr: jax.Array | None = None
-            ) -> tuple[jax.Array, jax.Array]:
+            steps: int = _MARCH_STEPS, irr: jax.Array | None = None,
+            bright: BrightPoints | None = None) -> tuple[jax.Array, jax.Array]:
     """:func:`~._march._cover` of the neighbours ``pair`` (R, k) of receivers ``x`` (R, 3)
     world, unit normals ``nx`` (R, 3): their projected solid angles (R, k) and the
     environment they hide, summed over the k neighbours, in the map's C channels (R, C): in
     bands, per channel at most the receiver's whole irradiance/π (what is hidden is part of
     the sky; a quadrature node that catches a lamp would otherwise take more than there
-    is). ``irr`` (R, C): that irradiance where the caller has it already."""
+    is). ``irr`` (R, C): that irradiance where the caller has it already; ``bright``: the
+    map's bright part as points (:func:`~._march.bright_points`)."""
     r, k = pair.shape
     omega, hidden = _cover(geom, env, pair.reshape(-1), jnp.repeat(x, k, axis=0),
-                           jnp.repeat(nx, k, axis=0), nodes=nodes, steps=steps)
+                           jnp.repeat(nx, k, axis=0), nodes=nodes, steps=steps, bright=bright)
     hidden = jnp.sum(hidden.reshape(r, k, -1), 1) @ env.spectral_basis
     if env.product_tensor is None:  # bands (a basis's coefficients may be negative)
         if irr is None:
@@ -424,11 +433,13 @@ def _sees(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.Array) -> j
 
 def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: jax.Array,
                     nrm: jax.Array, obj: jax.Array, *, nodes: tuple[int, int] = _CONE_NODES,
-                    steps: int = _CONE_STEPS, chunk: int = _CHUNK) -> jax.Array:
+                    steps: int = _CONE_STEPS, points: int = _CONE_POINTS,
+                    chunk: int = _CHUNK) -> jax.Array:
     """:func:`_diffuse_net` (N, C) at arbitrary receivers, each gathering from all samples of
     its object's neighbours (receivers sorted by object, chunks of ``chunk``; chunks of
     receivers that see no neighbour, or whose ``obj`` is −1, are skipped), the hidden
-    environment by a quadrature of ``nodes`` (rings, azimuths) marched in ``steps``. The
+    environment by a quadrature of ``nodes`` (rings, azimuths) and the map's bright part as
+    ``points`` (:func:`~._march.bright_points`), marched in ``steps``. The
     reference for the interpolated :func:`_interpolate_net`, ``diffuse_at="receivers"``, and
     the screen-space anchors' correction of the interpolation."""
     n_obj = geom.n_objects
@@ -454,12 +465,14 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
                                                        (pad, 3))]).reshape(nc, chunk, 3)
     ks = jnp.pad(key[order], (0, pad), constant_values=n_obj).reshape(nc, chunk)
     c = env.channels
+    bright = bright_points(env, points)
 
     def block(o: int, x0: jax.Array, nx: jax.Array, sel: jax.Array) -> jax.Array:
         w, tu, tv = _form_factor_block(x0, nx, tuple(b[o] for b in blocks))
         pair = jnp.broadcast_to(jnp.arange(k_per, dtype=jnp.int32) + o * k_per,
                                 (x0.shape[0], k_per))
-        omega, hidden = _covers(geom, env, pair, x0 + origin, nx, nodes=nodes, steps=steps)
+        omega, hidden = _covers(geom, env, pair, x0 + origin, nx, nodes=nodes, steps=steps,
+                                bright=bright)
         w = w * jnp.repeat(_coverage_factor(omega, w), m_count, axis=-1)
         w = jnp.where(sel[:, None], w, 0.0)
         lsum, _ = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else

@@ -9,13 +9,15 @@ sees the neighbour from another side, and the environment the neighbour hides th
 
 from __future__ import annotations
 
+import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ...lighting import EnvironmentMap, dot3
-from ._pass1 import SUPERSAMPLE, IRGeometry, _normalize
+from ...lighting import EnvironmentMap, dot3, texel_solid_angles
+from ._pass1 import _MAX_SLOPE, FRONT_CHANNELS, SUPERSAMPLE, IRGeometry, _normalize
 from ._shading import _env_blur
 
 __all__: list[str] = []
@@ -27,10 +29,11 @@ _MARCH_STEPS = 16
 
 
 def _depth_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, side: int
-                ) -> tuple[jax.Array, jax.Array]:
-    """Rows (..., 4) of the flattened (P·(side + 2)², ·) padded depth maps and bilinear
+                ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Rows (..., 4) of the flattened (P·(side + 2)², ·) padded depth maps, bilinear
     weights (..., 4) at texel coordinates (tx, ty) (centres at integer + 0.5; outside: the
-    zero border)."""
+    zero border) and the offsets (..., 4) of (tx, ty) from each tap's centre along a row and
+    down a column (texels)."""
     x = jnp.clip(tx + 0.5, 0.0, side + 1.0)  # −0.5 (texel centres) + 1 (border)
     y = jnp.clip(ty + 0.5, 0.0, side + 1.0)
     x0f, y0f = jnp.floor(x), jnp.floor(y)
@@ -44,7 +47,97 @@ def _depth_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, side: int
     idx = jnp.stack([base + y0 * row + x0, base + y0 * row + x1, base + y1 * row + x0,
                      base + y1 * row + x1], -1)
     w = jnp.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
-    return idx, w
+    dx = jnp.stack([fx, fx - 1.0, fx, fx - 1.0], -1)
+    dy = jnp.stack([fy, fy, fy - 1.0, fy - 1.0], -1)
+    return idx, w, dx, dy
+
+
+def _sender_box(geom: IRGeometry) -> jax.Array:
+    """(P, 3, 2) the box, in each pair's frame about ``centre_j`` (s, u, the axis towards the
+    receiver; low and high, m), that holds the covered texels of the sender's depth map and
+    the axial range of its first solid layer, one texel wider on every side. Geometry only."""
+    side = geom.gather_size * SUPERSAMPLE
+    f = jax.lax.stop_gradient(geom.s_front).reshape(-1, side + 2, side + 2,
+                                                    FRONT_CHANNELS)[:, 1:-1, 1:-1]
+    hit = f[..., 0] > 0.0  # (P, side, side), rows from the top
+    big = jnp.asarray(1e9, f.dtype)
+    top = jnp.max(jnp.where(hit, f[..., 1], -big), (1, 2))
+    bottom = jnp.min(jnp.where(hit, f[..., 1] - f[..., 2], big), (1, 2))
+    idx = jnp.arange(side, dtype=f.dtype)
+    cols, rows = jnp.any(hit, 1), jnp.any(hit, 2)  # (P, side)
+    c_lo = jnp.min(jnp.where(cols, idx, side), 1)
+    c_hi = jnp.max(jnp.where(cols, idx + 1.0, 0.0), 1)
+    r_lo = jnp.min(jnp.where(rows, idx, side), 1)
+    r_hi = jnp.max(jnp.where(rows, idx + 1.0, 0.0), 1)
+    tex = 2.0 * geom.extent / side
+    s_box = jnp.stack([-geom.extent + (c_lo - 1.0) * tex, -geom.extent + (c_hi + 1.0) * tex], -1)
+    u_box = jnp.stack([geom.extent - (r_hi + 1.0) * tex, geom.extent - (r_lo - 1.0) * tex], -1)
+    a_box = jnp.stack([bottom - tex, top + tex], -1)
+    return jnp.stack([s_box, u_box, a_box], 1)
+
+
+def _box_chord(box: jax.Array, org: list[jax.Array], dirs: list[jax.Array]
+               ) -> tuple[jax.Array, jax.Array]:
+    """Ray parameters (N, Q) where rays with origin coordinates ``org`` (3 × (N, 1)) and
+    direction coordinates ``dirs`` (3 × (N, Q)) enter and leave the boxes ``box`` (N, 3, 2)
+    (the slab method; far < near where a ray misses its box)."""
+    near = jnp.full(dirs[0].shape, -jnp.inf, dirs[0].dtype)
+    far = jnp.full(dirs[0].shape, jnp.inf, dirs[0].dtype)
+    for a in range(3):
+        lo, hi = box[:, a, 0:1], box[:, a, 1:2]
+        flat = jnp.abs(dirs[a]) < 1e-12
+        inv = 1.0 / jnp.where(flat, 1.0, dirs[a])
+        ta, tb = (lo - org[a]) * inv, (hi - org[a]) * inv
+        inside = (org[a] >= lo) & (org[a] <= hi)
+        near = jnp.maximum(near, jnp.where(flat, jnp.where(inside, -jnp.inf, jnp.inf),
+                                           jnp.minimum(ta, tb)))
+        far = jnp.minimum(far, jnp.where(flat, jnp.where(inside, jnp.inf, -jnp.inf),
+                                         jnp.maximum(ta, tb)))
+    return near, far
+
+
+def _front_surface(taps: jax.Array, w: jax.Array, dx: jax.Array, dy: jax.Array,
+                   cov: jax.Array, texel: jax.Array) -> jax.Array:
+    """The depth map's front-surface height (...) at a point from its four taps (..., 4, C)
+    (``IRGeometry.s_front`` channels), bilinear weights ``w``, offsets ``dx``, ``dy`` from
+    the taps' centres (..., 4) (texels; :func:`_depth_taps`), interpolated coverage ``cov``
+    (...) and the texel's size (m, broadcast). Each covered tap's plane is extrapolated to the
+    point; where the taps' slopes fall across them (a ridge, as every crease of a convex
+    sender seen from outside) the height is the lowest of those planes, where they rise (a
+    valley) the highest, and on a plane their bilinear blend: a crease is kept exactly, where
+    bilinear heights cut it by up to a quarter texel times the change of slope (grazing rays
+    then pass in front of a box's edge they hit) and a blend of the planes overshoots it by
+    an eighth."""
+    # covered taps whose face is not seen edge-on (an edge-on face's slope is clamped: its
+    # plane does not bound the surface, and its height is not extrapolated)
+    gx, gy = taps[..., 3], taps[..., 4]
+    steep = _STEEP * texel[..., None]
+    on = (taps[..., 0] > 0.5) & (jnp.abs(gx) < steep) & (jnp.abs(gy) < steep)
+    plane = taps[..., 1] + jnp.where(on, gx * dx + gy * dy, 0.0)  # (..., 4)
+    blend = jnp.sum(plane * w, -1) / jnp.maximum(cov, 1e-6)
+    big = jnp.asarray(1e9, plane.dtype)
+    low = jnp.min(jnp.where(on, plane, big), -1)
+    high = jnp.max(jnp.where(on, plane, -big), -1)
+    # the fall of the slope across the four edges between those taps
+    falls = [jnp.where(on[..., a] & on[..., b], g[..., a] - g[..., b], 0.0)
+             for g, a, b in ((gx, 0, 1), (gx, 2, 3), (gy, 0, 2), (gy, 1, 3))]
+    tol = _CREASE * texel
+    # a ridge where no edge rises, a valley where none falls (a saddle, or a smooth mesh's
+    # facets turning both ways across the taps, keeps the blend)
+    ridge = jnp.where(functools.reduce(jnp.minimum, falls) > -tol,
+                      jnp.clip(sum(falls) / tol, 0.0, 1.0), 0.0)
+    valley = jnp.where(functools.reduce(jnp.maximum, falls) < tol,
+                       jnp.clip(-sum(falls) / tol, 0.0, 1.0), 0.0)
+    any_on = jnp.any(on, -1)
+    low, high = jnp.where(any_on, low, blend), jnp.where(any_on, high, blend)
+    return blend + ridge * (low - blend) + valley * (high - blend)
+
+
+#: a depth-map slope (height per texel / texel) at or above this one is clamped in pass 1
+_STEEP = 0.99 * _MAX_SLOPE
+#: a fall of the depth map's slopes across its taps (in height per texel, summed over their
+#: four edges) of this many texels counts as a whole crease (:func:`_front_surface`)
+_CREASE = 0.02
 
 
 def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *,
@@ -61,7 +154,7 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     through that refinement; which step is found is not). A ray that passes behind the
     first layer through a second one (the far side of a ring) is not hit."""
     side = geom.gather_size * SUPERSAMPLE
-    front = geom.s_front.reshape(-1, 3)
+    front = geom.s_front.reshape(-1, FRONT_CHANNELS)
     cj = geom.centre_j[pair][:, None]  # (N, 1, 3)
     rj = geom.radius_j[pair][:, None]  # (N, 1)
     fr = geom.frame[pair]  # (N, 3, 3)
@@ -71,19 +164,29 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     b2 = dot3(oc, oc) - tp * tp
     h2 = rj * rj - b2
     half = jnp.where(h2 > 0.0, jnp.sqrt(jnp.where(h2 > 0.0, h2, 1.0)), 0.0)  # (finite grads)
+    rel0 = pos[:, None] - cj  # (N, 1, 3)
+    org = [dot3(rel0, fr[:, None, a]) for a in range(3)]  # (N, 1) each
+    step_dir = [dot3(dirs, fr[:, None, a]) for a in range(3)]  # (N, Q) each
+    # the chord of the bounding sphere, clipped to the box of the sender's depth map (its
+    # covered texels and the axial range of its first solid layer): the steps as fine as the
+    # sender's own size allows (a slab's corner crossed by a grazing ray is a few mm long)
+    near, far = jax.lax.stop_gradient(_box_chord(_sender_box(geom)[pair], org, step_dir))
     t0 = jnp.maximum(tp - half, 0.0)
     t1 = jnp.maximum(tp + half, t0)
+    t0_box, t1_box = jnp.maximum(t0, near), jnp.minimum(t1, far)
+    ok = t1_box > t0_box  # (finite then; a ray that misses the box keeps the sphere's chord)
+    t0, t1 = jnp.where(ok, t0_box, t0), jnp.where(ok, t1_box, t1)
+    half = jnp.where(ok, half, 0.0)
     k = (jnp.arange(steps, dtype=pos.dtype) + 0.5) / steps
     t = t0[..., None] + (t1 - t0)[..., None] * k  # (N, Q, K)
-    rel0 = pos[:, None] - cj  # (N, 1, 3)
-    coord = [dot3(rel0, fr[:, None, a])[..., None] + t * dot3(dirs, fr[:, None, a])[..., None]
+    coord = [org[a][..., None] + t * step_dir[a][..., None]
              for a in range(3)]  # (N, Q, K) each: along s, u and the axis towards i
     tx = (coord[0] / ext + 1.0) * 0.5 * side
     ty = (1.0 - coord[1] / ext) * 0.5 * side
-    idx, w = _depth_taps(jnp.broadcast_to(pair[:, None, None], tx.shape), tx, ty, side)
-    taps = front[idx]  # (N, Q, K, 4, 3)
+    idx, w, dx, dy = _depth_taps(jnp.broadcast_to(pair[:, None, None], tx.shape), tx, ty, side)
+    taps = front[idx]  # (N, Q, K, 4, FRONT_CHANNELS)
     cov = jnp.sum(taps[..., 0] * w, -1)
-    surf = jnp.sum(taps[..., 1] * w, -1) / jnp.maximum(cov, 1e-6)
+    surf = _front_surface(taps, w, dx, dy, cov, ext * (2.0 / side))
     depth = jnp.sum(taps[..., 2] * w, -1) / jnp.maximum(cov, 1e-6)
     step = (t1 - t0)[..., None] / steps
     thick = jnp.maximum(1.5 * step * jnp.abs(dot3(dirs, fr[:, None, 2]))[..., None], depth)
@@ -187,16 +290,85 @@ def _cover_nodes(geom: IRGeometry, pair: jax.Array, pos: jax.Array, nrm: jax.Arr
     return dirs, w, spacing
 
 
+class BrightPoints(eqx.Module):
+    """The bright part of an environment's residual map as points of equal flux (built by
+    :func:`bright_points` once per frame): ``dirs`` (K, 3) world unit directions, ``flux``
+    (K, r) radiance × solid angle (sr) in the map's r principal channels, and ``level`` ()
+    the brightness (mean over the map's channels) above which a texel's excess belongs to
+    the points; below it the map is left to the quadrature's nodes."""
+
+    dirs: jax.Array
+    flux: jax.Array
+    level: jax.Array
+
+
+#: a texel of the residual map brighter than this many times the map's mean brightness gives
+#: its excess over that level to the bright points (:func:`bright_points`)
+_BRIGHT = 4.0
+#: at most this many texels (of the map's level 0) give their excess to the bright points
+_BRIGHT_TEXELS = 512
+#: bright points at receivers (the diffuse anchors of an image, ``diffuse_at="receivers"``)
+_CONE_POINTS = 64
+
+
+def bright_points(env: EnvironmentMap, count: int) -> BrightPoints:
+    """``count`` points of equal flux that carry the bright part of the environment's residual
+    map (level 0 of its atlas, its sources apart): every texel's excess brightness over
+    ``_BRIGHT`` × the map's mean or over the ``_BRIGHT_TEXELS``-th brightest texel, whichever is
+    higher, stratified along the texels' cumulative excess flux (in the map's rows), each
+    point at its texel's centre with that texel's spectrum. The excess of a bright region of
+    sky a neighbour's edge cuts is then shared by many rays (each marched as a node of
+    :func:`_cover` is), where a node of the hemisphere's quadrature that flips from seen to
+    hidden took a sixth of it at once. Which texels carry the points is not differentiable;
+    their flux is, in the map."""
+    h, w = env.level_shapes[0]
+    off = env.level_offsets[0]
+    lev = env.atlas[off:off + h * w]  # (H·W, r)
+    mean_c = jnp.mean(env.spectral_basis, 1)  # (r,): brightness = mean over the channels
+    b = lev @ mean_c
+    dw = jnp.repeat(jnp.asarray(texel_solid_angles(h, 1)[:, 0] / w, lev.dtype), w)  # per row
+    level = _BRIGHT * jnp.sum(jnp.maximum(b, 0.0) * dw) / (4.0 * math.pi)
+    # at most _BRIGHT_TEXELS texels above the level: a compact bright region; a broad one (a
+    # studio's softbox) is left to the nodes, which spread over it better than the points
+    top = jax.lax.top_k(b, min(_BRIGHT_TEXELS + 1, h * w))[0][-1]
+    level = jax.lax.stop_gradient(jnp.maximum(level, top))
+    excess = jnp.maximum(b - level, 0.0) * dw  # (H·W,) flux above the level
+    cdf = jnp.cumsum(jax.lax.stop_gradient(excess))
+    total = cdf[-1]
+    at = (jnp.arange(count, dtype=lev.dtype) + 0.5) / count * total
+    idx = jnp.clip(jnp.searchsorted(cdf, at), 0, h * w - 1)
+    # the texels' centres (the map's convention: u = φ/2π along a row, v = θ/π down a column)
+    phi = 2.0 * math.pi * ((idx % w).astype(lev.dtype) + 0.5) / w
+    theta = math.pi * ((idx // w).astype(lev.dtype) + 0.5) / h
+    st = jnp.sin(theta)
+    dirs = jnp.stack([jnp.sin(phi) * st, jnp.cos(theta), -jnp.cos(phi) * st], -1) @ env.rotation.T
+    bt = b[idx]
+    shape = lev[idx] / jnp.where(bt > 0.0, bt, 1.0)[:, None]  # (K, r): brightness 1
+    flux = (jnp.sum(excess) / count) * shape
+    return BrightPoints(dirs=dirs, flux=jnp.where(total > 0.0, flux, 0.0), level=level)
+
+
+def _below_level(env: EnvironmentMap, radiance: jax.Array, level: jax.Array) -> jax.Array:
+    """Radiance (..., r) scaled down to the brightness ``level`` where it is brighter (the
+    part the bright points leave to the nodes)."""
+    b = radiance @ jnp.mean(env.spectral_basis, 1)
+    return radiance * jnp.minimum(1.0, level / jnp.maximum(b, 1e-30))[..., None]
+
+
 def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Array,
            nrm: jax.Array, *, nodes: tuple[int, int] | None = None,
-           steps: int = _MARCH_STEPS) -> tuple[jax.Array, jax.Array]:
+           steps: int = _MARCH_STEPS, bright: BrightPoints | None = None
+           ) -> tuple[jax.Array, jax.Array]:
     """What the sender of ``pair`` (N,) takes from the sky of points ``pos`` (N, 3) with unit
     normals ``nrm`` (N, 3): its projected solid angle Ω (N,) (sr)
     and the environment it hides, (1/π) ∫ max(0, n·ω) hit(ω) L_env(ω) dω (N, r) in the map's
-    r principal channels, each node's radiance prefiltered to ``_BLUR`` of the nodes' spacing
-    (a wider prefilter carries the light of the seen directions beside the neighbour's edge
-    into the hidden nodes: a third more hidden light beside a cup under a bright band of sky)
-    (``nodes``, default ``_COVER_NODES``, :func:`_cover_nodes`; ``steps`` of the march).
+    r principal channels (``nodes``, default ``_COVER_NODES``, :func:`_cover_nodes`;
+    ``steps`` of the march). Without ``bright`` each node's radiance is prefiltered to
+    ``_BLUR`` of the nodes' spacing (a wider prefilter carries the light of the seen
+    directions beside the neighbour's edge into the hidden nodes: a third more hidden light
+    beside a cup under a bright band of sky). With ``bright`` (:func:`bright_points`) the
+    nodes read the map's own texels up to its level and the points' rays, marched alike,
+    the rest (a prefiltered map cut at the level would count a bright region's halo twice).
     The hits come from the sender's depth map (:func:`_march`), so the sender's actual shape
     hides the sky, not its bounding sphere nor the few sender samples a near point sees at
     grazing angles.
@@ -205,6 +377,8 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
     nr, na = nodes or _COVER_NODES
     dirs, w, spacing = _cover_nodes(geom, pair, pos, nrm, (nr, na))
     sigma = jnp.clip(_BLUR * spacing, 1e-3, 0.5)
+    if bright is not None:  # the map's own texels, so that the level cuts what the points take
+        sigma = jnp.full_like(sigma, 1e-3)
     # the nodes in groups of whole rings of about _COVER_GROUP nodes, one after the other: the
     # march's taps of every node at once outgrow the caches (2.25 times the nodes cost 4.6
     # times the time)
@@ -218,6 +392,8 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
         _, hit = _march(geom, pair, pos, d, steps=steps)
         wh = jax.lax.stop_gradient(ww * hit)
         lv = _env_blur(env, d, jnp.broadcast_to(sigma[:, None], hit.shape))  # (N, q, r)
+        if bright is not None:
+            lv = _below_level(env, lv, bright.level)
         return jnp.sum(wh, -1), jnp.einsum("nq,nqc->nc", wh, lv)
 
     if groups == 1:
@@ -229,5 +405,10 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
         ww = jnp.moveaxis(ww.reshape(-1, groups, q), 1, 0)
         om, hd = jax.lax.map(group, (d, ww))
         omega, hidden = jnp.sum(om, 0), jnp.sum(hd, 0)
+    if bright is not None:
+        bd = jnp.broadcast_to(bright.dirs, (pos.shape[0], *bright.dirs.shape))
+        _, hit = _march(geom, pair, pos, bd, steps=steps)
+        wh = jax.lax.stop_gradient(hit * jnp.maximum(dot3(bd, nrm[:, None]), 0.0))  # (N, K)
+        hidden = hidden + wh @ bright.flux
     return omega, hidden / math.pi
 

@@ -53,6 +53,11 @@ __all__ = [
 
 #: pass-1 supersampling of the gather samples (raster side = SUPERSAMPLE · gather_size)
 SUPERSAMPLE = 4
+#: channels of the pass-1 depth map (``IRGeometry.s_front``)
+FRONT_CHANNELS = 5
+#: the largest slope of the depth map's front surface (a face this steep or steeper against
+#: the pair's axis is seen edge-on: its height is not extrapolated further)
+_MAX_SLOPE = 4.0
 #: default gather size g (samples per side of a sender's grid)
 GATHER_SIZE = 16
 #: smallest |n·axis| used for the area of a grazing pass-1 texel (caps 1/cos at 20)
@@ -80,12 +85,13 @@ class IRGeometry(eqx.Module):
             3° above the sample's horizon).
         s_area: (P, M) surface area of each sample (m², 0 = empty).
         s_cov: (P, M) covered fraction of each sample's pass-1 texels.
-        s_front: (P, (S + 2)², 3) the pass-1 raster itself (S = ``SUPERSAMPLE`` · g texels a
+        s_front: (P, (S + 2)², 5) the pass-1 raster itself (S = ``SUPERSAMPLE`` · g texels a
             side, rows from the top, padded by a one-texel zero border): coverage (0 or 1),
             coverage × the front surface's height above c_j along the axis towards the
-            receiver (m) and the depth of the solid behind it (m: to the nearest back face;
-            0 where none): the sender's depth map at full resolution, which the gloss rays
-            march through.
+            receiver (m), the depth of the solid behind it (m: to the nearest back face;
+            0 where none) and the front surface's change of height per texel along a row and
+            down a column (m; from its triangle's plane): the sender's depth map at full
+            resolution, which the gloss rays march through.
         p_view_proj: (P, 4, 4) paper mode's pass-1 camera (projection @ view).
         p_index: (P, Q) flat texel index of the covered pass-1 texels (Q = capacity).
         p_pos, p_nrm: (P, Q, 3) their world positions and unit normals.
@@ -290,8 +296,19 @@ def _gather_samples(obj_i: ObjectGeometry, obj_j: ObjectGeometry, r_i: jax.Array
     ras_b = rasterize(clip, tris, (side, side), cull="front", config=config)
     height_b = jnp.sum((interpolate(verts, ras_b, tris, clip) - cj) * frame[2], -1)
     depth = jnp.where(hit & (ras_b.tri_id >= 0) & (height_b < height), height - height_b, 0.0)
-    front = jnp.pad(jnp.stack([hitf, jnp.where(hit, height, 0.0), depth], -1),
-                    ((1, 1), (1, 1), (0, 0))).reshape(-1, 3)
+    # the front surface's slopes per texel step from its triangles' planes, so that a lookup
+    # between texel centres extrapolates each tap's own plane (a crease between two faces is
+    # kept, where bilinear heights cut it by up to a quarter texel times the change of slope)
+    tv = verts[tris]
+    fn = _normalize(jnp.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0]))[
+        jnp.maximum(ras.tri_id, 0)]  # (side, side, 3)
+    m_s, m_u, m_a = (jnp.sum(fn * frame[k], -1) for k in range(3))
+    m_a = jnp.where(m_a < 0.0, -1.0, 1.0) * jnp.maximum(jnp.abs(m_a), 1.0 / _MAX_SLOPE)
+    tex = 2.0 * extent / side
+    slope_col = jnp.where(hit, jnp.clip(-m_s / m_a, -_MAX_SLOPE, _MAX_SLOPE) * tex, 0.0)
+    slope_row = jnp.where(hit, jnp.clip(m_u / m_a, -_MAX_SLOPE, _MAX_SLOPE) * tex, 0.0)
+    front = jnp.pad(jnp.stack([hitf, jnp.where(hit, height, 0.0), depth, slope_col, slope_row],
+                              -1), ((1, 1), (1, 1), (0, 0))).reshape(-1, FRONT_CHANNELS)
     near_i = ci + r_i * _normalize(s_pos - ci)
     s_view = _normalize(near_i - s_pos)
     # samples near j's rim cannot see that point; tilt their view just above the horizon
