@@ -7,7 +7,6 @@ once per :class:`~spectral_fit.rendering.Prepared`).
 
 from __future__ import annotations
 
-import warnings
 from typing import Any
 
 import jax
@@ -27,9 +26,6 @@ __all__ = [
 ]
 
 
-_IR_WARNED: set[str] = set()
-
-
 def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Material],
                      gb: GBuffer, to_out: jax.Array | None,
                      own_gloss: jax.Array | None = None) -> tuple[jax.Array | None, jax.Array]:
@@ -40,15 +36,7 @@ def _interreflection(prep: Prepared, geoms: list[ObjectGeometry], mats: list[Mat
     ir, lit = prep.interreflection, prep.lighting
     if ir.mode == "none" or len(geoms) < 2:
         return None, no
-    try:
-        from .interreflection._transport import interreflection_from
-    except ImportError:
-        if ir.mode not in _IR_WARNED:
-            _IR_WARNED.add(ir.mode)
-            warnings.warn(f"interreflection mode {ir.mode!r} is not available in this "
-                          "installation (spectral_fit.rendering.interreflection missing); "
-                          "rendering without interreflection", RuntimeWarning, stacklevel=4)
-        return None, no
+    from .interreflection._transport import interreflection_from
     geom = _ir_pass1(prep, geoms)
     # paper mode's pass-1 textures shaded as the frame is: by the split sum in quality "fast"
     split = ((lit.split_map, lit.split_settings)
