@@ -151,7 +151,8 @@ def test_march_finds_rays_that_graze_a_neighbour_s_creases(slabs):
     pos, _ = _points(GRAZING)
     dirs = jnp.broadcast_to(jnp.asarray(d, jnp.float32), (len(GRAZING), *d.shape))
     pair = jnp.zeros(len(GRAZING), jnp.int32)
-    _, hit = jax.jit(lambda p, q: march._march(slabs, pair, p, q, steps=24))(pos, dirs)
+    _, hit = jax.jit(lambda p, q: march._march(slabs, pair, p, q, steps=24,
+                                                                creases=True))(pos, dirs)
     hit = np.asarray(hit) > 0.5
     for k, p in enumerate(np.asarray(pos, np.float64)):
         want = _box_hits(p, d)
@@ -203,7 +204,8 @@ def test_hidden_bright_region_beside_a_close_neighbour(slabs):
     def err(nodes, steps, points):
         bright = None if points is None else march.bright_points(env, points)
         _, hidden = jax.jit(lambda p, n: march._cover(slabs, env, pair, p, n, nodes=nodes,
-                                                      steps=steps, bright=bright))(pos, nrm)
+                                                      steps=steps, bright=bright,
+                                                      creases=True))(pos, nrm)
         return np.abs(np.asarray(hidden) @ basis - want).max() / sky
 
     anchors, samples = err((12, 24), 24, 64), err((6, 12), 16, 32)

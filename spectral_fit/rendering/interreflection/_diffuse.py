@@ -224,7 +224,8 @@ def _coverage_factor(omega: jax.Array, w: jax.Array) -> jax.Array:
 def _covers(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, x: jax.Array,
             nx: jax.Array, *, nodes: tuple[int, int] | None = None,
             steps: int = _MARCH_STEPS, irr: jax.Array | None = None,
-            bright: BrightPoints | None = None) -> tuple[jax.Array, jax.Array]:
+            bright: BrightPoints | None = None, creases: bool = False
+            ) -> tuple[jax.Array, jax.Array]:
     """:func:`~._march._cover` of the neighbours ``pair`` (R, k) of receivers ``x`` (R, 3)
     world, unit normals ``nx`` (R, 3): their projected solid angles (R, k) and the
     environment they hide, summed over the k neighbours, in the map's C channels (R, C): in
@@ -234,7 +235,8 @@ def _covers(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, x: jax.Array
     map's bright part as points (:func:`~._march.bright_points`)."""
     r, k = pair.shape
     omega, hidden = _cover(geom, env, pair.reshape(-1), jnp.repeat(x, k, axis=0),
-                           jnp.repeat(nx, k, axis=0), nodes=nodes, steps=steps, bright=bright)
+                           jnp.repeat(nx, k, axis=0), nodes=nodes, steps=steps, bright=bright,
+                           creases=creases)
     hidden = jnp.sum(hidden.reshape(r, k, -1), 1) @ env.spectral_basis
     if env.product_tensor is None:  # bands (a basis's coefficients may be negative)
         if irr is None:
@@ -472,7 +474,7 @@ def _direct_diffuse(geom: IRGeometry, snd: _Senders, env: EnvironmentMap, pos: j
         pair = jnp.broadcast_to(jnp.arange(k_per, dtype=jnp.int32) + o * k_per,
                                 (x0.shape[0], k_per))
         omega, hidden = _covers(geom, env, pair, x0 + origin, nx, nodes=nodes, steps=steps,
-                                bright=bright)
+                                bright=bright, creases=True)
         w = w * jnp.repeat(_coverage_factor(omega, w), m_count, axis=-1)
         w = jnp.where(sel[:, None], w, 0.0)
         lsum, _ = _transfer(w, tu, tv, lum[o], spec[o], None if mirror is None else

@@ -141,7 +141,7 @@ _CREASE = 0.02
 
 
 def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *,
-           steps: int = _MARCH_STEPS) -> tuple[jax.Array, jax.Array]:
+           steps: int = _MARCH_STEPS, creases: bool = False) -> tuple[jax.Array, jax.Array]:
     """Where the rays (pos (N, 3), dirs (N, Q, 3)) first meet the sender of ``pair`` (N,):
     the ray parameter t (N, Q) (m) and whether they do (N, Q) float. The sender is its pass-1
     raster (``geom.s_front``: coverage, front-surface height along the pair's axis and the
@@ -154,7 +154,9 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     through that refinement; which step is found is not). A ray that passes behind the
     first layer through a second one (the far side of a ring) is not hit."""
     side = geom.gather_size * SUPERSAMPLE
-    front = geom.s_front.reshape(-1, FRONT_CHANNELS)
+    # the slopes only where the creases are kept (the environment a neighbour hides); the
+    # lobe's rays read the bilinear heights (the slopes' taps and planes doubled the march)
+    front = geom.s_front.reshape(-1, FRONT_CHANNELS)[:, :FRONT_CHANNELS if creases else 3]
     cj = geom.centre_j[pair][:, None]  # (N, 1, 3)
     rj = geom.radius_j[pair][:, None]  # (N, 1)
     fr = geom.frame[pair]  # (N, 3, 3)
@@ -170,13 +172,14 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     # the chord of the bounding sphere, clipped to the box of the sender's depth map (its
     # covered texels and the axial range of its first solid layer): the steps as fine as the
     # sender's own size allows (a slab's corner crossed by a grazing ray is a few mm long)
-    near, far = jax.lax.stop_gradient(_box_chord(_sender_box(geom)[pair], org, step_dir))
     t0 = jnp.maximum(tp - half, 0.0)
     t1 = jnp.maximum(tp + half, t0)
-    t0_box, t1_box = jnp.maximum(t0, near), jnp.minimum(t1, far)
-    ok = t1_box > t0_box  # (finite then; a ray that misses the box keeps the sphere's chord)
-    t0, t1 = jnp.where(ok, t0_box, t0), jnp.where(ok, t1_box, t1)
-    half = jnp.where(ok, half, 0.0)
+    if creases:
+        near, far = jax.lax.stop_gradient(_box_chord(_sender_box(geom)[pair], org, step_dir))
+        t0_box, t1_box = jnp.maximum(t0, near), jnp.minimum(t1, far)
+        ok = t1_box > t0_box  # (finite then; a ray that misses the box keeps the sphere's chord)
+        t0, t1 = jnp.where(ok, t0_box, t0), jnp.where(ok, t1_box, t1)
+        half = jnp.where(ok, half, 0.0)
     k = (jnp.arange(steps, dtype=pos.dtype) + 0.5) / steps
     t = t0[..., None] + (t1 - t0)[..., None] * k  # (N, Q, K)
     coord = [org[a][..., None] + t * step_dir[a][..., None]
@@ -186,7 +189,10 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     idx, w, dx, dy = _depth_taps(jnp.broadcast_to(pair[:, None, None], tx.shape), tx, ty, side)
     taps = front[idx]  # (N, Q, K, 4, FRONT_CHANNELS)
     cov = jnp.sum(taps[..., 0] * w, -1)
-    surf = _front_surface(taps, w, dx, dy, cov, ext * (2.0 / side))
+    if creases:
+        surf = _front_surface(taps, w, dx, dy, cov, ext * (2.0 / side))
+    else:
+        surf = jnp.sum(taps[..., 1] * w, -1) / jnp.maximum(cov, 1e-6)
     depth = jnp.sum(taps[..., 2] * w, -1) / jnp.maximum(cov, 1e-6)
     step = (t1 - t0)[..., None] / steps
     thick = jnp.maximum(1.5 * step * jnp.abs(dot3(dirs, fr[:, None, 2]))[..., None], depth)
@@ -357,8 +363,8 @@ def _below_level(env: EnvironmentMap, radiance: jax.Array, level: jax.Array) -> 
 
 def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Array,
            nrm: jax.Array, *, nodes: tuple[int, int] | None = None,
-           steps: int = _MARCH_STEPS, bright: BrightPoints | None = None
-           ) -> tuple[jax.Array, jax.Array]:
+           steps: int = _MARCH_STEPS, bright: BrightPoints | None = None,
+           creases: bool = False) -> tuple[jax.Array, jax.Array]:
     """What the sender of ``pair`` (N,) takes from the sky of points ``pos`` (N, 3) with unit
     normals ``nrm`` (N, 3): its projected solid angle Ω (N,) (sr)
     and the environment it hides, (1/π) ∫ max(0, n·ω) hit(ω) L_env(ω) dω (N, r) in the map's
@@ -389,7 +395,7 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
 
     def group(args: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
         d, ww = args
-        _, hit = _march(geom, pair, pos, d, steps=steps)
+        _, hit = _march(geom, pair, pos, d, steps=steps, creases=creases)
         wh = jax.lax.stop_gradient(ww * hit)
         lv = _env_blur(env, d, jnp.broadcast_to(sigma[:, None], hit.shape))  # (N, q, r)
         if bright is not None:
@@ -407,7 +413,7 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
         omega, hidden = jnp.sum(om, 0), jnp.sum(hd, 0)
     if bright is not None:
         bd = jnp.broadcast_to(bright.dirs, (pos.shape[0], *bright.dirs.shape))
-        _, hit = _march(geom, pair, pos, bd, steps=steps)
+        _, hit = _march(geom, pair, pos, bd, steps=steps, creases=creases)
         wh = jax.lax.stop_gradient(hit * jnp.maximum(dot3(bd, nrm[:, None]), 0.0))  # (N, K)
         hidden = hidden + wh @ bright.flux
     return omega, hidden / math.pi
