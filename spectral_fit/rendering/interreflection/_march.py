@@ -141,7 +141,8 @@ _CREASE = 0.02
 
 
 def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *,
-           steps: int = _MARCH_STEPS, creases: bool = False) -> tuple[jax.Array, jax.Array]:
+           steps: int = _MARCH_STEPS, creases: bool = False, box: jax.Array | None = None
+           ) -> tuple[jax.Array, jax.Array]:
     """Where the rays (pos (N, 3), dirs (N, Q, 3)) first meet the sender of ``pair`` (N,):
     the ray parameter t (N, Q) (m) and whether they do (N, Q) float. The sender is its pass-1
     raster (``geom.s_front``: coverage, front-surface height along the pair's axis and the
@@ -152,7 +153,10 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     (behind the front surface by at most its depth, or 1.5 steps for a thin sheet), refined
     to the crossing of the surface between that step and the previous one (t differentiable
     through that refinement; which step is found is not). A ray that passes behind the
-    first layer through a second one (the far side of a ring) is not hit."""
+    first layer through a second one (the far side of a ring) is not hit. With ``creases``
+    the steps span only the chord inside the sender's box (``box``: :func:`_sender_box`,
+    computed here when not given) and the front surface keeps its creases
+    (:func:`_front_surface`)."""
     side = geom.gather_size * SUPERSAMPLE
     # the slopes only where the creases are kept (the environment a neighbour hides); the
     # lobe's rays read the bilinear heights (the slopes' taps and planes doubled the march)
@@ -175,7 +179,8 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     t0 = jnp.maximum(tp - half, 0.0)
     t1 = jnp.maximum(tp + half, t0)
     if creases:
-        near, far = jax.lax.stop_gradient(_box_chord(_sender_box(geom)[pair], org, step_dir))
+        box = _sender_box(geom) if box is None else box  # (the caller's, computed once)
+        near, far = jax.lax.stop_gradient(_box_chord(box[pair], org, step_dir))
         t0_box, t1_box = jnp.maximum(t0, near), jnp.minimum(t1, far)
         ok = t1_box > t0_box  # (finite then; a ray that misses the box keeps the sphere's chord)
         t0, t1 = jnp.where(ok, t0_box, t0), jnp.where(ok, t1_box, t1)
@@ -330,8 +335,7 @@ def bright_points(env: EnvironmentMap, count: int) -> BrightPoints:
     h, w = env.level_shapes[0]
     off = env.level_offsets[0]
     lev = env.atlas[off:off + h * w]  # (H·W, r)
-    mean_c = jnp.mean(env.spectral_basis, 1)  # (r,): brightness = mean over the channels
-    b = lev @ mean_c
+    b = _brightness(env, lev)
     dw = jnp.repeat(jnp.asarray(texel_solid_angles(h, 1)[:, 0] / w, lev.dtype), w)  # per row
     level = _BRIGHT * jnp.sum(jnp.maximum(b, 0.0) * dw) / (4.0 * math.pi)
     # at most _BRIGHT_TEXELS texels above the level: a compact bright region; a broad one (a
@@ -354,10 +358,16 @@ def bright_points(env: EnvironmentMap, count: int) -> BrightPoints:
     return BrightPoints(dirs=dirs, flux=jnp.where(total > 0.0, flux, 0.0), level=level)
 
 
+def _brightness(env: EnvironmentMap, radiance: jax.Array) -> jax.Array:
+    """(...) the brightness of radiance (..., r) in the map's principal channels: its mean
+    over the map's own channels (the level of :func:`bright_points`)."""
+    return radiance @ jnp.mean(env.spectral_basis, 1)
+
+
 def _below_level(env: EnvironmentMap, radiance: jax.Array, level: jax.Array) -> jax.Array:
     """Radiance (..., r) scaled down to the brightness ``level`` where it is brighter (the
     part the bright points leave to the nodes)."""
-    b = radiance @ jnp.mean(env.spectral_basis, 1)
+    b = _brightness(env, radiance)
     return radiance * jnp.minimum(1.0, level / jnp.maximum(b, 1e-30))[..., None]
 
 
@@ -383,6 +393,7 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
     nr, na = nodes or _COVER_NODES
     dirs, w, spacing = _cover_nodes(geom, pair, pos, nrm, (nr, na))
     sigma = jnp.clip(_BLUR * spacing, 1e-3, 0.5)
+    box = _sender_box(geom) if creases else None  # once, not per group of nodes
     if bright is not None:  # the map's own texels, so that the level cuts what the points take
         sigma = jnp.full_like(sigma, 1e-3)
     # the nodes in groups of whole rings of about _COVER_GROUP nodes, one after the other: the
@@ -395,7 +406,7 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
 
     def group(args: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
         d, ww = args
-        _, hit = _march(geom, pair, pos, d, steps=steps, creases=creases)
+        _, hit = _march(geom, pair, pos, d, steps=steps, creases=creases, box=box)
         wh = jax.lax.stop_gradient(ww * hit)
         lv = _env_blur(env, d, jnp.broadcast_to(sigma[:, None], hit.shape))  # (N, q, r)
         if bright is not None:
@@ -413,7 +424,7 @@ def _cover(geom: IRGeometry, env: EnvironmentMap, pair: jax.Array, pos: jax.Arra
         omega, hidden = jnp.sum(om, 0), jnp.sum(hd, 0)
     if bright is not None:
         bd = jnp.broadcast_to(bright.dirs, (pos.shape[0], *bright.dirs.shape))
-        _, hit = _march(geom, pair, pos, bd, steps=steps, creases=creases)
+        _, hit = _march(geom, pair, pos, bd, steps=steps, creases=creases, box=box)
         wh = jax.lax.stop_gradient(hit * jnp.maximum(dot3(bd, nrm[:, None]), 0.0))  # (N, K)
         hidden = hidden + wh @ bright.flux
     return omega, hidden / math.pi
