@@ -344,3 +344,46 @@ def test_anchored_diffuse_beside_a_close_neighbour(slabs):
     direct_err = np.abs(direct[rows] - want).max(-1) / sky
     assert direct_err.max() < 0.03, direct_err.reshape(-1, side).max(0)
     np.testing.assert_allclose(anchored[anchors], direct[anchors], rtol=1e-4, atol=1e-6 * sky)
+
+
+def test_neighbour_s_shape_casts_the_shadow_of_a_bright_source(slabs):
+    """A sun (3 × 3 texels, 8° across, taken out of the map as 36 source sub-points) low over
+    the front slab's side face, seen from points on the back slab's face beside it (0.5 to
+    24 mm from that face): which sub-points the front slab hides, marched through its depth
+    map (24 steps, creases kept), against rays cast at the exact box: the two agree on at
+    least 98 % of the (point, sub-point) rays, and on at least 96 % of those the box hides
+    (measured 98.9 % and 97.9 %: the shadow's edge is found to a fraction of the depth map's
+    1.8 mm texel; the lobe rays' plain march, 16 steps over the bounding sphere's chord,
+    95.8 % and 91.8 %). The neighbour's bounding sphere, which the gather used before,
+    disagrees on more than a third of them (measured 47 %: it hides the sun from 98 % of
+    the rays, the box from about half)."""
+    from spectral_fit.lighting import texel_directions
+
+    diffuse = importlib.import_module("spectral_fit.rendering.interreflection._diffuse")
+    d = texel_directions(64, 128)
+    sun = np.asarray([-0.6, 0.0, 0.8])
+    ang = np.degrees(np.arccos(np.clip(d @ (sun / np.linalg.norm(sun)), -1.0, 1.0)))
+    rows, cols = np.unravel_index(np.argmin(ang), ang.shape)
+    texels = np.ones((64, 128, 3))
+    texels[rows - 1:rows + 2, cols - 1:cols + 2] = [4000.0, 3000.0, 2000.0]
+    env = make_env(texels)
+    sdir = (np.asarray(env.source_dirs).reshape(-1, 3)
+            @ np.asarray(env.rotation, np.float64).T)
+    assert sdir.shape[0] == 36  # every sun texel a source, 4 sub-points each
+    xs = np.linspace(0.0105, 0.034, 48)
+    xy = np.stack(np.meshgrid(xs, [-0.03, 0.0, 0.02]), -1).reshape(-1, 2)
+    pos, _ = _points(xy)
+    obj = jnp.zeros(len(xy), jnp.int32)  # the back slab; its neighbour is the front slab
+    want = np.stack([_box_hits(p, sdir) for p in np.asarray(pos, np.float64)])
+    assert 0.2 < want.mean() < 0.7  # the shadow's edge runs through the points
+    got = np.asarray(jax.jit(lambda p: diffuse._hidden_sources(slabs, env, p, obj,
+                                                               cap=len(xy)))(pos)) > 0.5
+    agree = np.mean(got == want)
+    found = np.sum(got & want) / want.sum()
+    assert agree > 0.98 and found > 0.96, (agree, found)
+    # the bounding sphere of the front slab (57 mm) hides the sun from all of them
+    c, r = FRONT, float(np.linalg.norm(HALF))
+    oc = c - np.asarray(pos, np.float64)
+    tp = oc @ sdir.T
+    sphere = (tp > 0) & (np.sum(oc * oc, -1)[:, None] - tp * tp < r * r)
+    assert np.mean(sphere != want) > 1 / 3

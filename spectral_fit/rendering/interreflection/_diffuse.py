@@ -37,6 +37,8 @@ from ._march import (
     _MARCH_STEPS,
     BrightPoints,
     _cover,
+    _march,
+    _sender_box,
     bright_points,
 )
 from ._pass1 import _MIN_COS, IRGeometry, _normalize, pair_list
@@ -174,19 +176,68 @@ def _transfer(w: jax.Array, tu: list[jax.Array], tv: list[jax.Array], lum: jax.A
     return lsum, jnp.sum(w, -1)
 
 
-def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: jax.Array
-                    ) -> jax.Array | None:
-    """(N, S·k) 1 where a bright-source sub-point's direction hits a neighbour's bounding
-    sphere seen from ``pos`` (None without sources)."""
+def _hidden_sources(geom: IRGeometry, env: EnvironmentMap, pos: jax.Array, o: jax.Array, *,
+                    weight: jax.Array | None = None, least: float = 0.0,
+                    cap: int | None = None) -> jax.Array | None:
+    """(N, S·k) 1 where a bright-source sub-point's direction from ``pos`` (N, 3) world meets a
+    neighbour of the receivers' objects ``o`` (N,); None without sources. Geometry only (no
+    gradient).
+
+    A ray that meets a neighbour's bounding sphere (:func:`_behind_spheres`) is marched
+    through the neighbour's depth map with its creases in ``_CONE_STEPS`` steps
+    (:func:`~._march._march`): the neighbour's actual shape casts the source's shadow, and
+    its edge is found to a fraction of a texel (the lobe rays' coarser march lost a tenth of
+    a box's shadow). Only rays whose ``weight`` (N, S·k) exceeds ``least`` count, and only
+    the ``cap`` points (default ``_SOURCE_MARCHED``) with the largest such weight are
+    marched; the rest keep the bounding spheres' answer, and a call with no such ray marches
+    nothing."""
     src = _source_terms(env)
     if src is None:
         return None
-    sdir = src[0]
-    occ = jnp.zeros((pos.shape[0], sdir.shape[0]), pos.dtype)
+    pos = jax.lax.stop_gradient(pos)
+    sdir = jax.lax.stop_gradient(src[0])
+    behind = _behind_spheres(geom, pos, sdir, o)
+    score = behind if weight is None else behind * jax.lax.stop_gradient(weight)
+    score = jnp.max(jnp.where(score > least, score, 0.0), -1)  # (N,)
+    n = pos.shape[0]
+    cap = _SOURCE_MARCHED if cap is None else cap
+
+    def march(p: jax.Array, ob: jax.Array) -> jax.Array:
+        dirs = jnp.broadcast_to(sdir, (p.shape[0], *sdir.shape))
+        box = _sender_box(geom)
+        occ = jnp.zeros(dirs.shape[:2], p.dtype)
+        for k in range(geom.n_objects - 1):
+            pair = ob * (geom.n_objects - 1) + k
+            _, hit = _march(geom, pair, p, dirs, steps=_CONE_STEPS, creases=True, box=box)
+            occ = jnp.maximum(occ, hit)
+        return occ
+
+    def marched() -> jax.Array:
+        if cap >= n:
+            return behind * march(pos, o)
+        top, idx = jax.lax.top_k(score, cap)
+        sel = behind[idx] * march(pos[idx], o[idx])
+        return behind.at[idx].set(jnp.where((top > 0.0)[:, None], sel, behind[idx]))
+
+    occ = jax.lax.cond(jnp.any(score > 0.0), marched, lambda: behind)
+    return jax.lax.stop_gradient(occ)
+
+
+#: at most this many points per call of :func:`_hidden_sources` are marched (in the paper's
+#: frame 19 of 512 samples and 62 of 4,096 receivers have a source behind the other sphere;
+#: marching all of them made the frame 5 times slower)
+_SOURCE_MARCHED = 128
+
+
+def _behind_spheres(geom: IRGeometry, pos: jax.Array, dirs: jax.Array, o: jax.Array
+                    ) -> jax.Array:
+    """(N, Q) 1 where the directions ``dirs`` (Q, 3) from ``pos`` (N, 3) meet the bounding
+    sphere of a neighbour of the receivers' objects ``o`` (N,) ahead of the point."""
+    occ = jnp.zeros((pos.shape[0], dirs.shape[0]), pos.dtype)
     for k in range(geom.n_objects - 1):
         pair = o * (geom.n_objects - 1) + k
         oc = geom.centre_j[pair] - pos
-        tp = oc @ sdir.T
+        tp = oc @ dirs.T
         miss2 = jnp.sum(oc * oc, -1)[:, None] - tp * tp
         occ = jnp.maximum(occ, ((tp > 0.0) & (miss2 < geom.radius_j[pair][:, None] ** 2)
                                 ).astype(pos.dtype))
@@ -197,12 +248,13 @@ def _diffuse_net(geom: IRGeometry, env: EnvironmentMap, lsum: jax.Array, hidden:
                  pos: jax.Array, nrm: jax.Array, o: jax.Array) -> jax.Array:
     """The light the neighbours add at receivers, before the receiver's α S/π (N, C):
     Σ_y F L_y(→x) (``lsum``) − (1/π) ∫ hit L_env cos (``hidden`` (N, C), :func:`_covers`)
-    − (1/π) Σ hidden sources flux max(0, N·d_s)."""
+    − (1/π) Σ hidden sources flux max(0, N·d_s) (:func:`_hidden_sources`)."""
     net = lsum - hidden
-    occ = _hidden_sources(geom, env, pos, o)
-    if occ is not None:
-        sdir, sflux = _source_terms(env)
+    src = _source_terms(env)
+    if src is not None:
+        sdir, sflux = src
         cosn = jnp.maximum(nrm @ sdir.T, 0.0)
+        occ = _hidden_sources(geom, env, pos, o, weight=cosn)
         net = net - ((occ * cosn) @ sflux) @ env.spectral_basis / math.pi
     return net
 

@@ -157,20 +157,31 @@ def _bounced_gloss(geom: IRGeometry, sh: _Shading, view_atlas: tuple[jax.Array, 
 
 def _hidden_source_gloss(sh: _Shading, geom: IRGeometry, obj: jax.Array, pos: jax.Array,
                          nrm: jax.Array, view: jax.Array) -> jax.Array | None:
-    """β Σ_s F D G/(4cosθr) Φ_s (N, C) over the bright sources hidden by a neighbour's bounding
-    sphere (the part of the receiver's environment gloss that the neighbour blocks)."""
-    o = jnp.maximum(obj, 0)
-    occ = _hidden_sources(geom, sh.env, pos, o)
-    if occ is None:
+    """β Σ_s F D G/(4cosθr) Φ_s (N, C) over the bright sources a neighbour hides (the part of
+    the receiver's environment gloss that the neighbour blocks; which sub-points:
+    :func:`~._diffuse._hidden_sources`, marched where the gloss weight β F D G/(4cosθr) of a
+    sub-point behind a neighbour's bounding sphere exceeds ``_SOURCE_GLOSS_MIN``)."""
+    src = _source_terms(sh.env)
+    if src is None:
         return None
-    sdir, sflux = _source_terms(sh.env)
+    sdir, sflux = src
+    o = jnp.maximum(obj, 0)
     mats = sh.mats
-    out = jnp.zeros((pos.shape[0], sflux.shape[-1]), pos.dtype)
+    w = jnp.zeros((pos.shape[0], sdir.shape[0]), pos.dtype)
     for k, m in enumerate(sh.materials):
-        w = _gloss_weights(nrm[:, None], view[:, None], sdir[None], mats["mu"][o][:, None],
-                           mats["n"][o][:, None], m.distribution, m.geometry)
-        out = jnp.where((o == k)[:, None], (occ * w) @ sflux, out)
-    return mats["beta"][o][:, None] * (out @ sh.basis)
+        wk = _gloss_weights(nrm[:, None], view[:, None], sdir[None], mats["mu"][o][:, None],
+                            mats["n"][o][:, None], m.distribution, m.geometry)
+        w = jnp.where((o == k)[:, None], wk, w)
+    w = mats["beta"][o][:, None] * w
+    occ = _hidden_sources(geom, sh.env, pos, o, weight=w, least=_SOURCE_GLOSS_MIN)
+    return ((occ * w) @ sflux) @ sh.basis
+
+
+#: the gloss weight (1/sr) of a bright-source sub-point below which
+#: :func:`_hidden_source_gloss` lets the neighbours' bounding spheres decide whether it is
+#: hidden (such a sub-point changes the receiver's radiance by less than 1 % of what a white
+#: Lambertian surface facing it reflects of it)
+_SOURCE_GLOSS_MIN = 0.01 / math.pi
 
 
 #: the gloss quadrature runs over the receivers in this many equal chunks (the active ones

@@ -16,7 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ...lighting import EnvironmentMap, dot3, texel_solid_angles
+from ...lighting import EnvironmentMap, dot3, texel_directions, texel_solid_angles
 from ._pass1 import _MAX_SLOPE, FRONT_CHANNELS, SUPERSAMPLE, IRGeometry, _normalize
 from ._shading import _env_blur
 
@@ -347,11 +347,8 @@ def bright_points(env: EnvironmentMap, count: int) -> BrightPoints:
     total = cdf[-1]
     at = (jnp.arange(count, dtype=lev.dtype) + 0.5) / count * total
     idx = jnp.clip(jnp.searchsorted(cdf, at), 0, h * w - 1)
-    # the texels' centres (the map's convention: u = φ/2π along a row, v = θ/π down a column)
-    phi = 2.0 * math.pi * ((idx % w).astype(lev.dtype) + 0.5) / w
-    theta = math.pi * ((idx // w).astype(lev.dtype) + 0.5) / h
-    st = jnp.sin(theta)
-    dirs = jnp.stack([jnp.sin(phi) * st, jnp.cos(theta), -jnp.cos(phi) * st], -1) @ env.rotation.T
+    centres = jnp.asarray(texel_directions(h, w).reshape(-1, 3), lev.dtype)  # map frame
+    dirs = centres[idx] @ env.rotation.T
     bt = b[idx]
     shape = lev[idx] / jnp.where(bt > 0.0, bt, 1.0)[:, None]  # (K, r): brightness 1
     flux = (jnp.sum(excess) / count) * shape

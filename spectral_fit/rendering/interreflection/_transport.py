@@ -40,20 +40,21 @@ area-weighted mean position and normal, and coverage. The shading pass then:
    a 3 × 3 grid of directions spanning i's bounding sphere as seen from y;
 2. gathers at each receiver x on i, per fragment (no shared projection centre), always with
    j's radiance towards x itself (view direction y → x, not towards the camera):
-   - diffuse: α S_i(λ) [Σ_y F(x, y) L_y(→x) − (Σ_y F) ⟨L_env⟩ − hidden sources/π] with the
-     point-to-patch form factor F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²)) (the midpoint
+   - diffuse: α S_i(λ) [Σ_y F(x, y) L_y(→x) − hidden environment − hidden sources/π] with
+     the point-to-patch form factor F = cos_x cos_y A_y / (π √(r⁴ + (A_y/π)²)) (the midpoint
      rule cos cos A/(π r²) to second order, bounded by cos_x cos_y at contact), L_y(→x) the
      view-independent part plus the view-dependent part interpolated bilinearly on the view
-     grid, and ⟨L_env⟩ the cosine-weighted mean of the environment over the cone of j's
-     bounding sphere (a small cone quadrature): the light that j hides. The sums run at i's
+     grid; the light that j hides is a cosine-weighted quadrature of the environment over
+     the receiver's directions towards j, each node's ray marched through j's pass-1 depth
+     map, and the map's bright sources' sub-points marched alike. The sums run at i's
      own pass-1 samples facing j (pair (j, i)); a receiver projects onto that grid and
      interpolates the ratio of the bracket to the form factor of j's bounding sphere, times
      that form factor at the receiver (``diffuse_at="receivers"``: sums at every receiver);
    - gloss: β A(x) Σ_q w_q h_q [L_j(y_q → x) − L_env(ω_q)] over a quadrature ω_q of the
-     receiver's own lobe D F G (V·H)/(N·V) (weights w_q, albedo A), each node ray intersected
-     with j's bounding sphere (soft hit h_q, continuous at the silhouette) and j's radiance at
-     the hit read from a mip pyramid of the samples (view-independent part, normal) plus
-     :func:`_specular` evaluated there towards x;
+     receiver's own lobe D F G (V·H)/(N·V) (weights w_q, albedo A), each node ray marched
+     through j's pass-1 depth map (hit h_q) and j's radiance at the hit read from a mip
+     pyramid of the samples (view-independent part, normal) plus :func:`_specular` evaluated
+     there towards x;
    - mirror: χ F(n, θr) times the same along R;
 3. ``bounces`` > 1: the samples themselves receive step 2 from the other objects' samples
    before the receivers gather (Jacobi iteration of the radiosity-like exchange).
