@@ -52,6 +52,13 @@ def _depth_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, side: int
     return idx, w, dx, dy
 
 
+def _tap_sum(values: jax.Array, w: jax.Array) -> jax.Array:
+    """Σ_i w_i v_i over the four taps (..., 4), unrolled (XLA:CPU runs a reduction over a
+    short last axis as a slow loop)."""
+    return (values[..., 0] * w[..., 0] + values[..., 1] * w[..., 1]
+            + values[..., 2] * w[..., 2] + values[..., 3] * w[..., 3])
+
+
 def _sender_box(geom: IRGeometry) -> jax.Array:
     """(P, 3, 2) the box, in each pair's frame about ``centre_j`` (s, u, the axis towards the
     receiver; low and high, m), that holds the covered texels of the sender's depth map and
@@ -109,26 +116,34 @@ def _front_surface(taps: jax.Array, w: jax.Array, dx: jax.Array, dy: jax.Array,
     then pass in front of a box's edge they hit) and a blend of the planes overshoots it by
     an eighth."""
     # covered taps whose face is not seen edge-on (an edge-on face's slope is clamped: its
-    # plane does not bound the surface, and its height is not extrapolated)
-    gx, gy = taps[..., 3], taps[..., 4]
-    steep = _STEEP * texel[..., None]
-    on = (taps[..., 0] > 0.5) & (jnp.abs(gx) < steep) & (jnp.abs(gy) < steep)
-    plane = taps[..., 1] + jnp.where(on, gx * dx + gy * dy, 0.0)  # (..., 4)
-    blend = jnp.sum(plane * w, -1) / jnp.maximum(cov, 1e-6)
-    big = jnp.asarray(1e9, plane.dtype)
-    low = jnp.min(jnp.where(on, plane, big), -1)
-    high = jnp.max(jnp.where(on, plane, -big), -1)
+    # plane does not bound the surface, and its height is not extrapolated); unrolled over
+    # the four taps (XLA:CPU runs reductions over a short last axis as slow loops: the
+    # reductions took three times the rest of the march)
+    steep = _STEEP * texel
+    big = jnp.asarray(1e9, taps.dtype)
+    on, plane, gxs, gys = [], [], [], []
+    for i in range(4):
+        gx, gy = taps[..., i, 3], taps[..., i, 4]
+        o = (taps[..., i, 0] > 0.5) & (jnp.abs(gx) < steep) & (jnp.abs(gy) < steep)
+        on.append(o)
+        gxs.append(gx)
+        gys.append(gy)
+        plane.append(taps[..., i, 1] + jnp.where(o, gx * dx[..., i] + gy * dy[..., i], 0.0))
+    blend = _tap_sum(jnp.stack(plane, -1), w) / jnp.maximum(cov, 1e-6)
+    low = functools.reduce(jnp.minimum, [jnp.where(on[i], plane[i], big) for i in range(4)])
+    high = functools.reduce(jnp.maximum, [jnp.where(on[i], plane[i], -big) for i in range(4)])
     # the fall of the slope across the four edges between those taps
-    falls = [jnp.where(on[..., a] & on[..., b], g[..., a] - g[..., b], 0.0)
-             for g, a, b in ((gx, 0, 1), (gx, 2, 3), (gy, 0, 2), (gy, 1, 3))]
+    falls = [jnp.where(on[a] & on[b], g[a] - g[b], 0.0)
+             for g, a, b in ((gxs, 0, 1), (gxs, 2, 3), (gys, 0, 2), (gys, 1, 3))]
     tol = _CREASE * texel
     # a ridge where no edge rises, a valley where none falls (a saddle, or a smooth mesh's
     # facets turning both ways across the taps, keeps the blend)
+    total = sum(falls)
     ridge = jnp.where(functools.reduce(jnp.minimum, falls) > -tol,
-                      jnp.clip(sum(falls) / tol, 0.0, 1.0), 0.0)
+                      jnp.clip(total / tol, 0.0, 1.0), 0.0)
     valley = jnp.where(functools.reduce(jnp.maximum, falls) < tol,
-                       jnp.clip(-sum(falls) / tol, 0.0, 1.0), 0.0)
-    any_on = jnp.any(on, -1)
+                       jnp.clip(-total / tol, 0.0, 1.0), 0.0)
+    any_on = on[0] | on[1] | on[2] | on[3]
     low, high = jnp.where(any_on, low, blend), jnp.where(any_on, high, blend)
     return blend + ridge * (low - blend) + valley * (high - blend)
 
@@ -160,7 +175,10 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     side = geom.gather_size * SUPERSAMPLE
     # the slopes only where the creases are kept (the environment a neighbour hides); the
     # lobe's rays read the bilinear heights (the slopes' taps and planes doubled the march)
-    front = geom.s_front.reshape(-1, FRONT_CHANNELS)[:, :FRONT_CHANNELS if creases else 3]
+    sf = geom.s_front.reshape(-1, FRONT_CHANNELS)
+    # gathered as tables of at most two channels each: XLA:CPU gathers rows of one or two
+    # floats several times faster per element than rows of three or five
+    tables = [sf[:, 0:2], sf[:, 2:3]] + ([sf[:, 3:5]] if creases else [])
     cj = geom.centre_j[pair][:, None]  # (N, 1, 3)
     rj = geom.radius_j[pair][:, None]  # (N, 1)
     fr = geom.frame[pair]  # (N, 3, 3)
@@ -192,13 +210,13 @@ def _march(geom: IRGeometry, pair: jax.Array, pos: jax.Array, dirs: jax.Array, *
     tx = (coord[0] / ext + 1.0) * 0.5 * side
     ty = (1.0 - coord[1] / ext) * 0.5 * side
     idx, w, dx, dy = _depth_taps(jnp.broadcast_to(pair[:, None, None], tx.shape), tx, ty, side)
-    taps = front[idx]  # (N, Q, K, 4, FRONT_CHANNELS)
-    cov = jnp.sum(taps[..., 0] * w, -1)
+    taps = jnp.concatenate([tb[idx] for tb in tables], -1)  # (N, Q, K, 4, 5 or 3)
+    cov = _tap_sum(taps[..., 0], w)
     if creases:
         surf = _front_surface(taps, w, dx, dy, cov, ext * (2.0 / side))
     else:
-        surf = jnp.sum(taps[..., 1] * w, -1) / jnp.maximum(cov, 1e-6)
-    depth = jnp.sum(taps[..., 2] * w, -1) / jnp.maximum(cov, 1e-6)
+        surf = _tap_sum(taps[..., 1], w) / jnp.maximum(cov, 1e-6)
+    depth = _tap_sum(taps[..., 2], w) / jnp.maximum(cov, 1e-6)
     step = (t1 - t0)[..., None] / steps
     thick = jnp.maximum(1.5 * step * jnp.abs(dot3(dirs, fr[:, None, 2]))[..., None], depth)
     below = coord[2] - surf  # > 0: in front of the surface (towards the receiver)
