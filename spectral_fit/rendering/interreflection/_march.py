@@ -358,8 +358,7 @@ def bright_points(env: EnvironmentMap, count: int) -> BrightPoints:
     level = _BRIGHT * jnp.sum(jnp.maximum(b, 0.0) * dw) / (4.0 * math.pi)
     # at most _BRIGHT_TEXELS texels above the level: a compact bright region; a broad one (a
     # studio's softbox) is left to the nodes, which spread over it better than the points
-    top = jax.lax.top_k(b, min(_BRIGHT_TEXELS + 1, h * w))[0][-1]
-    level = jax.lax.stop_gradient(jnp.maximum(level, top))
+    level = jax.lax.stop_gradient(jnp.maximum(level, _count_level(b, _BRIGHT_TEXELS)))
     excess = jnp.maximum(b - level, 0.0) * dw  # (H·W,) flux above the level
     cdf = jnp.cumsum(jax.lax.stop_gradient(excess))
     total = cdf[-1]
@@ -371,6 +370,21 @@ def bright_points(env: EnvironmentMap, count: int) -> BrightPoints:
     shape = lev[idx] / jnp.where(bt > 0.0, bt, 1.0)[:, None]  # (K, r): brightness 1
     flux = (jnp.sum(excess) / count) * shape
     return BrightPoints(dirs=dirs, flux=jnp.where(total > 0.0, flux, 0.0), level=level)
+
+
+def _count_level(b: jax.Array, count: int, iterations: int = 30) -> jax.Array:
+    """The lowest value (to 2⁻³⁰ of the range) that at most ``count`` entries of ``b`` (n,)
+    exceed, by bisection (a top-k of the map sorted all its texels: a few ms a frame)."""
+    b = jax.lax.stop_gradient(b)
+
+    def halve(_: int, lo_hi: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        lo, hi = lo_hi
+        mid = 0.5 * (lo + hi)
+        many = jnp.sum((b > mid).astype(jnp.int32)) > count
+        return jnp.where(many, mid, lo), jnp.where(many, hi, mid)
+
+    lo, hi = jnp.min(b), jnp.max(b)
+    return jax.lax.fori_loop(0, iterations, halve, (lo, hi))[1]
 
 
 def _brightness(env: EnvironmentMap, radiance: jax.Array) -> jax.Array:
