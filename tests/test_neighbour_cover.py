@@ -387,3 +387,18 @@ def test_neighbour_s_shape_casts_the_shadow_of_a_bright_source(slabs):
     tp = oc @ sdir.T
     sphere = (tp > 0) & (np.sum(oc * oc, -1)[:, None] - tp * tp < r * r)
     assert np.mean(sphere != want) > 1 / 3
+
+
+def test_bright_level_is_the_count_th_brightest_texel():
+    """The bright points' level (``_march._count_level``, a bisection on the count of
+    brighter texels) against a NumPy sort: at most ``count`` entries exceed it, and it lies
+    within 2⁻²⁰ of the range above the (count + 1)-th largest value; below ``count`` entries
+    in all, every entry but the smallest exceeds it."""
+    march = importlib.import_module("spectral_fit.rendering.interreflection._march")
+    rng = np.random.default_rng(5)
+    for n, count in ((100, 512), (5000, 512), (40000, 64)):
+        b = rng.lognormal(0.0, 2.0, n).astype(np.float32)
+        level = float(jax.jit(lambda x, c=count: march._count_level(x, c))(jnp.asarray(b)))
+        assert np.sum(b > level) <= count
+        want = np.sort(b)[-(count + 1)] if n > count else b.min()
+        assert want <= level <= want + 2.0**-20 * (b.max() - b.min()), (n, level, want)

@@ -366,8 +366,9 @@ def _near_neighbour(geom: IRGeometry, pos: jax.Array, nrm: jax.Array, obj: jax.A
     for k in range(k_per):
         pair = o * k_per + k  # (i, j): samples on the neighbour j
         q = rev[pair]  # (j, i): the samples on i facing j
-        d = geom.s_pos[pair] - pos[:, None]  # (N, M, 3)
-        d2 = jnp.where(live[pair], jnp.sum(d * d, -1), jnp.inf)
+        # by components (a sum over a last axis of 3 runs as a slow loop on XLA:CPU)
+        d = [geom.s_pos[..., c][pair] - pos[:, None, c] for c in range(3)]  # 3 × (N, M)
+        d2 = jnp.where(live[pair], d[0] * d[0] + d[1] * d[1] + d[2] * d[2], jnp.inf)
         dmin = jnp.sqrt(jnp.min(d2, -1))
         cos_a = jnp.maximum(jnp.abs(dot3(nrm, geom.frame[q][:, 2])), 0.2)
         reach = _ANCHOR_NEAR * (2.0 * geom.extent[q] / g) / cos_a + geom.extent[pair] / g
