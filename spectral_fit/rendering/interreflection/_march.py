@@ -54,7 +54,9 @@ def _depth_taps(pair: jax.Array, tx: jax.Array, ty: jax.Array, side: int
 
 def _tap_sum(values: jax.Array, w: jax.Array) -> jax.Array:
     """Σ_i w_i v_i over the four taps (..., 4), unrolled (XLA:CPU runs a reduction over a
-    short last axis as a slow loop)."""
+    short last axis as a slow loop). The values are gathered already: the march gathers the
+    depth map's channels two at a time; :func:`~spectral_fit.lighting.taps_sum`'s gather per
+    tap of three-channel rows made the plain march 2.4 times slower."""
     return (values[..., 0] * w[..., 0] + values[..., 1] * w[..., 1]
             + values[..., 2] * w[..., 2] + values[..., 3] * w[..., 3])
 
