@@ -86,9 +86,12 @@ class SelfTransfer(eqx.Module):
         patch_share: per listed object (V_o,) float32 the vertex's share of its patch's area.
         patch_transfer: per listed object (P_o, P_o) float32 ``transfer``'s rows averaged
             over each patch (area shares): the Jacobi steps' patch-to-patch transfer.
-        gloss_transfer: per listed object (V_o, G_o) float32, as ``transfer`` over the
-            object's G_o gloss patches.
-        gloss_patch_of: per listed object (V_o,) int32 gloss patch of each vertex.
+        gloss_transfer: per listed object (N_o,) float32 the nonzero entries T_vq of
+            ``transfer`` over the object's G_o gloss patches (V_o × G_o, sparse: a vertex's
+            hidden directions land on a few of them).
+        gloss_transfer_at: per listed object (N_o, 2) int32 each entry's vertex v and pair
+            p·G_o + q (p the vertex's own gloss patch, q where its hidden directions land),
+            sorted by v.
         gloss_normal: per listed object (G_o, 3) float32 each gloss patch's mean normal.
         gloss_pair: per listed object (U_o,) int32 the pair p·G_o + q (receiver patch p,
             sender q) of each of the U_o (pair, angle bin) triples that carry light: per
@@ -112,10 +115,13 @@ class SelfTransfer(eqx.Module):
         gloss_to_patches: per listed object (P_o, U_o) float32 what radiance sent along each
             triple adds to the patches' irradiance (the vertices' gloss irradiance,
             :func:`_gloss_to_vertices`, averaged over each patch as the Jacobi steps do).
-        gloss_next: per listed object (U_o, G_o) int32 the triple whose radiance arrives
-            along each share of ``gloss_hit``: the hit patch g sending towards the triple's
-            sender q, in the bin of the angle at g (U_o: none): the gloss of the hit, reflected
-            again by the sender (the light a cup's walls pass on from wall to wall).
+        gloss_next: per listed object (H_o, 2) int32, for each of the H_o nonzero shares of
+            ``gloss_hit`` (u, g) whose hit sends light back, sorted by u: the triple u and the
+            triple whose radiance arrives along that share: the hit patch g sending towards
+            u's sender q, in the bin of the angle at g: the gloss of the hit, reflected again by
+            the sender (the light a cup's walls pass on from wall to wall). Sparse, as most of
+            a triple's mirror directions leave the object or land on a few patches.
+        gloss_next_share: per listed object (H_o,) float32 those shares of ``gloss_hit``.
         gloss_open_view: per listed object (U_o, 3) float32 the view of the environment the
             triple sends: mirrored about ``gloss_normal[q]``, the mean of the mirror directions
             of the triple's hidden directions (each about its own hit's normal) weighted by how
@@ -141,7 +147,7 @@ class SelfTransfer(eqx.Module):
     patch_share: tuple[jax.Array, ...]
     patch_transfer: tuple[jax.Array, ...]
     gloss_transfer: tuple[jax.Array, ...]
-    gloss_patch_of: tuple[jax.Array, ...]
+    gloss_transfer_at: tuple[jax.Array, ...]
     gloss_normal: tuple[jax.Array, ...]
     gloss_pair: tuple[jax.Array, ...]
     gloss_share: tuple[jax.Array, ...]
@@ -151,6 +157,7 @@ class SelfTransfer(eqx.Module):
     gloss_from_patch: tuple[jax.Array, ...]
     gloss_to_patches: tuple[jax.Array, ...]
     gloss_next: tuple[jax.Array, ...]
+    gloss_next_share: tuple[jax.Array, ...]
     gloss_open_view: tuple[jax.Array, ...]
     gloss_slot: jax.Array
     gloss_triple: jax.Array
@@ -221,6 +228,7 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
     hidden_rows, hit_rows = [], []
     objs, weights, transfers, patch_of, shares = [], [], [], [], []
     gloss: list[tuple[np.ndarray, ...]] = []
+    gloss_of: list[np.ndarray] = []
     for o, ((a, b), (ta, tb)) in enumerate(zip(vertex_slices, triangle_slices, strict=True)):
         v = np.asarray(vertices[a:b], np.float64)
         t = np.asarray(triangles[ta:tb], np.int64) - a
@@ -244,6 +252,7 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
         t_pp = np.zeros((n_p, n_p))
         np.add.at(t_pp, p_of, share[:, None] * tr)
         g_of = _patches(feat, GLOSS_PATCHES)
+        gloss_of.append(g_of)
         gloss.append((t_pp.astype(np.float32),
                       *_gloss_used(*_gloss_pairs(v, n, area, sv, w, rows, cols, t, hit, g_of),
                                    p_of=p_of, vertex_share=share, area=area)))
@@ -264,7 +273,7 @@ def build_self_transfer(vertices: np.ndarray, triangles: np.ndarray, normals: np
     per_object = (tuple(jnp.asarray(x) for x in col)
                   for col in zip(*(g[:-1] for g in gloss), strict=True))
     slot, triple = _gloss_slots(tables, [len(g[4]) for g in gloss],
-                                [vertex_slices[o] for o in objs], [g[2] for g in gloss],
+                                [vertex_slices[o] for o in objs], gloss_of,
                                 len(vertices))
     return SelfTransfer(jnp.asarray(dirs), jnp.asarray(row),
                         jnp.asarray(np.concatenate(hidden_rows)),
@@ -303,7 +312,7 @@ def _gloss_used(tg: np.ndarray, g_of: np.ndarray, normal: np.ndarray, share: np.
     ``open_view`` (G, G, J, 3) the view of the environment the triple sends) kept for
     the U triples that carry light, with the maps from the gloss patches to the P patches
     ``p_of`` (V,) (``vertex_share`` (V,): each vertex's area share of its patch; ``area``
-    (V,)): the :class:`SelfTransfer` fields from ``gloss_transfer`` to ``gloss_next``, and
+    (V,)): the :class:`SelfTransfer` fields from ``gloss_transfer`` to ``gloss_open_view``, and
     the object's triple table (G, G, J) (:func:`_triple_table`)."""
     n_g = normal.shape[0]
     n_j = share.shape[-1]
@@ -322,12 +331,18 @@ def _gloss_used(tg: np.ndarray, g_of: np.ndarray, normal: np.ndarray, share: np.
     table = _triple_table(share)
     # the radiance arriving at sender q from where its mirror direction lands (patch g): g's
     # own triple towards q, in the bin of the angle there
-    nxt = table[q_u[:, None], np.arange(n_g)[None], land_bin[used]]
+    nxt = table[q_u[:, None], np.arange(n_g)[None], land_bin[used]]  # (U, G); U: none
+    hits = lands[used]
+    u_of, g_at = np.nonzero((hits > 0) & (nxt < len(used)))  # row-major: sorted by u
     f32 = np.float32
-    return (tg.astype(f32), g_of.astype(np.int32), normal.astype(f32), pair, s_u.astype(f32),
+    v_at, q_at = np.nonzero(tg)  # row-major: sorted by the vertex
+    return (tg[v_at, q_at].astype(f32),
+            np.stack([v_at, g_of[v_at] * n_g + q_at], axis=-1).astype(np.int32),
+            normal.astype(f32), pair, s_u.astype(f32),
             view.reshape(-1, 3)[used].astype(f32), visible.reshape(-1)[used].astype(f32),
-            lands[used].astype(f32), from_patch.astype(f32), to_patches.astype(f32),
-            nxt.astype(np.int32), open_view.reshape(-1, 3)[used].astype(f32), table)
+            hits.astype(f32), from_patch.astype(f32), to_patches.astype(f32),
+            np.stack([u_of, nxt[u_of, g_at]], axis=-1).astype(np.int32),
+            hits[u_of, g_at].astype(f32), open_view.reshape(-1, 3)[used].astype(f32), table)
 
 
 def _triple_table(share: np.ndarray) -> np.ndarray:
@@ -649,11 +664,14 @@ def _gloss_irradiance(st: SelfTransfer, i: int, m: Any, env: Any, rot: jax.Array
 def _gloss_to_vertices(st: SelfTransfer, i: int, radiance: jax.Array) -> jax.Array:
     """The irradiance (V_o, C) of the listed object ``i``'s vertices from the radiance
     (U, C) its gloss patches send along the triples: Σ_q T_vq Σ_j s_pqj L_pqj, p the
-    vertex's gloss patch, T ``gloss_transfer``, s ``gloss_share``."""
+    vertex's gloss patch, T ``gloss_transfer`` (sparse: ``gloss_transfer_at``), s
+    ``gloss_share``."""
     n_g = st.gloss_normal[i].shape[0]
     pair = jax.ops.segment_sum(st.gloss_share[i][:, None] * radiance, st.gloss_pair[i],
-                               num_segments=n_g * n_g).reshape(n_g, n_g, -1)
-    return jnp.einsum("vq,vqc->vc", st.gloss_transfer[i], pair[st.gloss_patch_of[i]])
+                               num_segments=n_g * n_g)  # (G·G, C)
+    at = st.gloss_transfer_at[i]
+    return jax.ops.segment_sum(st.gloss_transfer[i][:, None] * pair[at[:, 1]], at[:, 0],
+                               num_segments=st.weights[i].shape[0], indices_are_sorted=True)
 
 
 def _own_gloss(st: SelfTransfer, i: int, albedo: jax.Array, patch: jax.Array,
@@ -664,12 +682,13 @@ def _own_gloss(st: SelfTransfer, i: int, albedo: jax.Array, patch: jax.Array,
     (``gloss_hit``): the diffuse radiance ``patch`` (P_o, C) (per patch, averaged over the
     gloss patches) and, with ``sent`` (U, C) (the triples' radiance of the step before), the
     gloss of the patch it meets sent back towards the sender (``gloss_next``)."""
-    seen = st.gloss_from_patch[i] @ patch  # (G, C)
+    seen = st.gloss_hit[i] @ (st.gloss_from_patch[i] @ patch)  # (U, C)
     if sent is not None:
-        padded = jnp.concatenate([sent, jnp.zeros((1, sent.shape[1]), sent.dtype)])
-        seen = seen[None] + padded[st.gloss_next[i]]  # (U, G, C)
-        return albedo * jnp.einsum("ug,ugc->uc", st.gloss_hit[i], seen)
-    return albedo * (st.gloss_hit[i] @ seen)
+        nxt = st.gloss_next[i]  # (H, 2): sparse, sorted by the receiving triple
+        seen = seen + jax.ops.segment_sum(st.gloss_next_share[i][:, None] * sent[nxt[:, 1]],
+                                          nxt[:, 0], num_segments=sent.shape[0],
+                                          indices_are_sorted=True)
+    return albedo * seen
 
 
 def own_reflection(st: SelfTransfer, *, model: jax.Array, vertex_object: jax.Array,

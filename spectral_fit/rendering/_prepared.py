@@ -52,7 +52,7 @@ TRACE_COUNT = {"render_frame": 0, "ir_senders": 0}
 #: version of :class:`Prepared`'s layout (its parts and their fields), part of the
 #: prepared-scene cache's keys: an entry pickled with another layout is never loaded
 #: (1: one flat class; 2: the named parts)
-PREPARED_LAYOUT = 8
+PREPARED_LAYOUT = 9
 
 
 class SceneMeshes(eqx.Module):
