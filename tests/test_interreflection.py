@@ -8,6 +8,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -814,27 +815,38 @@ def _random_placements(seed, n, distance):
         yield jnp.asarray(rot, jnp.float32), jnp.asarray(cj, jnp.float32)
 
 
-def test_planned_pass1_capacities_hold_for_any_orientation():
-    """plan_gather_pass1 counts six axis views of the mesh; the pass-1 raster of that mesh
-    seen along 24 random directions, each with a random roll, must fit its capacities
+@pytest.mark.parametrize("shape, g", [("sphere", 16), ("slab", 16), ("slab", 32)])
+def test_planned_pass1_capacities_hold_for_any_orientation(shape, g):
+    """plan_gather_pass1 counts axis and oblique views of the mesh; the pass-1 raster of that
+    mesh seen along 24 random directions, each with a random roll, must fit its capacities
     (overflow is what the rasteriser itself reports), and they are far below the generic
-    ones (the 4×4 windows: T for the generic sizing)."""
+    ones (the 4×4 windows: T for the generic sizing). The slab (70 × 90 × 12 mm, a box):
+    seen obliquely its edges fall into many one-texel windows, 1.8 times what any view along
+    its axes needs; at g = 16 and at g = 32 (``[interreflection] gather_size``)."""
     from spectral_fit.geometry import ObjectGeometry
-    from spectral_fit.io import uv_sphere
+    from spectral_fit.io import load_mesh, uv_sphere
     from spectral_fit.rendering.interreflection import plan_gather_pass1, prepare_interreflection
 
-    sph = uv_sphere(0.0375, 100, 100)  # the paper's spheres: 19,800 triangles
-    cfg = plan_gather_pass1(sph.vertices, sph.triangles)
-    t = len(sph.triangles)
-    assert cfg.capacities[1] < t / 8 and cfg.capacities[0] < t
+    if shape == "sphere":
+        mesh = uv_sphere(0.0375, 100, 100)  # the paper's spheres: 19,800 triangles
+    else:
+        mesh = load_mesh(Path(__file__).resolve().parents[1] / "measurements" / "meshes"
+                         / "slab.ply")
+    cfg = plan_gather_pass1(mesh.vertices, mesh.triangles, gather_size=g)
+    t = len(mesh.triangles)
+    if shape == "sphere":
+        assert cfg.capacities[1] < t / 8 and cfg.capacities[0] < t
 
     def overflow(rot, cj):
-        return prepare_interreflection(_rotated_pair(sph, rot, cj), mode="gather",
-                                       raster_config=cfg).overflow
+        return prepare_interreflection(_rotated_pair(mesh, rot, cj), mode="gather",
+                                       gather_size=g, raster_config=cfg).overflow
 
     f = jax.jit(overflow)
-    for rot, cj in _random_placements(7, 24, 0.09):
+    for rot, cj in _random_placements(7, 24, 0.09 if shape == "sphere" else 0.12):
         assert not bool(f(rot, cj))
+    if shape != "sphere":
+        return
+    sph = mesh
     # and the check can fail: a quarter of the capacities overflows
     small = cfg._replace(capacities=tuple(max(16, c // 4) for c in cfg.capacities))
     objs = [ObjectGeometry(jnp.asarray(sph.vertices) + c, jnp.asarray(sph.normals),

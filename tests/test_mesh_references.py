@@ -262,7 +262,7 @@ def test_cli_validate_refuses_samples_outside_the_range(capsys):
 #: those statistics, the target for every other one
 MISSED = {
     "on_table": {"objects, interreflection > 2 %": (0.15, 0.75, 4.21)},
-    "flat_faces": {"objects, interreflection > 2 %": (0.64, 1.67, 4.91)},
+    "flat_faces": {"objects, interreflection > 2 %": (0.60, 1.23, 2.76)},
     "parts": {"objects, interreflection > 2 %": (0.29, 1.58, 1.90)},
 }
 
@@ -273,11 +273,11 @@ def test_validate_every_scene(name, tmp_path):
     """`spectral-fit validate <name> --json -o picture` (2 × 2 samples per pixel): each
     region's median, p90 and max within its target where met today, else within 1.1 × today's
     figure + 0.05 (MISSED): on_table objects > 2 % max 4.21 (the cup's inside under its lip);
-    flat_faces > 2 % 0.64 / 1.67 / 4.91 (the front slab's top face in the 4 mm gap,
-    too dark in the red: the back slab's orange light there); parts > 2 % p90 1.58 (the glaze
-    inside the cup 5 % too dark: its own glossy light). Met today: every other figure, all
-    of benchmark's, two_spheres', any_shape's and four_objects' (the sphere references in
-    gather, their regions split at 2 %). The picture is written where asked."""
+    flat_faces > 2 % median 0.60 (at the config's gather_size = 32; the back slab's face
+    above and beside the front slab and the front slab's side face, 3–10 % off); parts > 2 %
+    p90 1.58 (the glaze inside the cup 5 % too dark: its own glossy light). Met today: every
+    other figure, all of benchmark's, two_spheres', any_shape's and four_objects' (the sphere
+    references in gather, their regions split at 2 %). The picture is written where asked."""
     import subprocess
     import sys
 

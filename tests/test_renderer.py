@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -327,6 +328,24 @@ def test_bad_inputs_name_the_option(prep, scene_folder):
         render_frame(prep, visible=np.array([True]))
     with pytest.raises(InputError, match="materials"):
         render_frame(prep, [jax.tree.map(lambda x: x[0], prep.materials)])
+    with pytest.raises(InputError, match="gather_size"):
+        prepare(cfg, gather_size=12)
+
+
+def test_gather_size_reaches_the_pass_1_raster(scene_folder):
+    """``[interreflection] gather_size`` (or ``prepare(gather_size=)``) sets g: the pass-1
+    raster is (4g)², its capacities planned for that raster (8 × 8 blocks: (4g/8)²)."""
+    from spectral_fit.io import load_scene
+    from spectral_fit.rendering import prepare
+
+    cfg = write_scene(scene_folder, mode="gather")
+    for g in (8, 32):
+        p = prepare(cfg, size=(48, 32), gather_size=g, occlusion=False)
+        assert p.interreflection.gather_size == g
+        assert p.buffers.ir_raster_config.block_capacity == (4 * g // 8) ** 2
+    root = Path(__file__).resolve().parents[1]
+    assert load_scene(root / "configs" / "flat_faces.toml").interreflection.gather_size == 32
+    assert load_scene(root / "configs" / "benchmark.toml").interreflection.gather_size == 16
 
 
 def _interreflection_available() -> bool:

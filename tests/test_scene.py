@@ -103,6 +103,8 @@ MALFORMED = [
     (("spectral", "end_nm"), 300.0, "spectral.end_nm: must be >= 360"),
     (("interreflection", "mode"), "radiosity", "interreflection.mode: must be one of"),
     (("interreflection", "bounces"), 99, "interreflection.bounces: must be in"),
+    (("interreflection", "gather_size"), 24, "interreflection.gather_size: must be a power"),
+    (("interreflection", "gather_size"), 128, "interreflection.gather_size: must be in"),
     (("objects",), [], "objects: need at least one"),
     (("objects", 0, "material", "mu"), -0.1, r"objects\[0\].material.mu: must be > 0"),
     (("objects", 1, "material", "n"), 1.0, r"objects\[1\].material.n: must be > 1"),

@@ -29,20 +29,22 @@ def plan_capacities(clip: np.ndarray, triangles: np.ndarray, shape: tuple[int, i
     return RasterConfig.from_counts(counts, headroom=headroom), counts.pixels
 
 
-def _ir_generic_config(mode: str, texture_size: int, triangles: int) -> Any:
+def _ir_generic_config(mode: str, texture_size: int, triangles: int, gather_size: int = 16
+                       ) -> Any:
     """The generic window capacities of a pass-1 raster of ``triangles`` triangles
     (:func:`~spectral_fit.rendering.interreflection._pass1.pass1_config`) on the pass-1 frame:
-    64² for
-    gather (4× supersampled 16² samples), ``texture_size``² for paper."""
+    (4 g)² for gather (4× supersampled g² samples, g = ``gather_size``), ``texture_size``²
+    for paper."""
     from .interreflection._pass1 import SUPERSAMPLE, pass1_config
 
-    return pass1_config(triangles, texture_size if mode == "paper" else SUPERSAMPLE * 16)
+    return pass1_config(triangles, texture_size if mode == "paper" else SUPERSAMPLE * gather_size)
 
 
 def _ir_raster_config(mode: str, texture_size: int, triangles: int,
                       paper_clips: list[np.ndarray] | None = None,
                       paper_tris: list[np.ndarray] | None = None,
-                      meshes: list[tuple[np.ndarray, np.ndarray]] | None = None) -> Any:
+                      meshes: list[tuple[np.ndarray, np.ndarray]] | None = None,
+                      gather_size: int = 16) -> Any:
     """Window capacities of the interreflection pass-1 rasters (inside the compiled frame, so
     they cannot be grown there; an overflow is flagged and :func:`render` / the live session
     then fall back to :func:`_ir_generic_config`). Gather: planned per sender mesh for any
@@ -63,11 +65,11 @@ def _ir_raster_config(mode: str, texture_size: int, triangles: int,
             key = hashlib.sha1(np.ascontiguousarray(v, np.float32).tobytes()
                                + np.ascontiguousarray(t, np.int32).tobytes()).digest()
             if key not in planned:
-                planned[key] = plan_gather_pass1(v, t)
+                planned[key] = plan_gather_pass1(v, t, gather_size=gather_size)
         cfgs = list(planned.values())
         return cfgs[0]._replace(
             capacities=tuple(max(c) for c in zip(*(g.capacities for g in cfgs), strict=True)))
-    cfg = _ir_generic_config(mode, texture_size, triangles)
+    cfg = _ir_generic_config(mode, texture_size, triangles, gather_size)
     for clip, tris in zip(paper_clips or [], paper_tris or [], strict=True):
         need, _ = plan_capacities(clip, tris, (texture_size, texture_size), headroom=2.0)
         cfg = cfg._replace(capacities=tuple(max(a, b) for a, b in

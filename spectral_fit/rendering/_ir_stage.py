@@ -55,6 +55,7 @@ def _ir_pass1(prep: Prepared, geoms: list[ObjectGeometry]) -> Any:
     with jax.named_scope("ir_pass1"):
         geom = prepare_interreflection(geoms, mode=prep.interreflection.mode,
                                        texture_size=prep.interreflection.texture_size,
+                                       gather_size=prep.interreflection.gather_size,
                                        raster_config=prep.buffers.ir_raster_config)
         return without_pairs(geom, prep.interreflection.bodies)
 

@@ -51,9 +51,10 @@ _IR_MODES = ("gather", "paper", "none")
 QUALITIES = ("fast", "render", "exact")
 
 
-def _ir_mesh(obj: Any, mesh: Any, mode: str) -> Any:
+def _ir_mesh(obj: Any, mesh: Any, mode: str, gather_size: int = 16) -> Any:
     """The mesh the interreflection's pass 1 rasterises for ``obj`` (whose camera mesh is
-    ``mesh``). Gather mode resolves a sender on a (SUPERSAMPLE · g)² = 64² raster framed on
+    ``mesh``). Gather mode resolves a sender on a (SUPERSAMPLE · g)² = 64² raster (g =
+    ``gather_size``, 16 in the figures that follow) framed on
     its bounding sphere, where the paper's 100 × 100 UV sphere puts ~10,000 front faces on
     ~3,200 covered texels: an analytic sphere is tessellated for that raster instead, a UV
     sphere with at most 64 slices × 32 stacks (~3 texels per slice at the equator; its
@@ -64,11 +65,11 @@ def _ir_mesh(obj: Any, mesh: Any, mode: str) -> Any:
     the paper mode (eq. 6's textures, rasterised at texture_size in perspective) keep
     ``mesh``."""
     from ..io import icosphere, uv_sphere
-    from .interreflection._pass1 import GATHER_SIZE, SUPERSAMPLE
+    from .interreflection._pass1 import SUPERSAMPLE
 
     if mode != "gather":
         return mesh
-    side = SUPERSAMPLE * GATHER_SIZE
+    side = SUPERSAMPLE * gather_size
     if obj.shape == "uv_sphere":
         stacks, slices = min(obj.stacks, side // 2), min(obj.slices, side)
         if (stacks, slices) != (obj.stacks, obj.slices):
@@ -130,6 +131,7 @@ def prepare(
     k: int | None = None,
     bounces: int | None = None,
     texture_size: int | None = None,
+    gather_size: int | None = None,
     headroom: float = 1.5,
     pixel_capacity: int | None = None,
     batch_size: int = 32,
@@ -149,7 +151,8 @@ def prepare(
         size: (W, H) frame size in pixels, replacing the config's ``[frame]``.
         mode: interreflection mode "gather" | "paper" | "none" (default: the config's).
         spectral_mode: "bands" | "basis" (default: the config's); ``k`` basis size.
-        bounces, texture_size: interreflection settings (default: the config's).
+        bounces, texture_size, gather_size: interreflection settings (default: the
+            config's).
         headroom: capacities (raster windows, covered pixels) are this multiple of what the
             configured poses need, so that objects can move without recompiling; overflow is
             reported in ``Frame.stats`` (and :func:`render` grows the buffers and re-renders).
@@ -220,6 +223,11 @@ def prepare(
         raise InputError(f"must be an int in 4..128, got {occlusion_resolution!r}",
                          field="occlusion_resolution")
     ts = scene.interreflection.texture_size if texture_size is None else int(texture_size)
+    gs = scene.interreflection.gather_size if gather_size is None else gather_size
+    if isinstance(gs, bool) or not isinstance(gs, int | np.integer) or not (
+            4 <= gs <= 64 and gs & (gs - 1) == 0):
+        raise InputError(f"must be a power of two in 4..64, got {gs!r}", field="gather_size")
+    gs = int(gs)
 
     # meshes in object frames, concatenated (and those the interreflection's pass 1 uses)
     meshes = [obj.make_mesh() for obj in scene.objects]
@@ -228,8 +236,8 @@ def prepare(
     # culls before its raster (spectral_fit.geometry)
     triangles = triangles[spatial_order(vertices, triangles, tsl)]
     model = np.stack([obj.model_matrix() for obj in scene.objects]).astype(np.float32)
-    ir_meshes = [_ir_mesh(obj, m, ir_mode) for obj, m in zip(scene.objects, meshes,
-                                                              strict=True)]
+    ir_meshes = [_ir_mesh(obj, m, ir_mode, gs) for obj, m in zip(scene.objects, meshes,
+                                                                  strict=True)]
     # the camera culls back faces when no mesh has an opening or inward winding (the gather
     # pass 1 always does: it assumes closed senders): half the raster's windows
     from ..io import is_closed_outward
@@ -338,7 +346,8 @@ def prepare(
                     paper_tris.append(triangles[ta:tb] - a)
     ir_cfg = _ir_raster_config(ir_mode, ts, max(b - a for a, b in ir_tsl), paper_clips,
                                paper_tris, [(ir_v[a:b], ir_t[ta:tb] - a) for (a, b),
-                                            (ta, tb) in zip(ir_vsl, ir_tsl, strict=True)])
+                                            (ta, tb) in zip(ir_vsl, ir_tsl, strict=True)],
+                               gather_size=gs)
 
     occ = None
     if occlusion:
@@ -381,6 +390,7 @@ def prepare(
         buffers=PreparedBuffers(clusters=clusters, raster_config=cfg, ir_raster_config=ir_cfg,
                                 pixel_capacity=cap),
         interreflection=PreparedInterreflection(mode=ir_mode, bounces=nb, texture_size=ts,
+                                                gather_size=gs,
                                                 bodies=_bodies(scene),
                                                 tail=scene.interreflection.tail),
         names=tuple(o.name for o in scene.objects),

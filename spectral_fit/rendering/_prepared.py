@@ -195,6 +195,7 @@ class PreparedInterreflection(eqx.Module):
         mode: "gather", "paper" or "none".
         bounces: number of bounces.
         texture_size: side of paper mode's pass-1 textures (texels).
+        gather_size: g, samples per side of each sender's grid in gather mode.
         bodies: (O,) the body each object belongs to (the index of its first object): the
             parts of one mesh with several materials share a body, and the interreflection
             passes no light between them
@@ -207,6 +208,7 @@ class PreparedInterreflection(eqx.Module):
     mode: str = eqx.field(static=True)
     bounces: int = eqx.field(static=True)
     texture_size: int = eqx.field(static=True)
+    gather_size: int = eqx.field(static=True, default=16)
     bodies: tuple[int, ...] = eqx.field(static=True, default=())
     tail: str = eqx.field(static=True, default="none")
 

@@ -89,7 +89,8 @@ def ir_fallback(prep: Prepared) -> RasterConfig | None:
     if cur is None:
         return None
     tris = max(tb - ta for ta, tb in prep.ir_mesh.triangle_slices)
-    gen = _ir_generic_config(prep.interreflection.mode, prep.interreflection.texture_size, tris)
+    ir = prep.interreflection
+    gen = _ir_generic_config(ir.mode, ir.texture_size, tris, ir.gather_size)
     new = cur._replace(capacities=tuple(max(a, b) for a, b in zip(
         cur.capacities, gen.capacities, strict=True)),
         block_capacity=max(cur.block_capacity, gen.block_capacity))

@@ -205,6 +205,11 @@ def pass1_config(num_triangles: int, side: int) -> RasterConfig:
 _PLAN_DIRECTIONS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0),
                     (0.0, 0.0, 1.0), (0.0, 0.0, -1.0))
 _PLAN_ROLLS_DEG = (0.0, 22.5, 45.0, 67.5)
+#: and at this many oblique directions (a Fibonacci sphere), each at two rolls: a box seen
+#: along its axes shows its faces whole, obliquely its edges in many small windows (the
+#: 70 × 90 × 12 mm slab at g = 16: 1,024 one-texel windows planned from the axes, 1,830
+#: needed at the worst of 200 random orientations)
+_PLAN_OBLIQUE = 32
 
 
 def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHER_SIZE,
@@ -215,7 +220,8 @@ def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHE
     (:func:`_gather_samples`), so what it needs depends on the mesh and the view direction
     in the mesh's own frame only, not on distances or positions: counted
     (:func:`~spectral_fit.geometry.plan_counts`, NumPy) along the six axes of that frame, each
-    at four rolls (once per distinct mesh), and sized ``headroom`` × the maximum (+16, on
+    at four rolls, and along ``_PLAN_OBLIQUE`` oblique directions at two (once per distinct
+    mesh), and sized ``headroom`` × the maximum (+16, on
     the capacity ladder). A pose needing more still
     sets the overflow flag (the renderer then falls back to generic capacities).
 
@@ -233,12 +239,19 @@ def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHE
     r = float(np.sqrt(np.max(np.sum(v * v, axis=-1)))) if v.size else 1.0
     r = max(r, 1e-9)
     windows = np.zeros(len(TILE_SIZES), np.int64)
-    for d in _PLAN_DIRECTIONS:
+    k = np.arange(_PLAN_OBLIQUE) + 0.5
+    z = 1.0 - 2.0 * k / _PLAN_OBLIQUE
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    oblique = np.stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi),
+                        z], -1)
+    views = [(d, _PLAN_ROLLS_DEG) for d in _PLAN_DIRECTIONS] + [
+        (d, _PLAN_ROLLS_DEG[::2]) for d in oblique]
+    for d, rolls in views:
         f = np.asarray(d)  # looking along f from 3r away
         s0 = np.cross(f, (0.0, 0.0, 1.0) if abs(f[1]) > 0.9 else (0.0, 1.0, 0.0))
         s0 /= np.linalg.norm(s0)
         u0 = np.cross(s0, f)
-        for roll in np.radians(_PLAN_ROLLS_DEG):
+        for roll in np.radians(rolls):
             s, u = np.cos(roll) * s0 + np.sin(roll) * u0, np.cos(roll) * u0 - np.sin(roll) * s0
             view = np.eye(4)
             view[:3, :3] = np.stack([s, u, -f])
