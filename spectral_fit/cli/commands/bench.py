@@ -153,7 +153,8 @@ def merged_results(path: Path, results: dict[str, Any]) -> dict[str, Any]:
 
 #: speed ratios the table adds when a run has both cases: (slower case, faster case)
 TABLE_RATIOS = (("gl_paper", "frame_paper"), ("gl_paper", "frame_paper_b1"),
-                ("gl_paper_none", "frame_paper_none"), ("gl_paper_anchor_workload", "frame_paper"))
+                ("gl_paper_none", "frame_paper_none"), ("gl_paper_anchor_workload", "frame_paper"),
+                ("frame_any_shape", "frame_paper"))
 
 
 def _cell(v: dict[str, Any]) -> str:
