@@ -41,10 +41,12 @@ DEFAULT_SPP = {"benchmark": 512, "two_spheres": 256}
 #: any_shape and on_table are those of their scripts' renders)
 MESH_CONFIGS = {"any_shape": "configs/any_shape.toml", "on_table": "configs/on_table.toml",
                 "flat_faces": "configs/flat_faces.toml",
-                "four_objects": "configs/four_objects.toml", "parts": "configs/parts.toml"}
+                "four_objects": "configs/four_objects.toml", "parts": "configs/parts.toml",
+                "sun_shadow": "configs/sun_shadow.toml"}
 MESH_SPP = {"any_shape": 64, "on_table": 64, "flat_faces": 128, "four_objects": 128,
-            "parts": 128}
-MESH_PASSES = {"any_shape": 16, "on_table": 8, "flat_faces": 8, "four_objects": 8, "parts": 8}
+            "parts": 128, "sun_shadow": 128}
+MESH_PASSES = {"any_shape": 16, "on_table": 8, "flat_faces": 8, "four_objects": 8, "parts": 8,
+               "sun_shadow": 4}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -139,6 +139,27 @@ def test_bundled_file_matches_generator(env):
     assert np.allclose(r.image, img, rtol=1e-3, atol=1e-7)
 
 
+def test_bundled_sunny_map_matches_its_script():
+    """measurements/environment/sunny.exr is what scripts/make_sun_environment.py writes (to
+    half-float rounding); its sun, the brightest texel, lies in the direction the script
+    gives (within a texel, by our mapping written out above) and is 3000 × the sky's level
+    at 560 nm."""
+    from helpers import ROOT, load_script
+
+    script = load_script("make_sun_environment")
+    wl, img = read_spectral_exr(ROOT / "measurements" / "environment" / "sunny.exr")
+    assert np.array_equal(wl, np.arange(400.0, 701.0, 10.0))
+    want = se.synthetic_environment(128, 256, wl, lamp_radius_deg=1.5,
+                                    lamp_direction=script.sun_direction(),
+                                    lamp_luminance_ratio=3000.0)
+    assert np.allclose(img, want.astype(np.float16).astype(np.float32), rtol=1e-3, atol=1e-7)
+    lum = img[..., 16]  # 560 nm
+    r, c = np.unravel_index(np.argmax(lum), lum.shape)
+    d = direction(r, c, 256, 128)
+    assert float(d @ np.asarray(script.sun_direction())) > np.cos(np.radians(1.5))
+    assert lum.max() == pytest.approx(3000 * 0.02, rel=2e-3)
+
+
 def test_make_env_cli(tmp_path, capsys):
     out = tmp_path / "env.exr"
     assert main(["make-env", "-o", str(out), "--width", "32", "--height", "16",

@@ -15,7 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("reference", nargs="?", default="benchmark",
                    help="reference name under measurements/reference (default benchmark; "
                    "benchmark, two_spheres, any_shape, on_table, flat_faces, four_objects, "
-                   "parts) or a path to a reference .npz")
+                   "parts, sun_shadow) or a path to a reference .npz")
     p.add_argument("--all", action="store_true",
                    help="every committed reference, one after the other")
     p.add_argument("--modes", default="none,paper,gather",
