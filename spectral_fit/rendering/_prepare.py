@@ -223,11 +223,10 @@ def prepare(
         raise InputError(f"must be an int in 4..128, got {occlusion_resolution!r}",
                          field="occlusion_resolution")
     ts = scene.interreflection.texture_size if texture_size is None else int(texture_size)
-    gs = scene.interreflection.gather_size if gather_size is None else gather_size
-    if isinstance(gs, bool) or not isinstance(gs, int | np.integer) or not (
-            4 <= gs <= 64 and gs & (gs - 1) == 0):
-        raise InputError(f"must be a power of two in 4..64, got {gs!r}", field="gather_size")
-    gs = int(gs)
+    from .interreflection._pass1 import check_gather_size
+
+    gs = check_gather_size(scene.interreflection.gather_size if gather_size is None
+                           else gather_size)
 
     # meshes in object frames, concatenated (and those the interreflection's pass 1 uses)
     meshes = [obj.make_mesh() for obj in scene.objects]

@@ -66,6 +66,15 @@ _MIN_COS = 0.05
 _MARGIN = 1.02
 
 
+def check_gather_size(value: Any) -> int:
+    """``value`` as the gather size g: a power of two in 2..64, else an
+    :class:`~spectral_fit._runtime.errors.InputError` naming ``gather_size``."""
+    g = _check_int(value, "gather_size", 2, 64)
+    if g & (g - 1):
+        raise InputError(f"must be a power of two, got {g}", field="gather_size")
+    return g
+
+
 def pair_list(n: int) -> list[tuple[int, int]]:
     """Ordered pairs (receiver i, sender j), i ≠ j, in storage order p = i·(n − 1) + k."""
     return [(i, j) for i in range(n) for j in range(n) if j != i]
@@ -383,9 +392,7 @@ def prepare_interreflection(
     if n < 1:
         raise InputError("no objects", field="objects")
     texture_size = _check_int(texture_size, "texture_size", 2, 4096)
-    gather_size = _check_int(gather_size, "gather_size", 2, 64)
-    if gather_size & (gather_size - 1):
-        raise InputError(f"must be a power of two, got {gather_size}", field="gather_size")
+    gather_size = check_gather_size(gather_size)
     if not 0.0 < capacity_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], got {capacity_fraction!r}",
                          field="capacity_fraction")
