@@ -33,6 +33,7 @@ from ...geometry import (
     capacity_ladder,
     covered_pixels,
     default_config,
+    fibonacci_directions,
     interpolate,
     interpolate_pixels,
     interreflection_camera,
@@ -248,13 +249,8 @@ def plan_gather_pass1(vertices: Any, triangles: Any, *, gather_size: int = GATHE
     r = float(np.sqrt(np.max(np.sum(v * v, axis=-1)))) if v.size else 1.0
     r = max(r, 1e-9)
     windows = np.zeros(len(TILE_SIZES), np.int64)
-    k = np.arange(_PLAN_OBLIQUE) + 0.5
-    z = 1.0 - 2.0 * k / _PLAN_OBLIQUE
-    phi = k * math.pi * (3.0 - math.sqrt(5.0))
-    oblique = np.stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi),
-                        z], -1)
     views = [(d, _PLAN_ROLLS_DEG) for d in _PLAN_DIRECTIONS] + [
-        (d, _PLAN_ROLLS_DEG[::2]) for d in oblique]
+        (d, _PLAN_ROLLS_DEG[::2]) for d in fibonacci_directions(_PLAN_OBLIQUE)]
     for d, rolls in views:
         f = np.asarray(d)  # looking along f from 3r away
         s0 = np.cross(f, (0.0, 0.0, 1.0) if abs(f[1]) > 0.9 else (0.0, 1.0, 0.0))
